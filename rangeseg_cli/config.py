@@ -1,0 +1,406 @@
+"""Configuration: one frozen dataclass per pipeline stage, loaded from TOML.
+
+Defaults are the parameters of Al-Hujazi & Sood (1990), Section VI:
+step edges with a 5-tap Gaussian (sigma 1) and threshold 6; roof edges with a
+17-tap Gaussian (sigma 4) and thresholds 6 (pass 2a) and 4 (pass 2b);
+components below 20 pixels dropped; region growing at 10 e_A; a 7x7
+holdsite window (Section VII).
+
+Every key is declared once here with its type, its allowed values and a
+one-line help text; :func:`default_toml` prints them as commented TOML, and
+:func:`load_config` rejects unknown tables and keys, wrong types and values
+out of range with a :class:`~rangeseg_cli.errors.ConfigError` that names the
+table, the key, the value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, get_args
+
+from .errors import ConfigError
+
+Truncation = Literal["symmetric", "one-sided"]
+BackgroundRule = Literal["lowest-border", "largest-border", "none"]
+
+
+def _opt(default: Any, help: str, **limits: Any) -> Any:
+    """Declare a config field with its help text and limits (min, max, choices, odd)."""
+    return field(default=default, metadata={"help": help, **limits})
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """How raw pixel values become heights (SPEC "Units and real sensors")."""
+
+    scale: float = _opt(1.0, "multiply raw values by this (e.g. 0.1 for depth in 0.1 mm -> mm)",
+                        min_excl=0.0)
+    larger_is_closer: bool = _opt(True, "true for height maps; false for depth along the "
+                                  "optical axis (closer = smaller)")
+    invalid: float = _opt(math.nan, "raw no-data value (nan = only NaN is invalid; 0 for most "
+                          "depth cameras)")
+    metres_per_unit: float = _opt(0.0, "metres per depth unit after scaling (0.001 for mm; "
+                                  "0 = unknown)", min=0.0)
+    fx: float = _opt(0.0, "camera focal length x in pixels (0 = no intrinsics)", min=0.0)
+    fy: float = _opt(0.0, "camera focal length y in pixels (0 = no intrinsics)", min=0.0)
+    cx: float = _opt(0.0, "camera principal point x (column) in pixels")
+    cy: float = _opt(0.0, "camera principal point y (row) in pixels")
+
+    @property
+    def has_intrinsics(self) -> bool:
+        """Whether camera intrinsics are configured."""
+        return self.fx > 0 and self.fy > 0
+
+
+@dataclass(frozen=True)
+class StepConfig:
+    """Step edges, small filter (Sec. V-1)."""
+
+    sigma: float = _opt(1.0, "standard deviation of the 1-D Gaussian, pixels", min_excl=0.0,
+                        max=10.0)
+    taps: int = _opt(5, "length of the 1-D Gaussian mask (odd)", min=3, max=41, odd=True)
+    threshold: float = _opt(6.0, "minimum absolute residual (AR, eq. 3) of a step edge, "
+                            "depth units", min_excl=0.0)
+
+
+@dataclass(frozen=True)
+class RoofConfig:
+    """Roof edges, large adaptive filter in two passes (Sec. V-2)."""
+
+    sigma: float = _opt(4.0, "standard deviation of the 1-D Gaussian, pixels", min_excl=0.0,
+                        max=20.0)
+    taps: int = _opt(17, "length of the 1-D Gaussian mask (odd)", min=3, max=81, odd=True)
+    threshold_a: float = _opt(6.0, "AR threshold of pass 2a (step edges excluded)",
+                              min_excl=0.0)
+    threshold_b: float = _opt(4.0, "AR threshold of pass 2b (step and 2a roof edges excluded)",
+                              min_excl=0.0)
+    search_radius: int = _opt(2, "a roof edge is the AR maximum within +-this many pixels "
+                              "along the direction", min=1, max=10)
+    truncation: str = _opt("symmetric", "how the adaptive mask is cut at an excluded pixel: "
+                           "symmetric (both sides at the shorter reach; no bias on ramps) or "
+                           "one-sided (the paper's Fig. 9)", choices=get_args(Truncation))
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Linking and connected components (Sec. V-3)."""
+
+    min_component: int = _opt(20, "components with fewer pixels are dropped", min=1)
+
+
+@dataclass(frozen=True)
+class GrowConfig:
+    """Least-squares quadratic region growing (Sec. V-4)."""
+
+    error_factor: float = _opt(10.0, "a pixel joins a surface when its squared residual is "
+                               "below this times the surface's e_A", min_excl=0.0)
+    passes: int = _opt(1, "growing passes (1 as in the paper; 0 = until nothing changes)",
+                       min=0, max=1000)
+    min_error: float = _opt(0.25, "floor on e_A in depth units squared (quantisation alone "
+                            "gives 1/12)", min=0.0)
+    planar_tolerance: float = _opt(0.1, "a surface is planar unless the quadratic terms lower "
+                                   "its mean squared error by more than this fraction",
+                                   min=0.0, max=1.0)
+
+
+@dataclass(frozen=True)
+class HoldsiteConfig:
+    """Holdsite search for a vacuum gripper (Sec. VII)."""
+
+    size: tuple[int, int] = _opt((7, 7), "gripper footprint [rows, cols] in pixels (odd)",
+                                 min=1, max=255, odd=True)
+    max_ar_std: float = _opt(1.0, "largest standard deviation of the 2-D AR (5x5 Gaussian, "
+                             "sigma 1) inside the window, depth units", min=0.0)
+    max_candidates: int = _opt(5, "runners-up reported beside the chosen site", min=0,
+                               max=100)
+    rotation_step: float = _opt(15.0, "rotation step in degrees for a non-square footprint",
+                                min_excl=0.0, max=90.0)
+    background: str = _opt("lowest-border", "which regions are background: lowest-border "
+                           "(touching the border at the lowest height), largest-border, or "
+                           "none", choices=get_args(BackgroundRule))
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """What is written beside the arrays."""
+
+    png: bool = _opt(True, "write PNG pictures (step, roof, edges, components, labels, "
+                     "overlay)")
+    float_digits: int = _opt(6, "significant digits of floats in JSON outputs", min=3, max=17)
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration: one table per stage."""
+
+    input: InputConfig = field(default_factory=InputConfig)
+    step: StepConfig = field(default_factory=StepConfig)
+    roof: RoofConfig = field(default_factory=RoofConfig)
+    link: LinkConfig = field(default_factory=LinkConfig)
+    grow: GrowConfig = field(default_factory=GrowConfig)
+    holdsite: HoldsiteConfig = field(default_factory=HoldsiteConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain nested dict (tuples as lists), as written to the manifest."""
+        return {
+            table.name: {
+                f.name: _plain(getattr(getattr(self, table.name), f.name))
+                for f in dataclasses.fields(getattr(self, table.name))
+            }
+            for table in dataclasses.fields(self)
+        }
+
+    def digest(self) -> str:
+        """Short stable hash of the configuration (for ``--resume``)."""
+        text = json.dumps(self.to_dict(), sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+_TABLE_CLASSES: dict[str, type] = {
+    "input": InputConfig, "step": StepConfig, "roof": RoofConfig, "link": LinkConfig,
+    "grow": GrowConfig, "holdsite": HoldsiteConfig, "output": OutputConfig,
+}
+
+#: Named presets: overrides applied before the TOML file and the command line.
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "paper": {},
+    "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
+                           "metres_per_unit": 0.001}},
+    "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,
+                                 "metres_per_unit": 0.001}},
+    "metre-depth": {"input": {"scale": 1000.0, "larger_is_closer": False, "invalid": 0.0,
+                              "metres_per_unit": 0.001}},
+}
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, tuple):
+        return list(value)
+    return value
+
+
+def _describe_allowed(f: dataclasses.Field) -> str:
+    meta = f.metadata
+    kind = _kind(f)
+    if "choices" in meta:
+        return "one of " + ", ".join(repr(c) for c in meta["choices"])
+    parts = []
+    if kind is tuple:
+        parts.append("a list of two integers")
+    else:
+        parts.append({bool: "true or false", int: "an integer", float: "a number",
+                      str: "a string"}[kind])
+    if "min" in meta:
+        parts.append(f">= {meta['min']}")
+    if "min_excl" in meta:
+        parts.append(f"> {meta['min_excl']}")
+    if "max" in meta:
+        parts.append(f"<= {meta['max']}")
+    if meta.get("odd"):
+        parts.append("odd")
+    return " ".join(parts)
+
+
+def _kind(f: dataclasses.Field) -> type:
+    default = f.default
+    return type(default) if not isinstance(default, tuple) else tuple
+
+
+def _check_number(x: Any, f: dataclasses.Field, integer: bool) -> bool:
+    meta = f.metadata
+    if integer and (isinstance(x, bool) or not isinstance(x, int)):
+        return False
+    if not integer and (isinstance(x, bool) or not isinstance(x, int | float)):
+        return False
+    if math.isnan(x):
+        return f.name == "invalid"  # NaN: "no no-data value besides NaN"
+    if "min" in meta and x < meta["min"]:
+        return False
+    if "min_excl" in meta and x <= meta["min_excl"]:
+        return False
+    if "max" in meta and x > meta["max"]:
+        return False
+    if meta.get("odd") and int(x) % 2 == 0:
+        return False
+    return not math.isinf(x)
+
+
+def _coerce(table: str, f: dataclasses.Field, value: Any) -> Any:
+    """Check one value against its declaration; return it in the field's type."""
+    kind = _kind(f)
+    ok: bool
+    if kind is bool:
+        ok = isinstance(value, bool)
+    elif kind is str:
+        ok = isinstance(value, str) and value in f.metadata.get("choices", (value,))
+    elif kind is tuple:
+        ok = (isinstance(value, list | tuple) and len(value) == 2
+              and all(_check_number(v, f, integer=True) for v in value))
+        value = tuple(value) if ok else value
+    else:
+        ok = _check_number(value, f, integer=kind is int)
+        value = float(value) if ok and kind is float else value
+        if ok and kind is float and math.isnan(value):
+            value = math.nan  # the one NaN object, so that configs compare equal
+    if not ok:
+        raise ConfigError(
+            f"[{table}] {f.name} = {value!r}: expected {_describe_allowed(f)}"
+        )
+    return value
+
+
+def build_config(values: dict[str, Any], source: str = "config") -> Config:
+    """Build a :class:`Config` from nested ``{table: {key: value}}`` overrides.
+
+    Parameters
+    ----------
+    values
+        Tables and keys to set; missing ones keep their defaults.
+    source
+        Named in error messages (usually the TOML file's path).
+
+    Raises
+    ------
+    ConfigError
+        On an unknown table or key, a wrong type or a value out of range.
+    """
+    tables: dict[str, Any] = {}
+    for table, entries in values.items():
+        if table not in _TABLE_CLASSES:
+            raise ConfigError(f"{source}: unknown table [{table}]; allowed tables: "
+                              + ", ".join(_TABLE_CLASSES))
+        if not isinstance(entries, dict):
+            raise ConfigError(f"{source}: [{table}] must be a table, got {entries!r}")
+        cls = _TABLE_CLASSES[table]
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        kwargs = {}
+        for key, value in entries.items():
+            if key not in fields:
+                raise ConfigError(f"{source}: unknown key [{table}] {key}; allowed keys: "
+                                  + ", ".join(fields))
+            kwargs[key] = _coerce(table, fields[key], value)
+        tables[table] = cls(**kwargs)
+    config = Config(**tables)
+    _check_consistency(config)
+    return config
+
+
+def _check_consistency(config: Config) -> None:
+    if config.roof.threshold_b > config.roof.threshold_a:
+        raise ConfigError(
+            f"[roof] threshold_b = {config.roof.threshold_b}: must be <= threshold_a "
+            f"({config.roof.threshold_a}); pass 2b uses the lower threshold (Sec. V-2)"
+        )
+
+
+def merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    """Merge two nested ``{table: {key: value}}`` dicts; ``extra`` wins."""
+    out = {t: dict(v) if isinstance(v, dict) else v for t, v in base.items()}
+    for table, entries in extra.items():
+        if isinstance(entries, dict) and isinstance(out.get(table), dict):
+            out[table].update(entries)
+        else:
+            out[table] = entries
+    return out
+
+
+def load_config(
+    path: str | Path | None = None,
+    *,
+    preset: str | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> Config:
+    """Load the configuration: defaults, then a preset, a TOML file and overrides.
+
+    Parameters
+    ----------
+    path
+        A TOML file with ``[input] [step] [roof] [link] [grow] [holdsite]
+        [output]`` tables; ``None`` gives the paper's defaults.
+    preset
+        A name from :data:`PRESETS` (e.g. ``"mm-depth"``).
+    overrides
+        Nested ``{table: {key: value}}``, applied last (command-line options).
+
+    Returns
+    -------
+    Config
+        The frozen configuration.
+
+    Raises
+    ------
+    ConfigError
+        For an unreadable file, invalid TOML, an unknown preset, table or key,
+        a wrong type or a value out of range.
+    """
+    values: dict[str, Any] = {}
+    if preset is not None:
+        if preset not in PRESETS:
+            raise ConfigError(f"unknown preset {preset!r}; allowed: " + ", ".join(PRESETS))
+        values = merge(values, PRESETS[preset])
+    source = "config"
+    if path is not None:
+        source = str(path)
+        values = merge(values, read_toml(Path(path)))
+    if overrides:
+        values = merge(values, overrides)
+    return build_config(values, source)
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    """Read a TOML file, turning every failure into a one-line :class:`ConfigError`."""
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config file ({exc.strerror})") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        return repr(value)
+    if isinstance(value, tuple | list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, str):
+        return json.dumps(value)
+    return str(value)
+
+
+def default_toml(config: Config | None = None) -> str:
+    """Render a configuration as TOML with a comment on every key.
+
+    Parameters
+    ----------
+    config
+        The configuration to print; the defaults when ``None``.
+
+    Returns
+    -------
+    str
+        TOML text that :func:`load_config` reads back to the same values.
+    """
+    config = config or Config()
+    lines = ["# rangeseg configuration. Defaults are the parameters of Al-Hujazi & Sood",
+             "# (1990), Section VI. Every key is optional."]
+    for table_field in dataclasses.fields(config):
+        table = getattr(config, table_field.name)
+        lines += ["", f"# {type(table).__doc__.splitlines()[0]}", f"[{table_field.name}]"]
+        for f in dataclasses.fields(table):
+            lines.append(f"# {f.metadata['help']} ({_describe_allowed(f)})")
+            lines.append(f"{f.name} = {_toml_value(getattr(table, f.name))}")
+    return "\n".join(lines) + "\n"

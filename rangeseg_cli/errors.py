@@ -1,0 +1,23 @@
+"""Errors of the library: one base class, one subclass per kind of failure.
+
+The command line turns :class:`ConfigError` into exit code 2 and
+:class:`InputError` into a one-line report of the file and exit code 1.
+"""
+
+from __future__ import annotations
+
+
+class RangesegError(Exception):
+    """Base class of every error this library raises on purpose."""
+
+
+class ConfigError(RangesegError):
+    """A configuration value, key, table or file is not acceptable."""
+
+
+class InputError(RangesegError):
+    """An input image cannot be used (unreadable, wrong shape, too small, all invalid)."""
+
+
+class OutputError(RangesegError):
+    """An output folder cannot be written, or holds results that would be overwritten."""

@@ -1,0 +1,144 @@
+"""The whole segmentation of Al-Hujazi & Sood (1990), stage by stage.
+
+Notes
+-----
+1. Step edges, small filter (Sec. V-1) and 2. roof edges, large adaptive
+   filter in passes 2a and 2b (Sec. V-2): :mod:`rangeseg_cli.edges`.
+3. Linking and 4-connected components (Sec. V-3): :mod:`rangeseg_cli.link`.
+4. Least-squares quadratic region growing (Sec. V-4): :mod:`rangeseg_cli.grow`;
+   surface descriptions: :mod:`rangeseg_cli.surfaces`.
+5. Holdsite on the highest surface (Sec. VII): :mod:`rangeseg_cli.holdsite`.
+
+Each stage is a pure function of the arrays the earlier stages produced, so
+running the stages one by one from files gives the same results as
+:func:`run_pipeline`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .config import Config, load_config
+from .edges import EdgeMaps, detect_edges
+from .models import Surface
+from .rangeimage import to_heights
+
+#: Stage names in order.
+STAGES = ("edges", "link", "grow", "holdsite")
+
+
+@dataclass
+class PipelineResult:
+    """Everything the pipeline computes for one image.
+
+    Attributes
+    ----------
+    heights
+        float64 (H, W) heights, NaN where invalid.
+    edge_maps
+        Step and roof edges (Sec. V-1, V-2).
+    edges
+        uint8 (H, W): 0 none, 1 step, 2 roof, 3 added by linking.
+    components
+        int32 (H, W) connected components after linking (0 = edge/dropped/invalid).
+    labels
+        int32 (H, W) final segmentation (0 = unlabelled/edge/invalid, 1..K).
+    surfaces
+        One :class:`~rangeseg_cli.models.Surface` per final label.
+    holdsite
+        The holdsite result (``.to_dict()`` gives ``holdsite.json``).
+    timings
+        Seconds spent per stage.
+    """
+
+    heights: np.ndarray
+    edge_maps: EdgeMaps
+    edges: np.ndarray
+    components: np.ndarray | None = None
+    labels: np.ndarray | None = None
+    surfaces: list[Surface] | None = None
+    holdsite: Any = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def stage_edges(z: np.ndarray, config: Config) -> EdgeMaps:
+    """Steps 1 and 2 (Sec. V-1, V-2) on heights ``z``."""
+    return detect_edges(z, config)
+
+
+def stage_link(z: np.ndarray, codes: np.ndarray, config: Config
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Step 3 (Sec. V-3): linked edge codes and connected components."""
+    from .link import link_edges
+
+    return link_edges(codes, ~np.isnan(z), config.link)
+
+
+def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config: Config
+               ) -> tuple[np.ndarray, list[Surface]]:
+    """Step 4 (Sec. V-4): final labels and their surface descriptions."""
+    from .grow import grow_regions
+    from .surfaces import describe_surfaces
+
+    labels = grow_regions(z, edges, components, config.grow)
+    return labels, describe_surfaces(z, labels, config)
+
+
+def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
+                   config: Config) -> Any:
+    """Sec. VII: the holdsite on the highest usable surface."""
+    from .holdsite import find_holdsite
+
+    return find_holdsite(z, labels, surfaces, config)
+
+
+def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(STAGES),
+                 name: str = "image") -> PipelineResult:
+    """Segment one range image and find its holdsite.
+
+    Parameters
+    ----------
+    image
+        Array-like (H, W) or (H, W, 1) of raw values, read as ``[input]`` says.
+    config
+        The configuration; the paper's defaults when ``None``.
+    stages
+        How many stages of :data:`STAGES` to run (4 = all).
+    name
+        Named in error messages.
+
+    Returns
+    -------
+    PipelineResult
+        Edges, components, labels, surfaces and holdsite (those of the stages run).
+
+    Raises
+    ------
+    InputError
+        When ``image`` is not a usable range image.
+    """
+    config = config or load_config()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    z = to_heights(image, config.input, name=name)
+    maps = stage_edges(z, config)
+    timings["edges"] = time.perf_counter() - t0
+    result = PipelineResult(heights=z, edge_maps=maps, edges=maps.codes, timings=timings)
+    if stages >= 2:
+        t0 = time.perf_counter()
+        result.edges, result.components = stage_link(z, maps.codes, config)
+        timings["link"] = time.perf_counter() - t0
+    if stages >= 3:
+        t0 = time.perf_counter()
+        result.labels, result.surfaces = stage_grow(z, result.edges, result.components,
+                                                    config)
+        timings["grow"] = time.perf_counter() - t0
+    if stages >= 4:
+        t0 = time.perf_counter()
+        result.holdsite = stage_holdsite(z, result.labels, result.surfaces, config)
+        timings["holdsite"] = time.perf_counter() - t0
+    return result

@@ -1,0 +1,98 @@
+"""Raw pixel values to heights (SPEC "Units and real sensors").
+
+Heights grow towards the sensor, as in the paper's ERIM images. Depth images
+(closer = smaller) are negated; a configured no-data value, NaN and
+infinities become NaN, which every later stage treats as "invalid": never
+inside a smoothing mask, a fit or a holdsite, and labelled 0.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .config import InputConfig
+from .errors import InputError
+
+MIN_SIZE = 16
+
+
+def check_array(raw: Any, *, name: str = "image") -> np.ndarray:
+    """Check that ``raw`` is a 2-D numeric array of at least 16x16.
+
+    Parameters
+    ----------
+    raw
+        Array-like of shape (H, W) or (H, W, 1).
+    name
+        Named in error messages (a file path or ``"image"``).
+
+    Returns
+    -------
+    numpy.ndarray
+        The (H, W) array (a view where possible; the input is never modified).
+
+    Raises
+    ------
+    InputError
+        For a non-numeric dtype, another shape, or a side below 16 pixels.
+    """
+    try:
+        arr = np.asarray(raw)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: not an array ({exc})") from None
+    if arr.dtype.kind not in "buif":
+        raise InputError(f"{name}: pixel type {arr.dtype} is not numeric; allowed: integer "
+                         "or floating-point")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim == 3 and arr.shape[2] in (2, 3, 4):
+        raise InputError(f"{name}: has {arr.shape[2]} channels (shape {arr.shape}); a range "
+                         "image has one")
+    if arr.ndim != 2:
+        raise InputError(f"{name}: shape {arr.shape} is not a 2-D range image; allowed: "
+                         "(H, W) or (H, W, 1)")
+    if min(arr.shape) < MIN_SIZE:
+        raise InputError(f"{name}: size {arr.shape[0]}x{arr.shape[1]} is too small; at least "
+                         f"{MIN_SIZE}x{MIN_SIZE} is needed")
+    return arr
+
+
+def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image") -> np.ndarray:
+    """Convert raw values to heights in depth units, NaN where invalid.
+
+    Parameters
+    ----------
+    raw
+        Array-like (H, W) or (H, W, 1) of raw sensor values.
+    cfg
+        ``[input]``: ``scale``, ``larger_is_closer`` and the ``invalid`` value.
+    name
+        Named in error messages.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W): ``raw * scale``, negated when smaller values are
+        closer; NaN at invalid pixels. A new array: the input is not modified.
+
+    Raises
+    ------
+    InputError
+        When the array is not a usable range image or has no valid pixel.
+    """
+    arr = check_array(raw, name=name)
+    z = arr.astype(np.float64)
+    invalid = ~np.isfinite(z)
+    if not math.isnan(cfg.invalid):
+        invalid |= z == cfg.invalid
+    with np.errstate(over="ignore", invalid="ignore"):
+        z *= cfg.scale if cfg.larger_is_closer else -cfg.scale
+    invalid |= ~np.isfinite(z)
+    z[invalid] = np.nan
+    if invalid.all():
+        raise InputError(f"{name}: no valid pixel (all NaN, infinite or equal to the "
+                         f"no-data value {cfg.invalid})")
+    return z
