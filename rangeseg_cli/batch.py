@@ -1,0 +1,484 @@
+"""Batch processing: images in, per-stage artefacts and a manifest out.
+
+The command line is a thin layer over :func:`run_batch`. Each image is
+processed on its own (in this process or in a worker process), through a
+range of the pipeline's stages; every artefact is written atomically, so a
+killed run leaves only complete files; a bad image is recorded as failed and
+the others go on.
+
+Artefacts of an image with relative stem ``rel`` (SPEC file contract):
+
+========== ==========================================================
+stage      files ``OUT/<rel>.<artifact>``
+========== ==========================================================
+edges      ``range.npy`` (float64 heights, NaN invalid), ``edges.npy``,
+           ``step.png``, ``roof.png``, ``edges.png``
+link       ``edges.npy`` (with code 3), ``components.npy``,
+           ``components.png``, ``linked.png``
+grow       ``labels.npy``, ``labels.png``, ``surfaces.json``
+holdsite   ``holdsite.json``, ``overlay.png``
+========== ==========================================================
+
+Later stages read what the earlier ones wrote, so running the stages one
+after another gives the same bytes as running them all at once.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+import traceback
+from collections.abc import Callable, Iterable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from . import __version__, io, render
+from .config import Config, build_config
+from .errors import InputError, OutputError, RangesegError
+from .pipeline import STAGES, stage_edges, stage_grow, stage_holdsite, stage_link
+from .rangeimage import to_heights
+
+MANIFEST = "rangeseg-run.json"
+
+#: Files each stage writes (``png`` ones only when ``[output] png``).
+STAGE_FILES: dict[str, tuple[str, ...]] = {
+    "edges": ("range.npy", "edges.npy"),
+    "link": ("components.npy",),
+    "grow": ("labels.npy", "surfaces.json"),
+    "holdsite": ("holdsite.json",),
+}
+STAGE_PICTURES: dict[str, tuple[str, ...]] = {
+    "edges": ("step.png", "roof.png", "edges.png"),
+    "link": ("components.png", "linked.png"),
+    "grow": ("labels.png",),
+    "holdsite": ("overlay.png",),
+}
+
+
+@dataclass(frozen=True)
+class Job:
+    """One image of a batch: its source file (for ``edges``) and relative stem."""
+
+    rel: str
+    source: str | None = None
+
+
+@dataclass
+class Record:
+    """What happened to one image."""
+
+    rel: str
+    status: str  # "done", "failed" or "skipped"
+    source: str | None = None
+    error: str | None = None
+    detail: str | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Manifest entry."""
+        out: dict[str, Any] = {"status": self.status, "timings": self.timings}
+        if self.source is not None:
+            out["input"] = self.source
+        if self.error is not None:
+            out["error"] = self.error
+        if self.detail is not None:
+            out["traceback"] = self.detail
+        return out
+
+
+@dataclass
+class BatchSummary:
+    """Outcome of a batch, for the summary table and ``--json``."""
+
+    records: list[Record]
+    skipped_files: list[str]
+    seconds: float
+    interrupted: bool = False
+
+    def count(self, status: str) -> int:
+        """Number of images with ``status``."""
+        return sum(r.status == status for r in self.records)
+
+    @property
+    def stage_seconds(self) -> dict[str, float]:
+        """Total seconds per stage over the batch."""
+        totals: dict[str, float] = {}
+        for r in self.records:
+            for stage, seconds in r.timings.items():
+                totals[stage] = totals.get(stage, 0.0) + seconds
+        return totals
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain summary for ``--json``."""
+        return {
+            "done": self.count("done"), "failed": self.count("failed"),
+            "resumed": self.count("skipped"), "not_images": len(self.skipped_files),
+            "seconds": self.seconds, "stage_seconds": self.stage_seconds,
+            "interrupted": self.interrupted,
+            "errors": {r.rel: r.error for r in self.records if r.status == "failed"},
+        }
+
+
+def artifact(out: Path, rel: str, name: str) -> Path:
+    """Path of artefact ``name`` (e.g. ``"labels.npy"``) of image ``rel``."""
+    return out / f"{rel}.{name}"
+
+
+def stage_range(first: str, last: str) -> tuple[str, ...]:
+    """Stages from ``first`` to ``last`` inclusive."""
+    i, j = STAGES.index(first), STAGES.index(last)
+    return STAGES[i: j + 1]
+
+
+# --------------------------------------------------------------------------- one image
+
+
+def process_image(job: Job, out: Path, config: Config, stages: tuple[str, ...]
+                  ) -> Record:
+    """Run ``stages`` on one image and write their artefacts; never raises for bad data.
+
+    Parameters
+    ----------
+    job
+        The image: ``source`` is read when ``stages`` starts at ``edges``;
+        otherwise the earlier stage's files in ``out`` are read.
+    out
+        The output folder.
+    config
+        The configuration.
+    stages
+        Consecutive stage names from :data:`~rangeseg_cli.pipeline.STAGES`.
+
+    Returns
+    -------
+    Record
+        ``done`` with stage timings, or ``failed`` with a one-line reason.
+    """
+    record = Record(rel=job.rel, status="done", source=job.source)
+    try:
+        state = _initial_state(job, out, stages[0], config)
+        for stage in stages:
+            t0 = time.perf_counter()
+            _STAGE_RUNNERS[stage](state, out / job.rel, config)
+            record.timings[stage] = time.perf_counter() - t0
+    except RangesegError as exc:
+        record.status, record.error = "failed", str(exc)
+    except MemoryError:
+        record.status, record.error = "failed", f"{job.source or job.rel}: out of memory"
+    except Exception as exc:  # noqa: BLE001 - one bad image never stops the batch
+        record.status = "failed"
+        record.error = f"{job.source or job.rel}: internal error ({type(exc).__name__}: {exc})"
+        record.detail = traceback.format_exc()
+    return record
+
+
+def _initial_state(job: Job, out: Path, first: str, config: Config) -> dict[str, Any]:
+    base = out / job.rel
+    if first == "edges":
+        if job.source is None:
+            raise OutputError(f"{job.rel}: no input image")
+        raw = io.read_image(job.source)
+        return {"z": to_heights(raw, config.input, name=job.source)}
+    state: dict[str, Any] = {"z": io.read_npy(_p(base, "range.npy"))}
+    if first in ("link", "grow"):
+        state["edges"] = io.read_npy(_p(base, "edges.npy"))
+    if first == "grow":
+        state["components"] = io.read_npy(_p(base, "components.npy"))
+    if first == "holdsite":
+        from .surfaces import describe_surfaces
+
+        state["labels"] = io.read_npy(_p(base, "labels.npy"))
+        state["surfaces"] = describe_surfaces(state["z"], state["labels"], config)
+    return state
+
+
+def _p(base: Path, name: str) -> Path:
+    return base.parent / f"{base.name}.{name}"
+
+
+def _run_edges(state: dict[str, Any], base: Path, config: Config) -> None:
+    z = state["z"]
+    maps = stage_edges(z, config)
+    state["edges"] = maps.codes
+    io.write_npy(_p(base, "range.npy"), z)
+    io.write_npy(_p(base, "edges.npy"), maps.codes)
+    if config.output.png:
+        io.write_png(_p(base, "step.png"), render.mask_image(maps.step))
+        io.write_png(_p(base, "roof.png"), render.mask_image(maps.roof))
+        io.write_png(_p(base, "edges.png"), render.edge_code_image(maps.codes))
+
+
+def _run_link(state: dict[str, Any], base: Path, config: Config) -> None:
+    codes, components = stage_link(state["z"], state["edges"], config)
+    state["edges"], state["components"] = codes, components
+    io.write_npy(_p(base, "edges.npy"), codes)
+    io.write_npy(_p(base, "components.npy"), components)
+    if config.output.png:
+        io.write_png(_p(base, "components.png"), render.label_colors(components))
+        io.write_png(_p(base, "linked.png"), render.edge_code_image(codes))
+
+
+def _run_grow(state: dict[str, Any], base: Path, config: Config) -> None:
+    from .surfaces import surfaces_to_json
+
+    labels, surfaces = stage_grow(state["z"], state["edges"], state["components"], config)
+    state["labels"], state["surfaces"] = labels, surfaces
+    io.write_npy(_p(base, "labels.npy"), labels)
+    io.write_json(_p(base, "surfaces.json"), surfaces_to_json(surfaces),
+                  config.output.float_digits)
+    if config.output.png:
+        io.write_png(_p(base, "labels.png"), render.label_colors(labels))
+
+
+def _run_holdsite(state: dict[str, Any], base: Path, config: Config) -> None:
+    result = stage_holdsite(state["z"], state["labels"], state["surfaces"], config)
+    io.write_json(_p(base, "holdsite.json"), result.to_dict(), config.output.float_digits)
+    if config.output.png:
+        io.write_png(_p(base, "overlay.png"),
+                     render.overlay(state["labels"], result, config.holdsite.size))
+
+
+_STAGE_RUNNERS: dict[str, Callable[[dict[str, Any], Path, Config], None]] = {
+    "edges": _run_edges, "link": _run_link, "grow": _run_grow, "holdsite": _run_holdsite,
+}
+
+
+def expected_files(rel: str, stages: Iterable[str], config: Config) -> list[str]:
+    """Artefact names the given stages write for one image."""
+    names: list[str] = []
+    for stage in stages:
+        names += STAGE_FILES[stage]
+        if config.output.png:
+            names += STAGE_PICTURES[stage]
+    return names
+
+
+# --------------------------------------------------------------------------- batches
+
+
+def jobs_from_inputs(inputs: Iterable[str | Path], out: Path
+                     ) -> tuple[list[Job], list[str]]:
+    """Jobs for the images among ``inputs`` (files and folders, recursive).
+
+    Raises
+    ------
+    InputError
+        When an input does not exist, or two images would write the same outputs.
+    """
+    images, skipped = io.find_images(inputs, exclude=out)
+    seen: dict[str, Path] = {}
+    jobs = []
+    for path, rel in images:
+        key = rel.as_posix()
+        if key in seen:
+            raise InputError(f"{seen[key]} and {path} would both write {out / key}.*; "
+                             "name their folder instead, or run them separately")
+        seen[key] = path
+        jobs.append(Job(rel=key, source=str(path)))
+    return jobs, [str(p) for p in skipped]
+
+
+def jobs_from_output(out: Path) -> list[Job]:
+    """Jobs for every image the ``edges`` stage has written into ``out``."""
+    if not out.is_dir():
+        raise OutputError(f"{out}: no such output folder; run `rangeseg edges` first")
+    suffix = ".range.npy"
+    rels = sorted(p.relative_to(out).as_posix()[: -len(suffix)]
+                  for p in out.rglob(f"*{suffix}"))
+    if not rels:
+        raise OutputError(f"{out}: holds no results of `rangeseg edges` (*.range.npy)")
+    return [Job(rel=r) for r in rels]
+
+
+def read_manifest(out: Path) -> dict[str, Any]:
+    """The manifest in ``out``, or an empty one."""
+    path = out / MANIFEST
+    if not path.exists():
+        return {}
+    data = io.read_json(path)
+    return data if isinstance(data, dict) else {}
+
+
+def manifest_config(out: Path) -> Config | None:
+    """The configuration recorded in ``out``'s manifest, if any."""
+    data = read_manifest(out).get("config")
+    return build_config(data, str(out / MANIFEST)) if isinstance(data, dict) else None
+
+
+def plan_jobs(jobs: list[Job], out: Path, config: Config, stages: tuple[str, ...], *,
+              resume: bool, overwrite: bool) -> tuple[list[Job], list[Record]]:
+    """Split jobs into those to run and those already complete (``--resume``).
+
+    Raises
+    ------
+    OutputError
+        When ``out`` already holds results for these images and neither
+        ``resume`` nor ``overwrite`` is set.
+    """
+    if overwrite:
+        return jobs, []
+    images = read_manifest(out).get("images", {})
+    done_before = [j for j in jobs if j.rel in images
+                   or artifact(out, j.rel, "edges.npy").exists()]
+    if not resume:
+        if done_before:
+            raise OutputError(
+                f"{out} already holds results for {len(done_before)} of these images "
+                f"(e.g. {done_before[0].rel}); use --resume to complete what is missing "
+                "or --overwrite to redo all")
+        return jobs, []
+    todo, skipped = [], []
+    for job in jobs:
+        entry = images.get(job.rel, {})
+        complete = (entry.get("status") == "done" and entry.get("config") == config.digest()
+                    and set(stages) <= set(entry.get("stages", []))
+                    and all(artifact(out, job.rel, n).exists()
+                            for n in expected_files(job.rel, stages, config)))
+        if complete:
+            skipped.append(Record(rel=job.rel, status="skipped", source=job.source))
+        else:
+            todo.append(job)
+    return todo, skipped
+
+
+class _Manifest:
+    """The batch manifest, updated as images finish and rewritten atomically."""
+
+    def __init__(self, out: Path, config: Config, command: str, stages: tuple[str, ...]):
+        self.out, self.config, self.stages = out, config, stages
+        self.data = read_manifest(out) if out.exists() else {}
+        self.data.update({"version": __version__, "config": config.to_dict(),
+                          "config_digest": config.digest(), "command": command})
+        self.data.setdefault("images", {})
+        self.last_write = 0.0
+
+    def add(self, record: Record) -> None:
+        if record.status == "skipped":
+            return
+        entry = record.to_dict()
+        old = self.data["images"].get(record.rel, {})
+        same = old.get("config") == self.config.digest() and old.get("status") == "done"
+        stages = set(old.get("stages", [])) if same else set()
+        if record.status == "done":
+            stages |= set(self.stages)
+        entry["stages"] = [s for s in STAGES if s in stages]
+        entry["config"] = self.config.digest()
+        if "input" not in entry and "input" in old:
+            entry["input"] = old["input"]
+        self.data["images"][record.rel] = entry
+        if time.monotonic() - self.last_write > 2.0:
+            self.write()
+
+    def write(self, summary: BatchSummary | None = None) -> None:
+        if summary is not None:
+            self.data["summary"] = summary.to_dict()
+        self.out.mkdir(parents=True, exist_ok=True)
+        io.write_json(self.out / MANIFEST, self.data, digits=6)
+        self.last_write = time.monotonic()
+
+
+def run_batch(jobs: list[Job], out: Path, config: Config, stages: tuple[str, ...], *,
+              n_jobs: int = 1, resume: bool = False, overwrite: bool = False,
+              skipped_files: list[str] | None = None, command: str = "run",
+              on_result: Callable[[Record], None] | None = None,
+              on_start: Callable[[int], None] | None = None) -> BatchSummary:
+    """Process ``jobs`` through ``stages`` and write the manifest.
+
+    Parameters
+    ----------
+    jobs
+        Images to process (:func:`jobs_from_inputs` or :func:`jobs_from_output`).
+    out
+        Output folder (created if missing).
+    config
+        The configuration, recorded in the manifest with its digest.
+    stages
+        Consecutive stages to run (e.g. ``STAGES`` for ``run``).
+    n_jobs
+        Worker processes; 1 runs in this process.
+    resume, overwrite
+        See :func:`plan_jobs`. Stage commands after ``edges`` pass ``overwrite``.
+    skipped_files
+        Non-image files found in the inputs, for the summary.
+    command
+        Recorded in the manifest.
+    on_result, on_start
+        Callbacks for progress: ``on_start(number of images to process)`` and
+        ``on_result(record)`` for each finished image.
+
+    Returns
+    -------
+    BatchSummary
+        Per-image records, the skipped files and the wall time.
+    """
+    t0 = time.perf_counter()
+    todo, records = plan_jobs(jobs, out, config, stages, resume=resume, overwrite=overwrite)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = _Manifest(out, config, command, stages)
+    if on_start is not None:
+        on_start(len(todo))
+    interrupted = False
+
+    def finish(record: Record) -> None:
+        records.append(record)
+        manifest.add(record)
+        if on_result is not None:
+            on_result(record)
+
+    try:
+        _execute(todo, out, config, stages, n_jobs, finish)
+    except KeyboardInterrupt:
+        interrupted = True
+    summary = BatchSummary(records=sorted(records, key=lambda r: r.rel),
+                           skipped_files=skipped_files or [],
+                           seconds=time.perf_counter() - t0, interrupted=interrupted)
+    manifest.write(summary)
+    return summary
+
+
+def _execute(todo: list[Job], out: Path, config: Config, stages: tuple[str, ...],
+             n_jobs: int, finish: Callable[[Record], None]) -> None:
+    if n_jobs <= 1 or len(todo) <= 1:
+        for job in todo:
+            finish(process_image(job, out, config, stages))
+        return
+    # At most 2 images per worker in flight: memory stays bounded for any batch size.
+    pending: set[Future[Record]] = set()
+    queue = iter(todo)
+    with ProcessPoolExecutor(max_workers=n_jobs, initializer=_ignore_sigint) as pool:
+        try:
+            for job in queue:
+                pending.add(pool.submit(process_image, job, out, config, stages))
+                if len(pending) >= 2 * n_jobs:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for fut in sorted(done, key=id):
+                        finish(fut.result())
+            for fut in _as_done(pending):
+                finish(fut.result())
+        except KeyboardInterrupt:
+            for fut in pending:
+                fut.cancel()
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+
+
+def _ignore_sigint() -> None:
+    """Workers leave Ctrl-C to the main process, which stops the batch cleanly."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _as_done(pending: set[Future[Record]]) -> Iterable[Future[Record]]:
+    while pending:
+        done, pending = wait(pending, return_when=FIRST_COMPLETED)
+        yield from done
+
+
+def default_jobs() -> int:
+    """Default number of worker processes: the cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)

@@ -1,0 +1,248 @@
+"""The ``rangeseg`` command line: a thin click layer over :mod:`rangeseg_cli.batch`.
+
+Exit codes: 0 all images done; 1 at least one image failed (the others are
+still done); 2 usage or configuration error, nothing done; 130 interrupted.
+Logs, progress and the summary go to stderr; ``--json`` data to stdout.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from . import __version__
+
+log = logging.getLogger("rangeseg")
+STAGE_NAMES = ("edges", "link", "grow", "holdsite")
+PRESET_NAMES = ("paper", "mm-depth", "tenth-mm-depth", "metre-depth")
+
+# --------------------------------------------------------------------------- shared options
+
+config_opt = click.option("--config", "config_path", type=click.Path(dir_okay=False),
+                          help="TOML configuration file (see `rangeseg config`).")
+preset_opt = click.option("--preset", type=click.Choice(PRESET_NAMES),
+                          help="Named settings for a kind of sensor, applied before "
+                               "--config (e.g. tenth-mm-depth for depth PNGs in 0.1 mm).")
+set_opt = click.option("--set", "settings", multiple=True, metavar="TABLE.KEY=VALUE",
+                       help="Override one config value (TOML syntax), e.g. "
+                            "--set step.threshold=8. Repeatable.")
+jobs_opt = click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
+                        help="Worker processes (default: all cores).")
+resume_opt = click.option("--resume", is_flag=True,
+                          help="Complete only what is missing in OUT (same config).")
+overwrite_opt = click.option("--overwrite", is_flag=True,
+                             help="Redo every image even if OUT holds results.")
+json_opt = click.option("--json", "as_json", is_flag=True,
+                        help="Print the batch summary as JSON on stdout.")
+output_opt = click.option("--output", "-o", "out", required=True,
+                          type=click.Path(file_okay=False),
+                          help="Output folder.")
+inputs_arg = click.argument("inputs", nargs=-1, required=True, type=click.Path())
+outdir_arg = click.argument("out", type=click.Path(file_okay=False))
+
+
+def verbosity_opts(f: Callable[..., Any]) -> Callable[..., Any]:
+    """-v/-q counted into a log level (rasterio's habit)."""
+    f = click.option("--verbose", "-v", count=True, help="More detail on stderr "
+                     "(-vv: tracebacks of internal errors).")(f)
+    return click.option("--quiet", "-q", count=True,
+                        help="No progress bar or summary table.")(f)
+
+
+def _batch_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    for opt in (json_opt, overwrite_opt, resume_opt, jobs_opt, set_opt, preset_opt,
+                config_opt):
+        f = opt(f)
+    return verbosity_opts(f)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+class UsageProblem(click.ClickException):
+    """A usage or configuration error: one line on stderr, exit code 2, nothing done."""
+
+    exit_code = 2
+
+
+def _parse_settings(settings: tuple[str, ...]) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for item in settings:
+        key, sep, raw = item.partition("=")
+        table, dot, name = key.strip().partition(".")
+        if not sep or not dot or not table or not name:
+            raise click.BadParameter(f"{item!r}: expected TABLE.KEY=VALUE, e.g. "
+                                     "step.threshold=8", param_hint="--set")
+        try:
+            value = tomllib.loads(f"v = {raw.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw.strip()  # a bare word: a string choice such as one-sided
+        out.setdefault(table, {})[name] = value
+    return out
+
+
+def _load_config(config_path: str | None, preset: str | None, settings: tuple[str, ...],
+                 fallback_out: Path | None = None) -> Any:
+    """Config from --preset/--config/--set; for stage commands, else OUT's manifest."""
+    from .config import load_config
+    from .errors import ConfigError
+
+    try:
+        if fallback_out is not None and not (config_path or preset or settings):
+            from .batch import manifest_config
+
+            recorded = manifest_config(fallback_out)
+            if recorded is not None:
+                return recorded
+        return load_config(config_path, preset=preset, overrides=_parse_settings(settings))
+    except ConfigError as exc:
+        raise UsageProblem(str(exc)) from None
+
+
+def _setup_logging(verbose: int, quiet: int) -> None:
+    level = logging.WARNING - 10 * verbose + 10 * quiet
+    logging.basicConfig(level=max(level, logging.DEBUG), format="%(message)s",
+                        stream=sys.stderr)
+
+
+def _run(ctx: click.Context, jobs: Any, out: Path, config: Any, stages: tuple[str, ...],
+         opts: dict[str, Any], skipped_files: list[str] | None = None) -> None:
+    """Run a batch with progress and summary, then exit with the batch's code."""
+    from .batch import default_jobs, run_batch
+    from .cli_report import BatchReporter
+    from .errors import OutputError
+
+    reporter = BatchReporter(quiet=opts["quiet"] > 0, verbose=opts["verbose"])
+    try:
+        summary = run_batch(
+            jobs, out, config, stages, n_jobs=opts["jobs"] or default_jobs(),
+            resume=opts.get("resume", False), overwrite=opts.get("overwrite", False),
+            skipped_files=skipped_files, command=ctx.info_name or "run",
+            on_result=reporter.result, on_start=reporter.start)
+    except OutputError as exc:
+        raise UsageProblem(str(exc)) from None
+    finally:
+        reporter.stop()
+    reporter.summary(summary)
+    if opts["as_json"]:
+        click.echo(json.dumps(summary.to_dict(), sort_keys=True, indent=2))
+    if summary.interrupted:
+        click.echo(f"interrupted: {summary.count('done')} images done and kept; rerun the "
+                   "same command with --resume to finish", err=True)
+        ctx.exit(130)
+    ctx.exit(1 if summary.count("failed") else 0)
+
+
+def _input_jobs(inputs: tuple[str, ...], out: Path) -> tuple[list[Any], list[str]]:
+    from .batch import jobs_from_inputs
+    from .errors import InputError
+
+    try:
+        jobs, skipped = jobs_from_inputs(inputs, out)
+    except InputError as exc:
+        raise UsageProblem(str(exc)) from None
+    if not jobs:
+        raise UsageProblem("no range images found in " + ", ".join(inputs)
+                               + " (extensions: .png .pgm .pnm .tif .tiff .npy)")
+    return jobs, skipped
+
+
+def _output_jobs(out: Path) -> list[Any]:
+    from .batch import jobs_from_output
+    from .errors import OutputError
+
+    try:
+        return jobs_from_output(out)
+    except OutputError as exc:
+        raise UsageProblem(str(exc)) from None
+
+
+# --------------------------------------------------------------------------- commands
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="rangeseg")
+def main() -> None:
+    """Segment range images into surfaces and pick vacuum-gripper holdsites.
+
+    After Al-Hujazi & Sood (1990). `rangeseg run IMAGES -o OUT` does every
+    stage; `edges`, `link`, `grow`, `holdsite` run one stage each on OUT.
+    """
+
+
+def _input_command(name: str, last: str, help_text: str) -> None:
+    @main.command(name=name, help=help_text)
+    @inputs_arg
+    @output_opt
+    @_batch_options
+    @click.pass_context
+    def command(ctx: click.Context, inputs: tuple[str, ...], out: str, **opts: Any) -> None:
+        _setup_logging(opts["verbose"], opts["quiet"])
+        config = _load_config(opts["config_path"], opts["preset"], opts["settings"])
+        out_path = Path(out)
+        jobs, skipped = _input_jobs(inputs, out_path)
+        from .batch import stage_range
+
+        _run(ctx, jobs, out_path, config, stage_range("edges", last), opts, skipped)
+
+
+def _stage_command(name: str, help_text: str) -> None:
+    @main.command(name=name, help=help_text)
+    @outdir_arg
+    @_batch_options
+    @click.pass_context
+    def command(ctx: click.Context, out: str, **opts: Any) -> None:
+        _setup_logging(opts["verbose"], opts["quiet"])
+        out_path = Path(out)
+        config = _load_config(opts["config_path"], opts["preset"], opts["settings"],
+                              fallback_out=out_path)
+        opts["overwrite"] = True
+        _run(ctx, _output_jobs(out_path), out_path, config, (name,), opts)
+
+
+_input_command("run", "holdsite", """Run every stage on INPUTS (files or folders, recursive).
+
+    Writes OUT/<rel>.{edges,components,labels}.npy, surfaces.json,
+    holdsite.json, PNG pictures and the manifest OUT/rangeseg-run.json.
+    """)
+_input_command("edges", "edges", """Step 1 and 2: step and roof edges of INPUTS (Sec. V-1, V-2).
+
+    Writes OUT/<rel>.range.npy (heights), OUT/<rel>.edges.npy (uint8: 0 none,
+    1 step, 2 roof) and step/roof/edges PNG pictures.
+    """)
+_stage_command("link", """Step 3: link edges and label components of the images in OUT (Sec. V-3).
+
+    Reads what `rangeseg edges` wrote; writes components.npy/png and adds
+    code 3 (linked) to edges.npy.
+    """)
+_stage_command("grow", """Step 4: quadratic region growing on the images in OUT (Sec. V-4).
+
+    Reads what `rangeseg link` wrote; writes labels.npy/png and surfaces.json.
+    """)
+_stage_command("holdsite", """Holdsites for a vacuum gripper on the images in OUT (Sec. VII).
+
+    Reads what `rangeseg grow` wrote; writes holdsite.json and overlay.png.
+    """)
+
+
+@main.command(name="config")
+@config_opt
+@preset_opt
+@set_opt
+def config_cmd(config_path: str | None, preset: str | None, settings: tuple[str, ...]
+               ) -> None:
+    """Print the configuration as commented TOML (the defaults unless options say more)."""
+    from .config import default_toml
+
+    click.echo(default_toml(_load_config(config_path, preset, settings)), nl=False)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,68 @@
+"""Pictures for eyes: edge maps, components, labels in colour, holdsite overlays.
+
+Everything here returns uint8 arrays; :mod:`rangeseg_cli.io` writes them.
+The layout follows the paper's Figs. 10-13: edges white on black, regions
+in colour, the holdsite a white square.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def mask_image(mask: np.ndarray) -> np.ndarray:
+    """A boolean map as a uint8 picture: 255 where true, 0 elsewhere."""
+    return np.where(mask, np.uint8(255), np.uint8(0))
+
+
+def edge_code_image(codes: np.ndarray) -> np.ndarray:
+    """Edge codes (0 none, 1 step, 2 roof, 3 linked) as a colour picture.
+
+    Step edges white, roof edges orange, pixels added by linking cyan.
+    """
+    palette = np.array([[0, 0, 0], [255, 255, 255], [255, 140, 0], [0, 200, 255]],
+                       dtype=np.uint8)
+    return palette[np.clip(codes, 0, 3)]
+
+
+def height_image(z: np.ndarray) -> np.ndarray:
+    """Heights stretched to 0..255 grey (invalid pixels black), for figures."""
+    valid = ~np.isnan(z)
+    out = np.zeros(z.shape, dtype=np.uint8)
+    if valid.any():
+        lo, hi = np.percentile(z[valid], [1, 99])
+        scaled = (z[valid] - lo) / max(hi - lo, 1e-12)
+        out[valid] = (np.clip(scaled, 0, 1) * 254 + 1).astype(np.uint8)
+    return out
+
+
+def label_colors(labels: np.ndarray) -> np.ndarray:
+    """Labels in colour: a fixed, well-spread palette per id; 0 is black.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) labels.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 (H, W, 3); the same id always gets the same colour.
+    """
+    n = int(labels.max(initial=0))
+    ids = np.arange(n + 1, dtype=np.float64)
+    hue = (ids * 0.618033988749895) % 1.0
+    sat = 0.55 + 0.35 * ((ids * 0.381966) % 1.0)
+    val = 0.65 + 0.35 * ((ids * 0.7548776662) % 1.0)
+    palette = (_hsv_to_rgb(hue, sat, val) * 255).round().astype(np.uint8)
+    palette[0] = 0
+    return palette[np.clip(labels, 0, n)]
+
+
+def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    i = np.floor(h * 6).astype(int) % 6
+    f = h * 6 - np.floor(h * 6)
+    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
+    table = np.stack([np.stack(c, axis=-1) for c in
+                      ((v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q))])
+    return table[i, np.arange(len(h))]

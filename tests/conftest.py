@@ -1,0 +1,34 @@
+"""Shared synthetic scenes with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+def step_image(height: float = 40.0, size: int = 32, col: int = 16) -> np.ndarray:
+    """A vertical step: 0 left of ``col``, ``height`` from ``col`` on."""
+    z = np.zeros((size, size))
+    z[:, col:] = height
+    return z
+
+
+def box_scene(size: int = 64, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    """A 24x24 box of height 120 on a table at 20."""
+    z = np.full((size, size), 20.0)
+    z[20:44, 20:44] = 120.0
+    if noise:
+        z = z + np.random.default_rng(seed).normal(0, noise, z.shape)
+    return z
+
+
+@pytest.fixture
+def write_png():
+    """Write a uint8/uint16 array as PNG and return its path."""
+    import imageio.v3 as iio
+
+    def _write(path, array):
+        iio.imwrite(path, array)
+        return path
+
+    return _write

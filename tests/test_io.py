@@ -1,0 +1,97 @@
+import numpy as np
+import pytest
+import tifffile
+
+from rangeseg_cli import io
+from rangeseg_cli.config import InputConfig, load_config
+from rangeseg_cli.errors import InputError
+from rangeseg_cli.rangeimage import to_heights
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_png_round_trip(tmp_path, write_png, dtype):
+    a = (np.arange(32 * 40).reshape(32, 40) % 250).astype(dtype)
+    path = write_png(tmp_path / "a.png", a)
+    out = io.read_image(path)
+    assert out.dtype == dtype
+    np.testing.assert_array_equal(out, a)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_tiff_round_trip(tmp_path, dtype):
+    a = (np.arange(20 * 20).reshape(20, 20)).astype(dtype)
+    tifffile.imwrite(tmp_path / "a.tif", a)
+    np.testing.assert_array_equal(io.read_image(tmp_path / "a.tif"), a)
+
+
+def test_pgm_and_npy_and_single_channel(tmp_path):
+    import imageio.v3 as iio
+
+    a = (np.arange(20 * 24).reshape(20, 24) % 200).astype(np.uint8)
+    iio.imwrite(tmp_path / "a.pgm", a)
+    np.testing.assert_array_equal(io.read_image(tmp_path / "a.pgm"), a)
+    np.save(tmp_path / "b.npy", a[:, :, None].astype(np.float64))
+    np.testing.assert_array_equal(io.read_image(tmp_path / "b.npy"), a)
+
+
+def test_rgb_too_small_empty_and_corrupt_files_are_named_errors(tmp_path, write_png):
+    rgb = write_png(tmp_path / "rgb.png", np.zeros((20, 20, 3), np.uint8))
+    with pytest.raises(InputError, match=r"rgb.png: has 3 channels"):
+        io.read_image(rgb)
+    small = write_png(tmp_path / "small.png", np.zeros((8, 30), np.uint8))
+    with pytest.raises(InputError, match=r"small.png: size 8x30 is too small; at least 16x16"):
+        io.read_image(small)
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(InputError, match=r"empty.png: empty file"):
+        io.read_image(tmp_path / "empty.png")
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+    with pytest.raises(InputError, match=r"bad.png: not a readable image") as info:
+        io.read_image(tmp_path / "bad.png")
+    assert "\n" not in str(info.value)
+    np.save(tmp_path / "cube.npy", np.zeros((20, 20, 20)))
+    with pytest.raises(InputError, match=r"cube.npy: shape \(20, 20, 20\)"):
+        io.read_image(tmp_path / "cube.npy")
+
+
+def test_to_heights_depth_units_and_invalid_values():
+    raw = np.full((16, 16), 5000, np.uint16)
+    raw[0, 0] = 0
+    cfg = load_config(preset="tenth-mm-depth").input
+    z = to_heights(raw, cfg)
+    assert np.isnan(z[0, 0])
+    assert z[1, 1] == pytest.approx(-500.0)  # 500 mm away -> height -500 mm
+    assert raw[0, 0] == 0  # input not modified
+
+
+def test_nan_and_inf_are_invalid_and_all_invalid_is_an_error():
+    raw = np.ones((16, 16))
+    raw[0, 0], raw[0, 1] = np.nan, np.inf
+    z = to_heights(raw, InputConfig())
+    assert np.isnan(z[0, :2]).all() and np.isfinite(z[1:]).all()
+    with pytest.raises(InputError, match="no valid pixel"):
+        to_heights(np.full((16, 16), np.nan), InputConfig())
+
+
+def test_find_images_keeps_relative_paths_and_skips_outputs(tmp_path, write_png):
+    a = np.zeros((16, 16), np.uint8)
+    (tmp_path / "in" / "x").mkdir(parents=True)
+    write_png(tmp_path / "in" / "x" / "b.png", a)
+    write_png(tmp_path / "in" / "b.png", a)
+    (tmp_path / "in" / "notes.txt").write_text("hi")
+    np.save(tmp_path / "in" / "b.labels.npy", a)
+    out = tmp_path / "in" / "out"
+    out.mkdir()
+    write_png(out / "c.png", a)
+    images, skipped = io.find_images([tmp_path / "in"], exclude=out)
+    assert [r.as_posix() for _, r in images] == ["b", "x/b"]
+    assert {p.name for p in skipped} == {"notes.txt", "b.labels.npy"}
+
+
+def test_atomic_writers_leave_no_temporary_files(tmp_path):
+    io.write_npy(tmp_path / "a.npy", np.arange(4))
+    io.write_json(tmp_path / "a.json", {"b": np.float32(1.23456789), "a": [np.int64(2)],
+                                        "c": float("nan")})
+    io.write_png(tmp_path / "a.png", np.zeros((4, 4), np.uint8))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "a.npy", "a.png"]
+    text = (tmp_path / "a.json").read_text()
+    assert text.index('"a"') < text.index('"b"') and "1.23457" in text and "null" in text
