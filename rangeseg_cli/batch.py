@@ -415,6 +415,7 @@ def run_batch(jobs: list[Job], out: Path, config: Config, stages: tuple[str, ...
         Per-image records, the skipped files and the wall time.
     """
     t0 = time.perf_counter()
+    remove_stale_temporaries(out)
     todo, records = plan_jobs(jobs, out, config, stages, resume=resume, overwrite=overwrite)
     out.mkdir(parents=True, exist_ok=True)
     manifest = _Manifest(out, config, command, stages)
@@ -437,6 +438,13 @@ def run_batch(jobs: list[Job], out: Path, config: Config, stages: tuple[str, ...
                            seconds=time.perf_counter() - t0, interrupted=interrupted)
     manifest.write(summary)
     return summary
+
+
+def remove_stale_temporaries(out: Path) -> None:
+    """Delete temporary files a killed run left behind (``.<name>.<random>.tmp``)."""
+    if out.is_dir():
+        for tmp in out.rglob(".*.tmp"):
+            tmp.unlink(missing_ok=True)
 
 
 def _execute(todo: list[Job], out: Path, config: Config, stages: tuple[str, ...],

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
-from conftest import step_image
 
+from conftest import step_image
 from rangeseg_cli.config import load_config
 from rangeseg_cli.edges import (
     DIRECTIONS,

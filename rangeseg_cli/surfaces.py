@@ -1,0 +1,314 @@
+"""Surface descriptions of the final regions (Al-Hujazi & Sood 1990, Sec. V-4; SPEC "Surfaces").
+
+After region growing "the quadratic surface fit is then repeated to obtain
+the final surface parameters. These parameters can be used to classify the
+object surfaces into a number of primitives" (Sec. V-4). This module does
+that refit and the classification.
+
+Notes
+-----
+* **Planar or curved.** A region is planar when the quadric lowers the
+  plane's mean squared error by no more than ``grow.planar_tolerance`` of
+  ``max(plane MSE, grow.min_error)``; the absolute floor keeps noise-free
+  planes (both MSEs ~0) planar. A planar region reports its plane fit
+  (a3 = a4 = a5 = 0) and the plane's RMS error: its quadratic terms are
+  noise, and extrapolated to the region's border they would tilt its
+  normals (edge types, holdsite approach vectors). A curved region reports
+  the quadric.
+* **Shape.** Besl & Jain's HK sign type of the quadric at the region's
+  centroid, from its principal curvatures. Heights grow towards the sensor,
+  so a cap bulging towards the sensor has H < 0, K > 0 and is a ``"peak"``.
+  A principal curvature counts as zero below :data:`CURVATURE_ABS_TOL` or
+  :data:`CURVATURE_REL_TOL` times the larger one. Planar regions are ``"flat"``.
+* **Neighbours.** Two regions are neighbours when a pixel of one lies within
+  :data:`NEIGHBOUR_REACH` (2) pixels (chessboard distance) of a pixel of the
+  other, i.e. across an edge band up to one or two pixels thick. The pixel
+  pairs found that way are the boundary; the fits are compared at their
+  midpoints.
+* **Edge type.** ``"step"`` when the median of ``|f_i - f_j|`` over the
+  boundary midpoints exceeds ``step.threshold`` (the jump step 1 would
+  detect, Sec. V-1). Otherwise the median angle between the fitted normals
+  decides: below :data:`SMOOTH_ANGLE_DEG` the edge is ``"smooth"``; above it
+  the edge is a roof, ``"roof-convex"`` when the crease points towards the
+  sensor, i.e. each surface's extension passes *above* the other surface's
+  boundary pixels (the measured surface is the lower envelope of the two
+  fits, as at the ridge of a roof), else ``"roof-concave"``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from .config import Config
+from .grow import evaluate_quadric, fit_models
+from .models import Neighbor, Surface
+
+#: Two regions are neighbours when pixels of both lie within this chessboard distance.
+NEIGHBOUR_REACH = 2
+
+#: Fitted normals closer than this (degrees) across a non-step boundary make a
+#: "smooth" edge (continuous normal, Sec. III); wider angles make a roof. Ten
+#: degrees is well above the normal noise of a fit over a few hundred pixels
+#: at sigma 2 and well below the creases of machined parts.
+SMOOTH_ANGLE_DEG = 10.0
+
+#: A principal curvature below this magnitude (1 / pixel, heights in depth
+#: units) counts as zero for the HK type: a radius of 10,000 pixels.
+CURVATURE_ABS_TOL = 1e-4
+
+#: ... or below this fraction of the larger principal curvature's magnitude
+#: (a cylinder's axis direction is "zero" even when the fit bends it slightly).
+CURVATURE_REL_TOL = 0.1
+
+#: HK type names by the signs (-1, 0, 1) of the two principal curvatures k1 <= k2.
+_HK_NAMES: dict[tuple[int, int], str] = {
+    (0, 0): "flat", (-1, -1): "peak", (1, 1): "pit", (-1, 0): "ridge", (0, 1): "valley",
+}
+
+
+def curvatures(coefficients: np.ndarray, row: float, col: float) -> tuple[float, float]:
+    """Mean and Gaussian curvature (H, K) of a quadric at one point (Monge patch).
+
+    Parameters
+    ----------
+    coefficients
+        (a0..a5) in image coordinates, x = col, y = row.
+    row, col
+        The point.
+
+    Returns
+    -------
+    tuple of float
+        ``H = ((1 + fx^2) fyy - 2 fx fy fxy + (1 + fy^2) fxx) / (2 w^3)`` and
+        ``K = (fxx fyy - fxy^2) / w^4`` with ``w = sqrt(1 + fx^2 + fy^2)``;
+        H < 0 where the surface bulges towards the sensor.
+    """
+    _, a1, a2, a3, a4, a5 = (float(c) for c in coefficients)
+    fx = a1 + 2.0 * a3 * col + a4 * row
+    fy = a2 + a4 * col + 2.0 * a5 * row
+    fxx, fxy, fyy = 2.0 * a3, a4, 2.0 * a5
+    w2 = 1.0 + fx * fx + fy * fy
+    h = ((1 + fx * fx) * fyy - 2 * fx * fy * fxy + (1 + fy * fy) * fxx) / (2 * w2**1.5)
+    k = (fxx * fyy - fxy * fxy) / (w2 * w2)
+    return h, k
+
+
+def hk_shape(h: float, k: float) -> str:
+    """Besl & Jain's HK surface type from the mean and Gaussian curvature.
+
+    Parameters
+    ----------
+    h, k
+        Mean and Gaussian curvature (:func:`curvatures`; H < 0 bulges towards
+        the sensor).
+
+    Returns
+    -------
+    str
+        ``flat``, ``peak``, ``pit``, ``ridge``, ``valley``, ``saddle-ridge``,
+        ``saddle-valley`` or ``minimal``.
+    """
+    root = math.sqrt(max(h * h - k, 0.0))
+    k1, k2 = h - root, h + root
+    tol = max(CURVATURE_ABS_TOL, CURVATURE_REL_TOL * max(abs(k1), abs(k2)))
+    s1, s2 = (0 if abs(c) < tol else (1 if c > 0 else -1) for c in (k1, k2))
+    if s1 * s2 < 0:
+        if abs(h) < tol:
+            return "minimal"
+        return "saddle-ridge" if h < 0 else "saddle-valley"
+    return _HK_NAMES[(s1, s2)]
+
+
+def _boundary_pairs(labels: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Pixel pairs (p, q) of different labels within NEIGHBOUR_REACH of each other.
+
+    Returns ``(li, lj, rows_p, cols_p, rows_q, cols_q)`` with ``li < lj``.
+    """
+    h, w = labels.shape
+    r = NEIGHBOUR_REACH
+    padded = np.pad(labels, r, constant_values=0)
+    offsets = [(dy, dx) for dy in range(0, r + 1) for dx in range(-r, r + 1)
+               if dy > 0 or dx > 0]  # half of the (2r+1)^2 - 1 offsets: each pair once
+    parts: list[tuple[np.ndarray, ...]] = []
+    for dy, dx in offsets:
+        other = padded[r + dy: r + dy + h, r + dx: r + dx + w]
+        rp, cp = np.nonzero((labels > 0) & (other > 0) & (labels != other))
+        rq, cq = rp + dy, cp + dx
+        lp, lq = labels[rp, cp], labels[rq, cq]
+        swap = lp > lq
+        parts.append((np.where(swap, lq, lp), np.where(swap, lp, lq),
+                      np.where(swap, rq, rp), np.where(swap, cq, cp),
+                      np.where(swap, rp, rq), np.where(swap, cp, cq)))
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(6))
+
+
+def _group_median(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique keys and the median of ``values`` within each key."""
+    order = np.lexsort((values, keys))
+    keys, values = keys[order], values[order]
+    uniq, start, count = np.unique(keys, return_index=True, return_counts=True)
+    med = 0.5 * (values[start + (count - 1) // 2] + values[start + count // 2])
+    return uniq, med
+
+
+def _unit_normals(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(N, 3) unit normals (-fx, -fy, 1) of quadrics at points."""
+    _, a1, a2, a3, a4, a5 = coeffs.T
+    fx = a1 + 2.0 * a3 * cols + a4 * rows
+    fy = a2 + a4 * cols + 2.0 * a5 * rows
+    n = np.stack([-fx, -fy, np.ones_like(fx)], axis=1)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float
+               ) -> dict[tuple[int, int], str]:
+    """Neighbouring region pairs and the type of the edge between them (SPEC "Surfaces").
+
+    Parameters
+    ----------
+    labels
+        int (H, W) final labels, 0 = none.
+    coeffs
+        (n+1, 6) image-coordinate quadrics of the labels.
+    step_threshold
+        Median height difference of the fits along the boundary above which
+        the edge is a step (``step.threshold``).
+
+    Returns
+    -------
+    dict
+        ``{(i, j): edge}`` for i < j, edge one of ``"step"``, ``"smooth"``,
+        ``"roof-convex"``, ``"roof-concave"``.
+    """
+    li, lj, rp, cp, rq, cq = _boundary_pairs(labels)
+    if li.size == 0:
+        return {}
+    ci, cj = coeffs[li], coeffs[lj]
+    rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+    gap = np.abs(evaluate_quadric(ci, rm, cm) - evaluate_quadric(cj, rm, cm))
+    cos = np.einsum("ij,ij->i", _unit_normals(ci, rm, cm), _unit_normals(cj, rm, cm))
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    # Convex: each fit's extension lies above the other region's boundary pixels.
+    above = ((evaluate_quadric(cj, rp, cp) - evaluate_quadric(ci, rp, cp))
+             + (evaluate_quadric(ci, rq, cq) - evaluate_quadric(cj, rq, cq)))
+    key = li.astype(np.int64) * (int(labels.max()) + 1) + lj
+    uniq, gap_med = _group_median(key, gap)
+    _, angle_med = _group_median(key, angle)
+    _, above_med = _group_median(key, above)
+    out: dict[tuple[int, int], str] = {}
+    for k, g, a, s in zip(uniq.tolist(), gap_med.tolist(), angle_med.tolist(),
+                          above_med.tolist(), strict=True):
+        i, j = divmod(k, int(labels.max()) + 1)
+        if g > step_threshold:
+            out[(i, j)] = "step"
+        elif a < SMOOTH_ANGLE_DEG:
+            out[(i, j)] = "smooth"
+        else:
+            out[(i, j)] = "roof-convex" if s > 0 else "roof-concave"
+    return out
+
+
+def _region_stats(z: np.ndarray, labels: np.ndarray, n: int) -> dict[str, np.ndarray]:
+    """Pixel counts, centroids and mean heights of labels 0..n."""
+    rows, cols = np.nonzero(labels > 0)
+    lab = labels[rows, cols]
+    counts = np.bincount(lab, minlength=n + 1)
+    safe = np.maximum(counts, 1)
+    return {
+        "counts": counts,
+        "row": np.bincount(lab, rows, minlength=n + 1) / safe,
+        "col": np.bincount(lab, cols, minlength=n + 1) / safe,
+        "height": np.bincount(lab, z[rows, cols], minlength=n + 1) / safe,
+    }
+
+
+def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config) -> list[Surface]:
+    """Refit the final regions and describe them (Sec. V-4, SPEC "Surfaces").
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) final labels of :func:`~rangeseg_cli.grow.grow_regions`;
+        0 = none. Labels at invalid pixels are ignored.
+    config
+        Uses ``grow.planar_tolerance``, ``grow.min_error`` and ``step.threshold``.
+
+    Returns
+    -------
+    list of Surface
+        One per label present, by id: pixel count, inclusive bbox
+        (row_min, col_min, row_max, col_max), centroid (row, col), mean
+        height, coefficients in image coordinates (the plane for a planar
+        region, else the quadric), RMS error of that fit, type
+        (planar/curved), HK shape and neighbours sorted by id (see the module
+        Notes for the rules).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    labels = np.where(np.isfinite(z), labels, 0).astype(np.int32)
+    n = int(labels.max(initial=0))
+    if n == 0:
+        return []
+    # Final surface parameters: the quadric fit repeated on the grown regions (Sec. V-4)
+    ((quad, mse_quad), (plane, mse_plane)), _ = fit_models(z, labels, n, (2, 1))
+    stats = _region_stats(z, labels, n)
+    floor = np.maximum(mse_plane, config.grow.min_error)
+    planar = (mse_plane - mse_quad) <= config.grow.planar_tolerance * floor
+    coeffs = np.where(planar[:, None], plane, quad)
+    mse = np.where(planar, mse_plane, mse_quad)
+    edges = edge_types(labels, coeffs, config.step.threshold)
+    neighbours: dict[int, list[Neighbor]] = {}
+    for (i, j), edge in sorted(edges.items()):
+        neighbours.setdefault(i, []).append(Neighbor(id=j, edge=edge))
+        neighbours.setdefault(j, []).append(Neighbor(id=i, edge=edge))
+    boxes = ndimage.find_objects(labels)
+    surfaces = []
+    for sid in range(1, n + 1):
+        box = boxes[sid - 1]
+        if box is None or stats["counts"][sid] == 0:
+            continue
+        row, col = float(stats["row"][sid]), float(stats["col"][sid])
+        a = coeffs[sid]
+        shape = "flat" if planar[sid] else hk_shape(*curvatures(a, row, col))
+        surfaces.append(Surface(
+            id=sid, pixels=int(stats["counts"][sid]),
+            bbox=(box[0].start, box[1].start, box[0].stop - 1, box[1].stop - 1),
+            centroid=(row, col), mean_height=float(stats["height"][sid]),
+            coefficients=tuple(float(c) for c in a),  # type: ignore[arg-type]
+            rms_error=float(math.sqrt(max(mse[sid], 0.0))),
+            type="planar" if planar[sid] else "curved", shape=shape,
+            neighbors=tuple(sorted(neighbours.get(sid, []), key=lambda nb: nb.id)),
+        ))
+    return surfaces
+
+
+def _plain(value: Any) -> Any:
+    """Tuples to lists, recursively, for JSON."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def surfaces_to_json(surfaces: list[Surface]) -> dict[str, Any]:
+    """The ``surfaces.json`` document (SPEC file contract).
+
+    Parameters
+    ----------
+    surfaces
+        From :func:`describe_surfaces`.
+
+    Returns
+    -------
+    dict
+        ``{"surfaces": [{"id", "pixels", "bbox", "centroid", "mean_height",
+        "coefficients", "rms_error", "type", "shape", "neighbors": [{"id",
+        "edge"}]}, ...]}`` with plain Python ints, floats, strings and lists.
+    """
+    return {"surfaces": [_plain(s.to_dict()) for s in surfaces]}

@@ -1,0 +1,281 @@
+"""Step 4: quadric fits and region growing (Sec. V-4), alone and after the real edge stage."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from rangeseg_cli.config import GrowConfig
+from rangeseg_cli.grow import fit_quadrics, grow_regions
+from rangeseg_cli.pipeline import run_pipeline
+
+N = 128
+TABLE, BOX_TOP = 20.0, 120.0
+BOX = (slice(40, 88), slice(30, 98))
+
+
+def _grid() -> tuple[np.ndarray, np.ndarray]:
+    y, x = np.mgrid[0:N, 0:N].astype(np.float64)
+    return y, x
+
+
+def _finish(z: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+    """Add Gaussian noise and quantise to 8 bits, as the ERIM images are."""
+    rng = np.random.default_rng(seed)
+    if sigma:
+        z = z + rng.normal(0.0, sigma, z.shape)
+    return np.clip(np.round(z), 0.0, 255.0)
+
+
+def box_scene(sigma: float = 0.0, seed: int = 0) -> np.ndarray:
+    """A 48 x 68 box (top at 120) on a table at 20."""
+    z = np.full((N, N), TABLE)
+    z[BOX] = BOX_TOP
+    return _finish(z, sigma, seed)
+
+
+def roof_planes(slope: float) -> tuple[np.ndarray, np.ndarray]:
+    """Coefficients (a0..a5) of the two planes of a ridge along column 63.5 (crest 230)."""
+    left = np.array([230.0 - slope * 63.5, slope, 0.15, 0, 0, 0])
+    right = np.array([230.0 + slope * 63.5, -slope, 0.15, 0, 0, 0])
+    return left, right
+
+
+def roof_scene(slope: float, sigma: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Two planes meeting at a convex roof crease between columns 63 and 64."""
+    y, x = _grid()
+    left, right = roof_planes(slope)
+    z = np.minimum(left[0] + left[1] * x + left[2] * y, right[0] + right[1] * x + right[2] * y)
+    assert z.min() >= 0.0 and z.max() <= 255.0
+    return _finish(z, sigma, seed)
+
+
+def cylinder_scene(sigma: float = 0.0, seed: int = 0, radius: float = 40.0) -> np.ndarray:
+    """A cylinder of radius 40 lying on a table at 20, axis along the columns at row 64."""
+    y, x = _grid()
+    z = np.full((N, N), TABLE)
+    inside = (np.abs(y - 64.0) < radius) & (x >= 16) & (x < 112)
+    z[inside] = TABLE + radius + np.sqrt(radius**2 - (y[inside] - 64.0) ** 2)
+    return _finish(z, sigma, seed)
+
+
+def large_regions(labels: np.ndarray, min_pixels: int = 50) -> np.ndarray:
+    """Ids of the final regions with at least ``min_pixels`` pixels."""
+    counts = np.bincount(labels.ravel())
+    ids = np.flatnonzero(counts >= min_pixels)
+    return ids[ids > 0]
+
+
+def _quadric(a: np.ndarray, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return a[0] + a[1] * x + a[2] * y + a[3] * x * x + a[4] * x * y + a[5] * y * y
+
+
+# ----------------------------------------------------------------------------- fits
+
+
+def test_fit_quadrics_recovers_random_quadrics_exactly() -> None:
+    rng = np.random.default_rng(7)
+    y, x = np.mgrid[0:480, 0:640].astype(np.float64)
+    labels = np.zeros(x.shape, dtype=np.int32)
+    labels[10:100, 20:200] = 1
+    labels[300:470, 400:630] = 2
+    labels[200:260, 100:110] = 3
+    z = np.zeros(x.shape)
+    truth = rng.normal(size=(4, 6)) * np.array([50.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3])
+    for k in (1, 2, 3):
+        z[labels == k] = _quadric(truth[k], y, x)[labels == k]
+    coeffs, mse, counts = fit_quadrics(z, labels, 3)
+    np.testing.assert_allclose(coeffs[1:], truth[1:], rtol=1e-6, atol=1e-9)
+    assert np.all(mse[1:] < 1e-12)
+    np.testing.assert_array_equal(counts, [0, 90 * 180, 170 * 230, 60 * 10])
+
+
+def test_fit_quadrics_mse_is_the_mean_squared_residual() -> None:
+    rng = np.random.default_rng(3)
+    y, x = _grid()
+    labels = np.ones((N, N), dtype=np.int32)
+    noise = rng.normal(0.0, 2.0, (N, N))
+    _, mse, _ = fit_quadrics(50.0 + 0.1 * x + noise, labels, 1)
+    # Least squares removes six degrees of freedom: E[mse] = sigma^2 (1 - 6 / n).
+    assert mse[1] == pytest.approx(np.var(noise), rel=0.01)
+
+
+def test_fit_quadrics_falls_back_to_plane_and_constant() -> None:
+    y, x = _grid()
+    plane = 10.0 + 0.5 * x - 0.25 * y
+    labels = np.zeros((N, N), dtype=np.int32)
+    labels[20, 10:60] = 1  # a one-pixel line: the quadric is singular
+    labels[40:42, 40:42] = 2  # four pixels: fewer than six
+    labels[40, 40] = 2
+    labels[41, 43] = 2  # five pixels, not collinear: a plane
+    labels[100, 100] = 3  # one pixel: the constant
+    coeffs, mse, counts = fit_quadrics(plane, labels, 3)
+    assert np.all(np.isfinite(coeffs)) and np.all(mse < 1e-18)
+    assert counts[2] == 5
+    np.testing.assert_allclose(coeffs[2], [10.0, 0.5, -0.25, 0, 0, 0], atol=1e-9)
+    assert _quadric(coeffs[1], 20.0, 30.0) == pytest.approx(plane[20, 30])
+    np.testing.assert_allclose(coeffs[3], [plane[100, 100], 0, 0, 0, 0, 0], atol=1e-9)
+
+
+def test_fit_quadrics_leaves_out_nan_pixels() -> None:
+    y, x = _grid()
+    z = 5.0 + 0.1 * x * y / N
+    z[10:20, 10:20] = np.nan
+    coeffs, mse, counts = fit_quadrics(z, np.ones((N, N), dtype=np.int32), 1)
+    assert counts[1] == N * N - 100
+    assert np.all(np.isfinite(coeffs)) and mse[1] < 1e-20
+
+
+# ------------------------------------------------------------------------ growing
+
+
+def _two_flat_components(gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two components of a flat 50.0 field, separated by ``gap`` unlabelled columns."""
+    z = np.full((32, 32), 50.0)
+    comps = np.zeros((32, 32), dtype=np.int32)
+    comps[:, :14] = 1
+    comps[:, 14 + gap:] = 2
+    codes = np.where(comps == 0, 1, 0).astype(np.uint8)
+    return z, codes, comps
+
+
+def test_pixel_touching_two_components_stays_an_edge() -> None:
+    z, codes, comps = _two_flat_components(gap=1)
+    labels = grow_regions(z, codes, comps, GrowConfig(passes=0))
+    assert np.all(labels[:, 14] == 0)
+    assert np.all(labels[:, :14] == 1) and np.all(labels[:, 15:] == 2)
+
+
+def test_a_pass_is_simultaneous_so_a_two_pixel_band_splits_between_sides() -> None:
+    # Each band pixel sees one component at the start of the pass, so both join.
+    z, codes, comps = _two_flat_components(gap=2)
+    labels = grow_regions(z, codes, comps, GrowConfig(passes=1))
+    assert np.all(labels[:, 14] == 1) and np.all(labels[:, 15] == 2)
+
+
+def test_one_pass_grows_one_ring_and_zero_passes_grow_to_the_end() -> None:
+    z = np.full((32, 32), 50.0)
+    comps = np.zeros((32, 32), dtype=np.int32)
+    comps[10:20, 10:20] = 1
+    codes = np.where(comps == 0, 1, 0).astype(np.uint8)
+    one = grow_regions(z, codes, comps, GrowConfig(passes=1))
+    assert np.count_nonzero(one) == 12 * 12
+    full = grow_regions(z, codes, comps, GrowConfig(passes=0))
+    assert np.all(full == 1)
+
+
+def test_pixel_whose_residual_exceeds_ten_e_a_stays_unlabelled() -> None:
+    rng = np.random.default_rng(11)
+    z = 50.0 + rng.normal(0.0, 1.0, (32, 32))
+    comps = np.zeros((32, 32), dtype=np.int32)
+    comps[:, :16] = 1
+    z[:, 16] = 50.0 + 3.0  # 9 < 10 e_A (about 10): joins
+    z[5, 16] = 50.0 + 4.0  # 16 > 10 e_A: stays
+    labels = grow_regions(z, np.zeros((32, 32), np.uint8), comps, GrowConfig(passes=1))
+    assert labels[5, 16] == 0
+    assert np.count_nonzero(labels[:, 16]) == 31
+
+
+def test_error_floor_lets_a_noise_free_plane_grow() -> None:
+    # The component fits exactly (e_A = 0); edge pixels carry half a unit of rounding.
+    y, x = np.mgrid[0:32, 0:32].astype(np.float64)
+    z = 2.0 * x + 1.0
+    comps = np.zeros((32, 32), dtype=np.int32)
+    comps[:, :16] = 1
+    z[:, 16:] += 0.5
+    codes = np.zeros((32, 32), np.uint8)
+    floored = grow_regions(z, codes, comps, GrowConfig(passes=1, min_error=0.25))
+    unfloored = grow_regions(z, codes, comps, GrowConfig(passes=1, min_error=0.0))
+    assert np.all(floored[:, 16] == 1)
+    assert np.all(unfloored[:, 16] == 0)
+
+
+def test_invalid_pixels_are_never_labelled() -> None:
+    z = box_scene(sigma=1.0, seed=5)
+    z[60:70, 0:128] = np.nan  # a band of no-data across box and table
+    result = run_pipeline(z, stages=3)
+    assert np.all(result.labels[60:70] == 0)
+    assert np.all(result.components[60:70] == 0)
+    assert result.labels.dtype == np.int32
+
+
+def test_rejects_components_of_another_shape() -> None:
+    with pytest.raises(ValueError, match="`components`"):
+        grow_regions(np.zeros((8, 8)), np.zeros((8, 8), np.uint8),
+                     np.zeros((8, 9), np.int32), GrowConfig())
+
+
+# ----------------------------------------------------------- end to end (stages 1-4)
+
+
+def test_box_on_table_gives_box_top_and_table_not_merged() -> None:
+    labels = run_pipeline(box_scene(), stages=3).labels
+    ids = large_regions(labels)
+    assert len(ids) == 2
+    top = np.bincount(labels[BOX].ravel()).argmax()
+    table = labels[5, 5]
+    assert top != table and top > 0 and table > 0
+    # The thick step contour is absorbed, each pixel by its own surface.
+    assert np.all(labels[44:84, 34:94] == top)
+    assert 46 * 66 <= np.count_nonzero(labels == top) <= 48 * 68
+
+
+def test_roof_gives_two_regions_matching_the_true_planes() -> None:
+    result = run_pipeline(roof_scene(slope=3.5), stages=3)
+    ids = large_regions(result.labels)
+    assert len(ids) == 2
+    left, right = roof_planes(3.5)
+    by_id = {s.id: s for s in result.surfaces}
+    fitted = sorted((by_id[i] for i in ids), key=lambda s: s.coefficients[1], reverse=True)
+    for surface, truth in zip(fitted, (left, right), strict=True):
+        a = np.array(surface.coefficients)
+        np.testing.assert_allclose(a[1:3], truth[1:3], atol=0.01)
+        np.testing.assert_allclose(a[3:], 0.0, atol=1e-4)
+        assert surface.height_at(64.0, 64.0) == pytest.approx(
+            truth[0] + truth[1] * 64.0 + truth[2] * 64.0, abs=0.5)
+
+
+def test_cylinder_on_table_is_one_curved_region() -> None:
+    result = run_pipeline(cylinder_scene(), stages=3)
+    ids = large_regions(result.labels)
+    assert len(ids) == 2
+    on_axis = result.labels[64, 64]
+    assert on_axis in ids and result.labels[5, 5] in ids and result.labels[5, 5] != on_axis
+    assert np.all(result.labels[40:89, 24:104] == on_axis)
+    by_id = {s.id: s for s in result.surfaces}
+    assert by_id[on_axis].type == "curved"
+    assert by_id[result.labels[5, 5]].type == "planar"
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.0])
+@pytest.mark.parametrize(("scene", "expected"), [
+    (box_scene, 2),
+    (cylinder_scene, 2),
+    (lambda sigma, seed: roof_scene(3.5, sigma, seed), 2),
+], ids=["box", "cylinder", "steep-roof"])
+def test_noisy_scene_gives_the_right_number_of_regions(scene, expected: int,
+                                                        sigma: float) -> None:
+    for seed in (0, 1):
+        labels = run_pipeline(scene(sigma=sigma, seed=seed), stages=3).labels
+        assert len(large_regions(labels)) == expected, f"seed {seed}"
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "known limit of the paper's parameters, not of linking: a roof of slope +-2.5 gives a "
+    "crease AR of about 5.5, and at sigma 2 the thin roof line jitters by two columns "
+    "between rows (a knight's-move gap) that one-pixel gap closing cannot close"))
+def test_gentle_roof_at_sigma_2_gives_two_regions() -> None:
+    labels = run_pipeline(roof_scene(2.5, sigma=2.0, seed=0), stages=3).labels
+    assert len(large_regions(labels)) == 2
+
+
+def test_more_passes_never_unlabel_a_pixel() -> None:
+    z = cylinder_scene(sigma=2.0, seed=3)
+    result = run_pipeline(z, stages=2)
+    one = grow_regions(result.heights, result.edges, result.components, GrowConfig(passes=1))
+    many = grow_regions(result.heights, result.edges, result.components,
+                        replace(GrowConfig(), passes=0))
+    assert np.all(many[one > 0] == one[one > 0])
+    assert np.count_nonzero(many) >= np.count_nonzero(one)
