@@ -7,6 +7,8 @@ in colour, the holdsite a white square.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 
@@ -66,3 +68,50 @@ def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
     table = np.stack([np.stack(c, axis=-1) for c in
                       ((v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q))])
     return table[i, np.arange(len(h))]
+
+
+def _stamp(image: np.ndarray, mask: np.ndarray, row: int, col: int) -> None:
+    """Paint ``mask`` (odd shape, centred at (row, col)) white, clipped to the image."""
+    h, w = image.shape[:2]
+    kr, kc = mask.shape[0] // 2, mask.shape[1] // 2
+    rr, cc = np.nonzero(mask)
+    rr, cc = rr + row - kr, cc + col - kc
+    keep = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+    image[rr[keep], cc[keep]] = 255
+
+
+def overlay(labels: np.ndarray, holdsite: Any, size: tuple[int, int] | None = None
+            ) -> np.ndarray:
+    """Segmentation in colour with the holdsite drawn as in the paper's Figs. 10-13.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) final labels.
+    holdsite
+        A :class:`~rangeseg_cli.holdsite.HoldsiteResult` or its ``to_dict()``
+        (``holdsite.json``); ``None`` draws the labels only.
+    size
+        Footprint (rows, cols); by default each site's own ``size``.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 (H, W, 3): :func:`label_colors`, the chosen window filled white
+        (rotated by its ``angle``), the runners-up outlined in white.
+    """
+    from scipy import ndimage
+
+    from .holdsite import footprint
+
+    image = label_colors(labels)
+    doc = holdsite.to_dict() if hasattr(holdsite, "to_dict") else (holdsite or {})
+    sites = [(s, False) for s in doc.get("candidates", [])]
+    if doc.get("holdsite"):
+        sites.append((doc["holdsite"], True))  # drawn last, on top
+    for site, chosen in sites:
+        fp = footprint(tuple(size or site["size"]), float(site.get("angle", 0.0)))
+        if not chosen:
+            fp = fp & ~ndimage.binary_erosion(fp, border_value=0)
+        _stamp(image, fp, int(site["row"]), int(site["col"]))
+    return image

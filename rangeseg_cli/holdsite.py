@@ -1,0 +1,917 @@
+"""Vacuum-gripper holdsites from the segmentation (Al-Hujazi & Sood 1990, Sec. VII).
+
+"The output of the segmentation algorithm is used to determine the highest
+surface in the object ... A small area (7x7) in the highest surface is then
+determined. The standard deviation of the AR computed using a 5x5 Gaussian
+mask is evaluated. If [it] is small ... the selected area is accepted,
+otherwise a search for another area is performed. This area should be inside
+a single surface as far as possible from the periphery of the object and any
+internal holes ... as close as possible to the center of gravity of the
+object", approximated by its centre of area (Sec. VII).
+
+Notes
+-----
+Step 1, background. Border regions lie within :data:`ADJACENCY_RADIUS`
+pixels of the image border or of an invalid area that reaches it.
+``"lowest-border"`` takes the one with the lowest mean height,
+``"largest-border"`` the one with the most pixels (only border regions
+with at least :data:`BACKGROUND_MIN_FRACTION` of the segmented pixels are
+eligible, unless none has). Every other region at the same level joins it
+(a table split by an object or a shadow, or seen through a hole): its mean
+height is within ``step.threshold`` of the chosen one's, or the chosen
+one's fit, extended to its centroid, is within ``step.threshold`` of its own
+fit there (a tilted table). ``"none"``: no background.
+
+Step 2, objects: non-background regions joined by a non-step boundary
+(roof or smooth, from ``Surface.neighbors`` where listed, else the median
+height gap of the fits <= ``step.threshold``) form one object. A step edge
+is an occlusion boundary: there one object lies on or in front of another.
+An object is *covered* when, across a step edge to another object, the other
+side is higher (median gap of the fits at the boundary midpoints): the
+top-most object of a pile is uncovered (Sec. VII, "the top-most object in
+the pile is usually selected").
+
+Step 3, order: surfaces of objects wholly in view first (an object within
+:data:`ADJACENCY_RADIUS` of the image frame is a bin wall or a part cut off
+by the frame, whose centre of area is unknown); then those of uncovered
+objects before covered ones; within each group highest mean height first
+(Sec. VII: "comparing the range value of the segmented surfaces").
+
+Step 4, candidates in a surface: window centres where the footprint
+(``holdsite.size``; a non-square one at every ``rotation_step`` degrees in
+[0, 180)) lies wholly on valid pixels of the surface (binary erosion), and
+the standard deviation of the 2-D AR (:func:`~rangeseg_cli.edges.ar_2d`)
+over the footprint is <= ``holdsite.max_ar_std`` (window means of AR and
+AR^2). The first surface in the order with a candidate holds the site.
+
+Step 5, choice: the largest clearance (Euclidean distance transform of the
+surface mask: distance in pixels from the window centre to the nearest pixel
+that is not on the surface -- its border, a hole, an edge, an invalid pixel
+or outside the image), compared in whole pixels; then the nearest to the
+object's centre of area; then row, col. A rotated footprint takes, at that
+centre, the accepted angle whose footprint stays farthest from the
+surface's border (the distance transform's minimum over the footprint),
+then the lowest AR std, then the smallest angle.
+
+Runners-up: the best candidate of each next surface in the order, up to
+``holdsite.max_candidates``; if fewer surfaces have one, further windows on
+the same surfaces (chosen surface first), in rank order, whose centres are
+at least the footprint's diagonal from every window already picked on that
+surface (so no two windows overlap).
+
+Score (descriptive, in (0, 1), higher is better; the choice follows the
+order above): ``c / (c + h) * rho / (rho + d)`` with ``c`` the clearance,
+``h`` half the footprint's longer side plus one half (4 for 7x7, so a window
+that just fits scores about 0.5 on clearance), ``d`` the distance to the
+object's centre of area and ``rho = sqrt(A / pi)`` the radius of a disc of
+the object's area ``A``.
+
+Step 6, pose: elevation from the fit at the centre; the unit normal
+``n ~ (-dz/dx, -dz/dy, 1)`` (x = col, y = row, z up towards the sensor); the
+approach vector ``-n`` (the gripper moves against the normal). With camera
+intrinsics and depth input (``larger_is_closer = false``, depth ``d = -z``),
+the point is ``((col - cx) d / fx, (row - cy) d / fy, d)`` (metres when
+``metres_per_unit > 0``, else depth units). The camera-frame normal is the
+cross product of the tangents of ``P(u, v) = d(u, v) ((u - cx)/fx, (v - cy)/fy, 1)``:
+``n ~ -(-fx d_u, -fy d_v, d + (u - cx) d_u + (v - cy) d_v)``, oriented
+towards the camera; it is exact for the fitted depth function, and the one
+approximation is the fit itself (a 3-D plane has depth
+``1 / (alpha u + beta v + gamma)``, which the quadric approximates over the
+region). ``approach_camera = -n``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from .config import Config, HoldsiteConfig, InputConfig
+from .edges import ar_2d
+from .errors import InputError
+from .grow import evaluate_quadric
+from .models import Surface
+
+#: Regions whose pixels lie within this chessboard distance are neighbours
+#: (across an edge band one or two pixels thick), as in ``Surface.neighbors``.
+ADJACENCY_RADIUS = 2
+
+#: A border region is a candidate for the background only when it holds at
+#: least this fraction of all segmented pixels (unless none does): a sliver
+#: seen past a bin's rim is lower than the floor but is not the floor.
+BACKGROUND_MIN_FRACTION = 0.01
+
+#: Rotated footprints with more pixels than this are averaged by FFT convolution.
+FFT_FOOTPRINT_PIXELS = 64
+
+Vector = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Holdsite:
+    """One acceptable gripper window (Sec. VII).
+
+    Attributes
+    ----------
+    row, col
+        0-based pixel position of the window's centre.
+    elevation
+        Height of the surface fit at the centre (height units; for depth
+        input this is minus the depth).
+    normal, approach
+        Unit surface normal (x = col, y = row, z up towards the sensor) and
+        approach vector ``-normal``.
+    surface, surface_type, object
+        Surface id, its type (``"planar"``/``"curved"``) and the object id.
+    clearance
+        Distance in pixels from the centre to the nearest pixel off the surface.
+    ar_std
+        Standard deviation of the 2-D AR over the footprint (depth units).
+    score
+        Descriptive score in (0, 1) (see the module Notes).
+    angle
+        Footprint rotation in degrees, counter-clockwise as displayed; 0 = the
+        footprint's rows along image rows.
+    size
+        Footprint (rows, cols).
+    point_camera, approach_camera
+        Camera-frame point (metres, or depth units without ``metres_per_unit``)
+        and approach vector; ``None`` when not computable.
+    """
+
+    row: int
+    col: int
+    elevation: float
+    normal: Vector
+    approach: Vector
+    surface: int
+    surface_type: str
+    object: int
+    clearance: float
+    ar_std: float
+    score: float
+    angle: float
+    size: tuple[int, int]
+    point_camera: Vector | None = None
+    approach_camera: Vector | None = None
+
+    def to_dict(self, *, camera: bool = False) -> dict[str, Any]:
+        """Plain dict of ``holdsite.json``; camera-frame keys only when ``camera``."""
+        out: dict[str, Any] = {
+            "row": self.row, "col": self.col, "elevation": self.elevation,
+            "normal": list(self.normal), "approach": list(self.approach),
+            "surface": self.surface, "surface_type": self.surface_type,
+            "object": self.object, "clearance": self.clearance, "ar_std": self.ar_std,
+            "score": self.score, "angle": self.angle, "size": list(self.size),
+        }
+        if camera:
+            out["point_camera"] = _listed(self.point_camera)
+            out["approach_camera"] = _listed(self.approach_camera)
+        return out
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """A connected group of non-background regions (Sec. VII).
+
+    Attributes
+    ----------
+    id
+        Object id (1..M, numbered by smallest surface id).
+    surfaces
+        Its surface ids.
+    pixels
+        Total pixel count.
+    centroid
+        (row, col) centre of area.
+    covered_by
+        Objects higher than this one across a shared step edge.
+    touches_border
+        Whether a surface lies within :data:`ADJACENCY_RADIUS` of the image
+        frame (a bin wall, or a part cut off by the frame).
+    """
+
+    id: int
+    surfaces: tuple[int, ...]
+    pixels: int
+    centroid: tuple[float, float]
+    covered_by: tuple[int, ...] = ()
+    touches_border: bool = False
+
+    @property
+    def covered(self) -> bool:
+        """Whether another object lies on or in front of this one."""
+        return bool(self.covered_by)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict for ``holdsite.json``."""
+        return {"id": self.id, "surfaces": list(self.surfaces), "pixels": self.pixels,
+                "centroid": list(self.centroid), "covered": self.covered,
+                "covered_by": list(self.covered_by), "touches_border": self.touches_border}
+
+
+@dataclass(frozen=True)
+class HoldsiteResult:
+    """The holdsite of one image, its runners-up and the scene's reading.
+
+    ``holdsite`` is ``None`` when no surface has an acceptable window;
+    ``reason`` then says why (never an error).
+    """
+
+    holdsite: Holdsite | None
+    reason: str
+    candidates: tuple[Holdsite, ...] = ()
+    background: tuple[int, ...] = ()
+    objects: tuple[ObjectInfo, ...] = ()
+    camera: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``holdsite.json`` document (SPEC file contract)."""
+        site = self.holdsite.to_dict(camera=self.camera) if self.holdsite else None
+        return {"holdsite": site, "reason": self.reason,
+                "candidates": [c.to_dict(camera=self.camera) for c in self.candidates],
+                "background": list(self.background),
+                "objects": [o.to_dict() for o in self.objects]}
+
+
+def _listed(v: Vector | None) -> list[float] | None:
+    return None if v is None else list(v)
+
+
+# ---------------------------------------------------------------------------
+# Step 1: background; step 2: objects
+
+
+def _coefficient_table(surfaces: list[Surface], n: int) -> np.ndarray:
+    """(n+1, 6) coefficients indexed by label (zeros where no surface)."""
+    table = np.zeros((n + 1, 6))
+    for s in surfaces:
+        if s.id <= n:
+            table[s.id] = s.coefficients
+    return table
+
+
+def step_gaps(labels: np.ndarray, coeffs: np.ndarray, known: np.ndarray
+              ) -> dict[tuple[int, int], float]:
+    """Median signed height gap ``f_i - f_j`` between neighbouring regions i < j.
+
+    Pixel pairs of different known labels within :data:`ADJACENCY_RADIUS`
+    (chessboard) are the boundary; both fits are evaluated at each pair's
+    midpoint.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) labels, 0 = none.
+    coeffs
+        (n+1, 6) quadric coefficients by label.
+    known
+        bool (n+1,): labels that have a surface.
+
+    Returns
+    -------
+    dict
+        ``{(i, j): median(f_i - f_j)}``; positive when i is the higher side.
+    """
+    h, w = labels.shape
+    r = ADJACENCY_RADIUS
+    padded = np.pad(labels, r)
+    lo_parts, hi_parts, gap_parts = [], [], []
+    for dy in range(r + 1):
+        for dx in range(-r, r + 1):
+            if dy == 0 and dx <= 0:
+                continue  # each unordered offset once
+            other = padded[r + dy: r + dy + h, r + dx: r + dx + w]
+            rp, cp = np.nonzero((labels != other) & known[labels] & known[other])
+            lp, lq = labels[rp, cp], other[rp, cp]
+            rm, cm = rp + 0.5 * dy, cp + 0.5 * dx
+            gap = evaluate_quadric(coeffs[lp], rm, cm) - evaluate_quadric(coeffs[lq], rm, cm)
+            swap = lp > lq
+            lo_parts.append(np.where(swap, lq, lp))
+            hi_parts.append(np.where(swap, lp, lq))
+            gap_parts.append(np.where(swap, -gap, gap))
+    lo, hi, gap = (np.concatenate(p) for p in (lo_parts, hi_parts, gap_parts))
+    if lo.size == 0:
+        return {}
+    key = lo.astype(np.int64) * (len(known)) + hi
+    order = np.lexsort((gap, key))
+    key, gap = key[order], gap[order]
+    uniq, start, count = np.unique(key, return_index=True, return_counts=True)
+    med = 0.5 * (gap[start + (count - 1) // 2] + gap[start + count // 2])
+    return {divmod(int(k), len(known)): float(g) for k, g in zip(uniq, med, strict=True)}
+
+
+def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of the image border (or invalid border area).
+
+    Parameters
+    ----------
+    labels
+        int (H, W) labels, 0 = none.
+    valid
+        bool (H, W) valid pixels; when given, invalid pixels 8-connected to
+        an invalid pixel on the image's frame (e.g. the no-reading margin of
+        a depth camera) count as border too.
+
+    Returns
+    -------
+    set of int
+        The labels touching the border.
+    """
+    zone = np.zeros(labels.shape, dtype=bool)
+    zone[[0, -1], :] = True
+    zone[:, [0, -1]] = True
+    if valid is not None:
+        blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
+        outer = np.unique(blobs[zone & ~valid])
+        zone |= np.isin(blobs, outer[outer > 0])
+    size = 2 * ADJACENCY_RADIUS + 1
+    near = ndimage.binary_dilation(zone, structure=np.ones((size, size), dtype=bool))
+    ids = np.unique(labels[near])
+    return {int(i) for i in ids if i > 0}
+
+
+def _same_level(base: Surface, other: Surface, tol: float) -> bool:
+    """``other`` continues ``base`` (same mean height, or on base's extended fit)."""
+    row, col = other.centroid
+    if abs(other.mean_height - base.mean_height) <= tol:
+        return True
+    return bool(abs(base.height_at(row, col) - other.height_at(row, col)) <= tol)
+
+
+def find_background(surfaces: dict[int, Surface], border: set[int], rule: str, tol: float
+                    ) -> set[int]:
+    """Step 1: the background regions (never a holdsite).
+
+    Parameters
+    ----------
+    surfaces
+        Surfaces by id.
+    border
+        Ids of the regions touching the border (:func:`border_regions`).
+    rule
+        ``"lowest-border"``, ``"largest-border"`` or ``"none"``.
+    tol
+        Height tolerance (``step.threshold``) for regions at the same level.
+
+    Returns
+    -------
+    set of int
+        Background surface ids: the chosen border region and every region at
+        its level.
+    """
+    candidates = [surfaces[i] for i in sorted(border) if i in surfaces]
+    if rule == "none" or not candidates:
+        return set()
+    floor = BACKGROUND_MIN_FRACTION * sum(s.pixels for s in surfaces.values())
+    large = [s for s in candidates if s.pixels >= floor] or candidates
+    if rule == "largest-border":
+        base = max(large, key=lambda s: (s.pixels, -s.mean_height, -s.id))
+    else:
+        base = min(large, key=lambda s: (s.mean_height, s.id))
+    return {s.id for s in surfaces.values() if s.id == base.id or _same_level(base, s, tol)}
+
+
+def _edge_kinds(surfaces: dict[int, Surface]) -> dict[tuple[int, int], str]:
+    """Edge types listed in ``Surface.neighbors``, by (i, j), i < j."""
+    kinds = {}
+    for s in surfaces.values():
+        for nb in s.neighbors:
+            kinds[(min(s.id, nb.id), max(s.id, nb.id))] = nb.edge
+    return kinds
+
+
+def _is_step(pair: tuple[int, int], gap: float, kinds: dict[tuple[int, int], str],
+             tol: float) -> bool:
+    kind = kinds.get(pair)
+    return kind == "step" if kind is not None else abs(gap) > tol
+
+
+def _union_find_groups(ids: list[int], joins: list[tuple[int, int]]) -> dict[int, int]:
+    """Connected groups of ``ids`` under ``joins``: id -> smallest id of its group."""
+    parent = {i: i for i in ids}
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in joins:
+        ra, rb = root(a), root(b)
+        parent[max(ra, rb)] = min(ra, rb)
+    return {i: root(i) for i in ids}
+
+
+def find_objects(surfaces: dict[int, Surface], background: set[int],
+                 gaps: dict[tuple[int, int], float], tol: float, framed: set[int]
+                 ) -> tuple[dict[int, int], list[ObjectInfo]]:
+    """Step 2: objects (groups joined by non-step edges) and which are covered.
+
+    Parameters
+    ----------
+    surfaces
+        Surfaces by id.
+    background
+        Background ids (left out).
+    gaps
+        Median signed gaps of neighbouring regions (:func:`step_gaps`).
+    tol
+        ``step.threshold``: larger gaps are steps (when ``neighbors`` is silent).
+    framed
+        Ids of the regions touching the image frame.
+
+    Returns
+    -------
+    object_of, objects
+        Surface id -> object id, and the objects by id.
+    """
+    ids = sorted(i for i in surfaces if i not in background)
+    kinds = _edge_kinds(surfaces)
+    pairs = [(p, g) for p, g in gaps.items() if p[0] in ids and p[1] in ids]
+    joins = [p for p, g in pairs if not _is_step(p, g, kinds, tol)]
+    group = _union_find_groups(ids, joins)
+    numbering = {g: k + 1 for k, g in enumerate(sorted(set(group.values())))}
+    object_of = {i: numbering[group[i]] for i in ids}
+    covered: dict[int, set[int]] = {k: set() for k in numbering.values()}
+    for (i, j), g in pairs:
+        oi, oj = object_of[i], object_of[j]
+        if oi != oj and _is_step((i, j), g, kinds, tol) and g != 0:
+            lower, upper = (oj, oi) if g > 0 else (oi, oj)
+            covered[lower].add(upper)
+    objects = [_object_info(k, [surfaces[i] for i in ids if object_of[i] == k], covered[k],
+                            framed) for k in sorted(covered)]
+    return object_of, objects
+
+
+def _object_info(oid: int, members: list[Surface], covered_by: set[int], framed: set[int]
+                 ) -> ObjectInfo:
+    pixels = sum(s.pixels for s in members)
+    row = sum(s.pixels * s.centroid[0] for s in members) / max(pixels, 1)
+    col = sum(s.pixels * s.centroid[1] for s in members) / max(pixels, 1)
+    return ObjectInfo(id=oid, surfaces=tuple(s.id for s in members), pixels=pixels,
+                      centroid=(row, col), covered_by=tuple(sorted(covered_by)),
+                      touches_border=any(s.id in framed for s in members))
+
+
+# ---------------------------------------------------------------------------
+# Step 4: footprints and window statistics
+
+
+def footprint(size: tuple[int, int], angle: float) -> np.ndarray:
+    """Boolean structuring element of a ``size`` (rows, cols) rectangle rotated by ``angle``.
+
+    Parameters
+    ----------
+    size
+        (rows, cols) of the unrotated footprint.
+    angle
+        Degrees, counter-clockwise as displayed (rows grow downwards); 0 keeps
+        the footprint's rows along image rows.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool (k, k), k odd: pixel centres inside the rotated rectangle.
+    """
+    rows, cols = size
+    t = math.radians(angle)
+    cos, sin = math.cos(t), math.sin(t)
+    if abs(sin) < 1e-12 or abs(cos) < 1e-12:  # axis-aligned: exact rectangle
+        shape = (rows, cols) if abs(sin) < 1e-12 else (cols, rows)
+        return np.ones(shape, dtype=bool)
+    half = int(math.ceil(math.hypot(rows, cols) / 2))
+    dr, dc = np.mgrid[-half: half + 1, -half: half + 1].astype(np.float64)
+    along = dc * cos - dr * sin   # along the footprint's rows (its column axis)
+    across = dc * sin + dr * cos  # along the footprint's columns (its row axis)
+    fp = (np.abs(along) <= cols / 2 + 1e-9) & (np.abs(across) <= rows / 2 + 1e-9)
+    keep_r, keep_c = np.nonzero(fp.any(axis=1))[0], np.nonzero(fp.any(axis=0))[0]
+    trim = min(keep_r[0], keep_c[0], len(fp) - 1 - keep_r[-1], len(fp) - 1 - keep_c[-1])
+    return fp[trim: len(fp) - trim, trim: len(fp) - trim]
+
+
+def window_mean(a: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """Mean of ``a`` over the footprint centred at each pixel (zeros outside the image).
+
+    A full rectangle uses a box filter; a small rotated footprint sums shifted
+    copies (one per footprint pixel); a large one is an FFT convolution. All
+    are vectorised over the image.
+    """
+    if fp.all():
+        return ndimage.uniform_filter(a, size=fp.shape, mode="constant", cval=0.0)
+    if fp.sum() > FFT_FOOTPRINT_PIXELS:
+        from scipy.signal import fftconvolve
+
+        return fftconvolve(a, fp[::-1, ::-1].astype(np.float64), mode="same") / fp.sum()
+    kr, kc = fp.shape[0] // 2, fp.shape[1] // 2
+    padded = np.pad(a, ((kr, kr), (kc, kc)))
+    h, w = a.shape
+    total = np.zeros_like(a)
+    for dr, dc in zip(*np.nonzero(fp), strict=True):
+        total += padded[dr: dr + h, dc: dc + w]
+    return total / fp.sum()
+
+
+def window_ar_std(ar: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """Standard deviation of the 2-D AR over the footprint at each pixel (Sec. VII).
+
+    Parameters
+    ----------
+    ar
+        float64 (H, W) AR of :func:`~rangeseg_cli.edges.ar_2d`; NaN (invalid)
+        counts as 0, and such windows are never candidates anyway.
+    fp
+        Boolean footprint.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W) ``sqrt(E[AR^2] - E[AR]^2)`` over the window.
+    """
+    a = np.where(np.isnan(ar), 0.0, ar)
+    m1 = window_mean(a, fp)
+    m2 = window_mean(a * a, fp)
+    return np.sqrt(np.maximum(m2 - m1 * m1, 0.0))
+
+
+@dataclass
+class _Scene:
+    """Per-image inputs of the search."""
+
+    labels: np.ndarray
+    valid: np.ndarray
+    ar: np.ndarray
+    cfg: HoldsiteConfig
+    angles: tuple[float, ...]
+    _footprints: dict[float, np.ndarray] = field(default_factory=dict)
+
+    def footprint(self, angle: float) -> np.ndarray:
+        if angle not in self._footprints:
+            self._footprints[angle] = footprint(self.cfg.size, angle)
+        return self._footprints[angle]
+
+
+@dataclass
+class _Hits:
+    """Accepted window centres of one surface, and why other windows failed.
+
+    ``rows``, ``cols`` and ``clearance`` list the centres where the window is
+    accepted at one angle at least; ``ok`` and ``std`` (angles, h, w) hold,
+    in the surface's crop (``offset`` from image coordinates), which angles
+    are accepted and their AR std; ``edt`` is the crop's distance transform.
+    """
+
+    surface: Surface
+    rows: np.ndarray
+    cols: np.ndarray
+    clearance: np.ndarray
+    offset: tuple[int, int] = (0, 0)
+    edt: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    ok: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0), bool))
+    std: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    max_clearance: float = 0.0
+    fitting: int = 0
+    min_ar_std: float = math.inf
+
+
+def _crop(scene: _Scene, s: Surface, reach: int) -> tuple[tuple[slice, slice], tuple[int, int]]:
+    """Slices of the surface's box grown by ``reach``, and the offset of a 1-px padded crop."""
+    h, w = scene.labels.shape
+    r0, c0, r1, c1 = s.bbox
+    sl = (slice(max(0, r0 - reach), min(h, r1 + reach + 1)),
+          slice(max(0, c0 - reach), min(w, c1 + reach + 1)))
+    return sl, (sl[0].start - 1, sl[1].start - 1)
+
+
+def _accept_angle(scene: _Scene, mask: np.ndarray, ar: np.ndarray, angle: float,
+                  hits: _Hits) -> tuple[np.ndarray, np.ndarray]:
+    """Step 4 at one angle: (accepted centres, AR std) in the crop.
+
+    A window is accepted when the footprint lies wholly on the surface's
+    valid pixels (binary erosion) and the AR std over it is small. Every
+    window pixel of an accepted centre is inside the crop, so the crop's
+    window means are exact there.
+    """
+    fp = scene.footprint(angle)
+    inside = ndimage.binary_erosion(mask, structure=fp, border_value=0)
+    if not inside.any():
+        return inside, np.full(mask.shape, np.inf)
+    std = window_ar_std(ar, fp)
+    hits.fitting += int(inside.sum())
+    hits.min_ar_std = min(hits.min_ar_std, float(std[inside].min()))
+    return inside & (std <= scene.cfg.max_ar_std), std
+
+
+def surface_windows(scene: _Scene, s: Surface) -> _Hits:
+    """Step 4: every acceptable window centre on surface ``s``, unsorted.
+
+    Parameters
+    ----------
+    scene
+        Labels, validity, AR and the holdsite configuration.
+    s
+        The surface.
+
+    Returns
+    -------
+    _Hits
+        Accepted centres with their clearance, the accepted angles and AR
+        stds, and the largest clearance, number of fitting windows and lowest
+        AR std seen (for the reason when nothing is accepted).
+    """
+    rows, cols = scene.cfg.size
+    sl, offset = _crop(scene, s, max(rows, cols) // 2 + 2)
+    mask = np.pad((scene.labels[sl] == s.id) & scene.valid[sl], 1)
+    edt = ndimage.distance_transform_edt(mask)
+    none = np.zeros(0, dtype=np.int64)
+    hits = _Hits(s, none, none, none.astype(np.float64), max_clearance=float(edt.max()))
+    if hits.max_clearance < (min(rows, cols) + 1) / 2:
+        return hits  # not even the footprint's short side fits
+    ar = np.pad(scene.ar[sl], 1)
+    accepted = [_accept_angle(scene, mask, ar, angle, hits) for angle in scene.angles]
+    ok = np.stack([a for a, _ in accepted])
+    r, c = np.nonzero(ok.any(axis=0))
+    hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
+    hits.offset, hits.edt, hits.ok = offset, edt, ok
+    hits.std = np.stack([std for _, std in accepted])
+    return hits
+
+
+def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
+    """(angle, AR std) at accepted centre ``k``: the footprint farthest from the border.
+
+    Among the accepted angles, the one whose footprint's smallest distance to
+    the surface's border (the distance transform's minimum over the
+    footprint) is largest; then the lowest AR std; then the smallest angle.
+    """
+    r, c = hits.rows[k] - hits.offset[0], hits.cols[k] - hits.offset[1]
+    best = (-math.inf, math.inf, 0.0)
+    for a, angle in enumerate(scene.angles):
+        if not hits.ok[a, r, c]:
+            continue
+        fp = scene.footprint(angle)
+        fr, fc = np.nonzero(fp)
+        margin = float(hits.edt[r + fr - fp.shape[0] // 2, c + fc - fp.shape[1] // 2].min())
+        std = float(hits.std[a, r, c])
+        if (margin, -std) > (best[0], -best[1]):
+            best = (margin, std, angle)
+    return best[2], best[1]
+
+
+# ---------------------------------------------------------------------------
+# Step 5: choice and runners-up
+
+
+def _rank(hits: _Hits, centre: tuple[float, float]) -> np.ndarray:
+    """Order of the hits: clearance (whole pixels) down, distance to ``centre`` up."""
+    dist = np.hypot(hits.rows - centre[0], hits.cols - centre[1])
+    return np.lexsort((hits.cols, hits.rows, dist, -np.floor(hits.clearance + 1e-9)))
+
+
+def _spread(hits: _Hits, order: np.ndarray, count: int, gap: float) -> list[int]:
+    """Up to ``count`` indices in ``order`` whose centres are >= ``gap`` apart (greedy)."""
+    picked: list[int] = []
+    left = np.ones(order.size, dtype=bool)
+    r, c = hits.rows[order], hits.cols[order]
+    while len(picked) < count and left.any():
+        k = int(np.argmax(left))
+        picked.append(int(order[k]))
+        left &= np.hypot(r - r[k], c - c[k]) >= gap
+    return picked
+
+
+def score(clearance: float, distance: float, size: tuple[int, int], area: float) -> float:
+    """Descriptive score in (0, 1): ``c / (c + h) * rho / (rho + d)`` (module Notes)."""
+    h = (max(size) + 1) / 2
+    rho = math.sqrt(max(area, 1.0) / math.pi)
+    return clearance / (clearance + h) * rho / (rho + distance)
+
+
+# ---------------------------------------------------------------------------
+# Step 6: pose
+
+
+def _unit(v: np.ndarray) -> Vector:
+    v = v / np.linalg.norm(v)
+    return float(v[0]), float(v[1]), float(v[2])
+
+
+def camera_pose(row: float, col: float, height: float, grad: tuple[float, float],
+                cfg: InputConfig) -> tuple[Vector | None, Vector | None]:
+    """Camera-frame point and approach vector of a site (module Notes, step 6).
+
+    Parameters
+    ----------
+    row, col
+        Pixel position.
+    height
+        Fitted height there (``-depth`` for depth input).
+    grad
+        (dz/dx, dz/dy) of the fit, x = col, y = row.
+    cfg
+        ``[input]`` with intrinsics, ``larger_is_closer`` and ``metres_per_unit``.
+
+    Returns
+    -------
+    point, approach
+        ``(X, Y, Z)`` (metres when ``metres_per_unit > 0``, else depth units)
+        and the unit approach vector; ``(None, None)`` without intrinsics, for
+        height maps (``larger_is_closer``: no depth along the optical axis) or
+        a non-positive depth.
+    """
+    if not cfg.has_intrinsics or cfg.larger_is_closer or -height <= 0:
+        return None, None
+    d = -height
+    d_u, d_v = -grad[0], -grad[1]
+    u0, v0 = col - cfg.cx, row - cfg.cy
+    unit = cfg.metres_per_unit if cfg.metres_per_unit > 0 else 1.0
+    point = (u0 * d / cfg.fx * unit, v0 * d / cfg.fy * unit, d * unit)
+    # Normal P_u x P_v of P(u, v) = d(u, v) r(u, v), flipped to face the camera.
+    towards = -np.array([-cfg.fx * d_u, -cfg.fy * d_v, d + u0 * d_u + v0 * d_v])
+    return point, _unit(-towards)
+
+
+def make_site(s: Surface, row: int, col: int, *, object_id: int, clearance: float,
+              ar_std: float, angle: float, site_score: float, config: Config) -> Holdsite:
+    """Step 6: a :class:`Holdsite` with elevation, normal and approach from the fit."""
+    gx, gy = s.gradient_at(row, col)
+    elevation = float(s.height_at(row, col))
+    normal = _unit(np.array([-gx, -gy, 1.0]))
+    point, approach_cam = camera_pose(row, col, elevation, (gx, gy), config.input)
+    return Holdsite(
+        row=int(row), col=int(col), elevation=elevation, normal=normal,
+        approach=(-normal[0], -normal[1], -normal[2]), surface=s.id, surface_type=s.type,
+        object=object_id, clearance=float(clearance), ar_std=float(ar_std),
+        score=float(site_score), angle=float(angle), size=config.holdsite.size,
+        point_camera=point, approach_camera=approach_cam)
+
+
+# ---------------------------------------------------------------------------
+# The whole search
+
+
+def _angles(cfg: HoldsiteConfig) -> tuple[float, ...]:
+    rows, cols = cfg.size
+    if rows == cols:
+        return (0.0,)
+    n = int(math.ceil(180.0 / cfg.rotation_step - 1e-9))
+    return tuple(float(k * cfg.rotation_step) for k in range(n))
+
+
+def _preference(obj: ObjectInfo, s: Surface) -> tuple[bool, bool, float, int]:
+    """Sort key of step 3: in view, uncovered, highest."""
+    return obj.touches_border, obj.covered, -s.mean_height, s.id
+
+
+def _check(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    z = np.asarray(z, dtype=np.float64)
+    labels = np.asarray(labels)
+    if z.ndim != 2:
+        raise InputError(f"`z` (shape {z.shape}) must be a 2-D range image")
+    if labels.shape != z.shape:
+        raise InputError(f"`labels` (shape {labels.shape}) must have the shape of `z` "
+                         f"({z.shape})")
+    if labels.dtype.kind not in "iu":
+        raise InputError(f"`labels` (dtype {labels.dtype}) must be integer")
+    return z, np.where(np.isfinite(z), labels, 0).astype(np.int64)
+
+
+def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
+             ) -> Holdsite:
+    r, c = int(hits.rows[k]), int(hits.cols[k])
+    dist = math.hypot(r - obj.centroid[0], c - obj.centroid[1])
+    angle, ar_std = window_angle(scene, hits, k)
+    return make_site(hits.surface, r, c, object_id=obj.id, clearance=hits.clearance[k],
+                     ar_std=ar_std, angle=angle,
+                     site_score=score(hits.clearance[k], dist, config.holdsite.size,
+                                      obj.pixels), config=config)
+
+
+def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hits], list[_Hits]]:
+    """Search surfaces in order until ``wanted`` have accepted windows; (found, missed)."""
+    found: list[_Hits] = []
+    missed: list[_Hits] = []
+    for s in order:
+        hits = surface_windows(scene, s)
+        (found if hits.rows.size else missed).append(hits)
+        if len(found) >= wanted:
+            break
+    return found, missed
+
+
+def _choose(scene: _Scene, found: list[_Hits], objects: dict[int, ObjectInfo],
+            object_of: dict[int, int], config: Config) -> list[Holdsite]:
+    """Step 5: the chosen site first, then the runners-up (module Notes)."""
+    cfg = config.holdsite
+    wanted = 1 + cfg.max_candidates
+    ranked = []
+    for hits in found:
+        obj = objects[object_of[hits.surface.id]]
+        ranked.append((hits, obj, _rank(hits, obj.centroid)))
+    picks = [(h, o, int(order[0])) for h, o, order in ranked]
+    gap = math.hypot(*cfg.size)
+    for hits, obj, order in ranked:
+        if len(picks) >= wanted:
+            break
+        extra = _spread(hits, order, wanted - len(picks) + 1, gap)[1:]
+        picks += [(hits, obj, k) for k in extra]
+    return [_site_of(scene, h, k, o, config) for h, o, k in picks[:wanted]]
+
+
+def _failure(cfg: HoldsiteConfig, missed: list[_Hits], n_surfaces: int) -> str:
+    """Why no window was accepted."""
+    if not missed:
+        return ("no surface besides the background" if n_surfaces else
+                "no surfaces in the segmentation")
+    win = f"{cfg.size[0]}x{cfg.size[1]}"
+    widest = max(missed, key=lambda h: h.max_clearance)
+    clear = (f"largest clearance found: {widest.max_clearance:.1f} px "
+             f"(surface {widest.surface.id})")
+    fitting = [h for h in missed if h.fitting]
+    if not fitting:
+        return f"no surface has a {win} window wholly on its valid pixels; {clear}"
+    calm = min(fitting, key=lambda h: h.min_ar_std)
+    return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g}; "
+            f"{sum(h.fitting for h in fitting)} window(s) fit, lowest AR std "
+            f"{calm.min_ar_std:.3g} (surface {calm.surface.id}); {clear}")
+
+
+def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: HoldsiteConfig
+             ) -> str:
+    """How the chosen site was found."""
+    state = ("touching the image border" if obj.touches_border else "in view") + (
+        ", covered" if obj.covered else ", uncovered")
+    text = (f"surface {site.surface} ({site.surface_type}) of object {obj.id} ({state}) is the "
+            f"first in the search order (objects in view, uncovered, highest surface first) "
+            f"with a {cfg.size[0]}x{cfg.size[1]} window with AR std <= {cfg.max_ar_std:g}")
+    if missed:
+        ids = ", ".join(str(h.surface.id) for h in missed[:10])
+        more = ", ..." if len(missed) > 10 else ""
+        text += f"; tried before it without an acceptable window: surfaces {ids}{more}"
+    return text
+
+
+def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
+                  config: Config) -> HoldsiteResult:
+    """Find the vacuum-gripper holdsite of a segmented range image (Sec. VII).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights (larger = closer), NaN where invalid.
+    labels
+        int (H, W) final segmentation, 0 = edge/unlabelled/invalid.
+    surfaces
+        The :class:`~rangeseg_cli.models.Surface` of each label (image
+        coordinates, x = col, y = row).
+    config
+        Uses ``[holdsite]``, ``step.threshold`` (height tolerance) and
+        ``[input]`` (intrinsics, depth sign, ``metres_per_unit``).
+
+    Returns
+    -------
+    HoldsiteResult
+        The chosen site (or ``None`` with a reason), up to
+        ``holdsite.max_candidates`` runners-up, the background ids and the
+        objects. See the module Notes for every rule.
+
+    Raises
+    ------
+    InputError
+        When ``labels`` is not an integer array of the shape of ``z``.
+    """
+    z, labels = _check(z, labels)
+    valid = np.isfinite(z)
+    by_id = {s.id: s for s in surfaces if s.id > 0}
+    n = max(int(labels.max(initial=0)), max(by_id, default=0))
+    known = np.zeros(n + 1, dtype=bool)
+    known[list(by_id)] = True
+    labels = np.where(known[labels], labels, 0)
+    tol = config.step.threshold
+    # Step 1: background (lowest border regions)
+    background = find_background(by_id, border_regions(labels, valid),
+                                 config.holdsite.background, tol)
+    # Step 2: objects, and which are covered by another
+    gaps = step_gaps(labels, _coefficient_table(surfaces, n), known)
+    object_of, objects = find_objects(by_id, background, gaps, tol, border_regions(labels))
+    obj_by_id = {o.id: o for o in objects}
+    # Step 3: objects wholly in view first, then uncovered ones; each group highest first
+    order = sorted((by_id[i] for i in object_of), key=lambda s: _preference(
+        obj_by_id[object_of[s.id]], s))
+    # Step 4: acceptable windows, surface by surface
+    scene = _Scene(labels, valid, ar_2d(z), config.holdsite, _angles(config.holdsite))
+    found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
+    bg, objs, camera = tuple(sorted(background)), tuple(objects), config.input.has_intrinsics
+    if not found:
+        reason = _failure(config.holdsite, missed, len(by_id))
+        return HoldsiteResult(None, reason, (), bg, objs, camera)
+    # Step 5: the best window, then the runners-up
+    sites = _choose(scene, found, obj_by_id, object_of, config)
+    rank = {s.id: k for k, s in enumerate(order)}
+    first = rank[found[0].surface.id]
+    before = [h for h in missed if rank[h.surface.id] < first]
+    reason = _success(sites[0], obj_by_id[sites[0].object], before, config.holdsite)
+    return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera)

@@ -1,0 +1,317 @@
+"""Holdsites (Sec. VII) on synthetic scenes with known answers, end to end."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from rangeseg_cli.config import load_config
+from rangeseg_cli.holdsite import HoldsiteResult, find_holdsite, footprint, window_ar_std
+from rangeseg_cli.io import to_jsonable
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.render import overlay
+
+CONTRACT_KEYS = {"row", "col", "elevation", "normal", "approach", "surface", "surface_type",
+                 "object", "clearance", "ar_std", "score", "angle", "size"}
+
+
+def table(shape=(64, 64), height=20.0):
+    return np.full(shape, height)
+
+
+def noisy(z, sigma=0.5, seed=0):
+    return z + np.random.default_rng(seed).normal(0.0, sigma, z.shape)
+
+
+def run(z, **holdsite):
+    config = load_config(overrides={"holdsite": holdsite} if holdsite else None)
+    return run_pipeline(z, config)
+
+
+def site_label(result):
+    site = result.holdsite.holdsite
+    return result.labels[site.row, site.col]
+
+
+def window(site):
+    rows, cols = site.size
+    return (slice(site.row - rows // 2, site.row + rows // 2 + 1),
+            slice(site.col - cols // 2, site.col + cols // 2 + 1))
+
+
+def surface_at(result, row, col):
+    return next(s for s in result.surfaces if s.id == result.labels[row, col])
+
+
+# --- the scenes of Sec. VII ------------------------------------------------------------
+
+
+def test_box_on_table_gives_site_on_box_top_near_its_centre_with_clearance():
+    z = table()
+    z[20:44, 20:44] = 120.0
+    result = run(noisy(z))
+    site = result.holdsite.holdsite
+    assert site is not None
+    assert site.surface == result.labels[32, 32]
+    assert site.clearance >= 3 and abs(site.row - 31.5) <= 2 and abs(site.col - 31.5) <= 2
+    assert np.all(result.labels[window(site)] == site.surface)
+    assert site.elevation == pytest.approx(120.0, abs=1.0)
+    assert result.holdsite.background == (result.labels[2, 2],)
+
+
+def test_box_with_through_hole_keeps_window_off_the_hole():
+    z = table()
+    z[8:56, 8:56] = 120.0
+    z[26:38, 26:38] = 20.0  # a 12x12 through hole: the table shows through
+    result = run(noisy(z))
+    site = result.holdsite.holdsite
+    hole = np.zeros(z.shape, bool)
+    hole[26:38, 26:38] = True
+    assert site.surface == result.labels[14, 14]
+    assert not hole[window(site)].any()
+    assert result.labels[32, 32] in result.holdsite.background  # the table seen through it
+    assert all(c.surface == site.surface for c in result.holdsite.candidates)
+    # farthest from both the rim and the hole: in a corner band, not at the centre
+    assert site.clearance >= 5
+    assert max(abs(site.row - 31.5), abs(site.col - 31.5)) >= 12
+
+
+def test_top_surface_too_small_for_window_passes_to_next_surface():
+    z = table()
+    z[12:52, 12:52] = 120.0
+    z[20:34, 24:30] = 200.0  # a 14x6 post on the box: highest, but a 7x7 window never fits
+    result = run(noisy(z))
+    post = surface_at(result, 27, 27)
+    assert post.mean_height == pytest.approx(200.0, abs=2.0)  # it was segmented
+    site = result.holdsite.holdsite
+    assert site.surface == result.labels[45, 45] != post.id
+    assert f"surfaces {post.id}" in result.holdsite.reason
+
+
+def test_no_surface_large_enough_gives_null_with_reason():
+    z = table()
+    z[10:22, 10:22] = 120.0
+    z[40:52, 30:42] = 90.0
+    result = run(noisy(z), size=[15, 15])
+    assert result.holdsite.holdsite is None
+    reason = result.holdsite.reason
+    assert "no surface has a 15x15 window" in reason and "largest clearance found" in reason
+    assert result.holdsite.to_dict()["holdsite"] is None
+
+
+def test_rough_surfaces_give_null_naming_the_ar_threshold():
+    z = table()
+    z[16:48, 16:48] = 120.0
+    result = run(noisy(z, sigma=1.0), max_ar_std=0.05)
+    assert result.holdsite.holdsite is None
+    assert "AR std <= 0.05" in result.holdsite.reason
+
+
+def test_two_stacked_boxes_give_site_on_upper_box_and_lower_is_covered():
+    z = table()
+    z[8:56, 8:56] = 80.0
+    z[12:30, 34:52] = 160.0  # upper box off-centre on the lower one
+    result = run(noisy(z))
+    site = result.holdsite.holdsite
+    upper, lower = result.labels[21, 43], result.labels[45, 20]
+    assert site.surface == upper
+    objects = {o.id: o for o in result.holdsite.objects}
+    upper_obj = next(o for o in objects.values() if upper in o.surfaces)
+    lower_obj = next(o for o in objects.values() if lower in o.surfaces)
+    assert not upper_obj.covered and lower_obj.covered_by == (upper_obj.id,)
+
+
+def test_plank_leaning_on_box_is_preferred_to_the_higher_box_it_covers():
+    # The plank rests on the box's edge: lower on average, but the top of the pile.
+    z = table()
+    z[16:48, 34:62] = 100.0
+    cols = np.arange(64, dtype=float)
+    plank = 40.0 + 2.8 * (cols - 4.0)  # 40 at col 4, 110 at col 29, above the box after
+    z[26:38, 4:44] = plank[4:44]
+    result = run(noisy(z))
+    box, plank_id = result.labels[30, 55], result.labels[32, 20]
+    heights = {s.id: s.mean_height for s in result.surfaces}
+    assert heights[box] > heights[plank_id]  # highest-first alone would take the box
+    assert result.holdsite.holdsite.surface == plank_id
+
+
+def test_bin_wall_on_image_border_is_tried_after_a_box_in_view():
+    z = table()
+    rows = np.arange(64, dtype=float)[:, None]
+    z[:, :10] = 150.0 + 2.0 * rows  # a tall wall along the left border, tilted
+    z[24:44, 30:50] = 90.0
+    result = run(noisy(z))
+    assert result.holdsite.holdsite.surface == result.labels[34, 40]
+    wall = next(o for o in result.holdsite.objects if result.labels[30, 4] in o.surfaces)
+    assert wall.touches_border
+
+
+def test_approach_of_tilted_plane_is_minus_its_unit_normal():
+    z = table()
+    r, c = np.mgrid[0:64, 0:64].astype(float)
+    top = 120.0 + 0.8 * (c - 32) - 0.5 * (r - 32)  # dz/dx = 0.8, dz/dy = -0.5
+    z[12:52, 12:52] = top[12:52, 12:52]
+    site = run(z).holdsite.holdsite
+    expected = np.array([-0.8, 0.5, 1.0]) / math.sqrt(0.64 + 0.25 + 1.0)
+    np.testing.assert_allclose(site.normal, expected, atol=1e-3)
+    np.testing.assert_allclose(site.approach, -expected, atol=1e-3)
+    assert site.approach[2] < 0  # pointing down, into the surface
+
+
+def test_long_footprint_on_diagonal_bar_takes_the_bar_orientation():
+    z = table((80, 80))
+    r, c = np.mgrid[0:80, 0:80].astype(float)
+    t = math.radians(30.0)  # counter-clockwise as displayed: up and to the right
+    along = (c - 40) * math.cos(t) - (r - 40) * math.sin(t)
+    across = (c - 40) * math.sin(t) + (r - 40) * math.cos(t)
+    z[(np.abs(along) <= 30) & (np.abs(across) <= 3.5)] = 100.0
+    result = run(noisy(z, seed=3), size=[3, 9], rotation_step=15.0)
+    site = result.holdsite.holdsite
+    assert site.surface == result.labels[40, 40]
+    assert site.angle == pytest.approx(30.0, abs=15.0)
+    fp = footprint((3, 9), site.angle)
+    k = fp.shape[0] // 2, fp.shape[1] // 2
+    patch = result.labels[site.row - k[0]: site.row + k[0] + 1, site.col - k[1]: site.col + k[1] + 1]
+    assert np.all(patch[fp] == site.surface)
+
+
+def test_camera_point_and_approach_for_known_intrinsics():
+    # Depth camera in 0.1 mm: floor 600 mm, box top 500 mm, fx = fy = 400, centre (31.5, 31.5).
+    raw = np.full((64, 64), 6000, dtype=np.uint16)
+    raw[16:48, 16:48] = 5000
+    raw[0, :5] = 0  # no reading: never part of a window
+    config = load_config(preset="tenth-mm-depth", overrides={
+        "input": {"fx": 400.0, "fy": 400.0, "cx": 31.5, "cy": 31.5}})
+    site = run_pipeline(raw, config).holdsite.holdsite
+    x, y, zc = site.point_camera
+    assert zc == pytest.approx(0.5, abs=1e-6)
+    assert x == pytest.approx((site.col - 31.5) * 0.5 / 400.0, abs=1e-6)
+    assert y == pytest.approx((site.row - 31.5) * 0.5 / 400.0, abs=1e-6)
+    np.testing.assert_allclose(site.approach_camera, (0.0, 0.0, 1.0), atol=1e-6)
+
+
+def test_camera_approach_of_tilted_plane_is_minus_its_3d_normal():
+    fx = fy = 300.0
+    cx, cy = 40.0, 30.0
+    n = np.array([0.3, -0.2, -1.0])
+    n /= np.linalg.norm(n)  # unit normal facing the camera (negative Z)
+    p0 = np.array([0.0, 0.0, 500.0])  # mm
+    v, u = np.mgrid[0:64, 0:80].astype(float)
+    ray = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
+    depth = (n @ p0) / (ray @ n)  # the plane n.P = n.p0 seen along each ray
+    raw = np.full(depth.shape, 8000.0)
+    raw[12:52, 16:64] = depth[12:52, 16:64] * 10.0
+    config = load_config(preset="tenth-mm-depth",
+                         overrides={"input": {"fx": fx, "fy": fy, "cx": cx, "cy": cy}})
+    site = run_pipeline(np.round(raw).astype(np.uint16), config).holdsite.holdsite
+    np.testing.assert_allclose(site.approach_camera, -n, atol=5e-3)
+    assert site.point_camera[2] == pytest.approx(depth[site.row, site.col] / 1000, abs=5e-4)
+
+
+# --- candidates, background, contract ---------------------------------------------------
+
+
+def test_runners_up_take_other_surfaces_first_then_spaced_windows_on_the_same_surface():
+    z = table((64, 96))
+    z[12:52, 8:48] = 120.0
+    z[16:48, 58:90] = 100.0
+    result = run(noisy(z), max_candidates=3)
+    site, others = result.holdsite.holdsite, result.holdsite.candidates
+    high, low = result.labels[32, 28], result.labels[32, 74]
+    assert site.surface == high and others[0].surface == low and len(others) == 3
+    spots = [(s.row, s.col) for s in (site, *others) if s.surface == high]
+    for a in range(len(spots)):
+        for b in range(a):
+            assert math.dist(spots[a], spots[b]) >= math.hypot(7, 7)
+
+
+def test_background_rules_lowest_largest_and_none():
+    z = table()
+    z[20:44, 20:44] = 120.0
+    z = noisy(z)
+    table_id = run(z).labels[2, 2]
+    assert run(z).holdsite.background == (table_id,)
+    assert run(z, background="largest-border").holdsite.background == (table_id,)
+    free = run(z, background="none").holdsite
+    assert free.background == () and free.holdsite.surface != table_id  # box in view first
+
+
+def test_split_table_at_the_same_level_is_all_background():
+    z = table()
+    z[:, 30:34] = 150.0  # a wall across the image splits the table in two
+    z[8:24, 6:22] = 100.0
+    result = run(noisy(z))
+    left, right = result.labels[50, 5], result.labels[50, 60]
+    assert left != right and set(result.holdsite.background) == {left, right}
+
+
+def test_result_dict_follows_the_file_contract_and_is_json_ready():
+    z = table()
+    z[20:44, 20:44] = 120.0
+    doc = run(noisy(z)).holdsite.to_dict()
+    assert set(doc) == {"holdsite", "reason", "candidates", "background", "objects"}
+    assert set(doc["holdsite"]) == CONTRACT_KEYS
+    json.dumps(to_jsonable(doc))
+    raw = np.full((64, 64), 6000, dtype=np.uint16)
+    raw[16:48, 16:48] = 5000
+    config = load_config(preset="mm-depth", overrides={"input": {"fx": 500.0, "fy": 500.0}})
+    camera_doc = run_pipeline(raw, config).holdsite.to_dict()
+    assert set(camera_doc["holdsite"]) == CONTRACT_KEYS | {"point_camera", "approach_camera"}
+
+
+def test_labels_of_another_shape_are_an_input_error():
+    from rangeseg_cli.errors import InputError
+
+    with pytest.raises(InputError, match="`labels` \\(shape \\(3, 3\\)\\)"):
+        find_holdsite(table(), np.zeros((3, 3), np.int32), [], load_config())
+
+
+def test_all_background_scene_gives_null_not_an_error():
+    result = run(noisy(table()))
+    assert isinstance(result.holdsite, HoldsiteResult)
+    assert result.holdsite.holdsite is None
+    assert result.holdsite.reason == "no surface besides the background"
+
+
+# --- building blocks ------------------------------------------------------------------
+
+
+def test_footprint_is_the_rectangle_at_0_and_90_degrees_and_keeps_its_area_rotated():
+    assert footprint((3, 9), 0.0).shape == (3, 9) and footprint((3, 9), 0.0).all()
+    assert footprint((3, 9), 90.0).shape == (9, 3)
+    fp = footprint((3, 9), 30.0)
+    assert fp.shape[0] % 2 == 1 and abs(int(fp.sum()) - 27) <= 4
+    np.testing.assert_array_equal(fp, fp[::-1, ::-1])  # symmetric about its centre
+
+
+def test_window_ar_std_matches_a_direct_computation():
+    ar = np.random.default_rng(1).random((20, 30))
+    for fp in (np.ones((7, 7), bool), footprint((3, 9), 45.0)):
+        std = window_ar_std(ar, fp)
+        kr, kc = fp.shape[0] // 2, fp.shape[1] // 2
+        direct = ar[10 - kr: 10 + kr + 1, 15 - kc: 15 + kc + 1][fp].std()
+        assert std[10, 15] == pytest.approx(direct, abs=1e-9)
+
+
+def test_overlay_fills_the_site_white_and_outlines_runners_up():
+    z = table((64, 96))
+    z[12:52, 8:48] = 120.0
+    z[16:48, 58:90] = 100.0
+    result = run(noisy(z), max_candidates=1)
+    image = overlay(result.labels, result.holdsite)
+    site, other = result.holdsite.holdsite, result.holdsite.candidates[0]
+    assert image.shape == (64, 96, 3) and image.dtype == np.uint8
+    assert np.all(image[window(site)] == 255)
+    ring = image[window(other)]
+    assert np.all(ring[0] == 255) and not np.all(ring[3, 3] == 255)
+
+
+def test_window_mean_of_large_rotated_footprint_matches_shift_sum():
+    from rangeseg_cli.holdsite import window_mean
+
+    a = np.random.default_rng(2).random((40, 50))
+    fp = footprint((9, 21), 30.0)
+    kr, kc = fp.shape[0] // 2, fp.shape[1] // 2
+    mean = window_mean(a, fp)
+    assert mean[20, 25] == pytest.approx(a[20 - kr: 20 + kr + 1, 25 - kc: 25 + kc + 1][fp].mean())
