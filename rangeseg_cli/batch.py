@@ -25,6 +25,7 @@ after another gives the same bytes as running them all at once.
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import time
@@ -305,7 +306,12 @@ def read_manifest(out: Path) -> dict[str, Any]:
 def manifest_config(out: Path) -> Config | None:
     """The configuration recorded in ``out``'s manifest, if any."""
     data = read_manifest(out).get("config")
-    return build_config(data, str(out / MANIFEST)) if isinstance(data, dict) else None
+    if not isinstance(data, dict):
+        return None
+    # JSON has no NaN: the manifest writes NaN (``[input] invalid``) as null.
+    data = {t: {k: math.nan if v is None else v for k, v in entries.items()}
+            if isinstance(entries, dict) else entries for t, entries in data.items()}
+    return build_config(data, str(out / MANIFEST))
 
 
 def plan_jobs(jobs: list[Job], out: Path, config: Config, stages: tuple[str, ...], *,

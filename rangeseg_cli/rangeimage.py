@@ -17,6 +17,9 @@ from .config import InputConfig
 from .errors import InputError
 
 MIN_SIZE = 16
+#: Largest |height| accepted, in depth units: far beyond any sensor, and small
+#: enough that squares and moment sums of the fit stay finite in float64.
+MAX_ABS_HEIGHT = 1e12
 
 
 def check_array(raw: Any, *, name: str = "image") -> np.ndarray:
@@ -95,4 +98,9 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image") -> np.ndarray
     if invalid.all():
         raise InputError(f"{name}: no valid pixel (all NaN, infinite or equal to the "
                          f"no-data value {cfg.invalid})")
+    peak = float(np.nanmax(np.abs(z)))
+    if peak > MAX_ABS_HEIGHT:
+        raise InputError(f"{name}: height {peak:.3g} is outside the supported range "
+                         f"(|height| <= {MAX_ABS_HEIGHT:.0e} depth units); set [input] "
+                         "invalid to the sensor's no-data value or adjust [input] scale")
     return z

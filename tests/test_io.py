@@ -95,3 +95,10 @@ def test_atomic_writers_leave_no_temporary_files(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "a.npy", "a.png"]
     text = (tmp_path / "a.json").read_text()
     assert text.index('"a"') < text.index('"b"') and "1.23457" in text and "null" in text
+
+
+def test_absurd_heights_are_a_clear_error_not_an_overflow():
+    raw = np.zeros((16, 16))
+    raw[3, 3] = 1.7e308
+    with pytest.raises(InputError, match=r"height 1.7e\+308 is outside the supported range"):
+        to_heights(raw, InputConfig())

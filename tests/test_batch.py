@@ -1,0 +1,186 @@
+"""Batch behaviour: bad inputs, atomic outputs, resume after SIGKILL, --jobs, stage identity."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from conftest import box_scene
+from rangeseg_cli import run_pipeline
+from rangeseg_cli.cli import main
+from rangeseg_cli.errors import InputError
+
+
+def tree_bytes(folder: Path) -> dict[str, bytes]:
+    """Every file below ``folder`` except the manifest (it holds timings)."""
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "rangeseg-run.json"}
+
+
+def scene(i: int, size: int = 48) -> np.ndarray:
+    z = box_scene(size, noise=1.0, seed=i)
+    z[10 + i % 5: 18 + i % 5, 30:40] += 30.0  # a second block, moving with i
+    return z.clip(0, 255).astype(np.uint8)
+
+
+@pytest.fixture
+def good_folder(tmp_path, write_png):
+    folder = tmp_path / "good"
+    folder.mkdir()
+    for i in range(4):
+        write_png(folder / f"img{i}.png", scene(i))
+    return folder
+
+
+def test_mixed_folder_reports_each_bad_file_once_and_does_the_rest(tmp_path, write_png):
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    write_png(folder / "good1.png", scene(1))
+    write_png(folder / "good2.png", scene(2))
+    (folder / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"x" * 50)
+    (folder / "empty.png").write_bytes(b"")
+    write_png(folder / "rgb.png", np.zeros((32, 32, 3), np.uint8))
+    write_png(folder / "tiny.png", np.zeros((2, 2), np.uint8))
+    np.save(folder / "cube.npy", np.zeros((20, 20, 3, 2)))
+    np.save(folder / "nan.npy", np.full((32, 32), np.nan))
+    (folder / "notes.txt").write_text("skip me")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["run", str(folder), "-o", str(out), "--jobs", "1", "-q"])
+    assert res.exit_code == 1, res.output
+    lines = res.output.strip().splitlines()
+    bad = ["corrupt.png", "empty.png", "rgb.png", "tiny.png", "cube.npy", "nan.npy"]
+    for name in bad:
+        assert sum(name in line for line in lines) == 1, (name, lines)
+    assert "Traceback" not in res.output
+    for good in ("good1", "good2"):
+        assert (out / f"{good}.labels.npy").exists() and (out / f"{good}.holdsite.json").exists()
+    manifest = json.loads((out / "rangeseg-run.json").read_text())
+    statuses = {k: v["status"] for k, v in manifest["images"].items()}
+    assert statuses["good1"] == "done" and statuses["corrupt"] == "failed"
+    assert sum(s == "failed" for s in statuses.values()) == len(bad)
+    assert manifest["summary"]["not_images"] == 1
+
+
+def test_json_summary_on_stdout(good_folder, tmp_path):
+    res = CliRunner().invoke(main, ["run", str(good_folder), "-o", str(tmp_path / "o"),
+                                    "--jobs", "1", "-q", "--json"])
+    assert res.exit_code == 0
+    summary = json.loads(res.output)
+    assert summary["done"] == 4 and summary["failed"] == 0 and "edges" in summary["stage_seconds"]
+
+
+def test_stages_one_by_one_give_the_same_bytes_as_run(good_folder, tmp_path):
+    runner = CliRunner()
+    whole, staged = tmp_path / "whole", tmp_path / "staged"
+    assert runner.invoke(main, ["run", str(good_folder), "-o", str(whole), "-j", "1", "-q"]).exit_code == 0
+    assert runner.invoke(main, ["edges", str(good_folder), "-o", str(staged), "-j", "1", "-q"]).exit_code == 0
+    for stage in ("link", "grow", "holdsite"):
+        res = runner.invoke(main, [stage, str(staged), "-j", "1", "-q"])
+        assert res.exit_code == 0, res.output
+    a, b = tree_bytes(whole), tree_bytes(staged)
+    assert a.keys() == b.keys() and len(a) == 4 * 13
+    assert all(a[k] == b[k] for k in a)
+
+
+def test_jobs_2_gives_the_same_bytes_as_jobs_1(good_folder, tmp_path):
+    runner = CliRunner()
+    for n in ("1", "2"):
+        res = runner.invoke(main, ["run", str(good_folder), "-o", str(tmp_path / n), "-j", n, "-q"])
+        assert res.exit_code == 0, res.output
+    assert tree_bytes(tmp_path / "1") == tree_bytes(tmp_path / "2")
+
+
+def test_inputs_are_never_modified_and_out_inside_input_is_not_reread(good_folder):
+    before = tree_bytes(good_folder)
+    out = good_folder / "results"
+    runner = CliRunner()
+    assert runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q"]).exit_code == 0
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q", "--json",
+                               "--overwrite"])
+    assert json.loads(res.output)["done"] == 4  # the PNGs in results/ were not read as inputs
+    after = {k: v for k, v in tree_bytes(good_folder).items() if not k.startswith("results/")}
+    assert after == before
+
+
+def test_resume_after_sigkill_completes_with_identical_bytes(tmp_path, write_png):
+    folder = tmp_path / "many"
+    folder.mkdir()
+    for i in range(24):
+        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "1", "-q"]
+    subprocess.run([*cmd, "-o", str(ref)], check=True, capture_output=True)
+    proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 3:
+        time.sleep(0.02)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done_before = len(list(out.glob("*.holdsite.json")))
+    assert 3 <= done_before < 24, "the run was not killed part-way"
+    res = subprocess.run([*cmd, "-o", str(out), "--resume", "--json"], capture_output=True,
+                         text=True)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout)
+    assert summary["done"] + summary["resumed"] == 24 and summary["done"] < 24
+    assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
+    assert tree_bytes(out) == tree_bytes(ref)
+
+
+def test_resume_redoes_images_made_with_another_config(good_folder, tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "o"
+    runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q"])
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q", "--resume", "--json"])
+    assert json.loads(res.output)["resumed"] == 4
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q", "--resume",
+                               "--json", "--set", "step.threshold=7"])
+    assert json.loads(res.output)["done"] == 4
+
+
+arrays = hnp.arrays(
+    dtype=st.sampled_from([np.uint8, np.uint16, np.int32, np.float32, np.float64, np.bool_]),
+    shape=st.one_of(hnp.array_shapes(min_dims=1, max_dims=4, min_side=1, max_side=40),
+                    st.tuples(st.integers(16, 40), st.integers(16, 40))),
+    elements=None)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(arrays)
+def test_run_pipeline_gives_a_result_or_a_clean_input_error(array):
+    try:
+        result = run_pipeline(array)
+    except InputError as exc:
+        assert "\n" not in str(exc)
+        return
+    assert result.labels.shape == result.edges.shape == np.squeeze(array).shape[:2]
+    assert result.labels.dtype == np.int32 and result.edges.dtype == np.uint8
+    invalid = np.isnan(result.heights)
+    assert not result.labels[invalid].any() and not result.edges[invalid].any()
+    assert result.holdsite is not None
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 0.6))
+def test_random_nan_patterns_never_leak_into_labels(seed, frac):
+    rng = np.random.default_rng(seed)
+    z = box_scene(32, noise=1.0, seed=seed)
+    z[rng.random(z.shape) < frac] = np.nan
+    z[rng.random(z.shape) < 0.01] = np.inf
+    try:
+        result = run_pipeline(z)
+    except InputError:
+        return
+    bad = ~np.isfinite(z)
+    assert not result.labels[bad].any() and not result.edges[bad].any()
