@@ -1,0 +1,52 @@
+"""The real SR300 depth frame in sample_data/arc: the holdsite lands on an object.
+
+Hand-checked expectation (looking at the height image and the overlay): the
+flat item lying beside the left tote wall, near the bottom of the frame,
+occupies rows ~340-430 and columns ~170-230. The tote floor is the large region
+at about 650 mm; the walls rise along the left and right borders.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rangeseg_cli import io, load_config, run_pipeline
+
+ARC = Path(__file__).resolve().parent.parent / "sample_data" / "arc"
+
+
+@pytest.fixture(scope="module")
+def result():
+    config = load_config(ARC / "suction.toml")
+    raw = io.read_image(ARC / "suction-scene.depth.png")
+    return raw, config, run_pipeline(raw, config)
+
+
+def test_real_frame_holdsite_lands_on_the_item_beside_the_left_wall(result):
+    raw, config, res = result
+    site = res.holdsite.to_dict()["holdsite"]
+    assert site is not None
+    assert 340 <= site["row"] <= 430 and 170 <= site["col"] <= 230
+
+
+def test_real_frame_holdsite_window_is_all_valid_readings_on_one_surface(result):
+    raw, config, res = result
+    site = res.holdsite.to_dict()["holdsite"]
+    h, w = config.holdsite.size
+    r, c = site["row"], site["col"]
+    window = (slice(r - h // 2, r + h // 2 + 1), slice(c - w // 2, c + w // 2 + 1))
+    assert (raw[window] > 0).all()
+    assert np.unique(res.labels[window]).tolist() == [site["surface"]]
+
+
+def test_real_frame_holdsite_is_above_the_tote_floor_not_on_it(result):
+    raw, config, res = result
+    site = res.holdsite.to_dict()
+    floor = max(res.surfaces, key=lambda s: s.pixels)  # the tote floor and what merged into it
+    assert site["holdsite"]["surface"] != floor.id
+    assert floor.id in site["background"] or site["holdsite"]["object"] != floor.id
+    # the item's top is nearer the camera than the floor by several cm (heights = -depth mm)
+    assert site["holdsite"]["elevation"] > floor.mean_height + 20.0
+    x, y, zc = site["holdsite"]["point_camera"]
+    assert 0.55 < zc < 0.65  # metres from the camera
