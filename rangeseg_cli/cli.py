@@ -244,5 +244,150 @@ def config_cmd(config_path: str | None, preset: str | None, settings: tuple[str,
     click.echo(default_toml(_load_config(config_path, preset, settings)), nl=False)
 
 
+# --------------------------------------------------------------------------- synth and eval
+
+
+def _split_csv(value: str, param: str) -> list[str]:
+    items = [v.strip() for v in value.split(",") if v.strip()]
+    if not items:
+        raise click.BadParameter(f"{value!r}: expected a comma-separated list", param_hint=param)
+    return items
+
+
+def _parse_scenes(ctx: click.Context, param: click.Parameter, value: str | None
+                  ) -> list[str] | None:
+    from .synth import SCENES
+
+    if value is None:
+        return None
+    names = _split_csv(value, "--scenes")
+    unknown = [n for n in names if n not in SCENES]
+    if unknown:
+        raise click.BadParameter(f"unknown scene {', '.join(unknown)}; allowed: "
+                                 + ", ".join(SCENES), param_hint="--scenes")
+    return names
+
+
+def _parse_noise(ctx: click.Context, param: click.Parameter, value: str) -> list[float]:
+    out = []
+    for item in _split_csv(value, "--noise"):
+        try:
+            noise = float(item)
+        except ValueError:
+            noise = float("nan")
+        if not noise >= 0 or noise == float("inf"):
+            raise click.BadParameter(f"{item!r}: expected numbers >= 0 (depth units), e.g. "
+                                     "0,1,2", param_hint="--noise")
+        out.append(noise)
+    return out
+
+
+def _parse_size(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
+    rows, sep, cols = value.lower().partition("x")
+    try:
+        size = (int(rows), int(cols if sep else rows))
+    except ValueError:
+        size = (0, 0)
+    if not all(16 <= s <= 8192 for s in size):
+        raise click.BadParameter(f"{value!r}: expected ROWSxCOLS, each 16..8192, e.g. 128x128",
+                                 param_hint="--size")
+    return size
+
+
+@main.command(name="synth")
+@outdir_arg
+@click.option("--scenes", callback=_parse_scenes, metavar="A,B",
+              help="Scenes to render (default: all; the paper's test objects are part1, cup, "
+                   "part2, cube-holes).")
+@click.option("--noise", default="0,1,2", show_default=True, callback=_parse_noise,
+              metavar="S1,S2", help="Gaussian noise levels in depth units; one image each.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Seeds the noise and the pile layout; same seed, same bytes.")
+@click.option("--size", default="128x128", show_default=True, callback=_parse_size,
+              metavar="ROWSxCOLS", help="Image size.")
+@click.option("--bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
+              help="8-bit (depth units) or 16-bit (1/256 depth units) PNG.")
+@verbosity_opts
+def synth_cmd(out: str, scenes: list[str] | None, noise: list[float], seed: int,
+              size: tuple[int, int], bits: str, verbose: int, quiet: int) -> None:
+    """Render synthetic range images with ground truth into OUT.
+
+    Writes OUT/<scene>-n<noise>.png, .gt.npy (int32 surface labels) and
+    .gt.json (surfaces, objects, uncovered parts) for `rangeseg eval`.
+    """
+    from .synth import SCENES, write_scenes
+
+    names = scenes or list(SCENES)
+    written = write_scenes(Path(out), names, noise, seed, size, int(bits))
+    if not quiet:
+        click.echo(f"wrote {len(written) // 3} scenes ({len(written)} files) to {out}",
+                   err=True)
+
+
+def _eval_table(result: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    keys = ("gt_regions", "correct", "over", "under", "missed", "noise")
+    table = Table(title=f"Hoover et al. (1996) at tolerance {result['tolerance']:g}, "
+                  f"GT regions >= {result['min_region']} px")
+    for col in ("image", "GT", "correct", "over", "under", "missed", "noise", "holdsite"):
+        table.add_column(col, justify="left" if col == "image" else "right")
+    for stem, row in result["images"].items():
+        if "error" in row:
+            table.add_row(stem, "[red]error[/red]", *[""] * 6)
+            continue
+        hs = row.get("holdsite")
+        table.add_row(stem, *(str(row[k]) for k in keys),
+                      "-" if hs is None else ("ok" if hs["ok"] else "[red]fail[/red]"))
+    total = result["total"]
+    checks = total["holdsite"]
+    table.add_row("[bold]total", *(f"[bold]{total[k]}" for k in keys),
+                  f"[bold]{checks['ok']}/{checks['checked']}", end_section=True)
+    console = Console(highlight=False)
+    console.print(table)
+    curve = total["curve"]
+    console.print("correct detections vs tolerance: " + ", ".join(
+        f"{t:g}: {c}" for t, c in zip(curve["tolerance"], curve["correct"], strict=True)))
+
+
+@main.command(name="eval")
+@click.argument("pred_dir", type=click.Path(file_okay=False))
+@click.argument("gt_dir", type=click.Path(file_okay=False))
+@click.option("--tolerance", type=click.FloatRange(0.5, 1.0), default=0.8, show_default=True,
+              help="Overlap tolerance T of Hoover et al. (1996).")
+@click.option("--min-region", type=click.IntRange(min=0), default=50, show_default=True,
+              help="Smaller GT regions are not judged.")
+@click.option("--plot", type=click.Path(dir_okay=False),
+              help="Write a PNG of correct detections vs tolerance (needs matplotlib).")
+@json_opt
+@click.pass_context
+def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
+             min_region: int, plot: str | None, as_json: bool) -> None:
+    """Score PRED_DIR/<stem>.labels.npy against GT_DIR/<stem>.gt.npy.
+
+    Correct detections, over- and under-segmentations, missed and noise
+    regions (Hoover et al. 1996), and whether each <stem>.holdsite.json lies
+    inside one surface of an uncovered part. Exit code 1 when an image fails.
+    """
+    from .errors import InputError
+    from .evaluate import evaluate_folder, plot_curve
+
+    try:
+        result = evaluate_folder(pred_dir, gt_dir, tolerance=tolerance, min_region=min_region)
+    except InputError as exc:
+        raise UsageProblem(str(exc)) from None
+    for reason in result["errors"]:
+        click.echo(reason, err=True)
+    if as_json:
+        click.echo(json.dumps(result, sort_keys=True, indent=2))
+    else:
+        _eval_table(result)
+    if plot and not plot_curve(result["total"]["curve"], Path(plot),
+                               gt_regions=result["total"]["gt_regions"]):
+        click.echo("--plot: matplotlib is not installed; no plot written", err=True)
+    ctx.exit(1 if result["errors"] else 0)
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -1,0 +1,526 @@
+"""Segmentation against ground truth: the metrics of Hoover et al. (1996), ``rangeseg eval``.
+
+Hoover, Jean-Baptiste, Jiang, Flynn, Bunke, Goldgof, Bowyer, Eggert,
+Fitzgibbon and Fisher, "An experimental comparison of range image
+segmentation algorithms", IEEE Trans. PAMI 18(7), 1996, classify each region
+of a ground truth (GT) and of a machine segmentation (MS) at a tolerance
+0.5 <= T <= 1. With ``O(m, n)`` the pixels machine region ``m`` and GT region
+``n`` share and ``|r|`` a region's size:
+
+* correct detection: ``O >= T |m|`` and ``O >= T |n|``;
+* over-segmentation: GT ``n`` and machine ``m1..mk`` (k >= 2), each
+  ``O(mi, n) >= T |mi|``, and ``sum O(mi, n) >= T |n|``;
+* under-segmentation: machine ``m`` and GT ``n1..nk`` (k >= 2), each
+  ``O(m, ni) >= T |ni|``, and ``sum O(m, ni) >= T |m|``;
+* missed: a GT region in no instance above; noise: a machine region in none.
+
+Notes
+-----
+Rules chosen where the paper leaves room:
+
+1. Label 0 is no region on either side (GT: no surface; MS: edge,
+   unlabelled or invalid pixels). GT regions below ``min_region`` pixels are
+   dropped to 0 as well (too small to judge). Machine pixels on GT label 0
+   are left out of ``|m|`` (unknown truth costs nothing); GT pixels under
+   machine label 0 still count in ``|n|`` (unlabelled pixels cost overlap).
+2. A region takes part in at most one instance. Correct detections are
+   taken first (for T = 0.5, where a region may qualify twice, the pair of
+   highest mutual overlap ``(O/|m| + O/|n|) / 2`` wins; equal scores go to
+   the lower GT, then machine, label). Then over- and under-segmentations
+   are taken greedily on the regions still free, highest mutual overlap
+   first (``sum O`` over the union's sizes on both sides), over before under
+   on equal scores, then the lower label. For T > 0.5 the instances left
+   after the correct detections never share a region, so this order only
+   matters at T = 0.5.
+3. Machine regions below ``min_region`` pixels take part in instances like
+   any other; left over, they are counted as ``small``, not as ``noise``.
+   A machine region lying wholly on GT label 0 is ``ignored``.
+
+The holdsite check (Sec. VII of Al-Hujazi & Sood) asks whether a reported
+gripper window lies wholly inside one GT surface of an uncovered part that is
+not the background (the table).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: Tolerances of the correct-detection curve (Hoover et al. plot 0.5..0.95).
+CURVE_TOLERANCES: tuple[float, ...] = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
+#: Default tolerance T (Hoover et al. report their tables at 0.8).
+DEFAULT_TOLERANCE = 0.8
+#: Default smallest GT region that is judged, in pixels.
+DEFAULT_MIN_REGION = 50
+#: Counts of :meth:`Classification.counts`, in table order.
+COUNT_KEYS = ("gt_regions", "machine_regions", "correct", "over", "under", "missed", "noise",
+              "small", "ignored")
+
+
+@dataclass(frozen=True)
+class Instance:
+    """One classified instance: its kind, GT labels, machine labels and mutual overlap."""
+
+    kind: str
+    gt: tuple[int, ...]
+    machine: tuple[int, ...]
+    score: float
+
+
+@dataclass
+class Classification:
+    """Hoover classification of one image at one tolerance."""
+
+    tolerance: float
+    gt_labels: np.ndarray
+    machine_labels: np.ndarray
+    instances: list[Instance] = field(default_factory=list)
+    missed: list[int] = field(default_factory=list)
+    noise: list[int] = field(default_factory=list)
+    small: list[int] = field(default_factory=list)
+    ignored: list[int] = field(default_factory=list)
+
+    def counts(self) -> dict[str, int]:
+        """Counts per class (``under`` counts machine regions, the others GT regions)."""
+        kinds = [i.kind for i in self.instances]
+        return {"gt_regions": len(self.gt_labels), "machine_regions": len(self.machine_labels),
+                "correct": kinds.count("correct"), "over": kinds.count("over"),
+                "under": kinds.count("under"), "missed": len(self.missed),
+                "noise": len(self.noise), "small": len(self.small),
+                "ignored": len(self.ignored)}
+
+
+@dataclass(frozen=True)
+class Overlap:
+    """Overlap table of GT regions (rows) and machine regions (columns).
+
+    Attributes
+    ----------
+    gt_labels, machine_labels
+        Labels of the rows and columns.
+    table
+        int64 (G, M): shared pixels ``O(m, n)``.
+    gt_size
+        Pixels of each judged GT region, ``|n|``.
+    machine_size
+        Pixels of each machine region on judged GT pixels, ``|m|``.
+    machine_full
+        All pixels of each machine region (for the ``min_region`` rule).
+    """
+
+    gt_labels: np.ndarray
+    machine_labels: np.ndarray
+    table: np.ndarray
+    gt_size: np.ndarray
+    machine_size: np.ndarray
+    machine_full: np.ndarray
+    min_region: int
+
+
+def _check_labels(gt: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    gt, pred = np.asarray(gt), np.asarray(pred)
+    for name, a in (("gt", gt), ("pred", pred)):
+        if a.ndim != 2 or a.dtype.kind not in "iu":
+            raise ValueError(f"`{name}` (shape {a.shape}, dtype {a.dtype}) must be a 2-D "
+                             "integer label image")
+        if a.size and a.min() < 0:
+            raise ValueError(f"`{name}` has negative labels; allowed: 0 (no region) and up")
+    if gt.shape != pred.shape:
+        raise ValueError(f"`pred` (shape {pred.shape}) must have the shape of `gt` "
+                         f"({gt.shape})")
+    return gt.astype(np.int64), pred.astype(np.int64)
+
+
+def _index(labels: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """1-based position of each value in the sorted ``labels``; 0 where it is not there."""
+    if len(labels) == 0:
+        return np.zeros(values.shape, np.int64)
+    pos = np.minimum(np.searchsorted(labels, values), len(labels) - 1)
+    return np.where(labels[pos] == values, pos + 1, 0)
+
+
+def overlap_table(gt: np.ndarray, pred: np.ndarray, *,
+                  min_region: int = DEFAULT_MIN_REGION) -> Overlap:
+    """Count the pixels each GT region shares with each machine region.
+
+    Parameters
+    ----------
+    gt, pred
+        (H, W) integer labels, 0 = no region.
+    min_region
+        GT regions with fewer pixels are not judged (set to 0).
+
+    Returns
+    -------
+    Overlap
+        The table and the region sizes (see the module notes).
+
+    Raises
+    ------
+    ValueError
+        When the arrays are not 2-D integer label images of one shape, or
+        ``min_region`` is negative.
+    """
+    gt, pred = _check_labels(gt, pred)
+    if isinstance(min_region, bool) or not isinstance(min_region, int) or min_region < 0:
+        raise ValueError(f"`min_region` {min_region!r} must be an integer >= 0")
+    values, counts = np.unique(gt, return_counts=True)
+    kept = values[(values > 0) & (counts >= max(min_region, 1))]
+    machine_labels = np.unique(pred[pred > 0])
+    rows, cols = _index(kept, gt.ravel()), _index(machine_labels, pred.ravel())
+    full = np.zeros((len(kept) + 1, len(machine_labels) + 1), np.int64)
+    np.add.at(full, (rows, cols), 1)
+    return Overlap(gt_labels=kept, machine_labels=machine_labels, table=full[1:, 1:],
+                   gt_size=full[1:, :].sum(axis=1), machine_size=full[1:, 1:].sum(axis=0),
+                   machine_full=full[:, 1:].sum(axis=0), min_region=min_region)
+
+
+def _check_tolerance(tolerance: float) -> float:
+    if not (isinstance(tolerance, int | float) and 0.5 <= tolerance <= 1.0):
+        raise ValueError(f"`tolerance` {tolerance!r} must be a number from 0.5 to 1 "
+                         "(Hoover et al. 1996)")
+    return float(tolerance)
+
+
+def _correct_pairs(ov: Overlap, t: float) -> list[tuple[float, int, int]]:
+    o = ov.table.astype(float)
+    ok = (o > 0) & (o >= t * ov.machine_size[None, :]) & (o >= t * ov.gt_size[:, None])
+    g, m = np.nonzero(ok)
+    score = (o[g, m] / ov.gt_size[g] + o[g, m] / ov.machine_size[m]) / 2
+    return sorted(zip((-score).tolist(), g.tolist(), m.tolist(), strict=True))
+
+
+def _best_split(ov: Overlap, t: float, free_g: np.ndarray, free_m: np.ndarray
+                ) -> Instance | None:
+    """The over- or under-segmentation of highest mutual overlap among free regions."""
+    o = np.where(free_g[:, None] & free_m[None, :], ov.table, 0).astype(float)
+    best: tuple[float, int, int, Instance] | None = None
+    # Over-segmentation: rows with >= 2 machine regions mostly inside them.
+    inside = (o > 0) & (o >= t * ov.machine_size[None, :])
+    for g in np.flatnonzero(inside.sum(axis=1) >= 2):
+        ms = np.flatnonzero(inside[g])
+        shared = o[g, ms].sum()
+        if shared >= t * ov.gt_size[g]:
+            score = (shared / ov.gt_size[g] + shared / ov.machine_size[ms].sum()) / 2
+            key = (-score, 0, int(ov.gt_labels[g]))
+            if best is None or key < best[:3]:
+                best = (*key, Instance("over", (int(ov.gt_labels[g]),),
+                                       tuple(int(x) for x in ov.machine_labels[ms]),
+                                       float(score)))
+    # Under-segmentation: columns holding >= 2 GT regions mostly.
+    holds = (o > 0) & (o >= t * ov.gt_size[:, None])
+    for m in np.flatnonzero(holds.sum(axis=0) >= 2):
+        gs = np.flatnonzero(holds[:, m])
+        shared = o[gs, m].sum()
+        if shared >= t * ov.machine_size[m]:
+            score = (shared / ov.machine_size[m] + shared / ov.gt_size[gs].sum()) / 2
+            key = (-score, 1, int(ov.gt_labels[gs[0]]))
+            if best is None or key < best[:3]:
+                best = (*key, Instance("under", tuple(int(x) for x in ov.gt_labels[gs]),
+                                       (int(ov.machine_labels[m]),), float(score)))
+    return None if best is None else best[3]
+
+
+def classify(ov: Overlap, tolerance: float = DEFAULT_TOLERANCE) -> Classification:
+    """Hoover et al. (1996) classification of an :class:`Overlap` at ``tolerance``.
+
+    Parameters
+    ----------
+    ov
+        From :func:`overlap_table`.
+    tolerance
+        T, from 0.5 to 1.
+
+    Returns
+    -------
+    Classification
+        Instances, missed, noise, small and ignored regions (rules in the module notes).
+    """
+    t = _check_tolerance(tolerance)
+    g_idx = {int(v): i for i, v in enumerate(ov.gt_labels)}
+    m_idx = {int(v): i for i, v in enumerate(ov.machine_labels)}
+    free_g = np.ones(len(ov.gt_labels), bool)
+    free_m = ov.machine_size > 0  # machine regions wholly on GT label 0 are ignored
+    out = Classification(t, ov.gt_labels, ov.machine_labels)
+    for neg, g, m in _correct_pairs(ov, t):
+        if free_g[g] and free_m[m]:
+            free_g[g] = free_m[m] = False
+            out.instances.append(Instance("correct", (int(ov.gt_labels[g]),),
+                                          (int(ov.machine_labels[m]),), -neg))
+    while (inst := _best_split(ov, t, free_g, free_m)) is not None:
+        out.instances.append(inst)
+        for label in inst.gt:
+            free_g[g_idx[label]] = False
+        for label in inst.machine:
+            free_m[m_idx[label]] = False
+    out.missed = [int(v) for v in ov.gt_labels[free_g]]
+    small = ov.machine_full < ov.min_region
+    out.noise = [int(v) for v in ov.machine_labels[free_m & ~small]]
+    out.small = [int(v) for v in ov.machine_labels[free_m & small]]
+    out.ignored = [int(v) for v in ov.machine_labels[ov.machine_size == 0]]
+    return out
+
+
+def hoover_compare(gt: np.ndarray, pred: np.ndarray, *, tolerance: float = DEFAULT_TOLERANCE,
+                   min_region: int = DEFAULT_MIN_REGION) -> Classification:
+    """Compare a machine segmentation with ground truth (Hoover et al. 1996).
+
+    Parameters
+    ----------
+    gt
+        (H, W) integer ground-truth labels, 0 = no surface.
+    pred
+        (H, W) integer machine labels (``labels.npy``), 0 = no region.
+    tolerance
+        T, from 0.5 to 1 (0.8 as in Hoover et al.'s tables).
+    min_region
+        GT regions with fewer pixels are not judged.
+
+    Returns
+    -------
+    Classification
+        ``.counts()`` gives ``gt_regions, correct, over, under, missed, noise``
+        and more.
+
+    Raises
+    ------
+    ValueError
+        For label images of different shapes or types, or an option out of range.
+    """
+    return classify(overlap_table(gt, pred, min_region=min_region), tolerance)
+
+
+def correct_curve(gt: np.ndarray, pred: np.ndarray, *,
+                  tolerances: Sequence[float] = CURVE_TOLERANCES,
+                  min_region: int = DEFAULT_MIN_REGION) -> list[int]:
+    """Correct detections at each tolerance (Hoover et al.'s curves, 0.5..0.95).
+
+    Returns
+    -------
+    list of int
+        One count per tolerance.
+    """
+    ov = overlap_table(gt, pred, min_region=min_region)
+    return [classify(ov, t).counts()["correct"] for t in tolerances]
+
+
+# --------------------------------------------------------------------------- holdsites
+
+
+def _window(holdsite: Mapping[str, Any], size: tuple[int, int]
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel rows and columns under a holdsite's gripper window (as the search draws it)."""
+    from .holdsite import footprint
+
+    rows, cols = holdsite.get("size") or holdsite.get("window") or size
+    fp = footprint((int(rows), int(cols)), float(holdsite.get("angle") or 0.0))
+    dr, dc = np.nonzero(fp)
+    return (int(holdsite["row"]) + dr - fp.shape[0] // 2,
+            int(holdsite["col"]) + dc - fp.shape[1] // 2)
+
+
+def check_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
+                   info: Mapping[str, Any], *, size: tuple[int, int] = (7, 7)
+                   ) -> dict[str, Any]:
+    """Check that a holdsite's window lies wholly inside one surface of an uncovered part.
+
+    Parameters
+    ----------
+    holdsite
+        The ``"holdsite"`` of ``holdsite.json``: ``row``, ``col``, optional
+        ``size`` ([rows, cols]) and ``angle`` (degrees); ``None`` when no
+        site was found.
+    gt
+        (H, W) ground-truth labels of the scene.
+    info
+        The scene's ``gt.json``: ``surfaces`` (``id``, ``object``),
+        ``objects`` (``id``, ``background``) and ``uncovered``.
+    size
+        Window size when the holdsite does not give one (the paper's 7x7, Sec. VII).
+
+    Returns
+    -------
+    dict
+        ``ok`` (bool), ``reason``, ``surface`` and ``object`` (GT ids or None).
+    """
+    result: dict[str, Any] = {"ok": False, "surface": None, "object": None}
+    if holdsite is None:
+        return {**result, "reason": "no holdsite reported"}
+    r, c = _window(holdsite, size)
+    h, w = gt.shape
+    if r.min() < 0 or c.min() < 0 or r.max() >= h or c.max() >= w:
+        return {**result, "reason": "window leaves the image"}
+    labels = np.unique(gt[r, c])
+    if len(labels) != 1 or labels[0] == 0:
+        ids = ", ".join(str(v) for v in labels)
+        return {**result, "reason": f"window crosses surfaces {ids}"}
+    surface = int(labels[0])
+    obj = {s["id"]: s["object"] for s in info["surfaces"]}.get(surface)
+    result.update(surface=surface, object=obj)
+    background = {o["id"] for o in info["objects"] if o.get("background")}
+    if obj is None or obj in background:
+        return {**result, "reason": f"surface {surface} is the background"}
+    if obj not in set(info["uncovered"]):
+        return {**result, "reason": f"object {obj} lies under another part"}
+    return {**result, "ok": True, "reason": f"inside surface {surface} of uncovered "
+            f"object {obj}"}
+
+
+# --------------------------------------------------------------------------- folders
+
+
+def _pairs(pred_dir: Path, gt_dir: Path) -> list[tuple[str, Path, Path]]:
+    from .errors import InputError
+
+    if not gt_dir.is_dir():
+        raise InputError(f"{gt_dir}: no such folder")
+    if not pred_dir.is_dir():
+        raise InputError(f"{pred_dir}: no such folder")
+    found = sorted(gt_dir.rglob("*.gt.npy"))
+    if not found:
+        raise InputError(f"{gt_dir}: no ground truth (*.gt.npy) found")
+    out = []
+    for path in found:
+        rel = path.relative_to(gt_dir).as_posix()[: -len(".gt.npy")]
+        out.append((rel, path, pred_dir / f"{rel}.labels.npy"))
+    return out
+
+
+def _one_image(rel: str, gt_path: Path, pred_path: Path, pred_dir: Path, tolerance: float,
+               min_region: int, tolerances: Sequence[float]) -> dict[str, Any]:
+    from .io import read_json, read_npy
+
+    gt, pred = read_npy(gt_path), read_npy(pred_path)
+    ov = overlap_table(gt, pred, min_region=min_region)
+    res = classify(ov, tolerance)
+    out: dict[str, Any] = {
+        **res.counts(),
+        "curve": [classify(ov, t).counts()["correct"] for t in tolerances],
+        "instances": [{"kind": i.kind, "gt": list(i.gt), "machine": list(i.machine),
+                       "score": i.score} for i in res.instances],
+        "missed_labels": res.missed, "noise_labels": res.noise,
+    }
+    hs_path = pred_dir / f"{rel}.holdsite.json"
+    if hs_path.exists():
+        info = read_json(gt_path.with_name(gt_path.name[: -len(".npy")] + ".json"))
+        out["holdsite"] = check_holdsite(read_json(hs_path).get("holdsite"), gt, info)
+    return out
+
+
+def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
+                    tolerance: float = DEFAULT_TOLERANCE,
+                    min_region: int = DEFAULT_MIN_REGION,
+                    tolerances: Sequence[float] = CURVE_TOLERANCES) -> dict[str, Any]:
+    """Score every ``GT/<stem>.gt.npy`` against ``PRED/<stem>.labels.npy``.
+
+    Parameters
+    ----------
+    pred_dir
+        Output folder of ``rangeseg run`` (``<stem>.labels.npy``, and
+        ``<stem>.holdsite.json`` when present).
+    gt_dir
+        Folder of ``rangeseg synth`` (``<stem>.gt.npy`` and ``<stem>.gt.json``),
+        searched recursively; ``a/b.gt.npy`` pairs with ``PRED/a/b.labels.npy``.
+    tolerance, min_region
+        As in :func:`hoover_compare`.
+    tolerances
+        Tolerances of the correct-detection curve.
+
+    Returns
+    -------
+    dict
+        ``{"total": {gt_regions, correct, over, under, missed, noise, ...,
+        "curve": {"tolerance": [...], "correct": [...]}, "holdsite":
+        {"checked", "ok"}}, "images": {stem: {...} or {"error": ...}},
+        "errors": [...], "tolerance", "min_region"}``.
+
+    Raises
+    ------
+    InputError
+        When a folder is missing or holds no ground truth.
+    ValueError
+        For a tolerance or ``min_region`` out of range.
+    """
+    from .errors import RangesegError
+
+    tolerance = _check_tolerance(tolerance)
+    for t in tolerances:
+        _check_tolerance(t)
+    if isinstance(min_region, bool) or not isinstance(min_region, int) or min_region < 0:
+        raise ValueError(f"`min_region` {min_region!r} must be an integer >= 0")
+    pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
+    images: dict[str, Any] = {}
+    errors: list[str] = []
+    for rel, gt_path, pred_path in _pairs(pred_dir, gt_dir):
+        try:
+            images[rel] = _one_image(rel, gt_path, pred_path, pred_dir, tolerance,
+                                     min_region, tolerances)
+        except (RangesegError, ValueError, KeyError, TypeError) as exc:
+            reason = f"{rel}: {exc}"
+            images[rel] = {"error": reason}
+            errors.append(reason)
+    return {"total": _totals(images, tolerances), "images": images, "errors": errors,
+            "tolerance": tolerance, "min_region": min_region}
+
+
+def _totals(images: Mapping[str, Any], tolerances: Sequence[float]) -> dict[str, Any]:
+    done = [v for v in images.values() if "error" not in v]
+    total: dict[str, Any] = {k: sum(v[k] for v in done) for k in COUNT_KEYS}
+    total["images"] = len(done)
+    total["curve"] = {"tolerance": list(tolerances),
+                      "correct": [sum(v["curve"][i] for v in done)
+                                  for i in range(len(tolerances))]}
+    checks = [v["holdsite"] for v in done if "holdsite" in v]
+    total["holdsite"] = {"checked": len(checks), "ok": sum(c["ok"] for c in checks)}
+    return total
+
+
+# --------------------------------------------------------------------------- plot
+
+
+def plot_curve(curve: Mapping[str, Sequence[float]], path: str | Path, *,
+               gt_regions: int | None = None, title: str = "") -> bool:
+    """Plot correct detections against tolerance (Hoover et al.'s Fig. style) as a PNG.
+
+    Parameters
+    ----------
+    curve
+        ``{"tolerance": [...], "correct": [...]}`` as in :func:`evaluate_folder`.
+    path
+        PNG file to write (atomically).
+    gt_regions
+        Drawn as a dashed line: the most correct detections possible.
+    title
+        Plot title.
+
+    Returns
+    -------
+    bool
+        False when matplotlib is not installed (nothing written).
+    """
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        return False
+    from .io import write_png
+
+    fig = Figure(figsize=(5, 3.5), dpi=100)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.plot(curve["tolerance"], curve["correct"], "o-", label="correct detections")
+    if gt_regions is not None:
+        ax.axhline(gt_regions, ls="--", color="grey", label=f"GT regions ({gt_regions})")
+    ax.set_xlabel("compare tool tolerance T")
+    ax.set_ylabel("correct detections")
+    ax.set_ylim(bottom=0)
+    ax.set_title(title or "Hoover et al. (1996) correct detections")
+    ax.legend(loc="lower left")
+    fig.tight_layout()
+    canvas.draw()
+    write_png(Path(path), np.asarray(canvas.buffer_rgba())[..., :3].copy())
+    return True

@@ -1,0 +1,250 @@
+"""Hoover et al. (1996) classification, the holdsite check and folder evaluation."""
+
+import json
+
+import numpy as np
+import pytest
+
+from rangeseg_cli.evaluate import (
+    CURVE_TOLERANCES,
+    check_holdsite,
+    correct_curve,
+    evaluate_folder,
+    hoover_compare,
+    overlap_table,
+    plot_curve,
+)
+from rangeseg_cli.io import write_json, write_npy
+from rangeseg_cli.synth import render_scene, write_scenes
+
+
+def counts(gt, pred, **kw):
+    kw.setdefault("min_region", 0)
+    return hoover_compare(np.asarray(gt), np.asarray(pred), **kw).counts()
+
+
+def two_halves(width=20, height=10):
+    """GT: region 1 on the left half, region 2 on the right half (100 px each)."""
+    gt = np.ones((height, width), np.int32)
+    gt[:, width // 2:] = 2
+    return gt
+
+
+# --------------------------------------------------------------------------- the five classes
+
+
+def test_identical_segmentations_are_all_correct_detections():
+    gt = two_halves()
+    c = counts(gt, gt * 7)  # labels need not agree, only regions
+    assert c["correct"] == c["gt_regions"] == c["machine_regions"] == 2
+    assert c["over"] == c["under"] == c["missed"] == c["noise"] == 0
+
+
+def test_correct_detection_needs_the_overlap_on_both_sides():
+    gt = two_halves()
+    pred = gt.copy()
+    pred[:, 10] = 1  # machine region 1: 110 px, 100 inside GT 1; GT 2 keeps 90 of 100
+    assert counts(gt, pred, tolerance=0.8)["correct"] == 2
+    assert counts(gt, pred, tolerance=0.95)["correct"] == 0  # 100/110 and 90/100 < 0.95
+    assert counts(gt, pred, tolerance=0.95)["missed"] == 2
+
+
+def test_one_truth_split_in_two_is_over_segmentation():
+    gt = np.ones((10, 20), np.int32)
+    pred = two_halves()
+    c = counts(gt, pred)
+    assert (c["over"], c["correct"], c["missed"], c["noise"]) == (1, 0, 0, 0)
+    inst = hoover_compare(gt, pred, min_region=0).instances
+    assert inst[0].kind == "over" and inst[0].gt == (1,) and inst[0].machine == (1, 2)
+
+
+def test_two_truths_merged_are_one_under_segmentation():
+    gt = two_halves()
+    pred = np.ones_like(gt)
+    c = counts(gt, pred)
+    assert (c["under"], c["correct"], c["missed"], c["noise"]) == (1, 0, 0, 0)
+    inst = hoover_compare(gt, pred, min_region=0).instances[0]
+    assert inst.kind == "under" and inst.gt == (1, 2) and inst.machine == (1,)
+
+
+def test_unlabelled_truth_is_missed_and_straddling_regions_are_noise():
+    gt = two_halves()
+    pred = np.zeros_like(gt)
+    assert counts(gt, pred)["missed"] == 2
+    pred = np.ones_like(gt)  # 60 px of GT 1 ...
+    pred[:, 6:14] = 2  # ... 40 + 40 straddling both ...
+    pred[:, 14:] = 3  # ... 60 px of GT 2
+    c = counts(gt, pred)
+    assert (c["correct"], c["missed"], c["noise"]) == (0, 2, 3)
+
+
+def test_label_zero_is_no_region_on_either_side():
+    gt = two_halves()
+    gt[:, :4] = 0  # unknown truth
+    pred = two_halves()  # machine region 1 spills 40 px onto GT label 0: not held against it
+    pred[0, :] = 0  # machine edge pixels: they only lower the overlap
+    c = counts(gt, pred)
+    assert (c["correct"], c["gt_regions"], c["noise"]) == (2, 2, 0)
+    ov = overlap_table(gt, pred, min_region=0)
+    assert ov.gt_size.tolist() == [60, 100] and ov.machine_size.tolist() == [54, 90]
+
+
+# --------------------------------------------------------------------------- min_region and ties
+
+
+def test_small_truth_is_not_judged_and_small_machine_regions_are_not_noise():
+    gt = two_halves()
+    gt[0:3, 0:3] = 3  # a 9 px GT region
+    pred = two_halves()
+    pred[0:3, 0:3] = 5  # found exactly, but too small to judge: ignored
+    pred[5:7, 15:17] = 6  # a 4 px fragment inside GT 2
+    c = counts(gt, pred, min_region=20)
+    assert (c["gt_regions"], c["correct"], c["ignored"], c["small"], c["noise"]) == (2, 2, 1, 1, 0)
+    c = counts(gt, pred, min_region=0)
+    assert (c["gt_regions"], c["correct"], c["noise"]) == (3, 3, 1)  # now the fragment is noise
+
+
+def test_tie_at_half_tolerance_goes_to_the_lower_machine_label():
+    gt = np.ones((10, 20), np.int32)
+    pred = two_halves()  # each half covers exactly 0.5 of the truth
+    res = hoover_compare(gt, pred, tolerance=0.5, min_region=0)
+    assert [(i.kind, i.machine) for i in res.instances] == [("correct", (1,))]
+    assert res.noise == [2]
+
+
+def test_each_region_joins_at_most_one_instance_best_overlap_first():
+    gt = np.zeros((10, 20), np.int32)
+    gt[:, :10] = 1  # A: 100 px
+    gt[:5, 10:] = 2  # B: 50 px
+    pred = np.full_like(gt, 2)
+    pred[:5, :] = 1  # m1: top half of A and all of B
+    # At T = 0.5, (A, m1), (A, m2) and (B, m1) all qualify; (A, m2) and (B, m1)
+    # have the higher mutual overlap (0.75 vs 0.5) and share no region.
+    res = hoover_compare(gt, pred, tolerance=0.5, min_region=0)
+    pairs = sorted((i.gt, i.machine) for i in res.instances)
+    assert pairs == [((1,), (2,)), ((2,), (1,))]
+    assert all(i.kind == "correct" for i in res.instances)
+
+
+def test_tolerance_and_shapes_are_validated():
+    gt = two_halves()
+    with pytest.raises(ValueError, match="tolerance"):
+        hoover_compare(gt, gt, tolerance=0.4)
+    with pytest.raises(ValueError, match="shape"):
+        hoover_compare(gt, gt[:5])
+    with pytest.raises(ValueError, match="integer label"):
+        hoover_compare(gt, gt.astype(float))
+    with pytest.raises(ValueError, match="min_region"):
+        hoover_compare(gt, gt, min_region=-1)
+
+
+def test_correct_curve_falls_with_tolerance_and_is_flat_for_the_truth():
+    scene = render_scene("part1", noise=0)
+    flat = correct_curve(scene.gt, scene.gt)
+    assert len(flat) == len(CURVE_TOLERANCES) and len(set(flat)) == 1
+    rng = np.random.default_rng(0)
+    pred = scene.gt.copy()
+    pred[rng.random(pred.shape) < 0.12] = 0  # lose 12 % of the pixels
+    curve = correct_curve(scene.gt, pred)
+    assert curve == sorted(curve, reverse=True) and curve[0] == flat[0] > curve[-1]
+
+
+def test_every_scene_against_its_own_truth_is_all_correct():
+    for name in ("part1", "cup", "part2", "cube-holes", "pile"):
+        c = hoover_compare(render_scene(name).gt, render_scene(name).gt).counts()
+        assert c["correct"] == c["gt_regions"] > 1, name
+        assert c["over"] == c["under"] == c["missed"] == c["noise"] == 0, name
+
+
+# --------------------------------------------------------------------------- holdsite check
+
+
+def test_holdsite_inside_the_top_of_an_uncovered_part_passes():
+    scene = render_scene("box")
+    top = next(s for s in scene.info["surfaces"] if s["name"] == "box top")
+    r, c = (int(v) for v in np.argwhere(scene.gt == top["id"]).mean(axis=0))
+    ok = check_holdsite({"row": r, "col": c}, scene.gt, scene.info)
+    assert ok["ok"] and ok["surface"] == top["id"] and ok["object"] == 1
+    rotated = check_holdsite({"row": r, "col": c, "size": [3, 11], "angle": 30}, scene.gt,
+                             scene.info)
+    assert rotated["ok"]
+
+
+def test_holdsite_failures_say_why():
+    scene = render_scene("box")
+    info, gt = scene.info, scene.gt
+    assert check_holdsite(None, gt, info)["reason"] == "no holdsite reported"
+    assert "leaves the image" in check_holdsite({"row": 1, "col": 60}, gt, info)["reason"]
+    assert "background" in check_holdsite({"row": 5, "col": 5}, gt, info)["reason"]
+    rows, cols = np.nonzero(gt > 1)
+    edge = {"row": int(rows.min()), "col": int(cols[rows == rows.min()][0])}
+    assert "crosses surfaces" in check_holdsite(edge, gt, info)["reason"]
+
+
+def test_holdsite_on_a_covered_part_of_a_pile_fails():
+    scene = render_scene("pile", seed=1990)
+    covered = [o["id"] for o in scene.info["objects"]
+               if not o["background"] and o["id"] not in scene.uncovered]
+    assert covered, "the pile should bury at least one part"
+    surf = max((s for s in scene.info["surfaces"] if s["object"] in covered),
+               key=lambda s: s["pixels"])
+    mask = scene.gt == surf["id"]
+    from scipy import ndimage
+
+    r, c = np.unravel_index(np.argmax(ndimage.distance_transform_edt(mask)), mask.shape)
+    res = check_holdsite({"row": int(r), "col": int(c), "size": [3, 3]}, scene.gt, scene.info)
+    assert not res["ok"] and "under another part" in res["reason"]
+
+
+# --------------------------------------------------------------------------- folders
+
+
+def _predict_truth(gt_dir, pred_dir):
+    """A perfect 'machine': copy each GT as labels, with a holdsite on the top surface."""
+    for path in sorted(gt_dir.glob("*.gt.npy")):
+        stem = path.name[: -len(".gt.npy")]
+        gt = np.load(path)
+        write_npy(pred_dir / f"{stem}.labels.npy", gt)
+        info = json.loads(path.with_suffix(".json").read_text())
+        obj = info["uncovered"][0]
+        surf = max((s for s in info["surfaces"] if s["object"] == obj), key=lambda s: s["pixels"])
+        r, c = np.argwhere(gt == surf["id"])[len(np.argwhere(gt == surf["id"])) // 2]
+        write_json(pred_dir / f"{stem}.holdsite.json",
+                   {"holdsite": {"row": int(r), "col": int(c), "size": [1, 1]}})
+
+
+def test_evaluate_folder_of_the_truth_itself(tmp_path):
+    gt_dir, pred_dir = tmp_path / "gt", tmp_path / "pred"
+    write_scenes(gt_dir, ["cup", "box"], [0, 2], seed=3, size=(64, 64))
+    _predict_truth(gt_dir, pred_dir)
+    res = evaluate_folder(pred_dir, gt_dir, min_region=10)
+    total = res["total"]
+    assert set(res["images"]) == {"cup-n0", "cup-n2", "box-n0", "box-n2"}
+    assert total["correct"] == total["gt_regions"] > 0 and res["errors"] == []
+    assert total["over"] == total["under"] == total["missed"] == total["noise"] == 0
+    assert total["holdsite"] == {"checked": 4, "ok": 4}
+    assert total["curve"]["correct"] == [total["gt_regions"]] * len(CURVE_TOLERANCES)
+
+
+def test_evaluate_folder_reports_a_missing_prediction_and_goes_on(tmp_path):
+    gt_dir, pred_dir = tmp_path / "gt", tmp_path / "pred"
+    write_scenes(gt_dir, ["box", "sphere"], [0], seed=0, size=(48, 48))
+    _predict_truth(gt_dir, pred_dir)
+    (pred_dir / "box-n0.labels.npy").unlink()
+    res = evaluate_folder(pred_dir, gt_dir, min_region=10)
+    assert "error" in res["images"]["box-n0"] and len(res["errors"]) == 1
+    assert res["total"]["images"] == 1 and res["total"]["correct"] == 2
+
+
+def test_evaluate_folder_without_ground_truth_is_an_input_error(tmp_path):
+    from rangeseg_cli.errors import InputError
+
+    with pytest.raises(InputError, match="no ground truth"):
+        evaluate_folder(tmp_path, tmp_path)
+
+
+def test_plot_curve_writes_a_png(tmp_path):
+    pytest.importorskip("matplotlib")
+    path = tmp_path / "curve.png"
+    assert plot_curve({"tolerance": [0.5, 0.8], "correct": [5, 3]}, path, gt_regions=6)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
