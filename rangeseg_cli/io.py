@@ -153,6 +153,16 @@ def _strip(name: str) -> str:
 # --------------------------------------------------------------------------- writing
 
 
+def _file_mode() -> int:
+    """Mode of a new file under the process's umask (mkstemp alone gives 0600)."""
+    umask = os.umask(0o022)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+_FILE_MODE = _file_mode()
+
+
 def _atomic_write(path: Path, write: Any) -> None:
     """Write through ``write(fileobj)`` into a temp file beside ``path``, then rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -160,6 +170,7 @@ def _atomic_write(path: Path, write: Any) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             write(fh)
+        os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -102,3 +102,13 @@ def test_absurd_heights_are_a_clear_error_not_an_overflow():
     raw[3, 3] = 1.7e308
     with pytest.raises(InputError, match=r"height 1.7e\+308 is outside the supported range"):
         to_heights(raw, InputConfig())
+
+
+def test_outputs_get_the_usual_permissions_not_mkstemps_0600(tmp_path):
+    import os
+    import stat
+
+    io.write_npy(tmp_path / "a.npy", np.arange(3))
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "a.npy").stat().st_mode) == 0o666 & ~umask
