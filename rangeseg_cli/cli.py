@@ -49,7 +49,8 @@ outdir_arg = click.argument("out", type=click.Path(file_okay=False))
 
 
 def verbosity_opts(f: Callable[..., Any]) -> Callable[..., Any]:
-    """-v/-q counted into a log level (rasterio's habit)."""
+    """--version, and -v/-q counted into a log level (rasterio's habit)."""
+    f = click.version_option(__version__, prog_name="rangeseg")(f)
     f = click.option("--verbose", "-v", count=True, help="More detail on stderr "
                      "(-vv: tracebacks of internal errors).")(f)
     return click.option("--quiet", "-q", count=True,
@@ -236,8 +237,9 @@ _stage_command("holdsite", """Holdsites for a vacuum gripper on the images in OU
 @config_opt
 @preset_opt
 @set_opt
-def config_cmd(config_path: str | None, preset: str | None, settings: tuple[str, ...]
-               ) -> None:
+@verbosity_opts
+def config_cmd(config_path: str | None, preset: str | None, settings: tuple[str, ...],
+               verbose: int, quiet: int) -> None:
     """Print the configuration as commented TOML (the defaults unless options say more)."""
     from .config import default_toml
 
@@ -361,9 +363,11 @@ def _eval_table(result: dict[str, Any]) -> None:
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write a PNG of correct detections vs tolerance (needs matplotlib).")
 @json_opt
+@verbosity_opts
 @click.pass_context
 def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
-             min_region: int, plot: str | None, as_json: bool) -> None:
+             min_region: int, plot: str | None, as_json: bool, verbose: int, quiet: int
+             ) -> None:
     """Score PRED_DIR/<stem>.labels.npy against GT_DIR/<stem>.gt.npy.
 
     Correct detections, over- and under-segmentations, missed and noise
@@ -381,7 +385,7 @@ def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
         click.echo(reason, err=True)
     if as_json:
         click.echo(json.dumps(result, sort_keys=True, indent=2))
-    else:
+    elif not quiet:
         _eval_table(result)
     if plot and not plot_curve(result["total"]["curve"], Path(plot),
                                gt_regions=result["total"]["gt_regions"]):

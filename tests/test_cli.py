@@ -28,9 +28,12 @@ def images(tmp_path, write_png):
 def test_version_and_help_on_every_command(runner):
     res = runner.invoke(main, ["--version"])
     assert res.exit_code == 0 and __version__ in res.output
-    for cmd in ("run", "edges", "link", "grow", "holdsite", "config"):
+    for cmd in ("run", "edges", "link", "grow", "holdsite", "config", "synth", "eval"):
         res = runner.invoke(main, [cmd, "--help"])
         assert res.exit_code == 0 and "Usage" in res.output, cmd
+        assert "--verbose" in res.output and "--quiet" in res.output, cmd
+        res = runner.invoke(main, [cmd, "--version"])
+        assert res.exit_code == 0 and __version__ in res.output, cmd
     res = runner.invoke(main, ["edges", "--help"])
     assert "--verbose" in res.output and "--quiet" in res.output and "--config" in res.output
 
