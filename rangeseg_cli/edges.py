@@ -24,15 +24,34 @@ slope times the shift of the mask's centroid. The default ``"symmetric"``
 cuts both sides at the shorter reach, which leaves AR exactly 0 on any
 planar ramp (SPEC, *Truncation*). Invalid pixels and pixels outside the
 image are always excluded.
+
+Backends: the numpy functions of this module are the reference. When numba is
+installed, :func:`detect_edges` runs the fused compiled kernels of
+:mod:`rangeseg_cli._kernels` instead, which give exactly the same maps; set
+the environment variable ``RANGESEG_PURE_NUMPY=1`` (or pass
+``backend="numpy"``) to use the reference.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib.util
+import os
 from dataclasses import dataclass
+from types import ModuleType
+from typing import Literal, get_args
 
 import numpy as np
 
 from .config import Config, RoofConfig, StepConfig
+
+Backend = Literal["auto", "numba", "numpy"]
+
+#: Whether ``backend="auto"`` uses the compiled kernels: numba is installed and
+#: ``RANGESEG_PURE_NUMPY`` is not ``1`` (``auto`` falls back to numpy when numba
+#: cannot be imported).
+_USE_NUMBA: bool = (os.environ.get("RANGESEG_PURE_NUMPY", "") != "1"
+                    and importlib.util.find_spec("numba") is not None)
 
 #: The four search directions of Fig. 8, as (row step, column step).
 DIRECTIONS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (1, 1), (1, -1))
@@ -232,7 +251,32 @@ def roof_edges(z: np.ndarray, step: np.ndarray, cfg: RoofConfig
     return roof_a, roof_b
 
 
-def detect_edges(z: np.ndarray, config: Config) -> EdgeMaps:
+@functools.cache
+def _compiled_kernels() -> ModuleType | None:
+    """:mod:`rangeseg_cli._kernels`, or None when numba is missing or cannot load."""
+    if importlib.util.find_spec("numba") is None:
+        return None
+    try:
+        from . import _kernels
+    except (ImportError, RuntimeError):  # numba too old/new for numpy, or no cache dir
+        return None
+    return _kernels
+
+
+def _select_kernels(backend: str) -> ModuleType | None:
+    """The compiled kernels when ``backend`` selects them, else None; validates ``backend``."""
+    if backend not in get_args(Backend):
+        raise ValueError(f"`backend` ({backend!r}) must be one of {get_args(Backend)}")
+    if backend == "numpy" or (backend == "auto" and not _USE_NUMBA):
+        return None
+    kernels = _compiled_kernels()
+    if kernels is None and backend == "numba":
+        raise ImportError("`backend` 'numba' needs the numba package, which is not installed "
+                          "or cannot be imported; use backend='numpy' or 'auto'")
+    return kernels
+
+
+def detect_edges(z: np.ndarray, config: Config, *, backend: Backend = "auto") -> EdgeMaps:
     """Steps 1 and 2 of Sec. V: step edges, then roof edges in two passes.
 
     Parameters
@@ -241,14 +285,33 @@ def detect_edges(z: np.ndarray, config: Config) -> EdgeMaps:
         float64 (H, W) heights, NaN where invalid (:func:`~rangeseg_cli.rangeimage.to_heights`).
     config
         The whole configuration (``[step]`` and ``[roof]`` are used).
+    backend
+        ``"numpy"``: the reference functions of this module; ``"numba"``: the
+        fused compiled kernels of :mod:`rangeseg_cli._kernels` (identical
+        maps); ``"auto"``: numba when installed and ``RANGESEG_PURE_NUMPY``
+        is not ``1``.
 
     Returns
     -------
     EdgeMaps
         Step and roof edge maps and the uint8 code map (0 none, 1 step, 2 roof).
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``backend``.
+    ImportError
+        For ``backend="numba"`` without numba installed.
     """
-    step = step_edges(z, config.step, truncation=config.roof.truncation)
-    roof_a, roof_b = roof_edges(z, step, config.roof)
+    kernels = _select_kernels(backend)
+    if kernels is not None:
+        step, roof_a, roof_b = kernels.detect_edges_numba(
+            z, gaussian_taps(config.step.sigma, config.step.taps), config.step.threshold,
+            gaussian_taps(config.roof.sigma, config.roof.taps), config.roof.threshold_a,
+            config.roof.threshold_b, config.roof.search_radius, config.roof.truncation)
+    else:
+        step = step_edges(z, config.step, truncation=config.roof.truncation)
+        roof_a, roof_b = roof_edges(z, step, config.roof)
     codes = np.zeros(z.shape, dtype=np.uint8)
     codes[roof_a | roof_b] = ROOF_EDGE
     codes[step] = STEP_EDGE

@@ -1,0 +1,322 @@
+"""Speed of the pipeline (issue 7): per-stage medians, Gaussian-pass ratios, batch throughput.
+
+For synthetic bin scenes of 128x128, 640x480, 1280x1024 and 1920x1200 pixels
+(``rangeseg_cli.synth`` ``pile``, 8-bit, noise 1, fixed seeds) it measures,
+interleaved within every repeat so that load on the machine hits all figures
+alike:
+
+* the baseline ``scipy.ndimage.gaussian_filter(z, 4)`` on the frame's float64
+  heights (one "Gaussian pass", G),
+* each stage of Sec. V and VII -- ``to_heights``, edges (compiled kernels and
+  the numpy reference), link, grow (+ surface descriptions), holdsite -- and
+  ``run_pipeline`` as a whole,
+
+and reports medians of ``--repeats`` runs after one warm-up, as milliseconds
+and as multiples of G. Then the numba compile time (cold cache) and the
+start-up cost with a warm cache, each in a fresh interpreter, and the batch
+throughput of the real CLI, ``rangeseg run DIR -o OUT --jobs N -q``, on a
+folder of 128x128 PNGs (``--jobs 1`` and ``--jobs 2``, I/O and interpreter
+start-up included).
+
+Run ``.venv/bin/python benchmarks/bench_pipeline.py`` (or ``make bench``);
+``--quick`` times 128x128 and 640x480 only, with 5 repeats and 50 batch images.
+Results go to ``benchmarks/results/bench.json`` and ``bench.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from rangeseg_cli import __version__, io
+from rangeseg_cli.config import Config, load_config
+from rangeseg_cli.edges import detect_edges
+from rangeseg_cli.pipeline import (
+    run_pipeline,
+    stage_edges,
+    stage_grow,
+    stage_holdsite,
+    stage_link,
+)
+from rangeseg_cli.rangeimage import to_heights
+
+#: Frame sizes as (rows, cols): the paper's 128x128 and common sensor formats.
+SIZES: tuple[tuple[int, int], ...] = ((128, 128), (480, 640), (1024, 1280), (1200, 1920))
+QUICK_SIZES = SIZES[:2]
+RESULTS = Path(__file__).resolve().parent / "results"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+def bin_scene(rows: int, cols: int, seed: int, noise: float = 1.0) -> np.ndarray:
+    """8-bit range image of a bin pile (``synth`` ``pile``), or random boxes without synth."""
+    try:
+        from rangeseg_cli.synth import render_scene
+    except ImportError:
+        return _random_boxes(rows, cols, seed, noise)
+    return render_scene("pile", size=(rows, cols), noise=noise, seed=seed).image
+
+
+def _random_boxes(rows: int, cols: int, seed: int, noise: float) -> np.ndarray:
+    """Tilted boxes on a table (np.mgrid), rounded to 8 bits."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    z = 30.0 + 0.01 * xx
+    unit = min(rows, cols) / 128.0
+    for _ in range(8):
+        r0, c0 = rng.uniform(0, rows * 0.8), rng.uniform(0, cols * 0.8)
+        h, w = rng.uniform(15, 45, 2) * unit
+        a, b = rng.uniform(-0.5, 0.5, 2) / unit
+        top = rng.uniform(50, 200) + a * (xx - c0) + b * (yy - r0)
+        inside = (yy >= r0) & (yy < r0 + h) & (xx >= c0) & (xx < c0 + w)
+        z = np.where(inside, np.maximum(z, top), z)
+    z += rng.normal(0.0, noise, z.shape)
+    return np.clip(np.rint(z), 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------- frames
+
+
+def _timed(fn: Callable[[], Any]) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
+                ) -> dict[str, Callable[[], Any]]:
+    """The timed calls for one frame, with the inputs of each stage precomputed."""
+    result = run_pipeline(image, config)
+    z = result.heights
+    baseline = np.nan_to_num(z)
+    tasks: dict[str, Callable[[], Any]] = {
+        "gaussian": lambda: gaussian_filter(baseline, 4),
+        "to_heights": lambda: to_heights(image, config.input),
+        "edges": lambda: stage_edges(z, config),
+    }
+    if numpy_edges:
+        tasks["edges_numpy"] = lambda: detect_edges(z, config, backend="numpy")
+    tasks["link"] = lambda: stage_link(z, result.edge_maps.codes, config)
+    tasks["grow"] = lambda: stage_grow(z, result.edges, result.components, config)
+    tasks["holdsite"] = lambda: stage_holdsite(z, result.labels, result.surfaces, config)
+    tasks["run_pipeline"] = lambda: run_pipeline(image, config)
+    return tasks
+
+
+def bench_frame(rows: int, cols: int, repeats: int, numpy_edges: bool) -> dict[str, Any]:
+    """Median seconds of every task over ``repeats`` interleaved runs after a warm-up."""
+    config = load_config()
+    image = bin_scene(rows, cols, seed=rows + cols)
+    tasks = frame_tasks(image, config, numpy_edges)
+    for fn in tasks.values():  # warm-up: compiled kernels loaded, caches filled
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in tasks}
+    for _ in range(repeats):
+        for name, fn in tasks.items():
+            times[name].append(_timed(fn))
+    median = {name: float(np.median(t)) for name, t in times.items()}
+    g = median["gaussian"]
+    return {
+        "rows": rows, "cols": cols, "pixels": rows * cols, "repeats": repeats,
+        "median_ms": {k: v * 1e3 for k, v in median.items()},
+        "min_ms": {k: float(np.min(t)) * 1e3 for k, t in times.items()},
+        "gaussian_passes": {k: v / g for k, v in median.items() if k != "gaussian"},
+        "ms_per_megapixel": {k: v * 1e3 / (rows * cols / 1e6) for k, v in median.items()},
+    }
+
+
+def scaling_exponent(frames: list[dict[str, Any]], task: str) -> float | None:
+    """Slope of log(time) against log(pixels): 1 means time linear in pixels."""
+    if len(frames) < 2:
+        return None
+    px = np.log([f["pixels"] for f in frames])
+    ms = np.log([f["median_ms"][task] for f in frames])
+    return float(np.polyfit(px, ms, 1)[0])
+
+
+# --------------------------------------------------------------------------- compile
+
+
+_STARTUP = """
+import json, time
+t0 = time.perf_counter()
+import numpy as np
+from rangeseg_cli.config import load_config
+from rangeseg_cli.edges import detect_edges
+from rangeseg_cli import _kernels
+t1 = time.perf_counter()
+z = np.random.default_rng(0).normal(50.0, 1.0, (64, 64))
+detect_edges(z, load_config(), backend="numba")
+t2 = time.perf_counter()
+detect_edges(z, load_config(), backend="numba")
+t3 = time.perf_counter()
+print(json.dumps({"import_s": t1 - t0, "first_call_s": t2 - t1, "second_call_s": t3 - t2}))
+"""
+
+
+def bench_compile() -> dict[str, Any]:
+    """First-call cost in fresh interpreters: empty numba cache, then the cache it wrote."""
+    with tempfile.TemporaryDirectory(prefix="rangeseg-numba-") as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        runs = {}
+        for label in ("cold_cache", "warm_cache"):
+            out = subprocess.run([sys.executable, "-c", _STARTUP], env=env, cwd=ROOT,
+                                 capture_output=True, text=True, check=True)
+            runs[label] = json.loads(out.stdout)
+    return runs
+
+
+# --------------------------------------------------------------------------- batch
+
+
+def write_batch(folder: Path, count: int, size: int = 128) -> None:
+    """``count`` 8-bit PNGs: 10 pile layouts, each with its own noise per image."""
+    layouts = [bin_scene(size, size, seed=s, noise=0.0).astype(np.float64) for s in range(10)]
+    rng = np.random.default_rng(7)
+    for i in range(count):
+        z = layouts[i % len(layouts)] + rng.normal(0.0, 1.0, (size, size))
+        io.write_png(folder / f"img{i:04d}.png", np.clip(np.rint(z), 0, 255).astype(np.uint8))
+
+
+def _cli() -> list[str]:
+    exe = shutil.which("rangeseg", path=str(Path(sys.executable).parent))
+    return [exe] if exe else [sys.executable, "-c", "from rangeseg_cli.cli import main; main()"]
+
+
+def bench_batch(count: int, runs: int, jobs: tuple[int, ...] = (1, 2)) -> dict[str, Any]:
+    """Images per second of ``rangeseg run DIR -o OUT --jobs N -q`` (median of ``runs``)."""
+    result: dict[str, Any] = {"images": count, "size": [128, 128], "runs": runs}
+    with tempfile.TemporaryDirectory(prefix="rangeseg-bench-") as tmp:
+        folder = Path(tmp) / "in"
+        folder.mkdir()
+        write_batch(folder, count)
+        for n in jobs:
+            walls = []
+            for r in range(runs):
+                out = Path(tmp) / f"out-{n}-{r}"
+                cmd = [*_cli(), "run", str(folder), "-o", str(out), "--jobs", str(n), "-q"]
+                t0 = time.perf_counter()
+                subprocess.run(cmd, check=True, capture_output=True)
+                walls.append(time.perf_counter() - t0)
+                shutil.rmtree(out)
+            wall = float(np.median(walls))
+            result[f"jobs{n}"] = {"wall_s": wall, "images_per_s": count / wall}
+    if all(f"jobs{n}" in result for n in (1, 2)):
+        result["speedup_jobs2"] = result["jobs2"]["images_per_s"] / result["jobs1"]["images_per_s"]
+    return result
+
+
+# --------------------------------------------------------------------------- report
+
+
+def machine() -> dict[str, Any]:
+    import numba
+    import scipy
+
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count()
+    return {"python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "numba": numba.__version__, "cores": cores,
+            "cpu": platform.processor() or platform.machine(), "rangeseg": __version__}
+
+
+COLUMNS = ("to_heights", "edges", "edges_numpy", "link", "grow", "holdsite", "run_pipeline")
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The small tables of ``bench.md``."""
+    lines = [
+        f"# rangeseg benchmarks{' (quick)' if report['quick'] else ''}",
+        "",
+        f"{report['date']}, {report['machine']['cores']} cores, numpy "
+        f"{report['machine']['numpy']}, numba {report['machine']['numba']}. Medians of "
+        f"{report['frames'][0]['repeats']} interleaved runs after a warm-up; G = "
+        "`gaussian_filter(z, 4)` on the same float64 frame in the same run. Cells: ms (x G).",
+        "",
+        "| frame | G ms | " + " | ".join(COLUMNS) + " | pipeline ms/Mpx |",
+        "|---" * (len(COLUMNS) + 3) + "|",
+    ]
+    for f in report["frames"]:
+        cells = [f"{f['cols']}x{f['rows']}", f"{f['median_ms']['gaussian']:.2f}"]
+        for c in COLUMNS:
+            if c in f["median_ms"]:
+                cells.append(f"{f['median_ms'][c]:.1f} ({f['gaussian_passes'][c]:.1f})")
+            else:
+                cells.append("-")
+        cells.append(f"{f['ms_per_megapixel']['run_pipeline']:.0f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    exps = report["scaling_exponent"]
+    lines += ["", "Time ~ pixels^k: " + ", ".join(
+        f"{k} k = {v:.2f}" for k, v in exps.items() if v is not None) + "."]
+    c = report["compile"]
+    lines += ["", f"Numba, fresh interpreter: cold cache (compile) "
+              f"{c['cold_cache']['first_call_s']:.2f} s, warm cache (load) "
+              f"{c['warm_cache']['first_call_s']:.2f} s for the first call, after "
+              f"{c['warm_cache']['import_s']:.2f} s of imports."]
+    b = report["batch"]
+    if b:
+        lines += ["", f"Batch, `rangeseg run DIR -o OUT --jobs N -q`, {b['images']} PNGs of "
+                  "128x128, wall time incl. start-up and I/O (median of "
+                  f"{b['runs']}):", "", "| jobs | s | images/s |", "|---|---|---|"]
+        for n in (1, 2):
+            if f"jobs{n}" in b:
+                lines.append(f"| {n} | {b[f'jobs{n}']['wall_s']:.2f} | "
+                             f"{b[f'jobs{n}']['images_per_s']:.1f} |")
+        if "speedup_jobs2" in b:
+            lines += ["", f"--jobs 2 / --jobs 1 throughput: {b['speedup_jobs2']:.2f}x."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="128x128 and 640x480 only, 5 repeats, 50 batch images, 1 run")
+    parser.add_argument("--repeats", type=int, default=None, help="timed runs per frame (>= 5)")
+    parser.add_argument("--batch-images", type=int, default=None)
+    parser.add_argument("--no-batch", action="store_true", help="skip the CLI batch runs")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="output folder")
+    args = parser.parse_args(argv)
+    repeats = max(5, args.repeats or (5 if args.quick else 7))
+    sizes = QUICK_SIZES if args.quick else SIZES
+    frames = []
+    for rows, cols in sizes:
+        frame = bench_frame(rows, cols, repeats, numpy_edges=True)
+        frames.append(frame)
+        print(f"{cols}x{rows}: " + ", ".join(
+            f"{k} {v:.1f} ms" for k, v in frame["median_ms"].items()), flush=True)
+    report: dict[str, Any] = {
+        "date": time.strftime("%Y-%m-%d %H:%M"), "quick": args.quick, "machine": machine(),
+        "frames": frames,
+        "scaling_exponent": {t: scaling_exponent(frames, t) for t in ("edges", "run_pipeline")},
+        "compile": bench_compile(), "batch": {},
+    }
+    if not args.no_batch:
+        count = args.batch_images or (50 if args.quick else 200)
+        report["batch"] = bench_batch(count, runs=1 if args.quick else 3)
+    text = markdown(report)
+    print(text)
+    args.results.mkdir(parents=True, exist_ok=True)
+    (args.results / "bench.json").write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
+    (args.results / "bench.md").write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
