@@ -28,10 +28,12 @@ from __future__ import annotations
 import math
 import os
 import signal
+import threading
 import time
 import traceback
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -390,7 +392,8 @@ def run_batch(jobs: list[Job], out: Path, config: Config, stages: tuple[str, ...
               n_jobs: int = 1, resume: bool = False, overwrite: bool = False,
               skipped_files: list[str] | None = None, command: str = "run",
               on_result: Callable[[Record], None] | None = None,
-              on_start: Callable[[int], None] | None = None) -> BatchSummary:
+              on_start: Callable[[int], None] | None = None,
+              executor: str = "local", scheduler: str | None = None) -> BatchSummary:
     """Process ``jobs`` through ``stages`` and write the manifest.
 
     Parameters
@@ -414,36 +417,74 @@ def run_batch(jobs: list[Job], out: Path, config: Config, stages: tuple[str, ...
     on_result, on_start
         Callbacks for progress: ``on_start(number of images to process)`` and
         ``on_result(record)`` for each finished image.
+    executor, scheduler
+        Where images are processed (:data:`EXECUTORS`): ``"local"``, ``n_jobs``
+        processes of this machine, or ``"dask"``, one task per image on the
+        Dask cluster whose scheduler is at ``scheduler`` (``tcp://HOST:PORT``;
+        see :mod:`rangeseg_cli.dask_executor` for the storage it needs).
 
     Returns
     -------
     BatchSummary
         Per-image records, the skipped files and the wall time.
+
+    Raises
+    ------
+    rangeseg_cli.dask_executor.ClusterError
+        With ``executor="dask"``, before any work, when the cluster cannot be
+        used (dask missing, scheduler unreachable, workers without rangeseg
+        or without the shared storage).
     """
     t0 = time.perf_counter()
-    remove_stale_temporaries(out)
-    todo, records = plan_jobs(jobs, out, config, stages, resume=resume, overwrite=overwrite)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = _Manifest(out, config, command, stages)
-    if on_start is not None:
-        on_start(len(todo))
-    interrupted = False
+    with _executor(executor, scheduler, n_jobs) as execute:  # dask: connect before any work
+        remove_stale_temporaries(out)
+        todo, records = plan_jobs(jobs, out, config, stages, resume=resume,
+                                  overwrite=overwrite)
+        out.mkdir(parents=True, exist_ok=True)
+        manifest = _Manifest(out, config, command, stages)
+        if on_start is not None:
+            on_start(len(todo))
+        interrupted = False
 
-    def finish(record: Record) -> None:
-        records.append(record)
-        manifest.add(record)
-        if on_result is not None:
-            on_result(record)
+        def finish(record: Record) -> None:
+            records.append(record)
+            manifest.add(record)
+            if on_result is not None:
+                on_result(record)
 
-    try:
-        _execute(todo, out, config, stages, n_jobs, finish)
-    except KeyboardInterrupt:
-        interrupted = True
+        try:
+            execute(todo, out, config, stages, finish)
+        except KeyboardInterrupt:
+            interrupted = True
     summary = BatchSummary(records=sorted(records, key=lambda r: r.rel),
                            skipped_files=skipped_files or [],
                            seconds=time.perf_counter() - t0, interrupted=interrupted)
     manifest.write(summary)
     return summary
+
+
+#: Where a batch can run: this machine's process pool, or an existing Dask cluster.
+EXECUTORS = ("local", "dask")
+_Execute = Callable[[list[Job], Path, Config, tuple[str, ...], Callable[[Record], None]], None]
+
+
+@contextmanager
+def _executor(executor: str, scheduler: str | None, n_jobs: int) -> Iterator[_Execute]:
+    """The function that processes the planned jobs; a Dask client connects first."""
+    if executor == "local":
+        yield lambda todo, out, config, stages, finish: _execute(
+            todo, out, config, stages, n_jobs, finish)
+    elif executor == "dask":
+        if not scheduler:
+            raise ValueError("executor='dask' needs `scheduler`, the address of a Dask "
+                             "scheduler such as tcp://10.0.0.5:8786")
+        from .dask_executor import connect, execute_on_dask
+
+        with connect(scheduler) as client:
+            yield lambda todo, out, config, stages, finish: execute_on_dask(
+                todo, out, config, stages, client, finish)
+    else:
+        raise ValueError(f"`executor` = {executor!r}: expected one of {', '.join(EXECUTORS)}")
 
 
 def remove_stale_temporaries(out: Path) -> None:
@@ -453,41 +494,83 @@ def remove_stale_temporaries(out: Path) -> None:
             tmp.unlink(missing_ok=True)
 
 
+class _StopFlag:
+    """Ctrl-C sets a flag and the batch stops between images; a second Ctrl-C stops at once.
+
+    An interrupt raised inside a numba kernel would surface as a ``SystemError``
+    and be recorded as a failed image; a flag checked between images keeps
+    every finished image complete and the interrupted one simply not done.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+
+    def __enter__(self) -> _StopFlag:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def check(self) -> None:
+        """Raise :class:`KeyboardInterrupt` once Ctrl-C was pressed."""
+        if self.requested:
+            raise KeyboardInterrupt
+
+
 def _execute(todo: list[Job], out: Path, config: Config, stages: tuple[str, ...],
              n_jobs: int, finish: Callable[[Record], None]) -> None:
-    if n_jobs <= 1 or len(todo) <= 1:
-        for job in todo:
-            finish(process_image(job, out, config, stages))
-        return
+    with _StopFlag() as stop:
+        if n_jobs <= 1 or len(todo) <= 1:
+            for job in todo:
+                stop.check()
+                finish(process_image(job, out, config, stages))
+            return
+        _execute_pool(todo, out, config, stages, n_jobs, finish, stop)
+
+
+def _execute_pool(todo: list[Job], out: Path, config: Config, stages: tuple[str, ...],
+                  n_jobs: int, finish: Callable[[Record], None], stop: _StopFlag) -> None:
     # At most 2 images per worker in flight: memory stays bounded for any batch size.
     pending: set[Future[Record]] = set()
-    queue = iter(todo)
     with ProcessPoolExecutor(max_workers=n_jobs, initializer=_ignore_sigint) as pool:
         try:
-            for job in queue:
+            for job in todo:
+                stop.check()
                 pending.add(pool.submit(process_image, job, out, config, stages))
-                if len(pending) >= 2 * n_jobs:
-                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for fut in sorted(done, key=id):
-                        finish(fut.result())
-            for fut in _as_done(pending):
-                finish(fut.result())
+                while len(pending) >= 2 * n_jobs:
+                    pending = _collect(pending, finish, stop)
+            while pending:
+                pending = _collect(pending, finish, stop)
         except KeyboardInterrupt:
-            for fut in pending:
-                fut.cancel()
             pool.shutdown(wait=True, cancel_futures=True)
+            for fut in pending:  # images the workers finished are kept and recorded
+                if fut.done() and not fut.cancelled():
+                    finish(fut.result())
             raise
+
+
+def _collect(pending: set[Future[Record]], finish: Callable[[Record], None],
+             stop: _StopFlag) -> set[Future[Record]]:
+    """Finish the images done within a short wait; return those still pending."""
+    done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+    for fut in done:
+        finish(fut.result())
+    stop.check()
+    return pending
 
 
 def _ignore_sigint() -> None:
     """Workers leave Ctrl-C to the main process, which stops the batch cleanly."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _as_done(pending: set[Future[Record]]) -> Iterable[Future[Record]]:
-    while pending:
-        done, pending = wait(pending, return_when=FIRST_COMPLETED)
-        yield from done
 
 
 def default_jobs() -> int:

@@ -184,3 +184,28 @@ def test_random_nan_patterns_never_leak_into_labels(seed, frac):
         return
     bad = ~np.isfinite(z)
     assert not result.labels[bad].any() and not result.edges[bad].any()
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path, write_png, jobs):
+    folder = tmp_path / "many"
+    folder.mkdir()
+    for i in range(30):
+        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", jobs, "-q"]
+    proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 2:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "--resume" in err and "Traceback" not in err
+    manifest = json.loads((out / "rangeseg-run.json").read_text())
+    done = [k for k, v in manifest["images"].items() if v["status"] == "done"]
+    assert 2 <= len(done) < 30
+    assert all((out / f"{k}.holdsite.json").exists() for k in done)
+    res = subprocess.run([*cmd, "-o", str(out), "--resume", "--json"], capture_output=True, text=True)
+    assert res.returncode == 0 and json.loads(res.stdout)["resumed"] >= len(done)
