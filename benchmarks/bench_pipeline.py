@@ -8,8 +8,10 @@ alike:
 * the baseline ``scipy.ndimage.gaussian_filter(z, 4)`` on the frame's float64
   heights (one "Gaussian pass", G),
 * each stage of Sec. V and VII -- ``to_heights``, edges (compiled kernels and
-  the numpy reference), link, grow (+ surface descriptions), holdsite -- and
-  ``run_pipeline`` as a whole,
+  the numpy reference), the noise estimate, link, grow (+ surface
+  descriptions) with the ``[split]`` step (the default) and without it, and
+  the two parts of the latter (``grow_regions``, ``describe_surfaces``),
+  holdsite -- and ``run_pipeline`` as a whole, with and without the split,
 
 and reports medians of ``--repeats`` runs after one warm-up, as milliseconds
 and as multiples of G. Then the numba compile time (cold cache) and the
@@ -26,6 +28,7 @@ Results go to ``benchmarks/results/bench.json`` and ``bench.md``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -44,6 +47,7 @@ from scipy.ndimage import gaussian_filter
 from rangeseg_cli import __version__, io
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.edges import detect_edges
+from rangeseg_cli.grow import grow_regions
 from rangeseg_cli.pipeline import (
     run_pipeline,
     stage_edges,
@@ -52,6 +56,8 @@ from rangeseg_cli.pipeline import (
     stage_link,
 )
 from rangeseg_cli.rangeimage import to_heights
+from rangeseg_cli.split import estimate_noise
+from rangeseg_cli.surfaces import describe_surfaces
 
 #: Frame sizes as (rows, cols): the paper's 128x128 and common sensor formats.
 SIZES: tuple[tuple[int, int], ...] = ((128, 128), (480, 640), (1024, 1280), (1200, 1920))
@@ -100,9 +106,17 @@ def _timed(fn: Callable[[], Any]) -> float:
 
 def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
                 ) -> dict[str, Callable[[], Any]]:
-    """The timed calls for one frame, with the inputs of each stage precomputed."""
+    """The timed calls for one frame, with the inputs of each stage precomputed.
+
+    ``grow`` and ``run_pipeline`` use ``config`` (the split step on by
+    default); the ``_nosplit`` tasks the same with ``[split] enabled = false``,
+    and ``grow_regions`` + ``describe`` are the two parts of ``grow_nosplit``.
+    """
+    nosplit = dataclasses.replace(config, split=dataclasses.replace(config.split,
+                                                                    enabled=False))
     result = run_pipeline(image, config)
     z = result.heights
+    plain = grow_regions(z, result.edges, result.components, config.grow)
     baseline = np.nan_to_num(z)
     tasks: dict[str, Callable[[], Any]] = {
         "gaussian": lambda: gaussian_filter(baseline, 4),
@@ -111,9 +125,15 @@ def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
     }
     if numpy_edges:
         tasks["edges_numpy"] = lambda: detect_edges(z, config, backend="numpy")
+    tasks["noise"] = lambda: estimate_noise(z)
     tasks["link"] = lambda: stage_link(z, result.edge_maps.codes, config)
+    tasks["grow_regions"] = lambda: grow_regions(z, result.edges, result.components,
+                                                 config.grow)
+    tasks["describe"] = lambda: describe_surfaces(z, plain, config)
+    tasks["grow_nosplit"] = lambda: stage_grow(z, result.edges, result.components, nosplit)
     tasks["grow"] = lambda: stage_grow(z, result.edges, result.components, config)
     tasks["holdsite"] = lambda: stage_holdsite(z, result.labels, result.surfaces, config)
+    tasks["run_pipeline_nosplit"] = lambda: run_pipeline(image, nosplit)
     tasks["run_pipeline"] = lambda: run_pipeline(image, config)
     return tasks
 
@@ -156,21 +176,22 @@ _STARTUP = """
 import json, time
 t0 = time.perf_counter()
 import numpy as np
+from rangeseg_cli import _kernels, run_pipeline
 from rangeseg_cli.config import load_config
-from rangeseg_cli.edges import detect_edges
-from rangeseg_cli import _kernels
 t1 = time.perf_counter()
-z = np.random.default_rng(0).normal(50.0, 1.0, (64, 64))
-detect_edges(z, load_config(), backend="numba")
+z = np.full((64, 64), 20.0)
+z[20:44, 16:40] = 120.0
+z += np.random.default_rng(0).normal(0.0, 1.0, z.shape)
+run_pipeline(z, load_config())
 t2 = time.perf_counter()
-detect_edges(z, load_config(), backend="numba")
+run_pipeline(z, load_config())
 t3 = time.perf_counter()
 print(json.dumps({"import_s": t1 - t0, "first_call_s": t2 - t1, "second_call_s": t3 - t2}))
 """
 
 
 def bench_compile() -> dict[str, Any]:
-    """First-call cost in fresh interpreters: empty numba cache, then the cache it wrote."""
+    """First ``run_pipeline`` in fresh interpreters (all kernels): empty numba cache, then warm."""
     with tempfile.TemporaryDirectory(prefix="rangeseg-numba-") as cache:
         env = {**os.environ, "NUMBA_CACHE_DIR": cache}
         runs = {}
@@ -237,7 +258,8 @@ def machine() -> dict[str, Any]:
             "cpu": platform.processor() or platform.machine(), "rangeseg": __version__}
 
 
-COLUMNS = ("to_heights", "edges", "edges_numpy", "link", "grow", "holdsite", "run_pipeline")
+COLUMNS = ("to_heights", "edges", "edges_numpy", "noise", "link", "grow_regions", "describe",
+           "grow_nosplit", "grow", "holdsite", "run_pipeline_nosplit", "run_pipeline")
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -248,7 +270,10 @@ def markdown(report: dict[str, Any]) -> str:
         f"{report['date']}, {report['machine']['cores']} cores, numpy "
         f"{report['machine']['numpy']}, numba {report['machine']['numba']}. Medians of "
         f"{report['frames'][0]['repeats']} interleaved runs after a warm-up; G = "
-        "`gaussian_filter(z, 4)` on the same float64 frame in the same run. Cells: ms (x G).",
+        "`gaussian_filter(z, 4)` on the same float64 frame in the same run. Cells: ms (x G). "
+        "`grow` and `run_pipeline` with the `[split]` step (the default), `_nosplit` "
+        "without; `grow_nosplit` = `grow_regions` + `describe` (surface descriptions); "
+        "`noise` is the noise estimate `run_pipeline` makes.",
         "",
         "| frame | G ms | " + " | ".join(COLUMNS) + " | pipeline ms/Mpx |",
         "|---" * (len(COLUMNS) + 3) + "|",
@@ -266,9 +291,9 @@ def markdown(report: dict[str, Any]) -> str:
     lines += ["", "Time ~ pixels^k: " + ", ".join(
         f"{k} k = {v:.2f}" for k, v in exps.items() if v is not None) + "."]
     c = report["compile"]
-    lines += ["", f"Numba, fresh interpreter: cold cache (compile) "
-              f"{c['cold_cache']['first_call_s']:.2f} s, warm cache (load) "
-              f"{c['warm_cache']['first_call_s']:.2f} s for the first call, after "
+    lines += ["", f"Numba, fresh interpreter, first `run_pipeline` on 64x64 (all kernels): "
+              f"cold cache (compile) {c['cold_cache']['first_call_s']:.2f} s, warm cache "
+              f"(load) {c['warm_cache']['first_call_s']:.2f} s, after "
               f"{c['warm_cache']['import_s']:.2f} s of imports."]
     b = report["batch"]
     if b:
@@ -304,7 +329,8 @@ def main(argv: list[str] | None = None) -> int:
     report: dict[str, Any] = {
         "date": time.strftime("%Y-%m-%d %H:%M"), "quick": args.quick, "machine": machine(),
         "frames": frames,
-        "scaling_exponent": {t: scaling_exponent(frames, t) for t in ("edges", "run_pipeline")},
+        "scaling_exponent": {t: scaling_exponent(frames, t)
+                             for t in ("edges", "run_pipeline_nosplit", "run_pipeline")},
         "compile": bench_compile(), "batch": {},
     }
     if not args.no_batch:

@@ -1,14 +1,18 @@
-"""Compiled (numba) kernels of the edge stage, Sec. V-1 and V-2 of Al-Hujazi & Sood (1990).
+"""Compiled (numba) kernels of Sec. V-1, V-2 and V-4 of Al-Hujazi & Sood (1990).
 
-The fast path of :func:`rangeseg_cli.edges.detect_edges`. The numpy functions
-in :mod:`rangeseg_cli.edges` are the reference: these kernels give bit-for-bit
-the same AR values and hence exactly the same edge maps, because every pixel's
-sums are made of the same float64 operations in the same order (no fastmath,
-so no reassociation and no fused multiply-add).
+The fast paths of :func:`rangeseg_cli.edges.detect_edges` (edge stage) and of
+:func:`rangeseg_cli.grow.fit_models` and :func:`rangeseg_cli.grow.grow_pass`
+(region growing). The numpy functions in :mod:`rangeseg_cli.edges` and
+:mod:`rangeseg_cli.grow` are the reference: these kernels give bit-for-bit the
+same AR values, moment sums and residuals, and hence exactly the same edge
+maps, fits and labels, because every value is made of the same float64
+operations in the same order (no fastmath, so no reassociation and no fused
+multiply-add; per-region sums accumulate in raster order, as ``np.bincount``
+does over ``np.nonzero``'s pixels).
 
 Notes
 -----
-One pass of Sec. V (step 1, 2a or 2b) is one sweep down the image rows:
+Edge stage. One pass of Sec. V (step 1, 2a or 2b) is one sweep down the image rows:
 
 1. For each row and each of the four directions of Fig. 8, the reach of the
    adaptive mask along +d and -d (consecutive usable pixels, at most half the
@@ -22,6 +26,15 @@ One pass of Sec. V (step 1, 2a or 2b) is one sweep down the image rows:
 
 Memory beyond the inputs: one padded copy of the heights and of the usable
 mask, and a few row buffers; no per-direction image temporaries.
+
+Region growing (Sec. V-4). :func:`region_moments` gathers, per label, the
+pixel count, the centre and scale of the conditioning frame and the 15
+moments ``sum u^a v^b`` (a + b <= 4) and 6 right-hand sides ``sum phi_i z`` of
+the quadric's normal equations in three sweeps over the image (centre, then
+spread, then moments), without any per-pixel temporaries;
+:func:`region_sse` sums the squared residuals of solved fits in one more
+sweep; :func:`grow_pass` is one simultaneous growing pass (8-neighbourhood
+test and residual test fused).
 
 Importing this module imports numba and needs it; :mod:`rangeseg_cli.edges`
 imports it lazily and only when numba is installed.
@@ -307,3 +320,374 @@ def detect_edges_numba(z: np.ndarray, w_step: np.ndarray, step_threshold: float,
                      np.ascontiguousarray(w_step, dtype=np.float64), float(step_threshold),
                      np.ascontiguousarray(w_roof, dtype=np.float64), float(threshold_a),
                      float(threshold_b), int(radius), symmetric, symmetric)
+
+
+# --------------------------------------------------------------------------- Sec. V-4
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def region_moments(z: np.ndarray, labels: np.ndarray, n: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                              np.ndarray]:  # pragma: no cover - compiled
+    """Per-region frames and moment sums of the quadric fits (Sec. V-4), in three sweeps.
+
+    The same float64 operations, in the same (raster) order, as the numpy
+    reference ``rangeseg_cli.grow._frames`` and ``_moment_sums``.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights; non-finite pixels are left out.
+    labels
+        int32 (H, W) labels 0..n; 0 is left out.
+    n
+        Largest label.
+
+    Returns
+    -------
+    counts, cx, cy, scale
+        float64 (n+1,): pixels, centre column and row, scale of the frame
+        ``u = (x - cx) / scale``, ``v = (y - cy) / scale``.
+    sums
+        float64 (n+1, 5, 5): ``sum u^a v^b`` at [a, b] for a + b <= 4 (0 elsewhere).
+    rhs
+        float64 (n+1, 6): ``sum phi_i z`` for phi = (1, u, v, u^2, u v, v^2).
+    """
+    counts, cx, cy = _region_centres(z, labels, n)
+    scale = _region_scale(z, labels, cx, cy, np.maximum(counts, 1.0))
+    sums, rhs = _region_sums(z, labels, cx, cy, scale)
+    return counts, cx, cy, scale, sums, rhs
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _run_end(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no cover - compiled
+    """One past the last column of the run of equal labels starting at (r, c)."""
+    lab = labels[r, c]
+    width = labels.shape[1]
+    end = c + 1
+    while end < width and labels[r, end] == lab:
+        end += 1
+    return end
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _region_centres(z: np.ndarray, labels: np.ndarray, n: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Sweep 1 of :func:`region_moments`: pixel count, centre column and row per label.
+
+    The sums are of integers, exact in any order (below 2^53), so they are
+    kept as integers.
+    """
+    height, width = labels.shape
+    counts = np.zeros(n + 1, dtype=np.int64)
+    sx = np.zeros(n + 1, dtype=np.int64)
+    sy = np.zeros(n + 1, dtype=np.int64)
+    for r in range(height):
+        c = 0
+        while c < width:
+            lab = labels[r, c]
+            end = _run_end(labels, r, c)
+            if lab > 0:
+                k = s = 0
+                for cc in range(c, end):
+                    if np.isfinite(z[r, cc]):
+                        k += 1
+                        s += cc
+                counts[lab] += k
+                sx[lab] += s
+                sy[lab] += k * r
+            c = end
+    safe = np.maximum(counts, 1).astype(np.float64)
+    return counts.astype(np.float64), sx / safe, sy / safe
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _region_scale(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
+                  safe: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """Sweep 2 of :func:`region_moments`: RMS spread about the centre, at least 1.
+
+    A run of one label along a row is summed in registers, continuing the
+    label's running sums in the same order as adding pixel by pixel.
+    """
+    height, width = labels.shape
+    vx = np.zeros(cx.shape[0])
+    vy = np.zeros(cx.shape[0])
+    for r in range(height):
+        c = 0
+        while c < width:
+            lab = labels[r, c]
+            end = _run_end(labels, r, c)
+            if lab > 0:
+                ax, ay, x0 = vx[lab], vy[lab], cx[lab]
+                dy = r - cy[lab]
+                dy2 = dy * dy
+                for cc in range(c, end):
+                    if np.isfinite(z[r, cc]):
+                        dx = cc - x0
+                        ax += dx * dx
+                        ay += dy2
+                vx[lab], vy[lab] = ax, ay
+            c = end
+    return np.maximum(np.sqrt((vx + vy) / (2.0 * safe)), 1.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _region_sums(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
+                 scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """Sweep 3 of :func:`region_moments`: the monomial sums and right-hand sides.
+
+    Runs of one label along a row are summed in registers (as in
+    :func:`_region_scale`); v and its powers are constant along a row.
+    """
+    height, width = labels.shape
+    sums = np.zeros((cx.shape[0], 5, 5))
+    rhs = np.zeros((cx.shape[0], 6))
+    for r in range(height):
+        c = 0
+        while c < width:
+            lab = labels[r, c]
+            end = _run_end(labels, r, c)
+            if lab > 0:
+                _sum_run(z, r, c, end, cx[lab], (r - cy[lab]) / scale[lab], scale[lab],
+                         sums[lab], rhs[lab])
+            c = end
+    return sums, rhs
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sum_run(z: np.ndarray, r: int, c0: int, c1: int, x0: float, v: float, s: float,
+             m: np.ndarray, q: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Add the pixels (r, c0..c1-1) to one label's monomial sums ``m`` and ``rhs`` ``q``."""
+    v2 = v * v
+    v3, v4 = v2 * v, v2 * v2
+    m00, m01, m02, m03, m04 = m[0, 0], m[0, 1], m[0, 2], m[0, 3], m[0, 4]
+    m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+    m20, m21, m22 = m[2, 0], m[2, 1], m[2, 2]
+    m30, m31, m40 = m[3, 0], m[3, 1], m[4, 0]
+    q0, q1, q2, q3, q4, q5 = q[0], q[1], q[2], q[3], q[4], q[5]
+    for c in range(c0, c1):
+        zz = z[r, c]
+        if not np.isfinite(zz):
+            continue
+        u = (c - x0) / s
+        u2 = u * u
+        u3, u4 = u2 * u, u2 * u2
+        m00 += 1.0
+        m01 += v
+        m02 += v2
+        m03 += v3
+        m04 += v4
+        m10 += u
+        m11 += u * v
+        m12 += u * v2
+        m13 += u * v3
+        m20 += u2
+        m21 += u2 * v
+        m22 += u2 * v2
+        m30 += u3
+        m31 += u3 * v
+        m40 += u4
+        q0 += zz
+        q1 += u * zz
+        q2 += v * zz
+        q3 += u2 * zz
+        q4 += u * v * zz
+        q5 += v2 * zz
+    m[0, 0], m[0, 1], m[0, 2], m[0, 3], m[0, 4] = m00, m01, m02, m03, m04
+    m[1, 0], m[1, 1], m[1, 2], m[1, 3] = m10, m11, m12, m13
+    m[2, 0], m[2, 1], m[2, 2] = m20, m21, m22
+    m[3, 0], m[3, 1], m[4, 0] = m30, m31, m40
+    q[0], q[1], q[2], q[3], q[4], q[5] = q0, q1, q2, q3, q4, q5
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
+               scale: np.ndarray, coef: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """Sum of squared residuals per region of several fits, in one sweep (Sec. V-4, e_A).
+
+    Parameters
+    ----------
+    z, labels
+        As in :func:`region_moments`.
+    cx, cy, scale
+        The frames of :func:`region_moments`.
+    coef
+        float64 (F, n+1, 6): F fits in frame coordinates (u, v).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (F, n+1): ``sum (z - sum_i c_i phi_i)^2``, the fit summed
+        term by term in the order of phi, as the reference does.
+    """
+    height, width = labels.shape
+    nfit = coef.shape[0]
+    out = np.zeros((nfit, coef.shape[1]))
+    for r in range(height):
+        c = 0
+        while c < width:
+            lab = labels[r, c]
+            end = _run_end(labels, r, c)
+            if lab > 0:
+                x0, s = cx[lab], scale[lab]
+                v = (r - cy[lab]) / s
+                for f in range(nfit):
+                    out[f, lab] = _sse_run(z, r, c, end, x0, v, s, coef[f, lab], out[f, lab])
+            c = end
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sse_run(z: np.ndarray, r: int, c0: int, c1: int, x0: float, v: float, s: float,
+             a: np.ndarray, total: float) -> float:  # pragma: no cover - compiled
+    """``total`` plus the squared residuals of the pixels (r, c0..c1-1) to the fit ``a``."""
+    a0, a1, a2, a3, a4, a5 = a[0], a[1], a[2], a[3], a[4], a[5]
+    v2 = v * v
+    for c in range(c0, c1):
+        zz = z[r, c]
+        if not np.isfinite(zz):
+            continue
+        u = (c - x0) / s
+        fit = a0 * 1.0
+        fit = fit + a1 * u
+        fit = fit + a2 * v
+        fit = fit + a3 * (u * u)
+        fit = fit + a4 * (u * v)
+        fit = fit + a5 * v2
+        res = zz - fit
+        total += res * res
+    return total
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _single_neighbour(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no cover
+    """The one label in the 3x3 neighbourhood of (r, c); 0 for none or two and more."""
+    height, width = labels.shape
+    found = 0
+    for rr in range(max(r - 1, 0), min(r + 2, height)):
+        for cc in range(max(c - 1, 0), min(c + 2, width)):
+            lab = labels[rr, cc]
+            if lab > 0:
+                if found == 0:
+                    found = lab
+                elif lab != found:
+                    return 0
+    return found
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.ndarray,
+              limit: np.ndarray) -> int:  # pragma: no cover - compiled
+    """One simultaneous growing pass (Sec. V-4), in place; the number of pixels labelled.
+
+    A valid label-0 pixel whose 8-neighbourhood holds exactly one label L joins
+    L when ``(z - f_L)^2 < limit[L]``, f_L evaluated as
+    :func:`rangeseg_cli.grow.evaluate_quadric` does. Decisions use the labels
+    at the start of the pass (joins are written after the sweep).
+    """
+    height, width = labels.shape
+    rows = np.empty(16, dtype=np.int64)
+    cols = np.empty(16, dtype=np.int64)
+    tags = np.empty(16, dtype=labels.dtype)
+    joined = 0
+    for r in range(height):
+        for c in range(width):
+            if labels[r, c] != 0 or not valid[r, c]:
+                continue
+            lab = _single_neighbour(labels, r, c)
+            if lab == 0:
+                continue
+            a = coeffs[lab]
+            x, y = float(c), float(r)
+            fit = a[0] + a[1] * x + a[2] * y + a[3] * x * x + a[4] * x * y + a[5] * y * y
+            res = z[r, c] - fit
+            if res * res < limit[lab]:
+                if joined == rows.shape[0]:
+                    rows = np.concatenate((rows, np.empty_like(rows)))
+                    cols = np.concatenate((cols, np.empty_like(cols)))
+                    tags = np.concatenate((tags, np.empty_like(tags)))
+                rows[joined], cols[joined], tags[joined] = r, c, lab
+                joined += 1
+    for k in range(joined):
+        labels[rows[k], cols[k]] = tags[k]
+    return joined
+
+
+# --------------------------------------------------------------------------- neighbours
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _half_offsets(reach: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """(dy, dx) of half of the offsets within ``reach``, in the reference's order."""
+    count = reach + (2 * reach + 1) * reach
+    dys = np.empty(count, dtype=np.int64)
+    dxs = np.empty(count, dtype=np.int64)
+    k = 0
+    for dy in range(reach + 1):
+        for dx in range(-reach, reach + 1):
+            if dy > 0 or dx > 0:
+                dys[k], dxs[k] = dy, dx
+                k += 1
+    return dys, dxs
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _row_pair_count(a: np.ndarray, b: np.ndarray, c0: int, c1: int, dx: int
+                    ) -> int:  # pragma: no cover - compiled
+    """How many c in [c0, c1) have a[c] and b[c + dx] positive and different (vectorised)."""
+    count = 0
+    aa, bb = a[c0:c1], b[c0 + dx:c1 + dx]
+    for c in range(aa.shape[0]):
+        x, y = aa[c], bb[c]
+        count += ((x != y) & (x > 0) & (y > 0)) * 1
+    return count
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no cover
+    """Pixel pairs of different positive labels within ``reach`` (SPEC "Surfaces", Sec. VII).
+
+    For each of half of the offsets (dy, dx) and each row, the row is compared
+    with the row dy below shifted by dx, in a branch-free (vectorised) loop that
+    counts the pairs; a second pass writes the pairs of the rows that have
+    any. The order is the reference's (offset by offset, pixels in raster
+    order), so the rows equal :func:`rangeseg_cli.surfaces.neighbour_pairs`'
+    arrays exactly.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 (P, 6): rows_p, cols_p, rows_q, cols_q, labels_p, labels_q.
+    """
+    height, width = labels.shape
+    dys, dxs = _half_offsets(reach)
+    per_row = np.zeros((dys.shape[0], height), dtype=np.int64)
+    for k in range(dys.shape[0]):
+        dy, dx = dys[k], dxs[k]
+        c0, c1 = max(0, -dx), min(width, width - dx)
+        for r in range(height - dy):
+            per_row[k, r] = _row_pair_count(labels[r], labels[r + dy], c0, c1, dx)
+    out = np.empty((per_row.sum(), 6), dtype=np.int64)
+    j = 0
+    for k in range(dys.shape[0]):
+        dy, dx = dys[k], dxs[k]
+        c0, c1 = max(0, -dx), min(width, width - dx)
+        for r in range(height - dy):
+            if per_row[k, r] > 0:
+                j = _row_pairs(labels[r, c0:c1], labels[r + dy, c0 + dx:c1 + dx], r, c0, dy,
+                               dx, out, j)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _row_pairs(aa: np.ndarray, bb: np.ndarray, r: int, c0: int, dy: int, dx: int,
+               out: np.ndarray, j: int) -> int:  # pragma: no cover - compiled
+    """Write the pairs of one row and offset from row ``j`` of ``out``; the next free row."""
+    for i in range(aa.shape[0]):
+        x, y = aa[i], bb[i]
+        if (x != y) & (x > 0) & (y > 0):
+            c = c0 + i
+            out[j, 0], out[j, 1], out[j, 2], out[j, 3] = r, c, r + dy, c + dx
+            out[j, 4], out[j, 5] = x, y
+            j += 1
+    return j

@@ -51,6 +51,8 @@ class InputConfig:
     fy: float = _opt(0.0, "camera focal length y in pixels (0 = no intrinsics)", min=0.0)
     cx: float = _opt(0.0, "camera principal point x (column) in pixels")
     cy: float = _opt(0.0, "camera principal point y (row) in pixels")
+    auto_thresholds: bool = _opt(False, "scale the step and roof thresholds by the image's "
+                                 "estimated noise (false = the paper's fixed thresholds)")
 
     @property
     def has_intrinsics(self) -> bool:
@@ -110,6 +112,29 @@ class GrowConfig:
 
 
 @dataclass(frozen=True)
+class SplitConfig:
+    """Split components that fail the quality-of-fit test (beyond the paper, Sec. VIII)."""
+
+    enabled: bool = _opt(True, "test each component's quadric fit against the image noise "
+                         "and split a failing one at its creases, then regrow")
+    fit_factor: float = _opt(1.25, "a component fails when its RMS fit error exceeds this "
+                             "times the noise (estimated, at least sqrt(grow.min_error))",
+                             min_excl=0.0)
+    normal_sigma: float = _opt(2.0, "Gaussian sigma in pixels of the local plane fits that "
+                               "give the surface normals", min_excl=0.0, max=20.0)
+    min_gain: float = _opt(1.5, "two pieces stay apart when one quadric fits their "
+                           "union this many times worse (RMS) than their own quadrics",
+                           min=1.0)
+    min_crease: float = _opt(10.0, "two planar pieces that pass the fit test also stay apart "
+                             "when their planes meet at this angle in degrees or more",
+                             min=0.0, max=90.0)
+    min_piece: int = _opt(20, "smallest piece, and smallest core of a piece (pixels "
+                          "normal_sigma or more from its border), in pixels; smaller ones "
+                          "join their nearest piece", min=1)
+    max_pieces: int = _opt(8, "most pieces one component is split into", min=2, max=64)
+
+
+@dataclass(frozen=True)
 class HoldsiteConfig:
     """Holdsite search for a vacuum gripper (Sec. VII)."""
 
@@ -144,6 +169,7 @@ class Config:
     roof: RoofConfig = field(default_factory=RoofConfig)
     link: LinkConfig = field(default_factory=LinkConfig)
     grow: GrowConfig = field(default_factory=GrowConfig)
+    split: SplitConfig = field(default_factory=SplitConfig)
     holdsite: HoldsiteConfig = field(default_factory=HoldsiteConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
@@ -165,12 +191,12 @@ class Config:
 
 _TABLE_CLASSES: dict[str, type] = {
     "input": InputConfig, "step": StepConfig, "roof": RoofConfig, "link": LinkConfig,
-    "grow": GrowConfig, "holdsite": HoldsiteConfig, "output": OutputConfig,
+    "grow": GrowConfig, "split": SplitConfig, "holdsite": HoldsiteConfig, "output": OutputConfig,
 }
 
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    "paper": {},
+    "paper": {"split": {"enabled": False}},  # the paper's algorithm alone (no Sec. VIII split)
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,
@@ -322,8 +348,8 @@ def load_config(
     Parameters
     ----------
     path
-        A TOML file with ``[input] [step] [roof] [link] [grow] [holdsite]
-        [output]`` tables; ``None`` gives the paper's defaults.
+        A TOML file with ``[input] [step] [roof] [link] [grow] [split]
+        [holdsite] [output]`` tables; ``None`` gives the defaults.
     preset
         A name from :data:`PRESETS` (e.g. ``"mm-depth"``).
     overrides

@@ -263,8 +263,14 @@ def _compiled_kernels() -> ModuleType | None:
     return _kernels
 
 
-def _select_kernels(backend: str) -> ModuleType | None:
-    """The compiled kernels when ``backend`` selects them, else None; validates ``backend``."""
+def select_kernels(backend: str) -> ModuleType | None:
+    """The compiled kernels when ``backend`` selects them, else None; validates ``backend``.
+
+    The one switch of every stage with compiled kernels (edges, Sec. V-1 and
+    V-2; region growing, Sec. V-4): ``"numpy"`` gives None (the reference),
+    ``"numba"`` the kernels (an ImportError without numba), ``"auto"`` the
+    kernels when numba is installed and ``RANGESEG_PURE_NUMPY`` is not ``1``.
+    """
     if backend not in get_args(Backend):
         raise ValueError(f"`backend` ({backend!r}) must be one of {get_args(Backend)}")
     if backend == "numpy" or (backend == "auto" and not _USE_NUMBA):
@@ -274,6 +280,9 @@ def _select_kernels(backend: str) -> ModuleType | None:
         raise ImportError("`backend` 'numba' needs the numba package, which is not installed "
                           "or cannot be imported; use backend='numpy' or 'auto'")
     return kernels
+
+
+_select_kernels = select_kernels  # the earlier private name
 
 
 def detect_edges(z: np.ndarray, config: Config, *, backend: Backend = "auto") -> EdgeMaps:
@@ -303,7 +312,7 @@ def detect_edges(z: np.ndarray, config: Config, *, backend: Backend = "auto") ->
     ImportError
         For ``backend="numba"`` without numba installed.
     """
-    kernels = _select_kernels(backend)
+    kernels = select_kernels(backend)
     if kernels is not None:
         step, roof_a, roof_b = kernels.detect_edges_numba(
             z, gaussian_taps(config.step.sigma, config.step.taps), config.step.threshold,

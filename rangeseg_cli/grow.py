@@ -29,14 +29,27 @@ Decisions where the paper and SPEC are silent:
 * **passes = 0** repeats until a pass changes nothing. Growth only ever turns
   label 0 into a label, so this ends after at most as many passes as there
   are unlabelled pixels, which is the safety cap.
+
+Backends: the numpy functions of this module (``np.bincount`` moment sums over
+the fitted pixels, whole-image array operations for a pass) are the
+reference. When numba is installed, :func:`region_fits` and :func:`grow_pass`
+run the compiled kernels of :mod:`rangeseg_cli._kernels` instead: per-region
+sums accumulated in the same raster order from the same float64 operations,
+so the fits, their e_A and hence every growing decision (a residual compared
+with ``error_factor * e_A``) are bitwise the same. ``RANGESEG_PURE_NUMPY=1``
+or ``backend="numpy"`` selects the reference, as for the edges
+(:func:`rangeseg_cli.edges.select_kernels`).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
 from .config import GrowConfig
+from .edges import Backend, select_kernels
 
 #: Number of terms of the quadric, of the plane and of the constant model.
 ORDER_TERMS: dict[int, int] = {2: 6, 1: 3, 0: 1}
@@ -59,6 +72,44 @@ def _basis(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v])
 
 
+@dataclass(frozen=True)
+class RegionMoments:
+    """Per-region sums of the quadric fits of Sec. V-4 (labels 0..n; row 0 unused).
+
+    Attributes
+    ----------
+    counts
+        float64 (n+1,) pixels fitted.
+    cx, cy
+        float64 (n+1,) centre column and row (the centroid).
+    scale
+        float64 (n+1,) RMS spread of the pixels about the centre, at least 1:
+        the frame ``u = (x - cx) / scale``, ``v = (y - cy) / scale``.
+    sums
+        float64 (n+1, 5, 5): ``sum u^a v^b`` at [a, b], a + b <= 4.
+    rhs
+        float64 (n+1, 6): ``sum phi_i z``, phi = (1, u, v, u^2, u v, v^2); its
+        column 0 is the sum of the heights.
+    """
+
+    counts: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    scale: np.ndarray
+    sums: np.ndarray
+    rhs: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Pixels:
+    """The fitted pixels of the numpy reference: labels, heights and frame coordinates."""
+
+    lab: np.ndarray
+    zs: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+
 def _frames(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray, n: int
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-region centre (cx, cy), scale and pixel count for conditioning."""
@@ -72,27 +123,66 @@ def _frames(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray, n: int
     return cx, cy, scale, counts
 
 
-def _moments(u: np.ndarray, v: np.ndarray, zs: np.ndarray, lab: np.ndarray, n: int,
-             counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-region normal equations, divided by the pixel count: (n+1, 6, 6) and (n+1, 6).
+def _moment_sums(u: np.ndarray, v: np.ndarray, zs: np.ndarray, lab: np.ndarray, n: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The 15 monomial sums ``sum u^a v^b`` (a + b <= 4) and the 6 ``sum phi_i z`` per region.
 
-    The 36 entries need only the 15 monomials u^a v^b, a + b <= 4; each is
-    summed per region once with ``np.bincount``.
+    Each is summed per region once with ``np.bincount`` (in raster order, as
+    the compiled :func:`rangeseg_cli._kernels.region_moments` adds them).
     """
-    safe = np.maximum(counts, 1.0)
     pu = [np.ones_like(u), u, u * u, u * u * u, (u * u) ** 2]
     pv = [np.ones_like(v), v, v * v, v * v * v, (v * v) ** 2]
-    sums: dict[tuple[int, int], np.ndarray] = {}
-    mat = np.zeros((n + 1, 6, 6))
-    for i, (a, b) in enumerate(_EXPONENTS):
-        for j, (c, d) in enumerate(_EXPONENTS[i:], start=i):
-            key = (a + c, b + d)
-            if key not in sums:
-                sums[key] = np.bincount(lab, pu[key[0]] * pv[key[1]], minlength=n + 1)
-            mat[:, i, j] = mat[:, j, i] = sums[key]
+    sums = np.zeros((n + 1, 5, 5))
+    for a in range(5):
+        for b in range(5 - a):
+            sums[:, a, b] = np.bincount(lab, pu[a] * pv[b], minlength=n + 1)
     rhs = np.stack([np.bincount(lab, pu[a] * pv[b] * zs, minlength=n + 1)
                     for a, b in _EXPONENTS], axis=1)
-    return mat / safe[:, None, None], rhs / safe[:, None]
+    return sums, rhs
+
+
+def _reference_moments(z: np.ndarray, labels: np.ndarray, n: int
+                       ) -> tuple[RegionMoments, _Pixels]:
+    """The numpy reference of :func:`rangeseg_cli._kernels.region_moments`, and the pixels."""
+    rows_i, cols_i = np.nonzero((labels > 0) & np.isfinite(z))
+    lab = labels[rows_i, cols_i].astype(np.intp)
+    zs = np.asarray(z, dtype=np.float64)[rows_i, cols_i]
+    rows, cols = rows_i.astype(np.float64), cols_i.astype(np.float64)
+    cx, cy, scale, counts = _frames(rows, cols, lab, n)
+    u, v = (cols - cx[lab]) / scale[lab], (rows - cy[lab]) / scale[lab]
+    sums, rhs = _moment_sums(u, v, zs, lab, n)
+    return RegionMoments(counts, cx, cy, scale, sums, rhs), _Pixels(lab, zs, u, v)
+
+
+def _reference_sse(pixels: _Pixels, coef: np.ndarray, n: int) -> np.ndarray:
+    """Sum of squared residuals per region of fits ``coef`` (F, n+1, 6) in frame coordinates.
+
+    The fit is summed term by term in the order of phi, as
+    :func:`rangeseg_cli._kernels.region_sse` does.
+    """
+    phi = _basis(pixels.u, pixels.v)
+    out = np.zeros((coef.shape[0], n + 1))
+    for f in range(coef.shape[0]):
+        c = coef[f][pixels.lab]
+        fit = c[:, 0] * phi[0]
+        for i in range(1, 6):
+            fit = fit + c[:, i] * phi[i]
+        resid = pixels.zs - fit
+        out[f] = np.bincount(pixels.lab, resid * resid, minlength=n + 1)
+    return out
+
+
+def _normal_equations(m: RegionMoments) -> tuple[np.ndarray, np.ndarray]:
+    """Per-region normal equations divided by the pixel count: (n+1, 6, 6) and (n+1, 6).
+
+    The 36 entries need only the 15 monomial sums of :class:`RegionMoments`.
+    """
+    safe = np.maximum(m.counts, 1.0)
+    mat = np.empty((len(safe), 6, 6))
+    for i, (a, b) in enumerate(_EXPONENTS):
+        for j, (c, d) in enumerate(_EXPONENTS):
+            mat[:, i, j] = m.sums[:, a + c, b + d]
+    return mat / safe[:, None, None], m.rhs / safe[:, None]
 
 
 def _solve_cascade(mat: np.ndarray, rhs: np.ndarray, counts: np.ndarray, order: int
@@ -151,12 +241,36 @@ def _check_labels(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, 
         raise ValueError(f"`order` = {bad[0]!r}: allowed 0, 1 or 2")
 
 
-def fit_models(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...] = (2,)
-               ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+@dataclass(frozen=True)
+class RegionFits:
+    """Least-squares fits of regions 1..n at several orders, with the regions' statistics.
+
+    Attributes
+    ----------
+    fits
+        Per order asked for: (coeffs, mse) as :func:`fit_quadrics` returns them.
+    counts
+        int64 (n+1,) pixels fitted per region.
+    centroid_row, centroid_col
+        float64 (n+1,) centre of area of each region (0 for empty ones).
+    mean_height
+        float64 (n+1,) mean of the fitted heights.
+    """
+
+    fits: list[tuple[np.ndarray, np.ndarray]]
+    counts: np.ndarray
+    centroid_row: np.ndarray
+    centroid_col: np.ndarray
+    mean_height: np.ndarray
+
+
+def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...] = (2,),
+                *, backend: Backend = "auto") -> RegionFits:
     """Least-squares fits of every region 1..n at several model orders at once (Sec. V-4).
 
     The moment sums are gathered once and shared by all orders (the plane's
-    normal equations are the leading 3x3 block of the quadric's).
+    normal equations are the leading 3x3 block of the quadric's); so are the
+    regions' pixel counts, centroids and mean heights.
 
     Parameters
     ----------
@@ -168,6 +282,66 @@ def fit_models(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...
         Number of regions (the largest label).
     orders
         Highest model order of each fit: 2 quadric, 1 plane, 0 constant.
+    backend
+        ``"numpy"``: ``np.bincount`` over the pixels (the reference);
+        ``"numba"``: :func:`rangeseg_cli._kernels.region_moments` and
+        ``region_sse``, which add the same terms in the same order (identical
+        results); ``"auto"``: as :func:`rangeseg_cli.edges.detect_edges`.
+
+    Returns
+    -------
+    RegionFits
+        The fits per order and the regions' statistics.
+
+    Raises
+    ------
+    ValueError
+        When the shapes differ, a label is outside 0..n, an order is not 0, 1,
+        2 or ``backend`` is unknown.
+    """
+    labels = np.asarray(labels)
+    _check_labels(z, labels, n, orders)
+    kernels = select_kernels(backend)
+    if kernels is None:
+        moments, pixels = _reference_moments(z, labels, n)
+    else:
+        zc = np.require(z, np.float64, ["C", "W"])
+        lc = np.require(labels, np.int32, ["C", "W"])
+        moments = RegionMoments(*kernels.region_moments(zc, lc, n))
+    mat, rhs = _normal_equations(moments)
+    coef = np.stack([_solve_cascade(mat, rhs, moments.counts, order) for order in orders])
+    if kernels is None:
+        sse = _reference_sse(pixels, coef, n)
+    else:
+        sse = kernels.region_sse(zc, lc, moments.cx, moments.cy, moments.scale, coef)
+    safe = np.maximum(moments.counts, 1.0)
+    fits = [(_to_image_coefficients(c, moments.cx, moments.cy, moments.scale), e / safe)
+            for c, e in zip(coef, sse, strict=True)]
+    return RegionFits(fits, moments.counts.astype(np.int64), moments.cy, moments.cx,
+                      moments.rhs[:, 0] / safe)
+
+
+def fit_models(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...] = (2,),
+               *, backend: Backend = "auto"
+               ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+    """Least-squares fits of every region 1..n at several model orders at once (Sec. V-4).
+
+    The moment sums are gathered once and shared by all orders (see
+    :func:`region_fits`, which also gives the regions' statistics).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights; NaN pixels are left out.
+    labels
+        int (H, W) region labels 0..n; 0 is not fitted.
+    n
+        Number of regions (the largest label).
+    orders
+        Highest model order of each fit: 2 quadric, 1 plane, 0 constant.
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` (identical results; see
+        :func:`region_fits`).
 
     Returns
     -------
@@ -176,34 +350,20 @@ def fit_models(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...
     counts : numpy.ndarray
         int64 (n+1,): number of pixels fitted per region.
     """
-    labels = np.asarray(labels)
-    _check_labels(z, labels, n, orders)
-    rows_i, cols_i = np.nonzero((labels > 0) & np.isfinite(z))
-    lab = labels[rows_i, cols_i].astype(np.intp)
-    zs = np.asarray(z, dtype=np.float64)[rows_i, cols_i]
-    rows, cols = rows_i.astype(np.float64), cols_i.astype(np.float64)
-    cx, cy, scale, counts = _frames(rows, cols, lab, n)
-    u, v = (cols - cx[lab]) / scale[lab], (rows - cy[lab]) / scale[lab]
-    mat, rhs = _moments(u, v, zs, lab, n, counts)
-    phi = _basis(u, v)
-    fits = []
-    for order in orders:
-        coef = _solve_cascade(mat, rhs, counts, order)
-        resid = zs - np.einsum("ij,ji->i", coef[lab], phi)
-        mse = np.bincount(lab, resid * resid, minlength=n + 1) / np.maximum(counts, 1.0)
-        fits.append((_to_image_coefficients(coef, cx, cy, scale), mse))
-    return fits, counts.astype(np.int64)
+    result = region_fits(z, labels, n, orders, backend=backend)
+    return result.fits, result.counts
 
 
-def fit_quadrics(z: np.ndarray, labels: np.ndarray, n: int, *, order: int = 2
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fit_quadrics(z: np.ndarray, labels: np.ndarray, n: int, *, order: int = 2,
+                 backend: Backend = "auto") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least-squares quadric of every region 1..n at once (Sec. V-4).
 
     Moment sums of per-region centred and scaled coordinates (u, v: zero
-    mean, unit RMS spread) are gathered with ``np.bincount`` and the stacked
-    6x6 normal equations are solved in one batched call; there is no loop
-    over pixels or regions. The solution is expanded back to image
-    coordinates exactly.
+    mean, unit RMS spread) are gathered with ``np.bincount`` (or the
+    compiled kernel that adds the same terms in the same order) and the
+    stacked 6x6 normal equations are solved in one batched call; there is no
+    Python loop over pixels or regions. The solution is expanded back to
+    image coordinates exactly.
 
     Parameters
     ----------
@@ -219,6 +379,9 @@ def fit_quadrics(z: np.ndarray, labels: np.ndarray, n: int, *, order: int = 2
         (e.g. all pixels on a line) fall back to the plane, solved with the
         pseudo-inverse, which degrades to a line fit or the constant when
         the plane is singular too.
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` (identical results; see
+        :func:`region_fits`).
 
     Returns
     -------
@@ -236,7 +399,7 @@ def fit_quadrics(z: np.ndarray, labels: np.ndarray, n: int, *, order: int = 2
     ValueError
         When the shapes differ, a label is outside 0..n or ``order`` is not 0, 1, 2.
     """
-    ((coeffs, mse),), counts = fit_models(z, labels, n, (order,))
+    ((coeffs, mse),), counts = fit_models(z, labels, n, (order,), backend=backend)
     return coeffs, mse, counts
 
 
@@ -285,7 +448,7 @@ def single_neighbour_label(labels: np.ndarray) -> np.ndarray:
 
 
 def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.ndarray,
-              limit: np.ndarray) -> int:
+              limit: np.ndarray, *, backend: Backend = "auto") -> int:
     """One simultaneous growing pass, in place; return the number of pixels labelled.
 
     Parameters
@@ -300,12 +463,23 @@ def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.n
         (n+1, 6) image-coordinate quadrics of the labels.
     limit
         (n+1,) squared-residual bound per label (``error_factor * e_A``).
+    backend
+        ``"numpy"``: whole-image array operations (the reference); ``"numba"``:
+        :func:`rangeseg_cli._kernels.grow_pass`, the same test and arithmetic
+        in one sweep (identical labels); ``"auto"``: as
+        :func:`rangeseg_cli.edges.detect_edges`.
 
     Returns
     -------
     int
         How many pixels joined a surface.
     """
+    kernels = select_kernels(backend)
+    if kernels is not None and labels.dtype == np.int32 and labels.flags.c_contiguous:
+        return int(kernels.grow_pass(np.require(z, np.float64, ["C", "W"]),
+                                     np.require(valid, np.bool_, ["C", "W"]), labels,
+                                     np.require(coeffs, np.float64, ["C", "W"]),
+                                     np.require(limit, np.float64, ["C", "W"])))
     target = single_neighbour_label(labels)
     rows, cols = np.nonzero((labels == 0) & valid & (target > 0))
     cand = target[rows, cols]
@@ -315,8 +489,8 @@ def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.n
     return int(join.sum())
 
 
-def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: GrowConfig
-                 ) -> np.ndarray:
+def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: GrowConfig,
+                 *, backend: Backend = "auto") -> np.ndarray:
     """Step 4: iterative least-squares region growing (Sec. V-4).
 
     Every valid pixel with label 0 (edge, linked gap or dropped component)
@@ -340,6 +514,9 @@ def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: 
     cfg
         ``[grow]``: ``error_factor`` (10), ``passes`` (1; 0 = until nothing
         changes), ``min_error`` (the e_A floor).
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` for the fits and the passes
+        (identical labels; see :func:`region_fits` and :func:`grow_pass`).
 
     Returns
     -------
@@ -363,11 +540,11 @@ def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: 
     if n == 0:
         return labels
     # Quadric fit of each component and its average error e_A, floored (Sec. V-4)
-    coeffs, mse, _ = fit_quadrics(z, labels, n)
+    coeffs, mse, _ = fit_quadrics(z, labels, n, backend=backend)
     limit = cfg.error_factor * np.maximum(mse, cfg.min_error)
     # Growing passes: an edge pixel joins its one neighbouring surface if r^2 < 10 e_A
     max_passes = cfg.passes or int(np.count_nonzero(valid & (labels == 0))) + 1
     for _ in range(max_passes):
-        if grow_pass(z, valid, labels, coeffs, limit) == 0:
+        if grow_pass(z, valid, labels, coeffs, limit, backend=backend) == 0:
             break
     return labels

@@ -78,6 +78,15 @@ towards the camera; it is exact for the fitted depth function, and the one
 approximation is the fit itself (a 3-D plane has depth
 ``1 / (alpha u + beta v + gamma)``, which the quadric approximates over the
 region). ``approach_camera = -n``.
+
+Cost: the boundary pairs of step 2 come from
+:func:`~rangeseg_cli.surfaces.neighbour_pairs` (a band along the
+boundaries); the border regions from the frame's strips (and the invalid
+areas reaching the frame, when there are any), computed once; the 2-D AR of
+step 4 only on the crops of the surfaces searched (see ``_Scene.ar``), and
+a rectangular footprint's erosion as a separable running minimum. The
+choice of step 5 needs only each surface's best window; the full ranking is
+sorted only for runners-up taken from one surface.
 """
 
 from __future__ import annotations
@@ -90,10 +99,11 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config, HoldsiteConfig, InputConfig
-from .edges import ar_2d
+from .edges import Backend, ar_2d
 from .errors import InputError
 from .grow import evaluate_quadric
 from .models import Surface
+from .surfaces import neighbour_pairs
 
 #: Regions whose pixels lie within this chessboard distance are neighbours
 #: (across an edge band one or two pixels thick), as in ``Surface.neighbors``.
@@ -254,13 +264,14 @@ def _coefficient_table(surfaces: list[Surface], n: int) -> np.ndarray:
     return table
 
 
-def step_gaps(labels: np.ndarray, coeffs: np.ndarray, known: np.ndarray
-              ) -> dict[tuple[int, int], float]:
+def step_gaps(labels: np.ndarray, coeffs: np.ndarray, known: np.ndarray, *,
+              backend: Backend = "auto") -> dict[tuple[int, int], float]:
     """Median signed height gap ``f_i - f_j`` between neighbouring regions i < j.
 
     Pixel pairs of different known labels within :data:`ADJACENCY_RADIUS`
     (chessboard) are the boundary; both fits are evaluated at each pair's
-    midpoint.
+    midpoint. The pairs come from :func:`~rangeseg_cli.surfaces.neighbour_pairs`,
+    which examines only a band along the boundaries.
 
     Parameters
     ----------
@@ -269,39 +280,58 @@ def step_gaps(labels: np.ndarray, coeffs: np.ndarray, known: np.ndarray
     coeffs
         (n+1, 6) quadric coefficients by label.
     known
-        bool (n+1,): labels that have a surface.
+        bool (n+1,): labels that have a surface (label 0 is never one).
+    backend
+        For :func:`~rangeseg_cli.surfaces.neighbour_pairs` (identical results).
 
     Returns
     -------
     dict
         ``{(i, j): median(f_i - f_j)}``; positive when i is the higher side.
     """
-    h, w = labels.shape
-    r = ADJACENCY_RADIUS
-    padded = np.pad(labels, r)
-    lo_parts, hi_parts, gap_parts = [], [], []
-    for dy in range(r + 1):
-        for dx in range(-r, r + 1):
-            if dy == 0 and dx <= 0:
-                continue  # each unordered offset once
-            other = padded[r + dy: r + dy + h, r + dx: r + dx + w]
-            rp, cp = np.nonzero((labels != other) & known[labels] & known[other])
-            lp, lq = labels[rp, cp], other[rp, cp]
-            rm, cm = rp + 0.5 * dy, cp + 0.5 * dx
-            gap = evaluate_quadric(coeffs[lp], rm, cm) - evaluate_quadric(coeffs[lq], rm, cm)
-            swap = lp > lq
-            lo_parts.append(np.where(swap, lq, lp))
-            hi_parts.append(np.where(swap, lp, lq))
-            gap_parts.append(np.where(swap, -gap, gap))
-    lo, hi, gap = (np.concatenate(p) for p in (lo_parts, hi_parts, gap_parts))
-    if lo.size == 0:
+    labels = np.asarray(labels)
+    rp, cp, rq, cq, lp, lq = neighbour_pairs(np.where(known[labels], labels, 0),
+                                             ADJACENCY_RADIUS, backend=backend)
+    if lp.size == 0:
         return {}
+    rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+    gap = evaluate_quadric(coeffs[lp], rm, cm) - evaluate_quadric(coeffs[lq], rm, cm)
+    swap = lp > lq
+    lo, hi, gap = np.where(swap, lq, lp), np.where(swap, lp, lq), np.where(swap, -gap, gap)
     key = lo.astype(np.int64) * (len(known)) + hi
     order = np.lexsort((gap, key))
     key, gap = key[order], gap[order]
     uniq, start, count = np.unique(key, return_index=True, return_counts=True)
     med = 0.5 * (gap[start + (count - 1) // 2] + gap[start + count // 2])
     return {divmod(int(k), len(known)): float(g) for k, g in zip(uniq, med, strict=True)}
+
+
+def _present(labels: np.ndarray) -> set[int]:
+    """The positive labels of an array (any shape)."""
+    return {int(i) for i in np.unique(labels) if i > 0}
+
+
+def _framed(labels: np.ndarray) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of the image frame (the frame's strips)."""
+    k = ADJACENCY_RADIUS + 1
+    return set().union(*(_present(strip) for strip in (
+        labels[:k], labels[-k:], labels[:, :k], labels[:, -k:])))
+
+
+def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of invalid areas 8-connected to the frame."""
+    if valid.all():
+        return set()
+    blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
+    frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
+    outer = np.unique(frame[frame > 0])
+    if outer.size == 0:
+        return set()
+    zone = np.isin(blobs, outer)
+    size = 2 * ADJACENCY_RADIUS + 1  # a square: a row segment, then a column segment
+    near = ndimage.binary_dilation(zone, structure=np.ones((1, size), dtype=bool))
+    near = ndimage.binary_dilation(near, structure=np.ones((size, 1), dtype=bool))
+    return _present(labels[near])
 
 
 def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
@@ -321,17 +351,11 @@ def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[i
     set of int
         The labels touching the border.
     """
-    zone = np.zeros(labels.shape, dtype=bool)
-    zone[[0, -1], :] = True
-    zone[:, [0, -1]] = True
-    if valid is not None:
-        blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
-        outer = np.unique(blobs[zone & ~valid])
-        zone |= np.isin(blobs, outer[outer > 0])
-    size = 2 * ADJACENCY_RADIUS + 1
-    near = ndimage.binary_dilation(zone, structure=np.ones((size, size), dtype=bool))
-    ids = np.unique(labels[near])
-    return {int(i) for i in ids if i > 0}
+    labels = np.asarray(labels)
+    framed = _framed(labels)
+    if valid is None:
+        return framed
+    return framed | _near_outer_invalid(labels, np.asarray(valid, dtype=bool))
 
 
 def _same_level(base: Surface, other: Surface, tol: float) -> bool:
@@ -537,21 +561,66 @@ def window_ar_std(ar: np.ndarray, fp: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(m2 - m1 * m1, 0.0))
 
 
+def erode(mask: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """Centres where the footprint lies wholly on ``mask`` (binary erosion, outside = False).
+
+    A full rectangle is eroded as a running minimum, which is separable (a
+    row segment, then a column segment: the same result at a seventh of the
+    cost for 7x7); other footprints by :func:`scipy.ndimage.binary_erosion`.
+    """
+    if fp.all():
+        out = ndimage.minimum_filter(mask.view(np.uint8), size=fp.shape, mode="constant",
+                                     cval=0)
+        return out.view(bool)
+    return ndimage.binary_erosion(mask, structure=fp, border_value=0)
+
+
+#: Margin of the heights around a crop for its AR: the 5x5 Gaussian's half-width.
+AR_MARGIN = 2
+
+
 @dataclass
 class _Scene:
-    """Per-image inputs of the search."""
+    """Per-image inputs of the search.
+
+    The 2-D AR (Sec. VII) is computed per surface crop, on demand, from the
+    heights ``z`` (see :meth:`ar`).
+    """
 
     labels: np.ndarray
     valid: np.ndarray
-    ar: np.ndarray
+    z: np.ndarray
     cfg: HoldsiteConfig
     angles: tuple[float, ...]
     _footprints: dict[float, np.ndarray] = field(default_factory=dict)
+    _ar_area: int = 0
+    _ar_whole: np.ndarray | None = None
 
     def footprint(self, angle: float) -> np.ndarray:
         if angle not in self._footprints:
             self._footprints[angle] = footprint(self.cfg.size, angle)
         return self._footprints[angle]
+
+    def ar(self, sl: tuple[slice, slice]) -> np.ndarray:
+        """:func:`~rangeseg_cli.edges.ar_2d` of the image, in the crop ``sl``.
+
+        Computed on the crop grown by :data:`AR_MARGIN`, which is exact (equal
+        to the whole image's AR: the 5x5 mask sees the same heights, and
+        ``correlate1d`` adds each pixel's taps alike wherever it lies); once
+        the crops asked for would add up to more than the image, the whole
+        image's AR is computed once and sliced instead.
+        """
+        h, w = self.z.shape
+        m = AR_MARGIN
+        r0, r1 = max(sl[0].start - m, 0), min(sl[0].stop + m, h)
+        c0, c1 = max(sl[1].start - m, 0), min(sl[1].stop + m, w)
+        self._ar_area += (r1 - r0) * (c1 - c0)
+        if self._ar_whole is None and self._ar_area > h * w:
+            self._ar_whole = ar_2d(self.z)
+        if self._ar_whole is not None:
+            return self._ar_whole[sl]
+        ar = ar_2d(self.z[r0:r1, c0:c1])
+        return ar[sl[0].start - r0: sl[0].stop - r0, sl[1].start - c0: sl[1].stop - c0]
 
 
 @dataclass
@@ -577,6 +646,13 @@ class _Hits:
     min_ar_std: float = math.inf
 
 
+def _pad1(a: np.ndarray) -> np.ndarray:
+    """``np.pad(a, 1)`` (zeros around a 2-D array) without its per-call overhead."""
+    out = np.zeros((a.shape[0] + 2, a.shape[1] + 2), dtype=a.dtype)
+    out[1:-1, 1:-1] = a
+    return out
+
+
 def _crop(scene: _Scene, s: Surface, reach: int) -> tuple[tuple[slice, slice], tuple[int, int]]:
     """Slices of the surface's box grown by ``reach``, and the offset of a 1-px padded crop."""
     h, w = scene.labels.shape
@@ -596,7 +672,7 @@ def _accept_angle(scene: _Scene, mask: np.ndarray, ar: np.ndarray, angle: float,
     window means are exact there.
     """
     fp = scene.footprint(angle)
-    inside = ndimage.binary_erosion(mask, structure=fp, border_value=0)
+    inside = erode(mask, fp)
     if not inside.any():
         return inside, np.full(mask.shape, np.inf)
     std = window_ar_std(ar, fp)
@@ -624,13 +700,13 @@ def surface_windows(scene: _Scene, s: Surface) -> _Hits:
     """
     rows, cols = scene.cfg.size
     sl, offset = _crop(scene, s, max(rows, cols) // 2 + 2)
-    mask = np.pad((scene.labels[sl] == s.id) & scene.valid[sl], 1)
+    mask = _pad1((scene.labels[sl] == s.id) & scene.valid[sl])
     edt = ndimage.distance_transform_edt(mask)
     none = np.zeros(0, dtype=np.int64)
     hits = _Hits(s, none, none, none.astype(np.float64), max_clearance=float(edt.max()))
     if hits.max_clearance < (min(rows, cols) + 1) / 2:
         return hits  # not even the footprint's short side fits
-    ar = np.pad(scene.ar[sl], 1)
+    ar = _pad1(scene.ar(sl))
     accepted = [_accept_angle(scene, mask, ar, angle, hits) for angle in scene.angles]
     ok = np.stack([a for a, _ in accepted])
     r, c = np.nonzero(ok.any(axis=0))
@@ -665,10 +741,26 @@ def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
 # Step 5: choice and runners-up
 
 
+def _rank_keys(hits: _Hits, centre: tuple[float, float]) -> tuple[np.ndarray, ...]:
+    """Sort keys of the hits, last one first: clearance (whole pixels) down, distance up."""
+    dist = np.hypot(hits.rows - centre[0], hits.cols - centre[1])
+    return hits.cols, hits.rows, dist, -np.floor(hits.clearance + 1e-9)
+
+
 def _rank(hits: _Hits, centre: tuple[float, float]) -> np.ndarray:
     """Order of the hits: clearance (whole pixels) down, distance to ``centre`` up."""
-    dist = np.hypot(hits.rows - centre[0], hits.cols - centre[1])
-    return np.lexsort((hits.cols, hits.rows, dist, -np.floor(hits.clearance + 1e-9)))
+    return np.lexsort(_rank_keys(hits, centre))
+
+
+def _best(hits: _Hits, centre: tuple[float, float]) -> int:
+    """``_rank(hits, centre)[0]`` without sorting: narrow down key by key (Sec. VII)."""
+    keep = np.arange(hits.rows.size)
+    for key in reversed(_rank_keys(hits, centre)):
+        values = key[keep]
+        keep = keep[values == values.min()]
+        if keep.size == 1:
+            break
+    return int(keep[0])
 
 
 def _spread(hits: _Hits, order: np.ndarray, count: int, gap: float) -> list[int]:
@@ -807,16 +899,13 @@ def _choose(scene: _Scene, found: list[_Hits], objects: dict[int, ObjectInfo],
     """Step 5: the chosen site first, then the runners-up (module Notes)."""
     cfg = config.holdsite
     wanted = 1 + cfg.max_candidates
-    ranked = []
-    for hits in found:
-        obj = objects[object_of[hits.surface.id]]
-        ranked.append((hits, obj, _rank(hits, obj.centroid)))
-    picks = [(h, o, int(order[0])) for h, o, order in ranked]
+    ranked = [(hits, objects[object_of[hits.surface.id]]) for hits in found]
+    picks = [(h, o, _best(h, o.centroid)) for h, o in ranked]
     gap = math.hypot(*cfg.size)
-    for hits, obj, order in ranked:
+    for hits, obj in ranked:
         if len(picks) >= wanted:
             break
-        extra = _spread(hits, order, wanted - len(picks) + 1, gap)[1:]
+        extra = _spread(hits, _rank(hits, obj.centroid), wanted - len(picks) + 1, gap)[1:]
         picks += [(hits, obj, k) for k in extra]
     return [_site_of(scene, h, k, o, config) for h, o, k in picks[:wanted]]
 
@@ -855,7 +944,7 @@ def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: Holdsite
 
 
 def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
-                  config: Config) -> HoldsiteResult:
+                  config: Config, *, backend: Backend = "auto") -> HoldsiteResult:
     """Find the vacuum-gripper holdsite of a segmented range image (Sec. VII).
 
     Parameters
@@ -870,6 +959,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     config
         Uses ``[holdsite]``, ``step.threshold`` (height tolerance) and
         ``[input]`` (intrinsics, depth sign, ``metres_per_unit``).
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` for the boundary pairs of
+        :func:`step_gaps` (identical results).
 
     Returns
     -------
@@ -892,17 +984,18 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     labels = np.where(known[labels], labels, 0)
     tol = config.step.threshold
     # Step 1: background (lowest border regions)
-    background = find_background(by_id, border_regions(labels, valid),
+    framed = _framed(labels)
+    background = find_background(by_id, framed | _near_outer_invalid(labels, valid),
                                  config.holdsite.background, tol)
     # Step 2: objects, and which are covered by another
-    gaps = step_gaps(labels, _coefficient_table(surfaces, n), known)
-    object_of, objects = find_objects(by_id, background, gaps, tol, border_regions(labels))
+    gaps = step_gaps(labels, _coefficient_table(surfaces, n), known, backend=backend)
+    object_of, objects = find_objects(by_id, background, gaps, tol, framed)
     obj_by_id = {o.id: o for o in objects}
     # Step 3: objects wholly in view first, then uncovered ones; each group highest first
     order = sorted((by_id[i] for i in object_of), key=lambda s: _preference(
         obj_by_id[object_of[s.id]], s))
     # Step 4: acceptable windows, surface by surface
-    scene = _Scene(labels, valid, ar_2d(z), config.holdsite, _angles(config.holdsite))
+    scene = _Scene(labels, valid, z, config.holdsite, _angles(config.holdsite))
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
     bg, objs, camera = tuple(sorted(background)), tuple(objects), config.input.has_intrinsics
     if not found:

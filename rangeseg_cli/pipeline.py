@@ -53,6 +53,9 @@ class PipelineResult:
         The holdsite result (``.to_dict()`` gives ``holdsite.json``).
     timings
         Seconds spent per stage.
+    noise_sigma
+        Estimated noise of the heights, depth units
+        (:func:`~rangeseg_cli.split.estimate_noise`).
     """
 
     heights: np.ndarray
@@ -63,10 +66,18 @@ class PipelineResult:
     surfaces: list[Surface] | None = None
     holdsite: Any = None
     timings: dict[str, float] = field(default_factory=dict)
+    noise_sigma: float | None = None
 
 
 def stage_edges(z: np.ndarray, config: Config) -> EdgeMaps:
-    """Steps 1 and 2 (Sec. V-1, V-2) on heights ``z``."""
+    """Steps 1 and 2 (Sec. V-1, V-2) on heights ``z``.
+
+    With ``[input] auto_thresholds`` the thresholds are scaled to the noise of ``z``.
+    """
+    if config.input.auto_thresholds:
+        from .split import estimate_noise, noise_scaled_config
+
+        config = noise_scaled_config(config, estimate_noise(z))
     return detect_edges(z, config)
 
 
@@ -80,11 +91,19 @@ def stage_link(z: np.ndarray, codes: np.ndarray, config: Config
 
 def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config: Config
                ) -> tuple[np.ndarray, list[Surface]]:
-    """Step 4 (Sec. V-4): final labels and their surface descriptions."""
+    """Step 4 (Sec. V-4): final labels and their surface descriptions.
+
+    With ``[split] enabled``, components that fail the fit test are split
+    and regrown (Sec. VIII; :mod:`rangeseg_cli.split`).
+    """
     from .grow import grow_regions
     from .surfaces import describe_surfaces
 
     labels = grow_regions(z, edges, components, config.grow)
+    if config.split.enabled:
+        from .split import split_regions
+
+        labels = split_regions(z, edges, components, labels, config)
     return labels, describe_surfaces(z, labels, config)
 
 
@@ -128,6 +147,9 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
     maps = stage_edges(z, config)
     timings["edges"] = time.perf_counter() - t0
     result = PipelineResult(heights=z, edge_maps=maps, edges=maps.codes, timings=timings)
+    from .split import estimate_noise
+
+    result.noise_sigma = estimate_noise(z)
     if stages >= 2:
         t0 = time.perf_counter()
         result.edges, result.components = stage_link(z, maps.codes, config)

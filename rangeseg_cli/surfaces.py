@@ -33,6 +33,11 @@ Notes
   sensor, i.e. each surface's extension passes *above* the other surface's
   boundary pixels (the measured surface is the lower envelope of the two
   fits, as at the ridge of a roof), else ``"roof-concave"``.
+* **Cost.** One pass of moment sums gives the fits of both orders and the
+  pixel counts, centroids and mean heights (:func:`~rangeseg_cli.grow.region_fits`);
+  the boundary pairs come from a band along the boundaries
+  (:func:`neighbour_pairs`), compiled when numba is installed (identical
+  results; ``backend="numpy"`` or ``RANGESEG_PURE_NUMPY=1`` for the reference).
 """
 
 from __future__ import annotations
@@ -44,7 +49,8 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config
-from .grow import evaluate_quadric, fit_models
+from .edges import Backend, select_kernels
+from .grow import evaluate_quadric, region_fits
 from .models import Neighbor, Surface
 
 #: Two regions are neighbours when pixels of both lie within this chessboard distance.
@@ -123,27 +129,91 @@ def hk_shape(h: float, k: float) -> str:
     return _HK_NAMES[(s1, s2)]
 
 
-def _boundary_pairs(labels: np.ndarray) -> tuple[np.ndarray, ...]:
+def _half_offsets(reach: int) -> list[tuple[int, int]]:
+    """Half of the (2 reach + 1)^2 - 1 offsets (dy, dx) within ``reach``: each pair once."""
+    return [(dy, dx) for dy in range(0, reach + 1) for dx in range(-reach, reach + 1)
+            if dy > 0 or dx > 0]
+
+
+def near_other_label(labels: np.ndarray, reach: int = NEIGHBOUR_REACH) -> np.ndarray:
+    """Labelled pixels with a pixel of another label within ``reach`` (chessboard distance).
+
+    Parameters
+    ----------
+    labels
+        int (H, W) labels, 0 = none.
+    reach
+        Chessboard radius.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool (H, W): the only pixels that can be an end of a boundary pair.
+        Two separable running-extreme filters: the neighbourhood's largest
+        label is above the pixel's, or its smallest positive label below.
+    """
+    size = 2 * reach + 1
+    big = np.iinfo(labels.dtype).max
+    high = ndimage.maximum_filter(labels, size=size, mode="constant", cval=0)
+    low = ndimage.minimum_filter(np.where(labels > 0, labels, big), size=size,
+                                 mode="constant", cval=big)
+    return (labels > 0) & ((high > labels) | (low < labels))
+
+
+def neighbour_pairs(labels: np.ndarray, reach: int = NEIGHBOUR_REACH, *,
+                    backend: Backend = "auto") -> tuple[np.ndarray, ...]:
+    """Pixel pairs (p, q) of different positive labels within ``reach`` of each other.
+
+    Each unordered pair once: q = p + (dy, dx) for half of the offsets,
+    offset by offset, p in raster order. The numpy reference examines only
+    the pixels of :func:`near_other_label` (a band along the boundaries), so
+    its cost is two filters of the image plus the length of the boundaries;
+    the compiled :func:`rangeseg_cli._kernels.neighbour_pairs` does one sweep
+    and gives the same arrays.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) labels, 0 = none.
+    reach
+        Chessboard radius (:data:`NEIGHBOUR_REACH` for ``Surface.neighbors``).
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` (as
+        :func:`rangeseg_cli.edges.detect_edges`).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        ``(rows_p, cols_p, rows_q, cols_q, labels_p, labels_q)``.
+    """
+    labels = np.asarray(labels)
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        lab = np.require(labels, np.int32 if labels.dtype.itemsize <= 4 else np.int64,
+                         ["C", "W"])
+        pairs = kernels.neighbour_pairs(lab, reach).T
+        return (*pairs[:4], *pairs[4:].astype(labels.dtype))
+    rp, cp = np.nonzero(near_other_label(labels, reach))
+    lp = labels[rp, cp]
+    padded = np.pad(labels, reach)
+    parts: list[tuple[np.ndarray, ...]] = []
+    for dy, dx in _half_offsets(reach):
+        lq = padded[rp + reach + dy, cp + reach + dx]
+        keep = (lq > 0) & (lq != lp)
+        parts.append((rp[keep], cp[keep], rp[keep] + dy, cp[keep] + dx, lp[keep], lq[keep]))
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(6))
+
+
+def _boundary_pairs(labels: np.ndarray, backend: Backend = "auto") -> tuple[np.ndarray, ...]:
     """Pixel pairs (p, q) of different labels within NEIGHBOUR_REACH of each other.
 
     Returns ``(li, lj, rows_p, cols_p, rows_q, cols_q)`` with ``li < lj``.
     """
-    h, w = labels.shape
-    r = NEIGHBOUR_REACH
-    padded = np.pad(labels, r, constant_values=0)
-    offsets = [(dy, dx) for dy in range(0, r + 1) for dx in range(-r, r + 1)
-               if dy > 0 or dx > 0]  # half of the (2r+1)^2 - 1 offsets: each pair once
-    parts: list[tuple[np.ndarray, ...]] = []
-    for dy, dx in offsets:
-        other = padded[r + dy: r + dy + h, r + dx: r + dx + w]
-        rp, cp = np.nonzero((labels > 0) & (other > 0) & (labels != other))
-        rq, cq = rp + dy, cp + dx
-        lp, lq = labels[rp, cp], labels[rq, cq]
-        swap = lp > lq
-        parts.append((np.where(swap, lq, lp), np.where(swap, lp, lq),
-                      np.where(swap, rq, rp), np.where(swap, cq, cp),
-                      np.where(swap, rp, rq), np.where(swap, cp, cq)))
-    return tuple(np.concatenate([p[i] for p in parts]) for i in range(6))
+    rp, cp, rq, cq, lp, lq = neighbour_pairs(labels, backend=backend)
+    swap = lp > lq
+    return (np.where(swap, lq, lp), np.where(swap, lp, lq),
+            np.where(swap, rq, rp), np.where(swap, cq, cp),
+            np.where(swap, rp, rq), np.where(swap, cp, cq))
 
 
 def _group_median(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,8 +234,8 @@ def _unit_normals(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float
-               ) -> dict[tuple[int, int], str]:
+def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
+               backend: Backend = "auto") -> dict[tuple[int, int], str]:
     """Neighbouring region pairs and the type of the edge between them (SPEC "Surfaces").
 
     Parameters
@@ -177,6 +247,8 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float
     step_threshold
         Median height difference of the fits along the boundary above which
         the edge is a step (``step.threshold``).
+    backend
+        For :func:`neighbour_pairs` (identical results).
 
     Returns
     -------
@@ -184,7 +256,7 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float
         ``{(i, j): edge}`` for i < j, edge one of ``"step"``, ``"smooth"``,
         ``"roof-convex"``, ``"roof-concave"``.
     """
-    li, lj, rp, cp, rq, cq = _boundary_pairs(labels)
+    li, lj, rp, cp, rq, cq = _boundary_pairs(labels, backend)
     if li.size == 0:
         return {}
     ci, cj = coeffs[li], coeffs[lj]
@@ -195,14 +267,15 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float
     # Convex: each fit's extension lies above the other region's boundary pixels.
     above = ((evaluate_quadric(cj, rp, cp) - evaluate_quadric(ci, rp, cp))
              + (evaluate_quadric(ci, rq, cq) - evaluate_quadric(cj, rq, cq)))
-    key = li.astype(np.int64) * (int(labels.max()) + 1) + lj
+    base = int(lj.max()) + 1
+    key = li.astype(np.int64) * base + lj
     uniq, gap_med = _group_median(key, gap)
     _, angle_med = _group_median(key, angle)
     _, above_med = _group_median(key, above)
     out: dict[tuple[int, int], str] = {}
     for k, g, a, s in zip(uniq.tolist(), gap_med.tolist(), angle_med.tolist(),
                           above_med.tolist(), strict=True):
-        i, j = divmod(k, int(labels.max()) + 1)
+        i, j = divmod(k, base)
         if g > step_threshold:
             out[(i, j)] = "step"
         elif a < SMOOTH_ANGLE_DEG:
@@ -212,21 +285,8 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float
     return out
 
 
-def _region_stats(z: np.ndarray, labels: np.ndarray, n: int) -> dict[str, np.ndarray]:
-    """Pixel counts, centroids and mean heights of labels 0..n."""
-    rows, cols = np.nonzero(labels > 0)
-    lab = labels[rows, cols]
-    counts = np.bincount(lab, minlength=n + 1)
-    safe = np.maximum(counts, 1)
-    return {
-        "counts": counts,
-        "row": np.bincount(lab, rows, minlength=n + 1) / safe,
-        "col": np.bincount(lab, cols, minlength=n + 1) / safe,
-        "height": np.bincount(lab, z[rows, cols], minlength=n + 1) / safe,
-    }
-
-
-def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config) -> list[Surface]:
+def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config, *,
+                      backend: Backend = "auto") -> list[Surface]:
     """Refit the final regions and describe them (Sec. V-4, SPEC "Surfaces").
 
     Parameters
@@ -238,6 +298,9 @@ def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config) -> list
         0 = none. Labels at invalid pixels are ignored.
     config
         Uses ``grow.planar_tolerance``, ``grow.min_error`` and ``step.threshold``.
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` for the fits and the boundary
+        pairs (identical results; see :func:`~rangeseg_cli.grow.region_fits`).
 
     Returns
     -------
@@ -255,13 +318,13 @@ def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config) -> list
     if n == 0:
         return []
     # Final surface parameters: the quadric fit repeated on the grown regions (Sec. V-4)
-    ((quad, mse_quad), (plane, mse_plane)), _ = fit_models(z, labels, n, (2, 1))
-    stats = _region_stats(z, labels, n)
+    stats = region_fits(z, labels, n, (2, 1), backend=backend)
+    (quad, mse_quad), (plane, mse_plane) = stats.fits
     floor = np.maximum(mse_plane, config.grow.min_error)
     planar = (mse_plane - mse_quad) <= config.grow.planar_tolerance * floor
     coeffs = np.where(planar[:, None], plane, quad)
     mse = np.where(planar, mse_plane, mse_quad)
-    edges = edge_types(labels, coeffs, config.step.threshold)
+    edges = edge_types(labels, coeffs, config.step.threshold, backend=backend)
     neighbours: dict[int, list[Neighbor]] = {}
     for (i, j), edge in sorted(edges.items()):
         neighbours.setdefault(i, []).append(Neighbor(id=j, edge=edge))
@@ -270,15 +333,15 @@ def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config) -> list
     surfaces = []
     for sid in range(1, n + 1):
         box = boxes[sid - 1]
-        if box is None or stats["counts"][sid] == 0:
+        if box is None or stats.counts[sid] == 0:
             continue
-        row, col = float(stats["row"][sid]), float(stats["col"][sid])
+        row, col = float(stats.centroid_row[sid]), float(stats.centroid_col[sid])
         a = coeffs[sid]
         shape = "flat" if planar[sid] else hk_shape(*curvatures(a, row, col))
         surfaces.append(Surface(
-            id=sid, pixels=int(stats["counts"][sid]),
+            id=sid, pixels=int(stats.counts[sid]),
             bbox=(box[0].start, box[1].start, box[0].stop - 1, box[1].stop - 1),
-            centroid=(row, col), mean_height=float(stats["height"][sid]),
+            centroid=(row, col), mean_height=float(stats.mean_height[sid]),
             coefficients=tuple(float(c) for c in a),  # type: ignore[arg-type]
             rms_error=float(math.sqrt(max(mse[sid], 0.0))),
             type="planar" if planar[sid] else "curved", shape=shape,

@@ -1,18 +1,27 @@
-"""The compiled edge kernels (rangeseg_cli._kernels) give exactly the numpy reference's maps."""
+"""The compiled kernels (rangeseg_cli._kernels) give exactly the numpy reference's results.
 
+Edges (Sec. V-1, V-2): identical maps. Region growing and surfaces (Sec. V-4)
+and holdsites (Sec. VII): identical moment sums, labels, boundary pairs and
+holdsites, coefficients equal within 1e-9 (they are in fact bitwise equal).
+"""
+
+import dataclasses
 import importlib.util
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import box_scene, step_image
-from rangeseg_cli import edges
+from rangeseg_cli import edges, io
 from rangeseg_cli.config import load_config
 from rangeseg_cli.edges import DIRECTIONS, absolute_residual, detect_edges, gaussian_taps
+from rangeseg_cli.grow import grow_regions, region_fits
 from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.surfaces import describe_surfaces, neighbour_pairs
 
 CFG = load_config()
 ONE_SIDED = load_config(overrides={"roof": {"truncation": "one-sided"}})
@@ -181,6 +190,132 @@ def test_run_pipeline_gives_identical_labels_with_both_backends(index, monkeypat
         assert ref.labels.max() > 0
 
 
+# --------------------------------------------------------------------------- Sec. V-4, VII
+
+SAMPLES = sorted((Path(__file__).resolve().parent.parent / "sample_data" / "synthetic")
+                 .glob("*.png"))
+NO_SPLIT = load_config(overrides={"split": {"enabled": False}})
+
+
+def _stage3(z, config=NO_SPLIT):
+    """Heights, linked edges and components of a scene (numpy edges)."""
+    res = run_pipeline(z, config, stages=2)
+    return res.heights, res.edges, res.components
+
+
+def _assert_close_tree(a, b, path="surfaces"):
+    """Equal structure, ints and strings; floats equal within 1e-9 relative."""
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), path
+        for key in a:
+            _assert_close_tree(a[key], b[key], f"{path}.{key}")
+    elif isinstance(a, list | tuple):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_close_tree(x, y, f"{path}[{i}]")
+    elif isinstance(a, float):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12, err_msg=path)
+    else:
+        assert a == b, path
+
+
+def assert_same_results(ref, fast):
+    np.testing.assert_array_equal(ref.edges, fast.edges)
+    np.testing.assert_array_equal(ref.components, fast.components)
+    np.testing.assert_array_equal(ref.labels, fast.labels)
+    _assert_close_tree([dataclasses.asdict(s) for s in ref.surfaces],
+                       [dataclasses.asdict(s) for s in fast.surfaces])
+    _assert_close_tree(ref.holdsite.to_dict(), fast.holdsite.to_dict(), "holdsite")
+
+
+def run_both(image, config, monkeypatch):
+    """``run_pipeline`` with every stage on numpy, then on the compiled kernels."""
+    results = []
+    for use_numba in (False, True):
+        monkeypatch.setattr(edges, "_USE_NUMBA", use_numba)
+        results.append(run_pipeline(image, config))
+    return results
+
+
+@requires_numba
+@pytest.mark.parametrize("split", [False, True])
+@pytest.mark.parametrize("path", SAMPLES, ids=lambda p: p.stem)
+def test_sample_scenes_give_identical_labels_surfaces_and_holdsites(path, split, monkeypatch):
+    config = load_config(overrides={"split": {"enabled": split}})
+    ref, fast = run_both(io.read_image(path), config, monkeypatch)
+    assert_same_results(ref, fast)
+    assert len(ref.surfaces) >= 3 and ref.holdsite.holdsite is not None
+
+
+@requires_numba
+@pytest.mark.parametrize("seed", range(4))
+def test_random_noisy_scenes_give_identical_labels_surfaces_and_holdsites(seed, monkeypatch):
+    config = load_config(overrides={"holdsite": {"size": [5, 9], "max_candidates": 12}})
+    ref, fast = run_both(random_boxes(90, 110, seed=seed, noise=1.5), config, monkeypatch)
+    assert_same_results(ref, fast)
+    assert ref.labels.max() >= 2
+
+
+@requires_numba
+@pytest.mark.parametrize("seed", range(4))
+def test_region_fits_are_bitwise_equal_to_the_reference(seed):
+    from rangeseg_cli import _kernels
+    from rangeseg_cli.grow import _reference_moments
+
+    z, _, components = _stage3(random_boxes(70, 90, seed=seed))
+    n = int(components.max())
+    ref, _ = _reference_moments(z, components, n)
+    fast = _kernels.region_moments(z, components, n)
+    for name, got in zip(("counts", "cx", "cy", "scale", "sums", "rhs"), fast, strict=True):
+        np.testing.assert_array_equal(got, getattr(ref, name), err_msg=name)
+    for dtype in (np.int32, np.int64, np.uint8):
+        a = region_fits(z, components.astype(dtype), n, (2, 1, 0), backend="numpy")
+        b = region_fits(z, components.astype(dtype), n, (2, 1, 0), backend="numba")
+        for (ca, ea), (cb, eb) in zip(a.fits, b.fits, strict=True):
+            np.testing.assert_array_equal(ca, cb)
+            np.testing.assert_array_equal(ea, eb)
+        for name in ("counts", "centroid_row", "centroid_col", "mean_height"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+@requires_numba
+@pytest.mark.parametrize("passes", [1, 0, 3])
+@pytest.mark.parametrize("seed", range(3))
+def test_grow_regions_gives_identical_labels(seed, passes):
+    z, codes, components = _stage3(random_boxes(64, 96, seed=seed, noise=2.0))
+    cfg = dataclasses.replace(NO_SPLIT.grow, passes=passes)
+    ref = grow_regions(z, codes, components, cfg, backend="numpy")
+    fast = grow_regions(z, codes, components, cfg, backend="numba")
+    np.testing.assert_array_equal(ref, fast)
+    assert (ref > 0).sum() > (components > 0).sum()  # the passes did grow
+
+
+@requires_numba
+@pytest.mark.parametrize("dtype", [np.int32, np.int64, np.uint16])
+@pytest.mark.parametrize("reach", [1, 2, 3])
+def test_neighbour_pairs_are_identical_in_value_order_and_dtype(dtype, reach):
+    rng = np.random.default_rng(reach)
+    labels = rng.integers(0, 5, (33, 47)).astype(dtype)
+    labels[5:20, 10:30] = 3  # a large region, so that most pixels are not on a boundary
+    ref = neighbour_pairs(labels, reach, backend="numpy")
+    fast = neighbour_pairs(labels, reach, backend="numba")
+    for a, b in zip(ref, fast, strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    assert ref[0].size > 0
+
+
+@requires_numba
+def test_describe_surfaces_on_nan_holes_gives_identical_surfaces():
+    z, codes, components = _stage3(random_boxes(80, 80, seed=9, holes=0.05))
+    labels = grow_regions(z, codes, components, NO_SPLIT.grow, backend="numpy")
+    ref = describe_surfaces(z, labels, NO_SPLIT, backend="numpy")
+    fast = describe_surfaces(z, labels, NO_SPLIT, backend="numba")
+    _assert_close_tree([dataclasses.asdict(s) for s in ref],
+                       [dataclasses.asdict(s) for s in fast])
+    assert len(ref) >= 2
+
+
 # --------------------------------------------------------------------------- switch
 
 
@@ -204,6 +339,24 @@ def test_without_numba_auto_uses_numpy_and_numba_backend_is_an_error(no_numba, m
     assert maps.step[:, 15:17].all()
     with pytest.raises(ImportError, match="needs the numba package"):
         detect_edges(step_image(40.0), CFG, backend="numba")
+
+
+def test_without_numba_grow_and_surfaces_use_numpy_and_numba_backend_is_an_error(
+        no_numba, monkeypatch):
+    monkeypatch.setattr(edges, "_USE_NUMBA", True)
+    z, codes, components = _stage3(box_scene(noise=1.0, seed=2))
+    labels = grow_regions(z, codes, components, NO_SPLIT.grow)
+    assert len(describe_surfaces(z, labels, NO_SPLIT)) == 2
+    with pytest.raises(ImportError, match="needs the numba package"):
+        grow_regions(z, codes, components, NO_SPLIT.grow, backend="numba")
+    with pytest.raises(ImportError, match="needs the numba package"):
+        neighbour_pairs(labels, backend="numba")
+
+
+def test_unknown_backend_of_the_fits_is_an_error():
+    z, _, components = _stage3(box_scene())
+    with pytest.raises(ValueError, match=r"`backend` \('cuda'\) must be one of"):
+        region_fits(z, components, int(components.max()), backend="cuda")
 
 
 def test_pure_numpy_environment_variable_turns_the_kernels_off():

@@ -1,0 +1,812 @@
+"""Split components that fail a quality-of-fit test, and estimate the image noise.
+
+Beyond Al-Hujazi & Sood (1990). Their conclusion (Sec. VIII) proposes: "to
+improve the robustness of the algorithm a test on the quality of the fit in
+each component should be performed. If the test fails the component should
+be divided into two or more component[s]." This module does that between the
+components of step 3 (Sec. V-3) and the region growing of step 4 (Sec. V-4).
+
+Notes
+-----
+1. Noise (:func:`estimate_noise`). The AR of the small filter (Sec. V-1,
+   eq. 3) along rows and columns is, on smooth areas, the noise filtered by
+   ``G - delta`` (eq. 10), whose power gain is the "sum" of Sec. IV-B (0.48
+   for the normalised 5-tap mask): ``std(AR) = sigma_o sqrt(sum)``. Edges
+   and strong curvature are a minority with large AR, so the estimate uses
+   the smaller half of ``|AR|`` only:
+   the root mean square of the values below their median, divided by the
+   same quantity for a standard normal. It includes the quantisation
+   (about 0.29 units on sloped 8-bit faces, 0 on constant ones).
+2. Fit test (:func:`failing_components`). A component fails when the RMS
+   error of its quadric fit (e_A of Sec. V-4) exceeds ``split.fit_factor``
+   times ``max(noise, sqrt(grow.min_error))``.
+3. Split (:func:`split_component`). Surface normals come from local plane
+   fits restricted to the component (Gaussian weights, ``split.normal_sigma``
+   pixels). They are divided into those near the dominant orientation and
+   the rest (:func:`mode_split`); each class falls into its 4-connected
+   parts; speckle and thin parts (slivers along a crease, the steep rim of a
+   curved surface) go to their nearest wide part; then every pixel near two
+   parts goes, twice, to the part whose local plane (fitted to the part's
+   core, away from the crease) predicts it better. Pieces that still fail
+   the test are split again, breadth first, up to ``split.max_pieces``.
+4. Merging back (:func:`merge_back`). Neighbouring pieces stay apart only
+   when one quadric fits their union ``split.min_gain`` times worse than
+   their own quadrics (and worse than region growing's noise-free
+   tolerance), or when both are planes passing the test that meet at
+   ``split.min_crease`` degrees or more. A genuinely curved surface
+   (cylinder, sphere) whose quadric fails the test is cut up and merged
+   back whole; two faces meeting at a crease stay apart however shallow
+   the crease, as long as it stands out of the noise.
+5. Regrowing (:func:`split_regions`). The pieces replace their component,
+   separated by a one-pixel line (which stays an edge: "no merging",
+   Sec. V-4), components are renumbered in raster order of their first pixel
+   (as :func:`~rangeseg_cli.link.label_components` numbers them), and region
+   growing (Sec. V-4) runs again on the new components.
+6. Thresholds (:func:`noise_scaled_config`). With ``[input] auto_thresholds
+   = true`` the step and roof thresholds are multiplied by ``sqrt(noise /
+   REFERENCE_NOISE)`` (the paper's thresholds suit its images of noise
+   ``sigma_o ~ 1``, Sec. VI), clipped to ``[MIN_SCALE, MAX_SCALE]``.
+
+Everything is a pure function of its arrays: the noise comes from ``z``
+alone, so the ``grow`` stage stays a function of (z, edges, components,
+config). The loop over failing components is bounded by their number times
+``split.max_pieces``; every step inside it is vectorised.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage, special
+
+from .config import Config, GrowConfig, SplitConfig
+from .edges import gaussian_taps
+from .grow import fit_models, fit_quadrics, grow_regions
+from .link import FOUR_CONNECTED
+
+#: Noise level (depth units) the paper's fixed thresholds are made for: the cup
+#: of Fig. 11 has sigma_o ~ 1 (Sec. VI).
+REFERENCE_NOISE = 1.0
+
+#: Bounds of the threshold scale of ``auto_thresholds``.
+MIN_SCALE, MAX_SCALE = 0.7, 2.0
+
+#: Fraction of the smallest |AR| values the noise estimate uses.
+_NOISE_FRACTION = 0.5
+
+#: Most AR samples the noise estimate sorts.
+_NOISE_SAMPLES = 1 << 17
+
+#: Bin width of the histogram of normals (x, y components) whose peak is the mode.
+_MODE_BIN = 0.05
+
+#: Reassignment rounds of the band around the division.
+_REFINE_ROUNDS = 2
+
+
+def _truncated_second_moment(fraction: float) -> float:
+    """``E[X^2 | |X| < q]`` for a standard normal X and q its ``fraction`` quantile of |X|."""
+    t = math.sqrt(2.0) * float(special.erfinv(fraction))
+    density = math.exp(-t * t / 2.0) / math.sqrt(2.0 * math.pi)
+    return 1.0 - 2.0 * t * density / fraction
+
+
+def _ar_gain(weights: np.ndarray) -> float:
+    """Noise power gain of ``G - delta`` (the "sum" of Sec. IV-B, Table 1)."""
+    centre = len(weights) // 2
+    g = weights.copy()
+    g[centre] -= 1.0
+    return float(np.sum(g * g))
+
+
+def estimate_noise(z: np.ndarray) -> float:
+    """Standard deviation of the image noise, from the AR of the small filter.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights in depth units; NaN where invalid.
+
+    Returns
+    -------
+    float
+        Estimated noise sigma in depth units (quantisation included); 0 for
+        an image with fewer than 10 pixels whose 5-tap masks are all valid.
+        Within a few per cent of ``sqrt(sigma^2 + 1/12)`` on 8-bit data from
+        sigma 1 up; below, the regular rounding pattern of a sloped face reads
+        high (about 0.55 at sigma 0.25), which no threshold here depends on
+        (they are floored at ``sqrt(grow.min_error)`` = 0.5).
+
+    Notes
+    -----
+    AR along rows and columns with the 5-tap Gaussian of sigma 1 (Sec. V-1),
+    at pixels whose whole mask is valid. Only the smaller half of ``|AR|``
+    is used, so that edges and curvature (large AR) do not count: ``sigma =
+    sqrt(mean(AR^2 | |AR| <= median) / (c * sum))`` with ``c`` the same
+    truncated moment of a standard normal and ``sum`` the gain of Sec. IV-B.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if z.ndim != 2:
+        raise ValueError(f"`z` must be a 2-D height image, got shape {z.shape}")
+    weights = gaussian_taps(1.0, 5)
+    valid = np.isfinite(z)
+    zc = np.where(valid, z, 0.0)
+    parts = []
+    for axis in (0, 1):
+        smooth = ndimage.correlate1d(zc, weights, axis=axis, mode="constant")
+        whole = ndimage.minimum_filter1d(valid.view(np.uint8), len(weights), axis=axis,
+                                         mode="constant") > 0
+        parts.append(np.abs(smooth - zc)[whole])
+    ar = np.concatenate(parts)
+    if ar.size > _NOISE_SAMPLES:  # a regular subsample is plenty, and bounds the sort
+        ar = ar[:: ar.size // _NOISE_SAMPLES]
+    k = int(_NOISE_FRACTION * ar.size)
+    if k < 10:
+        return 0.0
+    low = np.sort(ar)[:k]  # (np.partition is slow on the many equal values of clean data)
+    moment = float(np.mean(low * low))
+    return math.sqrt(moment / (_truncated_second_moment(_NOISE_FRACTION) * _ar_gain(weights)))
+
+
+def noise_scaled_config(config: Config, noise: float) -> Config:
+    """The step and roof thresholds scaled to the image noise (``auto_thresholds``).
+
+    Parameters
+    ----------
+    config
+        The configuration; returned unchanged unless ``input.auto_thresholds``.
+    noise
+        Estimated noise sigma (:func:`estimate_noise`), depth units.
+
+    Returns
+    -------
+    Config
+        ``step.threshold``, ``roof.threshold_a`` and ``roof.threshold_b``
+        multiplied by ``clip(sqrt(noise / REFERENCE_NOISE), MIN_SCALE,
+        MAX_SCALE)``.
+
+    Notes
+    -----
+    The square root is a compromise measured on the synthetic scenes (see
+    ``docs/QUALITY.md``): thresholds proportional to the noise keep the rate
+    of false edges constant but lose the real roofs at sigma 2 (the split
+    cannot undo an over-segmentation, only an under-segmentation), and
+    fixed thresholds let noise edges enclose spurious regions.
+    """
+    if not config.input.auto_thresholds:
+        return config
+    scale = min(max(math.sqrt(max(noise, 0.0) / REFERENCE_NOISE), MIN_SCALE), MAX_SCALE)
+    step = dataclasses.replace(config.step, threshold=config.step.threshold * scale)
+    roof = dataclasses.replace(config.roof, threshold_a=config.roof.threshold_a * scale,
+                               threshold_b=config.roof.threshold_b * scale)
+    return dataclasses.replace(config, step=step, roof=roof)
+
+
+def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
+                       cfg: SplitConfig, grow: GrowConfig) -> np.ndarray:
+    """Ids of the components whose quadric fit fails the quality test (Sec. VIII).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    components
+        int (H, W) components 1..n, 0 = none.
+    noise
+        Noise sigma of the image (:func:`estimate_noise`).
+    cfg, grow
+        ``[split]`` (``fit_factor``, ``min_piece``) and ``[grow]`` (``min_error``).
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 ids, ascending, of components with ``RMS > fit_factor * max(noise,
+        sqrt(min_error))`` and at least ``2 * min_piece`` pixels.
+    """
+    n = int(components.max(initial=0))
+    if n == 0:
+        return np.zeros(0, np.int64)
+    _, mse, counts = fit_quadrics(z, components, n)
+    level = cfg.fit_factor * max(noise, math.sqrt(grow.min_error))
+    bad = (mse > level * level) & (counts >= 2 * cfg.min_piece)
+    bad[0] = False
+    return np.flatnonzero(bad).astype(np.int64)
+
+
+def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gaussian-weighted local plane fits that use only ``mask`` pixels, at every pixel.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights.
+    mask
+        bool (H, W) pixels to use.
+    sigma
+        Gaussian sigma of the weights, pixels (truncated at 3 sigma).
+
+    Returns
+    -------
+    height, gx, gy
+        float64 (H, W): the fitted plane's height at the pixel and its slopes
+        dz/dcol and dz/drow; NaN where fewer than a few ``mask`` pixels lie
+        within reach or they lie on a line (the fit is degenerate).
+    """
+    h, w = z.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    u -= w / 2.0
+    v -= h / 2.0
+    m = mask.astype(np.float64)
+    zc = np.where(mask, z, 0.0)
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        return ndimage.gaussian_filter(a, sigma, mode="constant", truncate=3.0)
+
+    s = blur(m)
+    ok = s > 1e-3
+    s = np.where(ok, s, 1.0)
+    mu, mv, mz = blur(m * u) / s, blur(m * v) / s, blur(zc) / s
+    cuu = blur(m * u * u) / s - mu * mu
+    cuv = blur(m * u * v) / s - mu * mv
+    cvv = blur(m * v * v) / s - mv * mv
+    cuz = blur(zc * u) / s - mu * mz
+    cvz = blur(zc * v) / s - mv * mz
+    det = cuu * cvv - cuv * cuv
+    ok &= det > 1e-3 * sigma**4
+    safe = np.where(ok, det, 1.0)
+    gx = np.where(ok, (cvv * cuz - cuv * cvz) / safe, np.nan)
+    gy = np.where(ok, (cuu * cvz - cuv * cuz) / safe, np.nan)
+    return mz + gx * (u - mu) + gy * (v - mv), gx, gy
+
+
+def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Slopes of Gaussian-weighted local plane fits that use only ``mask`` pixels.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights.
+    mask
+        bool (H, W) pixels to use (one component).
+    sigma
+        Gaussian sigma of the weights, pixels.
+
+    Returns
+    -------
+    gx, gy
+        float64 (H, W) slopes dz/dcol and dz/drow; 0 outside ``mask`` and
+        where the local fit is degenerate (the mask's pixels on a line).
+    """
+    _, gx, gy = local_planes(z, mask, sigma)
+    keep = mask & np.isfinite(gx)
+    return np.where(keep, gx, 0.0), np.where(keep, gy, 0.0)
+
+
+def _otsu(x: np.ndarray) -> float:
+    """Threshold of ``x`` that maximises the between-class variance (Otsu)."""
+    xs = np.sort(x)
+    n = xs.size
+    k = np.arange(1, n)
+    csum = np.cumsum(xs)[:-1]
+    m0 = csum / k
+    m1 = (xs.sum() - csum) / (n - k)
+    between = k * (n - k) * (m0 - m1) ** 2
+    i = int(np.argmax(between))
+    return 0.5 * (xs[i] + xs[i + 1])
+
+
+def mode_split(normals: np.ndarray) -> np.ndarray:
+    """Divide unit normals into those of the dominant orientation and the rest.
+
+    The mode is the peak of a smoothed 2-D histogram of the normals' (x, y)
+    components (bins of :data:`_MODE_BIN`), refined to the mean of the
+    normals within two bins of it; the normals then split at Otsu's
+    threshold on their distance from the mode. A face that covers much of a
+    component (a table around a part, one side of a roof) is its mode;
+    several other faces end up in the rest together and fall apart into
+    their connected parts, or are split again.
+
+    Parameters
+    ----------
+    normals
+        float64 (N, 3) unit normals, N >= 2.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool (N,): True for the normals away from the mode (deterministic).
+    """
+    xy = normals[:, :2]
+    bins = int(round(2.0 / _MODE_BIN))
+    hist, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=[[-1, 1], [-1, 1]])
+    peak = np.unravel_index(int(np.argmax(ndimage.gaussian_filter(hist, 1.0))), hist.shape)
+    mode = -1.0 + (np.array(peak, dtype=np.float64) + 0.5) * _MODE_BIN
+    near = np.sum((xy - mode) ** 2, axis=1) <= (2.0 * _MODE_BIN) ** 2
+    if near.any():
+        mode = xy[near].mean(axis=0)
+    dist = np.sqrt(np.sum((xy - mode) ** 2, axis=1))
+    if np.ptp(dist) <= 0:
+        return np.zeros(len(normals), bool)
+    return dist > _otsu(dist)
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """The pixels being split and the scales of the split.
+
+    Attributes
+    ----------
+    mask
+        bool (h, w): the pixels (a component or a piece).
+    solid
+        ``mask`` with its holes below ``min_piece`` pixels and its gaps one
+        or two pixels wide filled (a closing): the edge pixels and short edge
+        curves that noise leaves inside a face are no border.
+    min_piece
+        Smallest part kept, pixels; also the smallest core of a wide part.
+    thickness
+        A part's core is its pixels at least this far (chessboard) from its
+        border.
+    band
+        A pixel may change to a part within this distance (chessboard).
+    sigma
+        Gaussian sigma of the local planes that judge the pixels, pixels.
+    """
+
+    mask: np.ndarray
+    solid: np.ndarray
+    min_piece: int
+    thickness: int
+    band: int
+    sigma: float
+
+    @classmethod
+    def of(cls, mask: np.ndarray, cfg: SplitConfig) -> _Frame:
+        """The frame of ``mask`` with the scales of ``[split]``."""
+        holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
+        small = np.bincount(holes.ravel(), minlength=n + 1) < cfg.min_piece
+        small[0] = False
+        closed = ndimage.binary_closing(mask, structure=np.ones((3, 3), bool))
+        return cls(mask=mask, solid=mask | small[holes] | closed, min_piece=cfg.min_piece,
+                   thickness=int(math.ceil(cfg.normal_sigma)),
+                   band=int(math.ceil(2.0 * cfg.normal_sigma)), sigma=2.0 * cfg.normal_sigma)
+
+
+def _parts(labels: np.ndarray) -> np.ndarray:
+    """4-connected parts of every label, numbered 1..k (0 stays 0)."""
+    out = np.zeros(labels.shape, np.int32)
+    count = 0
+    for value in np.unique(labels[labels > 0]).tolist():
+        lab, n = ndimage.label(labels == value, structure=FOUR_CONNECTED)
+        out = np.where(lab > 0, lab + count, out)
+        count += n
+    return out
+
+
+def _dense(labels: np.ndarray) -> np.ndarray:
+    """Renumber the labels present 1..k in increasing order (0 stays 0)."""
+    ids = np.unique(labels)
+    lut = np.zeros(int(ids.max(initial=0)) + 1, np.int32)
+    lut[ids] = np.arange(ids.size, dtype=np.int32) + (0 if ids[0] == 0 else 1)
+    return lut[labels]
+
+
+def _fill_nearest(parts: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """``parts`` on ``where``, each unlabelled pixel taking its nearest labelled pixel's label."""
+    if not (where & (parts == 0)).any() or parts.max(initial=0) == 0:
+        return np.where(where, parts, 0).astype(np.int32)
+    ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
+                                            return_indices=True)
+    return np.where(where, parts[ir, ic], 0).astype(np.int32)
+
+
+def _core(parts: np.ndarray, frame: _Frame) -> np.ndarray:
+    """``parts`` where a pixel lies ``frame.thickness`` or more from its part's border.
+
+    The border is where another part or the outside of ``frame.solid``
+    begins (small holes are not border).
+    """
+    padded = np.pad(_fill_nearest(parts, frame.solid), 1)
+    uniform = ndimage.minimum_filter(padded, size=3) == ndimage.maximum_filter(padded, size=3)
+    depth = ndimage.distance_transform_cdt(uniform, metric="chessboard")[1:-1, 1:-1]
+    return np.where((depth >= frame.thickness) & frame.mask, parts, 0)
+
+
+def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
+    """Wide 4-connected parts of ``labels``, renumbered 1..k, covering ``frame.mask``.
+
+    Parts below ``min_piece`` pixels (speckle of noisy normals) are filled
+    from their nearest neighbours first; then parts with a core (:func:`_core`)
+    below ``min_piece`` pixels -- a sliver along a crease, the steep rim of a
+    curved surface, whose fit could not be judged -- go the same way.
+    """
+    parts = np.where(frame.mask, _parts(_fill_nearest(labels, frame.solid)), 0)
+    sizes = np.bincount(parts.ravel())
+    parts = _dense(_fill_nearest(np.where(sizes[parts] >= frame.min_piece, parts, 0),
+                                 frame.mask))
+    n = int(parts.max(initial=0))
+    wide = np.bincount(_core(parts, frame).ravel(), minlength=n + 1) >= frame.min_piece
+    wide[0] = False
+    lut = np.zeros(n + 1, np.int32)
+    lut[wide] = np.arange(1, int(wide.sum()) + 1, dtype=np.int32)
+    return _fill_nearest(lut[parts], frame.mask)
+
+
+def _crop(where: np.ndarray, pad: int) -> tuple[slice, slice]:
+    """Bounding box of ``where``, grown by ``pad`` and clipped to the array."""
+    rows, cols = np.nonzero(where.any(axis=1))[0], np.nonzero(where.any(axis=0))[0]
+    h, w = where.shape
+    return (slice(max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, h)),
+            slice(max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, w)))
+
+
+def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
+    """Give each pixel near two or more parts to the one whose local plane predicts it best.
+
+    Each part's surface near a pixel is the Gaussian-weighted plane (sigma
+    ``frame.sigma``) fitted to the part's core (away from the blended
+    normals at a crease); a pixel may only go to a part within
+    ``frame.band``, so no plane is extrapolated far. Pixels near one part
+    only keep their label. The work is confined to the bounding box of the
+    doubtful pixels.
+    """
+    size = 2 * frame.band + 1
+    big = np.iinfo(np.int32).max
+    high = ndimage.maximum_filter(parts, size=size, mode="constant", cval=0)
+    low = ndimage.minimum_filter(np.where(parts > 0, parts, big), size=size, mode="constant",
+                                 cval=big)
+    doubt = frame.mask & (high > 0) & (low != high)
+    if not doubt.any():
+        return parts
+    box = _crop(doubt, frame.band + int(math.ceil(3.0 * frame.sigma)))
+    sub, zb, doubt = parts[box], z[box], doubt[box]
+    core = _core(parts, frame)[box]
+    rows, cols = np.nonzero(doubt)
+    best = sub[rows, cols].copy()
+    best_cost = np.full(rows.size, np.inf)
+    for k in np.unique(sub[sub > 0]).tolist():
+        near = ndimage.maximum_filter(sub == k, size=size, mode="constant")[rows, cols]
+        if not near.any() or not (core == k).any():
+            continue
+        height, _, _ = local_planes(zb, core == k, frame.sigma)
+        cost = np.abs(zb[rows, cols] - height[rows, cols])
+        cost = np.where(near & np.isfinite(cost), cost, np.inf)
+        better = cost < best_cost
+        best[better] = k
+        best_cost[better] = cost[better]
+    out = parts.copy()
+    out[box][rows, cols] = best
+    return out
+
+
+def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig) -> np.ndarray | None:
+    """One split of the pixels of ``mask`` by their normals; None when there is none.
+
+    The normals are divided in two (:func:`mode_split`); each class falls into
+    its 4-connected parts, of which the wide ones are kept (:func:`_clean`);
+    then, twice, every pixel goes to the part whose local plane predicts it
+    best (:func:`_reassign`). Returns int32 pieces 1..k (k >= 2) on
+    ``mask``'s grid, 0 off ``mask``.
+    """
+    rows, cols = np.nonzero(mask)
+    gx, gy = local_gradients(z, mask, cfg.normal_sigma)
+    gxs, gys = gx[rows, cols], gy[rows, cols]
+    norm = np.sqrt(1.0 + gxs * gxs + gys * gys)
+    cls = mode_split(np.stack([-gxs / norm, -gys / norm, 1.0 / norm], axis=1))
+    if cls.all() or not cls.any():
+        return None
+    frame = _Frame.of(mask, cfg)
+    classes = np.zeros(mask.shape, np.int32)
+    classes[rows, cols] = np.where(cls, 2, 1)
+    parts = _clean(classes, frame)
+    for _ in range(_REFINE_ROUNDS):
+        if parts.max(initial=0) < 2:
+            return None
+        parts = _clean(_reassign(z, parts, frame), frame)
+    return parts if parts.max(initial=0) >= 2 else None
+
+
+def adjacent_pairs(pieces: np.ndarray, reach: int = 2) -> list[tuple[int, int]]:
+    """Pairs (i < j) of labels with pixels within chessboard distance ``reach``.
+
+    Parameters
+    ----------
+    pieces
+        int (h, w) labels, 0 = none.
+    reach
+        Largest chessboard distance between pixels of two neighbours (2: across
+        a one-pixel line).
+
+    Returns
+    -------
+    list of tuple
+        Sorted unique pairs.
+    """
+    h, w = pieces.shape
+    padded = np.pad(pieces, reach)
+    keys = []
+    big = int(pieces.max(initial=0)) + 1
+    for dy in range(0, reach + 1):
+        for dx in range(-reach, reach + 1):
+            if dy == 0 and dx <= 0:
+                continue
+            other = padded[reach + dy: reach + dy + h, reach + dx: reach + dx + w]
+            hit = (pieces > 0) & (other > 0) & (pieces != other)
+            a, b = pieces[hit].astype(np.int64), other[hit].astype(np.int64)
+            keys.append(np.minimum(a, b) * big + np.maximum(a, b))
+    uniq = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    return [(int(k // big), int(k % big)) for k in uniq]
+
+
+def _rms_of_union(z: np.ndarray, pieces: np.ndarray, i: int, j: int) -> float:
+    """RMS error of one quadric fitted to pieces i and j together."""
+    both = (pieces == i) | (pieces == j)
+    box = _crop(both, 0)
+    _, mse, _ = fit_quadrics(z[box], both[box].astype(np.int32), 1)
+    return math.sqrt(max(float(mse[1]), 0.0))
+
+
+def _crease_angle(pieces: np.ndarray, coeffs: np.ndarray, i: int, j: int) -> float:
+    """Median angle in degrees between the fits of pieces i and j along their boundary."""
+    square = np.ones((3, 3), bool)
+    box = _crop((pieces == i) | (pieces == j), 2)
+    sub = pieces[box]
+    near = (ndimage.binary_dilation(sub == i, structure=square, iterations=2)
+            & ndimage.binary_dilation(sub == j, structure=square, iterations=2))
+    rows, cols = np.nonzero(near)
+    if rows.size == 0:
+        return 0.0
+    rows = rows + box[0].start
+    cols = cols + box[1].start
+    cos = np.sum(_normals(coeffs[i], rows, cols) * _normals(coeffs[j], rows, cols), axis=1)
+    return float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))))
+
+
+def _normals(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(N, 3) unit normals (-fx, -fy, 1) of one quadric (a0..a5) at pixels."""
+    fx = a[1] + 2.0 * a[3] * cols + a[4] * rows
+    fy = a[2] + a[4] * cols + 2.0 * a[5] * rows
+    n = np.stack([-fx, -fy, np.ones_like(fx)], axis=1)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
+               min_gain: float, min_crease: float, planar_tolerance: float,
+               min_error: float) -> np.ndarray:
+    """Merge neighbouring pieces that are one surface after all.
+
+    Two neighbouring pieces i, j stay apart when one quadric fits their
+    union with an RMS error above ``max(floor, min_gain * max(rms_i,
+    rms_j))`` -- a crease between two faces makes the union's error many
+    times the pieces' (which is the noise), while a genuinely curved surface
+    cut in two (a cylinder or a sphere, which a quadric fits only
+    approximately) fits about as badly whole as in pieces -- or, when both
+    are planes that pass the fit test (so their fits are trustworthy and a
+    crease between them well defined), when the planes meet at a median
+    angle of ``min_crease`` degrees or more along the boundary. Otherwise
+    they are merged. A piece is a plane when its quadric lowers the plane's
+    mean squared error by at most ``planar_tolerance`` of it (floored at
+    ``min_error``), as in :func:`~rangeseg_cli.surfaces.describe_surfaces`.
+
+    Parameters
+    ----------
+    z
+        float64 (h, w) heights.
+    pieces
+        int32 (h, w) pieces 1..n, 0 = none.
+    level
+        RMS error of the fit test (``fit_factor`` times the noise).
+    floor
+        An RMS error of the union that never keeps pieces apart by itself:
+        ``sqrt(grow.error_factor * grow.min_error)``, the residual region
+        growing accepts on a noise-free surface (Sec. V-4). Without it, on
+        noise-free data a quadric's small misfit of a cylinder would count
+        as a crease.
+    min_gain, min_crease
+        ``split.min_gain`` and ``split.min_crease``.
+    planar_tolerance, min_error
+        ``grow.planar_tolerance`` and ``grow.min_error``.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (h, w) pieces renumbered 1..k in order of their smallest old id.
+    """
+    n = int(pieces.max(initial=0))
+    if n < 2:
+        return pieces
+    ((_, mse), (planes, mse_plane)), _ = fit_models(z, pieces, n, (2, 1))
+    rms = np.sqrt(np.maximum(mse, 0.0))
+    flat = (rms <= level) & (mse_plane - mse <= planar_tolerance
+                             * np.maximum(mse_plane, min_error))
+    parent = np.arange(n + 1)
+    for i, j in adjacent_pairs(pieces):
+        apart = _rms_of_union(z, pieces, i, j) > max(floor, min_gain * max(rms[i], rms[j]))
+        if not apart and flat[i] and flat[j]:
+            apart = _crease_angle(pieces, planes, i, j) >= min_crease
+        if not apart:
+            _union(parent, i, j)
+    roots = np.array([_root(parent, k) for k in range(n + 1)])
+    _, dense = np.unique(roots, return_inverse=True)
+    return dense.astype(np.int32)[pieces]
+
+
+def _union(parent: np.ndarray, i: int, j: int) -> None:
+    """Join the sets of i and j (the smaller root wins)."""
+    a, b = _root(parent, i), _root(parent, j)
+    parent[max(a, b)] = min(a, b)
+
+
+def _root(parent: np.ndarray, k: int) -> int:
+    """Root of ``k`` in a union-find forest."""
+    while parent[k] != k:
+        k = int(parent[k])
+    return k
+
+
+def _replace(pieces: np.ndarray, k: int, sub: np.ndarray, n: int, max_pieces: int
+             ) -> list[int]:
+    """Put the pieces ``sub`` in the place of piece k, in place; return their ids.
+
+    ``pieces`` may be a view of the box ``sub`` covers; ``n`` is the number
+    of pieces in all. ``sub``'s piece 1 keeps id k, the others get the next
+    free ids; pieces beyond ``max_pieces`` in all are dropped (0, to be
+    regrown).
+    """
+    m = min(int(sub.max()), max_pieces - n + 1)
+    ids = np.concatenate([[0, k], np.arange(n + 1, n + m)]).astype(np.int32)
+    inside = pieces == k
+    pieces[inside] = np.where(sub[inside] <= m, ids[np.minimum(sub[inside], m)], 0)
+    return ids[1:].tolist()
+
+
+def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: SplitConfig,
+                    grow: GrowConfig) -> np.ndarray:
+    """Split one component that fails the fit test into pieces at its creases (Sec. VIII).
+
+    Pieces that still fail are split again (breadth first) until none fails
+    or can be split, or there are ``cfg.max_pieces``; then neighbouring
+    pieces that one quadric fits about as well are merged back
+    (:func:`merge_back`).
+
+    Parameters
+    ----------
+    z
+        float64 (h, w) heights (usually the component's bounding box).
+    mask
+        bool (h, w): the component's pixels.
+    noise
+        Noise sigma of the image (:func:`estimate_noise`).
+    cfg, grow
+        ``[split]`` and ``[grow]`` (``min_error``, ``error_factor``,
+        ``planar_tolerance``).
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (h, w) pieces 1..k (k = 1: no split), 0 outside ``mask`` and
+        at pixels dropped beyond ``max_pieces``.
+    """
+    level = cfg.fit_factor * max(noise, math.sqrt(grow.min_error))
+    pieces = mask.astype(np.int32)
+    queue = [1]
+    while queue and (n := int(pieces.max())) < cfg.max_pieces:
+        k = queue.pop(0)
+        box = _crop(pieces == k, 0)
+        sub = _split_once(z[box], pieces[box] == k, cfg)
+        if sub is None:
+            continue
+        ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
+        _, mse, counts = fit_quadrics(z, pieces, int(pieces.max()))
+        queue += [i for i in ids if mse[i] > level * level and counts[i] >= 2 * cfg.min_piece]
+    return merge_back(z, pieces, level=level,
+                      floor=math.sqrt(grow.error_factor * grow.min_error),
+                      min_gain=cfg.min_gain, min_crease=cfg.min_crease,
+                      planar_tolerance=grow.planar_tolerance, min_error=grow.min_error)
+
+
+def _separate(labels: np.ndarray) -> np.ndarray:
+    """Unlabel the pixel of higher label of every 4-adjacent pair of different labels.
+
+    Pieces of one component touch; this leaves a one-pixel line between them,
+    which region growing keeps as an edge ("no merging", Sec. V-4).
+    """
+    out = labels.copy()
+    for axis in (0, 1):
+        a = np.moveaxis(labels, axis, 0)
+        o = np.moveaxis(out, axis, 0)
+        lo, hi = a[:-1], a[1:]
+        clash = (lo > 0) & (hi > 0) & (lo != hi)
+        o[:-1][clash & (lo > hi)] = 0
+        o[1:][clash & (hi > lo)] = 0
+    return out
+
+
+def _raster_renumber(labels: np.ndarray) -> np.ndarray:
+    """Renumber labels 1..K in raster order of their first pixel (as link does)."""
+    ids, first = np.unique(labels.ravel(), return_index=True)
+    keep = ids > 0
+    order = ids[keep][np.argsort(first[keep], kind="stable")]
+    lut = np.zeros(int(ids.max(initial=0)) + 1, np.int32)
+    lut[order] = np.arange(1, order.size + 1, dtype=np.int32)
+    return lut[labels]
+
+
+def split_components(z: np.ndarray, components: np.ndarray, config: Config,
+                     noise: float) -> np.ndarray | None:
+    """Components with every failing one replaced by its pieces (Sec. VIII).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    components
+        int (H, W) components 1..n of step 3 (Sec. V-3), 0 = none.
+    config
+        Uses ``[split]`` and ``grow.min_error``.
+    noise
+        Noise sigma of the image (:func:`estimate_noise`).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        int32 (H, W) new components 1..K in raster order of their first
+        pixel, pieces separated by a one-pixel unlabelled line; None when no
+        component was split.
+    """
+    cfg = config.split
+    failing = failing_components(z, components, noise, cfg, config.grow)
+    out = np.asarray(components, dtype=np.int32).copy()
+    next_id = int(out.max(initial=0)) + 1
+    boxes = ndimage.find_objects(out)
+    for cid in failing.tolist():
+        box = boxes[cid - 1]
+        inside = out[box] == cid
+        pieces = split_component(z[box], inside, noise=noise, cfg=cfg, grow=config.grow)
+        k = int(pieces.max())
+        if k < 2:
+            continue
+        ids = np.concatenate([[0, cid], np.arange(next_id, next_id + k - 1)]).astype(np.int32)
+        next_id += k - 1
+        out[box] = np.where(inside, ids[pieces], out[box])
+    if next_id == int(np.max(components, initial=0)) + 1:
+        return None
+    return _raster_renumber(_separate(out))
+
+
+def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
+                  labels: np.ndarray, config: Config) -> np.ndarray:
+    """Test every component's fit, split the failing ones and regrow (Sec. VIII, V-4).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    codes
+        uint8 (H, W) linked edge codes of step 3.
+    components
+        int (H, W) components of step 3.
+    labels
+        int32 (H, W) the regions grown from ``components`` (returned when
+        nothing is split).
+    config
+        The whole configuration (``[split]`` and ``[grow]``).
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W) final labels: ``labels`` when no component fails the
+        fit test or none can be split at a crease, else the regions grown
+        (:func:`~rangeseg_cli.grow.grow_regions`) from the split components.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    noise = estimate_noise(z)
+    new = split_components(z, np.where(np.isfinite(z), components, 0), config, noise)
+    if new is None:
+        return labels
+    return grow_regions(z, codes, new, config.grow)

@@ -1,0 +1,317 @@
+"""Issue 9: the quality-of-fit split of Sec. VIII and the noise estimate (rangeseg_cli.split)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from rangeseg_cli.config import Config, load_config
+from rangeseg_cli.errors import ConfigError
+from rangeseg_cli.evaluate import hoover_compare
+from rangeseg_cli.grow import grow_regions
+from rangeseg_cli.pipeline import run_pipeline, stage_edges, stage_grow
+from rangeseg_cli.split import (
+    estimate_noise,
+    failing_components,
+    merge_back,
+    noise_scaled_config,
+    split_regions,
+)
+
+N = 128
+SPLIT = load_config()  # the split is on by default
+PAPER = load_config(preset="paper")  # the paper's algorithm alone
+
+
+def _grid() -> tuple[np.ndarray, np.ndarray]:
+    y, x = np.mgrid[0:N, 0:N].astype(np.float64)
+    return y, x
+
+
+def _finish(z: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+    """Add Gaussian noise and quantise to 8 bits, as the ERIM images are."""
+    if sigma:
+        z = z + np.random.default_rng(seed).normal(0.0, sigma, z.shape)
+    return np.clip(np.round(z), 0.0, 255.0)
+
+
+def frustum_scene(sigma: float = 0.0, seed: int = 0, slope: float = 1.5
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A square frustum on a table: sides of ``slope`` (roof AR ~2.4 < 4 at 1.5), top 30 up.
+
+    Returns the image and the true faces: 1 table, 2..5 sides, 6 top.
+    """
+    y, x = _grid()
+    dx, dy = x - 63.5, y - 63.5
+    height = np.clip(slope * (44.0 - np.maximum(np.abs(dx), np.abs(dy))), 0.0, 30.0)
+    truth = np.ones((N, N), np.int32)
+    side = (height > 0) & (height < 30.0)
+    across = np.abs(dx) >= np.abs(dy)
+    truth[side & across & (dx > 0)] = 2
+    truth[side & across & (dx < 0)] = 3
+    truth[side & ~across & (dy > 0)] = 4
+    truth[side & ~across & (dy < 0)] = 5
+    truth[height >= 30.0] = 6
+    return _finish(20.0 + height, sigma, seed), truth
+
+
+def crease_scene(sigma: float = 0.0, seed: int = 0, change: float = 1.0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Two nearly coplanar faces whose slope changes by ``change`` units per pixel at x = 63.5."""
+    y, x = _grid()
+    z = 100.0 + 0.1 * y - 0.5 * change * np.abs(x - 63.5)
+    return _finish(z, sigma, seed), np.where(x < 63.5, 1, 2).astype(np.int32)
+
+
+def cylinder_scene(sigma: float = 0.0, seed: int = 0) -> np.ndarray:
+    """A cylinder of radius 40 lying on a table at 20, axis along the columns."""
+    y, x = _grid()
+    z = np.full((N, N), 20.0)
+    inside = (np.abs(y - 64.0) < 40.0) & (x >= 16) & (x < 112)
+    z[inside] = 60.0 + np.sqrt(1600.0 - (y[inside] - 64.0) ** 2)
+    return _finish(z, sigma, seed)
+
+
+def sphere_scene(sigma: float = 0.0, seed: int = 0) -> np.ndarray:
+    """A sphere of radius 40 on a table at 20."""
+    y, x = _grid()
+    r2 = (x - 63.5) ** 2 + (y - 63.5) ** 2
+    z = np.where(r2 < 1600.0, 20.0 + np.sqrt(np.maximum(1600.0 - r2, 0.0)), 20.0)
+    return _finish(z, sigma, seed)
+
+
+def tilted_plane(sigma: float, seed: int) -> np.ndarray:
+    y, x = _grid()
+    return _finish(40.0 + 0.7 * x - 0.4 * y, sigma, seed)
+
+
+def large_regions(labels: np.ndarray, min_pixels: int = 50) -> np.ndarray:
+    counts = np.bincount(labels.ravel())
+    ids = np.flatnonzero(counts >= min_pixels)
+    return ids[ids > 0]
+
+
+def correct(truth: np.ndarray, labels: np.ndarray) -> int:
+    """Correct detections of Hoover et al. (1996) at tolerance 0.8."""
+    return hoover_compare(truth, labels).counts()["correct"]
+
+
+# ------------------------------------------------------------------ noise estimate
+
+
+@pytest.mark.parametrize(("sigma", "rel"), [(0.5, 0.1), (1.0, 0.04), (2.0, 0.04), (4.0, 0.04)])
+def test_noise_estimate_recovers_the_sigma_of_a_noisy_plane(sigma: float, rel: float) -> None:
+    # The noise plus 8-bit quantisation; at low noise the rounding pattern reads high.
+    expected = np.sqrt(sigma**2 + 1.0 / 12.0)
+    for seed in (0, 1):
+        assert estimate_noise(tilted_plane(sigma, seed)) == pytest.approx(expected, rel=rel)
+
+
+def test_noise_estimate_is_not_raised_by_step_edges() -> None:
+    plane = tilted_plane(1.0, 3)
+    boxes = plane.copy()
+    boxes[10:50, 10:50] += 80.0
+    boxes[70:120, 60:90] += 120.0  # long high step contours on 4 % of the pixels
+    assert estimate_noise(boxes) == pytest.approx(estimate_noise(plane), rel=0.05)
+
+
+def test_noise_estimate_of_noise_free_constant_data_is_zero() -> None:
+    assert estimate_noise(np.full((N, N), 37.0)) == 0.0
+
+
+def test_noise_estimate_leaves_out_invalid_pixels() -> None:
+    z = tilted_plane(2.0, 4)
+    holed = z.copy()
+    holed[30:60, :] = np.nan
+    holed[:, 100:] = np.nan
+    assert np.isfinite(estimate_noise(holed))
+    assert estimate_noise(holed) == pytest.approx(estimate_noise(z), rel=0.08)
+
+
+def test_pipeline_result_carries_the_noise_estimate() -> None:
+    result = run_pipeline(tilted_plane(2.0, 5), stages=1)
+    assert result.noise_sigma == estimate_noise(result.heights)
+    assert result.noise_sigma == pytest.approx(2.02, rel=0.08)
+
+
+# ------------------------------------------------------------------ the fit test
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
+def test_noisy_plane_passes_the_fit_test(sigma: float) -> None:
+    for seed in (0, 1, 2):
+        z = tilted_plane(sigma, seed)
+        comps = np.ones((N, N), np.int32)
+        assert failing_components(z, comps, estimate_noise(z), SPLIT.split,
+                                  SPLIT.grow).size == 0
+
+
+def test_one_component_over_a_crease_fails_the_fit_test() -> None:
+    z, _ = crease_scene()
+    failing = failing_components(z, np.ones((N, N), np.int32), estimate_noise(z),
+                                 SPLIT.split, SPLIT.grow)
+    np.testing.assert_array_equal(failing, [1])
+
+
+# ------------------------------------------------------------------ splitting
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.5])
+def test_frustum_with_shallow_sides_gives_its_five_faces(sigma: float) -> None:
+    z, truth = frustum_scene(sigma, seed=1)
+    assert correct(truth, run_pipeline(z, PAPER, stages=3).labels) == 0  # one blob
+    labels = run_pipeline(z, SPLIT, stages=3).labels
+    assert correct(truth, labels) == 6  # the five faces and the table
+    faces = [np.bincount(labels[truth == face]).argmax() for face in range(1, 7)]
+    assert len(set(faces)) == 6 and 0 not in faces
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0])
+def test_two_coplanar_ish_faces_at_a_one_unit_crease_are_split(sigma: float) -> None:
+    z, truth = crease_scene(sigma, seed=2, change=1.0)
+    assert len(large_regions(run_pipeline(z, PAPER, stages=3).labels)) == 1
+    result = run_pipeline(z, SPLIT, stages=3)
+    assert len(large_regions(result.labels)) == 2
+    assert correct(truth, result.labels) == 2
+    slopes = sorted(s.coefficients[1] for s in result.surfaces if s.pixels >= 50)
+    np.testing.assert_allclose(slopes, [-0.5, 0.5], atol=0.02)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
+@pytest.mark.parametrize("scene", [cylinder_scene, sphere_scene], ids=["cylinder", "sphere"])
+def test_genuinely_curved_surface_is_not_split(scene, sigma: float) -> None:
+    z = scene(sigma, seed=3)
+    labels = run_pipeline(z, SPLIT, stages=3).labels
+    assert len(large_regions(labels)) == 2  # the object and the table
+    on_top = labels[64, 64]
+    assert on_top > 0 and np.count_nonzero(labels == on_top) > 3000
+
+
+@pytest.mark.parametrize("scene", [cylinder_scene, sphere_scene], ids=["cylinder", "sphere"])
+def test_curved_surface_fails_the_fit_test_so_the_merge_back_keeps_it_whole(scene) -> None:
+    # Noise-free, a quadric does not fit a circle's profile to the noise: the split is
+    # tried, and it is merging the pieces back that keeps the surface whole.
+    result = run_pipeline(scene(), PAPER, stages=2)
+    noise = estimate_noise(result.heights)
+    failing = failing_components(result.heights, result.components, noise, SPLIT.split,
+                                 SPLIT.grow)
+    assert result.components[64, 64] in failing
+
+
+def test_merge_back_joins_two_halves_of_one_plane_and_keeps_a_crease() -> None:
+    y, x = _grid()
+    halves = np.where(x < 64, 1, 2).astype(np.int32)
+    rules = {"level": 0.625, "floor": 1.58, "min_gain": 1.5, "min_crease": 10.0,
+             "planar_tolerance": 0.1, "min_error": 0.25}
+    plane = np.round(30.0 + 0.3 * x + 0.2 * y)
+    assert merge_back(plane, halves, **rules).max() == 1
+    z, _ = crease_scene(change=1.0)
+    assert merge_back(z, halves, **rules).max() == 2
+
+
+def test_max_pieces_bounds_the_split() -> None:
+    z, _ = frustum_scene()
+    config = load_config(overrides={"split": {"max_pieces": 2}})
+    many = len(large_regions(run_pipeline(z, SPLIT, stages=3).labels))
+    few = len(large_regions(run_pipeline(z, config, stages=3).labels))
+    assert few == 2 < many == 6
+
+
+# ------------------------------------------------------------------ stage contract
+
+
+def test_component_that_passes_leaves_the_grown_labels_untouched() -> None:
+    z = tilted_plane(1.0, 6)
+    z[40:80, 40:90] += 60.0  # a box: step edges only, every face planar
+    result = run_pipeline(z, PAPER, stages=3)
+    again = split_regions(result.heights, result.edges, result.components, result.labels,
+                          SPLIT)
+    assert again is result.labels
+
+
+def test_grow_stage_with_split_is_a_pure_function_of_its_inputs() -> None:
+    z, _ = frustum_scene(sigma=1.0, seed=7)
+    result = run_pipeline(z, SPLIT, stages=3)
+    edges, comps = result.edges.copy(), result.components.copy()
+    labels, surfaces = stage_grow(result.heights, result.edges, result.components, SPLIT)
+    np.testing.assert_array_equal(labels, result.labels)
+    assert surfaces == result.surfaces
+    np.testing.assert_array_equal(result.edges, edges)  # inputs untouched
+    np.testing.assert_array_equal(result.components, comps)
+
+
+def test_split_disabled_gives_the_papers_region_growing() -> None:
+    z, _ = crease_scene(sigma=1.0, seed=8)
+    result = run_pipeline(z, PAPER, stages=3)
+    plain = grow_regions(result.heights, result.edges, result.components, PAPER.grow)
+    np.testing.assert_array_equal(result.labels, plain)
+
+
+def test_split_pieces_are_numbered_in_raster_order_and_never_cover_invalid_pixels() -> None:
+    z, _ = crease_scene(sigma=1.0, seed=9)
+    z[:, 20:24] = np.nan
+    labels = run_pipeline(z, SPLIT, stages=3).labels
+    assert np.all(labels[:, 20:24] == 0)
+    ids = large_regions(labels)
+    assert len(ids) >= 2
+    firsts = [np.flatnonzero(labels.ravel() == i)[0] for i in np.unique(labels[labels > 0])]
+    assert firsts == sorted(firsts)
+
+
+# ------------------------------------------------------------------ config, thresholds
+
+
+@pytest.mark.parametrize(("values", "match"), [
+    ({"split": {"fit_factor": 0}}, r"\[split\] fit_factor = 0"),
+    ({"split": {"max_pieces": 1}}, r"\[split\] max_pieces = 1: expected an integer >= 2"),
+    ({"split": {"min_gain": 0.5}}, r"\[split\] min_gain = 0.5"),
+    ({"split": {"enable": True}}, r"unknown key \[split\] enable"),
+    ({"input": {"auto_thresholds": 1}}, r"\[input\] auto_thresholds = 1: expected true"),
+])
+def test_split_and_auto_threshold_keys_are_validated(values: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        load_config(overrides=values)
+
+
+def test_split_is_on_by_default_and_off_in_the_paper_preset() -> None:
+    assert Config().split.enabled and not PAPER.split.enabled
+    assert not Config().input.auto_thresholds
+
+
+@pytest.mark.parametrize(("noise", "scale"), [(0.0, 0.7), (1.0, 1.0), (2.0, 2**0.5),
+                                              (9.0, 2.0)])
+def test_auto_thresholds_scale_with_the_square_root_of_the_noise(noise: float,
+                                                                 scale: float) -> None:
+    auto = load_config(overrides={"input": {"auto_thresholds": True}})
+    scaled = noise_scaled_config(auto, noise)
+    assert scaled.step.threshold == pytest.approx(6.0 * scale)
+    assert scaled.roof.threshold_a == pytest.approx(6.0 * scale)
+    assert scaled.roof.threshold_b == pytest.approx(4.0 * scale)
+    assert noise_scaled_config(SPLIT, noise) is SPLIT  # off: the paper's thresholds
+
+
+def test_auto_thresholds_drop_noise_edges_on_a_noisy_plane() -> None:
+    z = tilted_plane(2.0, 10)
+    fixed = stage_edges(z, SPLIT).codes
+    auto = stage_edges(z, replace(SPLIT, input=replace(SPLIT.input,
+                                                      auto_thresholds=True))).codes
+    assert np.count_nonzero(auto) < 0.5 * np.count_nonzero(fixed)
+
+
+def test_split_handles_small_holed_and_flat_images_deterministically() -> None:
+    rng = np.random.default_rng(123)
+    eager = load_config(overrides={"split": {"fit_factor": 0.5}})  # split whatever it can
+    for trial in range(12):
+        h, w = (int(v) for v in rng.integers(16, 60, size=2))
+        y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+        z = 50.0 + rng.uniform(-3, 3) * np.abs(x - rng.uniform(0, w)) + rng.uniform(-2, 2) * y
+        z = np.round(z + rng.normal(0.0, rng.uniform(0, 3), (h, w)))
+        if trial % 3 == 0:
+            z[rng.random((h, w)) < 0.2] = np.nan
+        if trial % 4 == 1:
+            z = np.full((h, w), 17.0)
+        first = run_pipeline(z, eager, stages=3).labels
+        np.testing.assert_array_equal(first, run_pipeline(z, eager, stages=3).labels)
+        assert np.all(first[np.isnan(z)] == 0)
