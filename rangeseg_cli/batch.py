@@ -430,7 +430,7 @@ def run_batch(jobs: list[Job], out: Path, config: Config, stages: tuple[str, ...
 
     Raises
     ------
-    rangeseg_cli.dask_executor.ClusterError
+    rangeseg_cli.errors.ClusterError
         With ``executor="dask"``, before any work, when the cluster cannot be
         used (dask missing, scheduler unreachable, workers without rangeseg
         or without the shared storage).

@@ -22,6 +22,7 @@ from . import __version__
 log = logging.getLogger("rangeseg")
 STAGE_NAMES = ("edges", "link", "grow", "holdsite")
 PRESET_NAMES = ("paper", "mm-depth", "tenth-mm-depth", "metre-depth")
+EXECUTOR_NAMES = ("local", "dask")  # rangeseg_cli.batch.EXECUTORS (not imported: fast --help)
 
 # --------------------------------------------------------------------------- shared options
 
@@ -39,6 +40,15 @@ resume_opt = click.option("--resume", is_flag=True,
                           help="Complete only what is missing in OUT (same config).")
 overwrite_opt = click.option("--overwrite", is_flag=True,
                              help="Redo every image even if OUT holds results.")
+executor_opt = click.option("--executor", type=click.Choice(EXECUTOR_NAMES), default="local",
+                            show_default=True,
+                            help="Where images are processed: --jobs processes here, or one "
+                                 "task per image on a Dask cluster (needs --scheduler and "
+                                 "pip install 'rangeseg[dask]').")
+scheduler_opt = click.option("--scheduler", metavar="ADDRESS",
+                             help="Dask scheduler of --executor dask, e.g. "
+                                  "tcp://10.0.0.5:8786; workers must see INPUTS and OUT "
+                                  "at the same paths.")
 json_opt = click.option("--json", "as_json", is_flag=True,
                         help="Print the batch summary as JSON on stdout.")
 output_opt = click.option("--output", "-o", "out", required=True,
@@ -58,8 +68,8 @@ def verbosity_opts(f: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _batch_options(f: Callable[..., Any]) -> Callable[..., Any]:
-    for opt in (json_opt, overwrite_opt, resume_opt, jobs_opt, set_opt, preset_opt,
-                config_opt):
+    for opt in (json_opt, overwrite_opt, resume_opt, scheduler_opt, executor_opt, jobs_opt,
+                set_opt, preset_opt, config_opt):
         f = opt(f)
     return verbosity_opts(f)
 
@@ -118,16 +128,18 @@ def _run(ctx: click.Context, jobs: Any, out: Path, config: Any, stages: tuple[st
     """Run a batch with progress and summary, then exit with the batch's code."""
     from .batch import default_jobs, run_batch
     from .cli_report import BatchReporter
-    from .errors import OutputError
+    from .errors import ClusterError, OutputError
 
+    _check_executor(opts["executor"], opts["scheduler"])
     reporter = BatchReporter(quiet=opts["quiet"] > 0, verbose=opts["verbose"])
     try:
         summary = run_batch(
             jobs, out, config, stages, n_jobs=opts["jobs"] or default_jobs(),
             resume=opts.get("resume", False), overwrite=opts.get("overwrite", False),
             skipped_files=skipped_files, command=ctx.info_name or "run",
-            on_result=reporter.result, on_start=reporter.start)
-    except OutputError as exc:
+            on_result=reporter.result, on_start=reporter.start,
+            executor=opts["executor"], scheduler=opts["scheduler"])
+    except (OutputError, ClusterError) as exc:
         raise UsageProblem(str(exc)) from None
     finally:
         reporter.stop()
@@ -139,6 +151,16 @@ def _run(ctx: click.Context, jobs: Any, out: Path, config: Any, stages: tuple[st
                    "same command with --resume to finish", err=True)
         ctx.exit(130)
     ctx.exit(1 if summary.count("failed") else 0)
+
+
+def _check_executor(executor: str, scheduler: str | None) -> None:
+    if executor == "dask" and not scheduler:
+        raise click.BadParameter("--executor dask needs the address of a running Dask "
+                                 "scheduler, e.g. --scheduler tcp://10.0.0.5:8786",
+                                 param_hint="--scheduler")
+    if executor != "dask" and scheduler:
+        raise click.BadParameter("--scheduler is used only with --executor dask",
+                                 param_hint="--scheduler")
 
 
 def _input_jobs(inputs: tuple[str, ...], out: Path) -> tuple[list[Any], list[str]]:

@@ -21,3 +21,7 @@ class InputError(RangesegError):
 
 class OutputError(RangesegError):
     """An output folder cannot be written, or holds results that would be overwritten."""
+
+
+class ClusterError(RangesegError):
+    """Dask is missing, the scheduler cannot be reached, or its workers cannot run rangeseg."""

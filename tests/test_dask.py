@@ -1,0 +1,185 @@
+"""Batches on a Dask cluster (issue 10): same bytes as local, a killed worker, resume, errors.
+
+One LocalCluster of two worker processes on loopback serves the module; the
+CLI runs in this process through CliRunner with ``--executor dask``.
+"""
+
+import json
+import os
+import signal
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from distributed import Client, LocalCluster
+
+from conftest import box_scene
+from rangeseg_cli import cli_report, dask_executor, load_config
+from rangeseg_cli.batch import Job
+from rangeseg_cli.cli import main
+from rangeseg_cli.dask_executor import ClusterError, execute_on_dask
+from rangeseg_cli.pipeline import STAGES
+
+N_IMAGES = 16
+
+
+def tree_bytes(folder: Path) -> dict[str, bytes]:
+    """Every file below ``folder`` except the manifest (it holds timings)."""
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "rangeseg-run.json"}
+
+
+def scene(i: int, size: int = 160) -> np.ndarray:
+    z = box_scene(size, noise=1.0, seed=i)
+    z[60 + i % 7: 90 + i % 7, 100:140] += 30.0  # a second block, moving with i
+    return z.clip(0, 255).astype(np.uint8)
+
+
+def run_cli(*args: str) -> tuple[int, str]:
+    res = CliRunner().invoke(main, ["run", *args, "-q"])
+    return res.exit_code, res.output
+
+
+def manifest(out: Path) -> dict:
+    return json.loads((out / "rangeseg-run.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def client(cluster):
+    with Client(cluster.scheduler_address, set_as_default=False, timeout=60) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("dask") / "images"
+    (folder / "sub").mkdir(parents=True)
+    for i in range(N_IMAGES):
+        iio.imwrite(folder / ("sub" if i % 4 == 0 else ".") / f"img{i:02d}.png", scene(i))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def local_bytes(images, tmp_path_factory):
+    out = tmp_path_factory.mktemp("local") / "out"
+    code, output = run_cli(str(images), "-o", str(out), "--executor", "local", "--jobs", "1")
+    assert code == 0, output
+    return tree_bytes(out)
+
+
+def dask_args(cluster) -> list[str]:
+    return ["--executor", "dask", "--scheduler", cluster.scheduler_address]
+
+
+def test_dask_run_gives_the_same_bytes_as_a_local_run(cluster, images, local_bytes, tmp_path):
+    out = tmp_path / "out"
+    code, output = run_cli(str(images), "-o", str(out), *dask_args(cluster))
+    assert code == 0, output
+    assert tree_bytes(out) == local_bytes
+    statuses = [e["status"] for e in manifest(out)["images"].values()]
+    assert statuses == ["done"] * N_IMAGES
+
+
+def test_bad_image_on_dask_is_recorded_as_in_a_local_run_with_exit_1(cluster, tmp_path):
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    iio.imwrite(folder / "good.png", scene(1))
+    (folder / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"x" * 50)
+    runs = {}
+    for executor, extra in (("local", ["--jobs", "1"]), ("dask", dask_args(cluster)[2:])):
+        out = tmp_path / executor
+        code, output = run_cli(str(folder), "-o", str(out), "--executor", executor, *extra)
+        assert code == 1, output
+        assert sum("corrupt.png" in line for line in output.splitlines()) == 1, output
+        runs[executor] = manifest(out)["images"]
+    assert runs["dask"]["good"]["status"] == "done"
+    assert runs["dask"]["corrupt"]["status"] == "failed"
+    assert runs["dask"]["corrupt"]["error"] == runs["local"]["corrupt"]["error"]
+    assert runs["dask"]["corrupt"]["input"] == runs["local"]["corrupt"]["input"]
+
+
+def test_dask_resume_redoes_only_what_is_missing(cluster, images, local_bytes, tmp_path):
+    out = tmp_path / "out"
+    assert run_cli(str(images), "-o", str(out), *dask_args(cluster))[0] == 0
+    (out / "img05.labels.npy").unlink()
+    res = CliRunner().invoke(main, ["run", str(images), "-o", str(out), *dask_args(cluster),
+                                    "--resume", "-q", "--json"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.output)
+    assert (summary["done"], summary["resumed"]) == (1, N_IMAGES - 1)
+    assert tree_bytes(out) == local_bytes
+
+
+def test_unreachable_scheduler_exits_2_with_one_line_before_any_work(images, tmp_path,
+                                                                      monkeypatch):
+    monkeypatch.setattr(dask_executor, "CONNECT_TIMEOUT_S", 1.0)
+    for address in ("tcp://127.0.0.1:1", "127.0.0.1"):
+        out = tmp_path / "out"
+        code, output = run_cli(str(images), "-o", str(out), "--executor", "dask",
+                               "--scheduler", address)
+        assert code == 2, output
+        assert len(output.strip().splitlines()) == 1 and address in output, output
+        assert not out.exists()
+
+
+def test_missing_dask_is_one_line_naming_the_extra(images, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed fails
+    out = tmp_path / "out"
+    code, output = run_cli(str(images), "-o", str(out), "--executor", "dask",
+                           "--scheduler", "tcp://127.0.0.1:8786")
+    assert code == 2, output
+    assert len(output.strip().splitlines()) == 1 and "pip install 'rangeseg[dask]'" in output
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--executor", "dask"], "--executor dask needs"),
+    (["--scheduler", "tcp://127.0.0.1:8786"], "only with --executor dask"),
+])
+def test_executor_and_scheduler_must_go_together(images, tmp_path, args, message):
+    code, output = run_cli(str(images), "-o", str(tmp_path / "out"), *args)
+    assert code == 2 and message in output, output
+
+
+def test_workers_that_do_not_see_the_output_folder_are_refused(cluster, tmp_path):
+    with pytest.raises(ClusterError, match="does not see .*shared storage"):
+        execute_on_dask([Job(rel="x", source=str(tmp_path / "x.png"))], tmp_path / "nowhere",
+                        load_config(), STAGES, cluster.scheduler_address, lambda r: None)
+
+
+def test_worker_killed_mid_batch_still_completes_with_identical_bytes(
+        cluster, client, images, local_bytes, tmp_path, monkeypatch):
+    # When the first image is reported, SIGKILL a worker that holds one of the
+    # batch's tasks (like the OOM killer would); its nanny starts a new one.
+    pids = client.run(os.getpid)
+    killed: list[str] = []
+    report = cli_report.BatchReporter.result
+
+    def result_then_kill(self, record):
+        report(self, record)
+        if not killed:
+            busy = [w for w, keys in client.processing().items()
+                    if any(str(k).startswith("rangeseg-") for k in keys)]
+            assert busy, "no worker holds a task of the batch"
+            killed.append(busy[0])
+            os.kill(pids[busy[0]], signal.SIGKILL)
+
+    monkeypatch.setattr(cli_report.BatchReporter, "result", result_then_kill)
+    out = tmp_path / "out"
+    code, output = run_cli(str(images), "-o", str(out), *dask_args(cluster))
+    assert code == 0, output
+    assert killed and killed[0] not in client.scheduler_info()["workers"]
+    assert tree_bytes(out) == local_bytes  # no stray temporaries either
+    statuses = [e["status"] for e in manifest(out)["images"].values()]
+    assert statuses == ["done"] * N_IMAGES
+    client.wait_for_workers(2, timeout=60)  # leave the cluster whole
