@@ -86,7 +86,7 @@ def bench(count: int, runs: int) -> dict[str, Any]:
         write_batch(folder, count)
         t0 = time.perf_counter()
         with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                          host="127.0.0.1", dashboard_address=None) as cluster:
+                          host="127.0.0.1", dashboard_address=":0") as cluster:
             cluster_start = time.perf_counter() - t0
             walls = _runs(folder, Path(tmp), cluster.scheduler_address, runs + 1)
         identical = all(tree_bytes(Path(tmp) / f"{m}-local-0")
