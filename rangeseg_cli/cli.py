@@ -348,33 +348,6 @@ def synth_cmd(out: str, scenes: list[str] | None, noise: list[float], seed: int,
                    err=True)
 
 
-def _eval_table(result: dict[str, Any]) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    keys = ("gt_regions", "correct", "over", "under", "missed", "noise")
-    table = Table(title=f"Hoover et al. (1996) at tolerance {result['tolerance']:g}, "
-                  f"GT regions >= {result['min_region']} px")
-    for col in ("image", "GT", "correct", "over", "under", "missed", "noise", "holdsite"):
-        table.add_column(col, justify="left" if col == "image" else "right")
-    for stem, row in result["images"].items():
-        if "error" in row:
-            table.add_row(stem, "[red]error[/red]", *[""] * 6)
-            continue
-        hs = row.get("holdsite")
-        table.add_row(stem, *(str(row[k]) for k in keys),
-                      "-" if hs is None else ("ok" if hs["ok"] else "[red]fail[/red]"))
-    total = result["total"]
-    checks = total["holdsite"]
-    table.add_row("[bold]total", *(f"[bold]{total[k]}" for k in keys),
-                  f"[bold]{checks['ok']}/{checks['checked']}", end_section=True)
-    console = Console(highlight=False)
-    console.print(table)
-    curve = total["curve"]
-    console.print("correct detections vs tolerance: " + ", ".join(
-        f"{t:g}: {c}" for t, c in zip(curve["tolerance"], curve["correct"], strict=True)))
-
-
 @main.command(name="eval")
 @click.argument("pred_dir", type=click.Path(file_okay=False))
 @click.argument("gt_dir", type=click.Path(file_okay=False))
@@ -408,7 +381,9 @@ def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
     if as_json:
         click.echo(json.dumps(result, sort_keys=True, indent=2))
     elif not quiet:
-        _eval_table(result)
+        from .cli_report import print_eval_table
+
+        print_eval_table(result)
     if plot and not plot_curve(result["total"]["curve"], Path(plot),
                                gt_regions=result["total"]["gt_regions"]):
         click.echo("--plot: matplotlib is not installed; no plot written", err=True)

@@ -69,3 +69,28 @@ class BatchReporter:
         if stages:
             self.console.print("time per stage (s): " + ", ".join(
                 f"{k} {v:.3f}" for k, v in stages.items()), markup=False)
+
+
+def print_eval_table(result: dict[str, Any]) -> None:
+    """Print the Hoover et al. (1996) classes per image and in total, and the tolerance curve."""
+    keys = ("gt_regions", "correct", "over", "under", "missed", "noise")
+    table = Table(title=f"Hoover et al. (1996) at tolerance {result['tolerance']:g}, "
+                  f"GT regions >= {result['min_region']} px")
+    for col in ("image", "GT", "correct", "over", "under", "missed", "noise", "holdsite"):
+        table.add_column(col, justify="left" if col == "image" else "right")
+    for stem, row in result["images"].items():
+        if "error" in row:
+            table.add_row(stem, "[red]error[/red]", *[""] * 6)
+            continue
+        hs = row.get("holdsite")
+        table.add_row(stem, *(str(row[k]) for k in keys),
+                      "-" if hs is None else ("ok" if hs["ok"] else "[red]fail[/red]"))
+    total = result["total"]
+    checks = total["holdsite"]
+    table.add_row("[bold]total", *(f"[bold]{total[k]}" for k in keys),
+                  f"[bold]{checks['ok']}/{checks['checked']}", end_section=True)
+    console = Console(highlight=False)
+    console.print(table)
+    curve = total["curve"]
+    console.print("correct detections vs tolerance: " + ", ".join(
+        f"{t:g}: {c}" for t, c in zip(curve["tolerance"], curve["correct"], strict=True)))

@@ -117,3 +117,16 @@ def test_two_inputs_with_the_same_stem_are_refused(runner, tmp_path, write_png):
 def test_stage_command_without_earlier_stage_is_a_usage_error(runner, tmp_path):
     res = runner.invoke(main, ["link", str(tmp_path / "nothing")])
     assert res.exit_code == 2 and "run `rangeseg edges` first" in res.output
+
+
+def test_library_modules_never_import_click_or_rich():
+    import re
+    from pathlib import Path
+
+    import rangeseg_cli
+
+    package = Path(rangeseg_cli.__file__).parent
+    pattern = re.compile(r"^\s*(import|from)\s+(click|rich)\b", re.MULTILINE)
+    offenders = [p.name for p in package.glob("*.py")
+                 if not p.name.startswith("cli") and pattern.search(p.read_text())]
+    assert offenders == []
