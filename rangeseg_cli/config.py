@@ -132,6 +132,13 @@ class SplitConfig:
                           "normal_sigma or more from its border), in pixels; smaller ones "
                           "join their nearest piece", min=1)
     max_pieces: int = _opt(8, "most pieces one component is split into", min=2, max=64)
+    recover: bool = _opt(True, "after growing, give a narrow face its own region: a band of "
+                         "unlabelled pixels that one plane fits to the noise and no neighbouring "
+                         "surface fits")
+    recover_passes: int = _opt(2, "passes extending a recovered face into edge pixels it fits "
+                               "better than their region", min=0, max=100)
+    recover_max_noise: float = _opt(1.5, "recover no face when the estimated image noise is "
+                                    "above this, depth units", min=0.0)
 
 
 @dataclass(frozen=True)
@@ -196,7 +203,8 @@ _TABLE_CLASSES: dict[str, type] = {
 
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    "paper": {"split": {"enabled": False}},  # the paper's algorithm alone (no Sec. VIII split)
+    # the paper's algorithm alone (no Sec. VIII split, no narrow-face recovery)
+    "paper": {"split": {"enabled": False, "recover": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,

@@ -94,16 +94,27 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     """Step 4 (Sec. V-4): final labels and their surface descriptions.
 
     With ``[split] enabled``, components that fail the fit test are split
-    and regrown (Sec. VIII; :mod:`rangeseg_cli.split`).
+    and regrown (Sec. VIII; :mod:`rangeseg_cli.split`); with ``[split]
+    recover``, narrow faces left unlabelled get regions of their own
+    (:mod:`rangeseg_cli.recover`).
     """
     from .grow import grow_regions
     from .surfaces import describe_surfaces
 
     labels = grow_regions(z, edges, components, config.grow)
+    noise = None
+    if config.split.enabled or config.split.recover:
+        from .split import estimate_noise
+
+        noise = estimate_noise(z)
     if config.split.enabled:
         from .split import split_regions
 
-        labels = split_regions(z, edges, components, labels, config)
+        labels = split_regions(z, edges, components, labels, config, noise=noise)
+    if config.split.recover:
+        from .recover import recover_faces
+
+        labels = recover_faces(z, components, labels, config, noise=noise)
     return labels, describe_surfaces(z, labels, config)
 
 

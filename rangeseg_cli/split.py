@@ -50,7 +50,12 @@ Notes
 Everything is a pure function of its arrays: the noise comes from ``z``
 alone, so the ``grow`` stage stays a function of (z, edges, components,
 config). The loop over failing components is bounded by their number times
-``split.max_pieces``; every step inside it is vectorised.
+``split.max_pieces``; every step inside it is vectorised and works on the
+piece's bounding box. Inside a split, each part's local planes are computed
+only on the pixels within reach of the pixels they judge and of the part's
+core (:func:`_plane_heights`), and nearest parts are found by searching a
+few pixels around (:func:`_nearest_labels`): both give bit for bit what the
+whole box gives, so the results do not depend on these shortcuts.
 """
 
 from __future__ import annotations
@@ -85,6 +90,15 @@ _MODE_BIN = 0.05
 
 #: Reassignment rounds of the band around the division.
 _REFINE_ROUNDS = 2
+
+#: Radius (pixels) within which the nearest labelled pixel is searched directly.
+_SEARCH_RADIUS = 4
+
+#: Arrays of fewer pixels take the nearest labelled pixel from the feature transform.
+_SEARCH_MIN_PIXELS = 1 << 15
+
+#: The Gaussian weights of the local plane fits end at this many sigmas.
+_TRUNCATE = 3.0
 
 
 def _truncated_second_moment(fraction: float) -> float:
@@ -216,7 +230,8 @@ def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
     return np.flatnonzero(bad).astype(np.int64)
 
 
-def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float
+def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float, *,
+                 origin: tuple[float, float] | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gaussian-weighted local plane fits that use only ``mask`` pixels, at every pixel.
 
@@ -227,7 +242,14 @@ def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float
     mask
         bool (H, W) pixels to use.
     sigma
-        Gaussian sigma of the weights, pixels (truncated at 3 sigma).
+        Gaussian sigma of the weights, pixels (truncated at 3 sigma:
+        :func:`blur_radius` pixels).
+    origin
+        (row, col) coordinates of pixel [0, 0] in the frame of the fits;
+        default ``(-H / 2, -W / 2)`` (the array's centre). A crop of a larger
+        array given that array's frame gives bit for bit the same values as
+        the whole array wherever no ``mask`` pixel outside the crop lies
+        within :func:`blur_radius` of the pixel.
 
     Returns
     -------
@@ -236,31 +258,74 @@ def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float
         dz/dcol and dz/drow; NaN where fewer than a few ``mask`` pixels lie
         within reach or they lie on a line (the fit is degenerate).
     """
-    h, w = z.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    u -= w / 2.0
-    v -= h / 2.0
-    m = mask.astype(np.float64)
-    zc = np.where(mask, z, 0.0)
+    fit = _PlaneFit.of(z, mask, sigma, origin)
+    return fit.mz + fit.gx * (fit.u - fit.mu) + fit.gy * (fit.v - fit.mv), fit.gx, fit.gy
 
-    def blur(a: np.ndarray) -> np.ndarray:
-        return ndimage.gaussian_filter(a, sigma, mode="constant", truncate=3.0)
 
-    s = blur(m)
-    ok = s > 1e-3
-    s = np.where(ok, s, 1.0)
-    mu, mv, mz = blur(m * u) / s, blur(m * v) / s, blur(zc) / s
-    cuu = blur(m * u * u) / s - mu * mu
-    cuv = blur(m * u * v) / s - mu * mv
-    cvv = blur(m * v * v) / s - mv * mv
-    cuz = blur(zc * u) / s - mu * mz
-    cvz = blur(zc * v) / s - mv * mz
-    det = cuu * cvv - cuv * cuv
-    ok &= det > 1e-3 * sigma**4
-    safe = np.where(ok, det, 1.0)
-    gx = np.where(ok, (cvv * cuz - cuv * cvz) / safe, np.nan)
-    gy = np.where(ok, (cuu * cvz - cuv * cuz) / safe, np.nan)
-    return mz + gx * (u - mu) + gy * (v - mv), gx, gy
+@dataclass(frozen=True)
+class _PlaneFit:
+    """The local plane fits of :func:`local_planes`: slopes and weighted centres.
+
+    ``u`` (1, W) and ``v`` (H, 1) are the column and row coordinates; ``mu``,
+    ``mv``, ``mz`` the weighted means of u, v and z; ``gx``, ``gy`` the slopes
+    (NaN where the fit is degenerate). All (H, W) but the coordinates.
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    mu: np.ndarray
+    mv: np.ndarray
+    mz: np.ndarray
+    gx: np.ndarray
+    gy: np.ndarray
+
+    @classmethod
+    def of(cls, z: np.ndarray, mask: np.ndarray, sigma: float,
+           origin: tuple[float, float] | None) -> _PlaneFit:
+        """Fit the planes (weighted moments by Gaussian blurs of the masked products)."""
+        h, w = z.shape
+        v0, u0 = (-h / 2.0, -w / 2.0) if origin is None else origin
+        u = (np.arange(w, dtype=np.float64) + u0)[None, :]  # exact: integers and halves
+        v = (np.arange(h, dtype=np.float64) + v0)[:, None]
+        m = mask.astype(np.float64)
+        zc = np.where(mask, z, 0.0)
+        s = _blur(m, sigma)
+        ok = s > 1e-3
+        s = np.where(ok, s, 1.0)
+
+        def mean(a: np.ndarray) -> np.ndarray:
+            out = _blur(a, sigma)
+            out /= s
+            return out
+
+        mu_w, mv_w = m * u, m * v
+        mu, mv, mz = mean(mu_w), mean(mv_w), mean(zc)
+        cuu = mean(mu_w * u)
+        cuu -= mu * mu
+        cuv = mean(mu_w * v)
+        cuv -= mu * mv
+        cvv = mean(mv_w * v)
+        cvv -= mv * mv
+        cuz = mean(zc * u)
+        cuz -= mu * mz
+        cvz = mean(zc * v)
+        cvz -= mv * mz
+        det = cuu * cvv - cuv * cuv
+        ok &= det > 1e-3 * sigma**4
+        safe = np.where(ok, det, 1.0)
+        gx = np.where(ok, (cvv * cuz - cuv * cvz) / safe, np.nan)
+        gy = np.where(ok, (cuu * cvz - cuv * cuz) / safe, np.nan)
+        return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)
+
+
+def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur of the local plane fits: zero outside, cut at :data:`_TRUNCATE` sigmas."""
+    return ndimage.gaussian_filter(a, sigma, mode="constant", truncate=_TRUNCATE)
+
+
+def blur_radius(sigma: float) -> int:
+    """Reach in pixels of the Gaussian weights of :func:`local_planes` (as scipy truncates)."""
+    return int(_TRUNCATE * sigma + 0.5)
 
 
 def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float
@@ -282,7 +347,8 @@ def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float
         float64 (H, W) slopes dz/dcol and dz/drow; 0 outside ``mask`` and
         where the local fit is degenerate (the mask's pixels on a line).
     """
-    _, gx, gy = local_planes(z, mask, sigma)
+    fit = _PlaneFit.of(z, mask, sigma, None)
+    gx, gy = fit.gx, fit.gy
     keep = mask & np.isfinite(gx)
     return np.where(keep, gx, 0.0), np.where(keep, gy, 0.0)
 
@@ -381,28 +447,92 @@ def _parts(labels: np.ndarray) -> np.ndarray:
     """4-connected parts of every label, numbered 1..k (0 stays 0)."""
     out = np.zeros(labels.shape, np.int32)
     count = 0
-    for value in np.unique(labels[labels > 0]).tolist():
+    for value in _present(labels).tolist():
         lab, n = ndimage.label(labels == value, structure=FOUR_CONNECTED)
         out = np.where(lab > 0, lab + count, out)
         count += n
     return out
 
 
+def _present(labels: np.ndarray) -> np.ndarray:
+    """The labels > 0 that occur in ``labels`` (non-negative integers), ascending."""
+    ids = np.flatnonzero(np.bincount(labels.ravel()))
+    return ids[ids > 0]
+
+
 def _dense(labels: np.ndarray) -> np.ndarray:
     """Renumber the labels present 1..k in increasing order (0 stays 0)."""
-    ids = np.unique(labels)
+    ids = np.flatnonzero(np.bincount(labels.ravel()))
     lut = np.zeros(int(ids.max(initial=0)) + 1, np.int32)
     lut[ids] = np.arange(ids.size, dtype=np.int32) + (0 if ids[0] == 0 else 1)
     return lut[labels]
 
 
-def _fill_nearest(parts: np.ndarray, where: np.ndarray) -> np.ndarray:
-    """``parts`` on ``where``, each unlabelled pixel taking its nearest labelled pixel's label."""
-    if not (where & (parts == 0)).any() or parts.max(initial=0) == 0:
-        return np.where(where, parts, 0).astype(np.int32)
+def _search_offsets(radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets (rows, cols) within Euclidean ``radius``, nearest first, then by column, row.
+
+    The order in which :func:`scipy.ndimage.distance_transform_edt` breaks
+    ties between equally near feature pixels (smaller column, then smaller
+    row), so the first labelled pixel met is the one it returns.
+    """
+    span = np.arange(-radius, radius + 1)
+    dr, dc = (a.ravel() for a in np.meshgrid(span, span, indexing="ij"))
+    d2 = dr * dr + dc * dc
+    keep = (d2 > 0) & (d2 <= radius * radius)
+    order = np.lexsort((dr[keep], dc[keep], d2[keep]))
+    return dr[keep][order], dc[keep][order]
+
+
+_OFFSETS = _search_offsets(_SEARCH_RADIUS)
+
+
+def _nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Label of the nearest labelled pixel of ``parts`` (Euclidean) for each pixel (rows, cols).
+
+    The pixels are unlabelled. Those with a labelled pixel within
+    :data:`_SEARCH_RADIUS` find it by trying the offsets of
+    :func:`_search_offsets` in order; the rest take it from the feature
+    transform of the whole array. Both give what the feature transform
+    gives for all of them.
+    """
+    h, w = parts.shape
+    found = np.zeros(rows.size, np.int32)
+    todo = np.arange(rows.size)
+    for dr, dc in zip(*_OFFSETS, strict=True):
+        r, c = rows[todo] + dr, cols[todo] + dc
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        lab = np.zeros(todo.size, np.int32)
+        lab[inside] = parts[r[inside], c[inside]]
+        hit = lab > 0
+        found[todo[hit]] = lab[hit]
+        todo = todo[~hit]
+        if todo.size == 0:
+            return found
     ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
                                             return_indices=True)
-    return np.where(where, parts[ir, ic], 0).astype(np.int32)
+    found[todo] = parts[ir[rows[todo], cols[todo]], ic[rows[todo], cols[todo]]]
+    return found
+
+
+def _fill_nearest(parts: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """``parts`` on ``where``, each unlabelled pixel taking its nearest labelled pixel's label.
+
+    Ties go as :func:`scipy.ndimage.distance_transform_edt` breaks them
+    (:func:`_nearest_labels`).
+    """
+    out = np.where(where, parts, 0).astype(np.int32)
+    if parts.max(initial=0) == 0:
+        return out
+    rows, cols = np.nonzero(where & (parts == 0))
+    if rows.size == 0:
+        return out
+    if parts.size < _SEARCH_MIN_PIXELS:  # the transform is cheaper than the search
+        ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
+                                                return_indices=True)
+        out[rows, cols] = parts[ir[rows, cols], ic[rows, cols]]
+    else:
+        out[rows, cols] = _nearest_labels(parts, rows, cols)
+    return out
 
 
 def _core(parts: np.ndarray, frame: _Frame) -> np.ndarray:
@@ -411,10 +541,13 @@ def _core(parts: np.ndarray, frame: _Frame) -> np.ndarray:
     The border is where another part or the outside of ``frame.solid``
     begins (small holes are not border).
     """
-    padded = np.pad(_fill_nearest(parts, frame.solid), 1)
-    uniform = ndimage.minimum_filter(padded, size=3) == ndimage.maximum_filter(padded, size=3)
-    depth = ndimage.distance_transform_cdt(uniform, metric="chessboard")[1:-1, 1:-1]
-    return np.where((depth >= frame.thickness) & frame.mask, parts, 0)
+    filled = _fill_nearest(parts, frame.solid)
+    # Within ``thickness`` (chessboard) of p all filled pixels carry p's part and none
+    # lies outside the frame: the window's minimum is its maximum.
+    size = 2 * frame.thickness + 1
+    inner = (ndimage.minimum_filter(filled, size=size, mode="constant", cval=0)
+             == ndimage.maximum_filter(filled, size=size, mode="constant", cval=0))
+    return np.where(inner & frame.mask, parts, 0)
 
 
 def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
@@ -453,7 +586,8 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     normals at a crease); a pixel may only go to a part within
     ``frame.band``, so no plane is extrapolated far. Pixels near one part
     only keep their label. The work is confined to the bounding box of the
-    doubtful pixels.
+    doubtful pixels, and each part's planes to the pixels within reach of
+    both its doubtful pixels and its core (:func:`_plane_heights`).
     """
     size = 2 * frame.band + 1
     big = np.iinfo(np.int32).max
@@ -469,18 +603,61 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     rows, cols = np.nonzero(doubt)
     best = sub[rows, cols].copy()
     best_cost = np.full(rows.size, np.inf)
-    for k in np.unique(sub[sub > 0]).tolist():
-        near = ndimage.maximum_filter(sub == k, size=size, mode="constant")[rows, cols]
+    for k in _present(sub).tolist():
+        near = _near(sub == k, frame.band, rows, cols)
         if not near.any() or not (core == k).any():
             continue
-        height, _, _ = local_planes(zb, core == k, frame.sigma)
-        cost = np.abs(zb[rows, cols] - height[rows, cols])
-        cost = np.where(near & np.isfinite(cost), cost, np.inf)
+        cost = np.full(rows.size, np.inf)
+        cost[near] = _plane_heights(zb, core == k, frame.sigma, rows[near], cols[near])
+        cost[near] = np.abs(zb[rows[near], cols[near]] - cost[near])
+        cost = np.where(np.isfinite(cost), cost, np.inf)
         better = cost < best_cost
         best[better] = k
         best_cost[better] = cost[better]
     out = parts.copy()
     out[box][rows, cols] = best
+    return out
+
+
+def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Whether pixels (rows, cols) lie within chessboard distance ``reach`` of ``where``.
+
+    The maximum filter runs on the bounding box of ``where`` grown by
+    ``reach`` only (the same values as on the whole array).
+    """
+    box = _crop(where, reach)
+    inside = ((rows >= box[0].start) & (rows < box[0].stop)
+              & (cols >= box[1].start) & (cols < box[1].stop))
+    out = np.zeros(rows.size, bool)
+    grown = ndimage.maximum_filter(where[box], size=2 * reach + 1, mode="constant")
+    out[inside] = grown[rows[inside] - box[0].start, cols[inside] - box[1].start]
+    return out
+
+
+def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarray,
+                   cols: np.ndarray) -> np.ndarray:
+    """Heights at (rows, cols) of the local planes of ``mask`` (:func:`local_planes` on ``z``).
+
+    Bit for bit the values of ``local_planes(z, mask, sigma)[0][rows, cols]``,
+    computed on the pixels within reach (:func:`blur_radius`) of both the
+    pixels asked for and ``mask``; NaN where no ``mask`` pixel is within reach.
+    """
+    reach = blur_radius(sigma)
+    h, w = z.shape
+    spans = []
+    for axis, at in enumerate((rows, cols)):
+        used = np.flatnonzero(mask.any(axis=1 - axis))
+        lo = max(int(at.min()) - reach, int(used[0]) - reach, 0)
+        hi = min(int(at.max()) + reach + 1, int(used[-1]) + reach + 1, z.shape[axis])
+        spans.append((lo, hi))
+    out = np.full(rows.size, np.nan)
+    (r0, r1), (c0, c1) = spans
+    if r1 <= r0 or c1 <= c0:
+        return out
+    inside = (rows >= r0) & (rows < r1) & (cols >= c0) & (cols < c1)
+    height, _, _ = local_planes(z[r0:r1, c0:c1], mask[r0:r1, c0:c1], sigma,
+                                origin=(r0 - h / 2.0, c0 - w / 2.0))
+    out[inside] = height[rows[inside] - r0, cols[inside] - c0]
     return out
 
 
@@ -780,7 +957,8 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
 
 
 def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
-                  labels: np.ndarray, config: Config) -> np.ndarray:
+                  labels: np.ndarray, config: Config, *, noise: float | None = None
+                  ) -> np.ndarray:
     """Test every component's fit, split the failing ones and regrow (Sec. VIII, V-4).
 
     Parameters
@@ -796,6 +974,8 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
         nothing is split).
     config
         The whole configuration (``[split]`` and ``[grow]``).
+    noise
+        Noise sigma of ``z`` (:func:`estimate_noise`); estimated when None.
 
     Returns
     -------
@@ -805,7 +985,7 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
         (:func:`~rangeseg_cli.grow.grow_regions`) from the split components.
     """
     z = np.asarray(z, dtype=np.float64)
-    noise = estimate_noise(z)
+    noise = estimate_noise(z) if noise is None else noise
     new = split_components(z, np.where(np.isfinite(z), components, 0), config, noise)
     if new is None:
         return labels

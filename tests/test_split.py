@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from rangeseg_cli import split as split_module
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
@@ -15,6 +16,7 @@ from rangeseg_cli.pipeline import run_pipeline, stage_edges, stage_grow
 from rangeseg_cli.split import (
     estimate_noise,
     failing_components,
+    local_planes,
     merge_back,
     noise_scaled_config,
     split_regions,
@@ -217,6 +219,63 @@ def test_max_pieces_bounds_the_split() -> None:
     many = len(large_regions(run_pipeline(z, SPLIT, stages=3).labels))
     few = len(large_regions(run_pipeline(z, config, stages=3).labels))
     assert few == 2 < many == 6
+
+
+# ------------------------------------------------------------------ exact shortcuts
+
+
+def test_nearest_label_search_breaks_ties_as_the_feature_transform_does() -> None:
+    from scipy import ndimage
+
+    rng = np.random.default_rng(11)
+    for trial in range(300):
+        h, w = (int(v) for v in rng.integers(3, 40, size=2))
+        parts = np.where(rng.random((h, w)) < rng.uniform(0.02, 0.4),
+                         rng.integers(1, 5, (h, w)), 0).astype(np.int32)
+        if trial % 10 == 0:
+            parts[:] = 0
+            parts[h // 2, w // 2] = 3  # one label far from most pixels: the slow path
+        if not parts.any():
+            continue
+        rows, cols = np.nonzero(parts == 0)
+        ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
+                                                return_indices=True)
+        np.testing.assert_array_equal(split_module._nearest_labels(parts, rows, cols),
+                                      parts[ir[rows, cols], ic[rows, cols]])
+
+
+def test_local_planes_of_a_crop_equal_those_of_the_whole_array_bit_for_bit() -> None:
+    rng = np.random.default_rng(12)
+    z = rng.normal(50.0, 10.0, (90, 110))
+    mask = np.zeros(z.shape, bool)
+    mask[20:45, 30:70] = True
+    mask[50:60, 10:20] = True
+    rows = rng.integers(0, 90, 400)
+    cols = rng.integers(0, 110, 400)
+    height, _, _ = local_planes(z, mask, 4.0)
+    cropped = split_module._plane_heights(z, mask, 4.0, rows, cols)
+    np.testing.assert_array_equal(cropped, height[rows, cols])  # NaN where out of reach
+
+
+def test_core_from_window_extremes_equals_the_chessboard_depth_rule() -> None:
+    from scipy import ndimage
+
+    rng = np.random.default_rng(13)
+    cfg = SPLIT.split
+    for _ in range(200):
+        h, w = (int(v) for v in rng.integers(2, 30, size=2))
+        coarse = rng.integers(0, 4, (h // 4 + 1, w // 4 + 1))
+        parts = np.kron(coarse, np.ones((4, 4), int))[:h, :w].astype(np.int32)
+        mask = parts > 0
+        if not mask.any():
+            continue
+        frame = split_module._Frame.of(mask, cfg)
+        padded = np.pad(split_module._fill_nearest(parts, frame.solid), 1)
+        uniform = (ndimage.minimum_filter(padded, size=3)
+                   == ndimage.maximum_filter(padded, size=3))
+        depth = ndimage.distance_transform_cdt(uniform, metric="chessboard")[1:-1, 1:-1]
+        reference = np.where((depth >= frame.thickness) & frame.mask, parts, 0)
+        np.testing.assert_array_equal(split_module._core(parts, frame), reference)
 
 
 # ------------------------------------------------------------------ stage contract

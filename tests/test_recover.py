@@ -1,0 +1,182 @@
+"""Narrow faces recovered from the unlabelled band (rangeseg_cli.recover, beyond Sec. V-4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rangeseg_cli.config import Config, load_config
+from rangeseg_cli.errors import ConfigError
+from rangeseg_cli.evaluate import hoover_compare
+from rangeseg_cli.pipeline import run_pipeline, stage_grow
+from rangeseg_cli.recover import plane_pieces, recover_faces
+from rangeseg_cli.synth import render_scene
+
+N = 128
+ON = load_config()  # recovery is on by default
+OFF = load_config(overrides={"split": {"recover": False}})
+PAPER = load_config(preset="paper")
+
+
+def _finish(z: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+    """Add Gaussian noise and quantise to 8 bits, as the ERIM images are."""
+    if sigma:
+        z = z + np.random.default_rng(seed).normal(0.0, sigma, z.shape)
+    return np.clip(np.round(z), 0.0, 255.0)
+
+
+def tilted_box(sigma: float = 0.0, seed: int = 0, width: float = 2.5, yaw: float = 25.0
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """A box turned by ``yaw`` degrees whose side face, ``width`` pixels wide, falls 24 per pixel.
+
+    Returns the image and the truth: 1 table, 2 top, 3 the narrow side face
+    (a diagonal band seen at a grazing angle, all of it step and roof edges).
+    """
+    y, x = np.mgrid[0:N, 0:N].astype(np.float64)
+    t = np.radians(yaw)
+    u = (x - 64.0) * np.cos(t) + (y - 64.0) * np.sin(t)
+    v = -(x - 64.0) * np.sin(t) + (y - 64.0) * np.cos(t)
+    z = np.full((N, N), 30.0)
+    truth = np.ones((N, N), np.int32)
+    top = (np.abs(v) < 30.0) & (np.abs(u) < 25.0)
+    side = (np.abs(v) < 30.0) & (u >= 25.0) & (u < 25.0 + width)
+    z[top] = 100.0 + 0.2 * v[top]
+    z[side] = 100.0 + 0.2 * v[side] - 24.0 * (u[side] - 25.0)
+    truth[top], truth[side] = 2, 3
+    return _finish(z, sigma, seed), truth
+
+
+def correct(truth: np.ndarray, labels: np.ndarray) -> int:
+    """Correct detections of Hoover et al. (1996) at tolerance 0.8."""
+    return hoover_compare(truth, labels).counts()["correct"]
+
+
+# ------------------------------------------------------------------ narrow faces
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0])
+@pytest.mark.parametrize("width", [2.0, 3.0])
+def test_tilted_box_narrow_side_face_is_recovered_as_its_own_region(sigma: float,
+                                                                    width: float) -> None:
+    z, truth = tilted_box(sigma, seed=1, width=width)
+    side = truth == 3
+    before = run_pipeline(z, OFF, stages=3)
+    assert np.count_nonzero(before.components[side]) == 0  # no component inside the face
+    assert correct(truth, before.labels) == 2  # table and top only
+    labels = run_pipeline(z, ON, stages=3).labels
+    assert correct(truth, labels) == 3
+    face = np.bincount(labels[side]).argmax()
+    assert face == before.labels.max() + 1  # a new region, numbered after the others
+    assert np.count_nonzero(labels[side] == face) >= 0.8 * np.count_nonzero(side)
+
+
+def test_part1_block_side_is_found_only_with_recovery() -> None:
+    scene = render_scene("part1", seed=0)  # Fig. 10: a block whose +x side is 2-3 px wide
+    block_side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "block +x")
+    found = {
+        name: {i.gt[0] for i in hoover_compare(scene.gt, run_pipeline(scene.image, config,
+                                                                      stages=3).labels
+                                               ).instances if i.kind == "correct"}
+        for name, config in (("off", OFF), ("on", ON))
+    }
+    assert block_side not in found["off"]
+    assert block_side in found["on"]
+    assert found["off"] <= found["on"]  # nothing found before is lost
+
+
+def test_two_narrow_faces_meeting_at_a_corner_are_cut_into_two_planes() -> None:
+    y, x = np.mgrid[0:40, 0:40].astype(np.float64)
+    arm_a = (y >= 5) & (y < 8) & (x >= 5) & (x < 35)  # an L of two 3-pixel bands
+    arm_b = (x >= 5) & (x < 8) & (y >= 8) & (y < 35)
+    z = np.where(arm_a, 50.0 + 4.0 * x, 200.0 - 3.0 * y)
+    pieces = plane_pieces(z, arm_a | arm_b, level=0.6, min_pixels=10)
+    assert len(pieces) == 2
+    assert {int(np.count_nonzero(p)) for p in pieces} == {90, 81}
+    assert any(np.array_equal(p, arm_a) for p in pieces)
+
+
+# ------------------------------------------------------------------ no spurious bands
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 1.4])
+@pytest.mark.parametrize("diagonal", [False, True], ids=["vertical", "diagonal"])
+def test_plain_step_between_two_flat_regions_creates_no_band_region(sigma: float,
+                                                                    diagonal: bool) -> None:
+    y, x = np.mgrid[0:N, 0:N].astype(np.float64)
+    low = (x + 0.6 * y < 100.0) if diagonal else (x < 64.0)
+    for seed in (0, 1):
+        z = _finish(np.where(low, 60.0 + 0.3 * x, 110.0 - 0.2 * y), sigma, seed)
+        result = run_pipeline(z, OFF, stages=3)
+        np.testing.assert_array_equal(run_pipeline(z, ON, stages=3).labels, result.labels)
+        assert recover_faces(result.heights, result.components, result.labels,
+                             ON) is result.labels
+
+
+@pytest.mark.parametrize("sigma", [1.0, 1.4])
+def test_noisy_flat_region_creates_no_band_region(sigma: float) -> None:
+    y, x = np.mgrid[0:N, 0:N].astype(np.float64)
+    unlabelled = 0
+    for seed in (0, 1, 2):
+        z = _finish(40.0 + 0.7 * x - 0.4 * y, sigma, seed)
+        result = run_pipeline(z, OFF, stages=3)
+        unlabelled += np.count_nonzero(result.labels == 0)
+        assert recover_faces(result.heights, result.components, result.labels,
+                             ON) is result.labels
+    assert unlabelled > 0  # the noise did leave edge pixels to recover from
+
+
+def test_nothing_is_recovered_above_the_noise_limit() -> None:
+    z, _ = tilted_box(sigma=1.0, seed=2)
+    result = run_pipeline(z, OFF, stages=3)
+    assert recover_faces(result.heights, result.components, result.labels, ON,
+                         noise=1.0).max() > result.labels.max()
+    assert recover_faces(result.heights, result.components, result.labels, ON,
+                         noise=1.6) is result.labels
+
+
+# ------------------------------------------------------------------ stage contract
+
+
+def test_recovery_never_takes_component_pixels_or_invalid_ones() -> None:
+    z, _ = tilted_box(sigma=1.0, seed=3)
+    z[:, 90:93] = np.nan
+    before = run_pipeline(z, OFF, stages=3)
+    after = run_pipeline(z, ON, stages=3).labels
+    inside = before.components > 0
+    np.testing.assert_array_equal(after[inside], before.labels[inside])
+    assert np.all(after[np.isnan(z)] == 0)
+    assert after.max() > before.labels.max()
+
+
+def test_grow_stage_with_recovery_is_a_pure_function_of_its_inputs() -> None:
+    z, _ = tilted_box(sigma=1.0, seed=4)
+    result = run_pipeline(z, ON, stages=3)
+    edges, comps = result.edges.copy(), result.components.copy()
+    labels, surfaces = stage_grow(result.heights, result.edges, result.components, ON)
+    np.testing.assert_array_equal(labels, result.labels)
+    assert surfaces == result.surfaces
+    np.testing.assert_array_equal(result.edges, edges)
+    np.testing.assert_array_equal(result.components, comps)
+
+
+def test_recover_checks_the_shapes() -> None:
+    z = np.zeros((20, 20))
+    with pytest.raises(ValueError, match=r"`labels` \(shape \(20, 21\)\) must have the shape"):
+        recover_faces(z, np.zeros((20, 20), np.int32), np.zeros((20, 21), np.int32), ON)
+
+
+# ------------------------------------------------------------------ config
+
+
+def test_recovery_is_on_by_default_and_off_in_the_paper_preset() -> None:
+    assert Config().split.recover and not PAPER.split.recover
+
+
+@pytest.mark.parametrize(("values", "match"), [
+    ({"split": {"recover": 1}}, r"\[split\] recover = 1: expected true or false"),
+    ({"split": {"recover_passes": -1}}, r"\[split\] recover_passes = -1"),
+    ({"split": {"recover_max_noise": -0.5}}, r"\[split\] recover_max_noise = -0.5"),
+])
+def test_recover_keys_are_validated(values: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        load_config(overrides=values)
