@@ -83,6 +83,7 @@ class Record:
     error: str | None = None
     detail: str | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    noise_sigma: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Manifest entry."""
@@ -93,6 +94,8 @@ class Record:
             out["error"] = self.error
         if self.detail is not None:
             out["traceback"] = self.detail
+        if self.noise_sigma is not None:
+            out["noise_sigma"] = self.noise_sigma
         return out
 
 
@@ -171,6 +174,7 @@ def process_image(job: Job, out: Path, config: Config, stages: tuple[str, ...]
             t0 = time.perf_counter()
             _STAGE_RUNNERS[stage](state, out / job.rel, config)
             record.timings[stage] = time.perf_counter() - t0
+        record.noise_sigma = state.get("noise_sigma")
     except RangesegError as exc:
         record.status, record.error = "failed", str(exc)
     except MemoryError:
@@ -207,7 +211,10 @@ def _p(base: Path, name: str) -> Path:
 
 
 def _run_edges(state: dict[str, Any], base: Path, config: Config) -> None:
+    from .split import estimate_noise
+
     z = state["z"]
+    state["noise_sigma"] = estimate_noise(z)  # for the manifest (robust, Sec. IV-B)
     maps = stage_edges(z, config)
     state["edges"] = maps.codes
     io.write_npy(_p(base, "range.npy"), z)
@@ -378,8 +385,9 @@ class _Manifest:
             stages |= set(self.stages)
         entry["stages"] = [s for s in STAGES if s in stages]
         entry["config"] = self.config.digest()
-        if "input" not in entry and "input" in old:
-            entry["input"] = old["input"]
+        for key in ("input", "noise_sigma"):
+            if key not in entry and key in old:
+                entry[key] = old[key]
         self.data["images"][record.rel] = entry
         if time.monotonic() - self.last_write > 2.0:
             self.write()

@@ -60,6 +60,8 @@ def test_edges_writes_maps_and_pictures_keeping_relative_paths(runner, images, t
             assert (out / f"{rel}.{pic}.png").exists()
     manifest = json.loads((out / "rangeseg-run.json").read_text())
     assert manifest["images"]["box"]["status"] == "done"
+    assert manifest["images"]["box"]["noise_sigma"] < 0.5  # noise-free box
+    assert 0.5 < manifest["images"]["sub/box2"]["noise_sigma"] < 2.0  # noise sigma 1
     assert manifest["config"]["step"]["threshold"] == 6.0
 
 
