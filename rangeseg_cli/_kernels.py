@@ -691,3 +691,196 @@ def _row_pairs(aa: np.ndarray, bb: np.ndarray, r: int, c0: int, dy: int, dx: int
             out[j, 4], out[j, 5] = x, y
             j += 1
     return j
+
+
+# --------------------------------------------------------------------------- local planes
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _blur_plane(pad: np.ndarray, w: np.ndarray, tmp: np.ndarray, acc: np.ndarray,
+                out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Separable Gaussian blur of ``pad`` (zero-padded by ``len(w) // 2`` on every side).
+
+    As :func:`scipy.ndimage.gaussian_filter` with ``mode="constant"``: rows
+    (axis 0) first, then columns, each tap sum formed as scipy's symmetric
+    correlation forms it (centre tap, then the pairs from the farthest in).
+    The loops run along rows into the separate row buffer ``acc`` (as wide as
+    ``tmp``), so they vectorise without reordering any sum.
+    """
+    radius = w.shape[0] // 2
+    height, width = out.shape
+    wide = tmp.shape[1]
+    wc = w[radius]
+    for r in range(height):
+        centre = pad[r + radius]
+        for c in range(wide):
+            acc[c] = centre[c] * wc
+        for d in range(radius, 0, -1):
+            above, below, wd = pad[r + radius - d], pad[r + radius + d], w[radius - d]
+            for c in range(wide):
+                acc[c] += (above[c] + below[c]) * wd
+        tmp[r, :] = acc
+    row = acc[:width]
+    for r in range(height):
+        src = tmp[r]
+        for c in range(width):
+            row[c] = src[c + radius] * wc
+        for d in range(radius, 0, -1):
+            left, right = src[radius - d: radius - d + width], src[radius + d: radius + d + width]
+            wd = w[radius - d]
+            for c in range(width):
+                row[c] += (left[c] + right[c]) * wd
+        out[r, :] = row
+
+
+#: The nine products of the plane fit: (heights instead of the mask?, first factor,
+#: second factor), factors 0 none, 1 u, 2 v: m, m u, m v, zc, (m u) u, (m u) v,
+#: (m v) v, zc u, zc v.
+_PRODUCTS = np.array([[0, 0, 0], [0, 1, 0], [0, 2, 0], [1, 0, 0], [0, 1, 1], [0, 1, 2],
+                      [0, 2, 2], [1, 1, 0], [1, 2, 0]], dtype=np.int64)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _factor(kind: int, u: float, v: float) -> float:  # pragma: no cover - compiled
+    """1.0, u or v (multiplying by 1.0 changes no value, signed zeros included)."""
+    return 1.0 if kind == 0 else (u if kind == 1 else v)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _masked_product(z: np.ndarray, mask: np.ndarray, u0: float, v0: float, which: int,
+                    radius: int, pad: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Write product ``which`` of :data:`_PRODUCTS` into the interior of ``pad``.
+
+    m is the mask as 0.0/1.0, zc the masked heights, u, v the column and row
+    coordinates: the products the reference forms, in its order.
+    """
+    height, width = z.shape
+    use_z, first, second = _PRODUCTS[which, 0], _PRODUCTS[which, 1], _PRODUCTS[which, 2]
+    for r in range(height):
+        v = r + v0
+        row = pad[r + radius]
+        for c in range(width):
+            u = c + u0
+            if use_z:
+                base = z[r, c] if mask[r, c] else 0.0
+            else:
+                base = 1.0 if mask[r, c] else 0.0
+            row[c + radius] = (base * _factor(first, u, v)) * _factor(second, u, v)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: float,
+              min_det: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                       np.ndarray]:  # pragma: no cover - compiled
+    """Gaussian-weighted local plane fits of ``mask`` (see ``split._PlaneFit``).
+
+    The nine blurred moment images (weight, u, v, z, uu, uv, vv, uz, vz,
+    each of the masked pixels) one at a time in two reused buffers, then the
+    weighted means, covariances and slopes by the reference's float64
+    operations in its order: the same values bit for bit.
+
+    Returns
+    -------
+    mu, mv, mz, gx, gy
+        float64 (h, w) weighted means of u, v, z and the slopes (NaN where
+        the fit is degenerate).
+    """
+    height, width = z.shape
+    radius = w.shape[0] // 2
+    pad = np.zeros((height + 2 * radius, width + 2 * radius))
+    tmp = np.empty((height, width + 2 * radius))
+    acc = np.empty(width + 2 * radius)
+    blurred = np.empty((9, height, width))
+    for which in range(9):
+        _masked_product(z, mask, u0, v0, which, radius, pad)
+        _blur_plane(pad, w, tmp, acc, blurred[which])
+    mu = np.empty((height, width))
+    mv = np.empty((height, width))
+    mz = np.empty((height, width))
+    gx = np.empty((height, width))
+    gy = np.empty((height, width))
+    for r in range(height):
+        for c in range(width):
+            s = blurred[0, r, c]
+            ok = s > 1e-3
+            if not ok:
+                s = 1.0
+            a, b, e = blurred[1, r, c] / s, blurred[2, r, c] / s, blurred[3, r, c] / s
+            cuu = blurred[4, r, c] / s - a * a
+            cuv = blurred[5, r, c] / s - a * b
+            cvv = blurred[6, r, c] / s - b * b
+            cuz = blurred[7, r, c] / s - a * e
+            cvz = blurred[8, r, c] / s - b * e
+            det = cuu * cvv - cuv * cuv
+            mu[r, c], mv[r, c], mz[r, c] = a, b, e
+            if ok and det > min_det:
+                gx[r, c] = (cvv * cuz - cuv * cvz) / det
+                gy[r, c] = (cuu * cvz - cuv * cuz) / det
+            else:
+                gx[r, c] = np.nan
+                gy[r, c] = np.nan
+    return mu, mv, mz, gx, gy
+
+
+# --------------------------------------------------------------------------- split helpers
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray, dr: np.ndarray,
+                   dc: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """Label of the first labelled pixel at offsets (dr, dc) tried in order from each pixel.
+
+    The offsets are ``split._search_offsets``' (nearest first, ties as
+    :func:`scipy.ndimage.distance_transform_edt` breaks them), so the label
+    found is the feature transform's; 0 where none lies within them.
+    """
+    height, width = parts.shape
+    found = np.zeros(rows.shape[0], dtype=np.int32)
+    for i in range(rows.shape[0]):
+        r, c = rows[i], cols[i]
+        for k in range(dr.shape[0]):
+            rr, cc = r + dr[k], c + dc[k]
+            if 0 <= rr < height and 0 <= cc < width and parts[rr, cc] > 0:
+                found[i] = parts[rr, cc]
+                break
+    return found
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fold_extremes(lo: np.ndarray, hi: np.ndarray, src_lo: np.ndarray, src_hi: np.ndarray
+                   ) -> None:  # pragma: no cover - compiled
+    """``lo = min(lo, src_lo)``, ``hi = max(hi, src_hi)`` elementwise (vectorised)."""
+    for c in range(lo.shape[0]):
+        lo[c] = min(lo[c], src_lo[c])
+        hi[c] = max(hi[c], src_hi[c])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def window_extremes(a: np.ndarray, reach: int, cval: int
+                    ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Minimum and maximum of int32 ``a`` over every (2 reach + 1)^2 window, ``cval`` outside.
+
+    As :func:`scipy.ndimage.minimum_filter` and ``maximum_filter`` with
+    ``mode="constant"`` (integers: exactly): along the rows of a padded copy,
+    then down the columns, both in branch-free row loops.
+    """
+    height, width = a.shape
+    span = 2 * reach + 1
+    padded = np.full((height + 2 * reach, width + 2 * reach), cval, dtype=np.int32)
+    padded[reach:reach + height, reach:reach + width] = a
+    row_low = np.empty((height + 2 * reach, width), dtype=np.int32)
+    row_high = np.empty((height + 2 * reach, width), dtype=np.int32)
+    for r in range(height + 2 * reach):
+        src = padded[r]
+        row_low[r, :] = src[:width]
+        row_high[r, :] = src[:width]
+        for d in range(1, span):
+            _fold_extremes(row_low[r], row_high[r], src[d:d + width], src[d:d + width])
+    low = np.empty((height, width), dtype=np.int32)
+    high = np.empty((height, width), dtype=np.int32)
+    for r in range(height):
+        low[r, :] = row_low[r]
+        high[r, :] = row_high[r]
+        for d in range(1, span):
+            _fold_extremes(low[r], high[r], row_low[r + d], row_high[r + d])
+    return low, high

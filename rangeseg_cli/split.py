@@ -61,6 +61,7 @@ whole box gives, so the results do not depend on these shortcuts.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -68,7 +69,7 @@ import numpy as np
 from scipy import ndimage, special
 
 from .config import Config, GrowConfig, SplitConfig
-from .edges import gaussian_taps
+from .edges import Backend, gaussian_taps, select_kernels
 from .grow import fit_models, fit_quadrics, grow_regions
 from .link import FOUR_CONNECTED
 
@@ -84,6 +85,9 @@ _NOISE_FRACTION = 0.5
 
 #: Most AR samples the noise estimate sorts.
 _NOISE_SAMPLES = 1 << 17
+
+#: Step of the sample, and fraction of it, that bound the values sorted by the noise estimate.
+_NOISE_SUBSAMPLE, _NOISE_CUT = 16, 0.6
 
 #: Bin width of the histogram of normals (x, y components) whose peak is the mode.
 _MODE_BIN = 0.05
@@ -160,9 +164,24 @@ def estimate_noise(z: np.ndarray) -> float:
     k = int(_NOISE_FRACTION * ar.size)
     if k < 10:
         return 0.0
-    low = np.sort(ar)[:k]  # (np.partition is slow on the many equal values of clean data)
+    low = _smallest_sorted(ar, k)
     moment = float(np.mean(low * low))
     return math.sqrt(moment / (_truncated_second_moment(_NOISE_FRACTION) * _ar_gain(weights)))
+
+
+def _smallest_sorted(x: np.ndarray, k: int) -> np.ndarray:
+    """``np.sort(x)[:k]`` for finite ``x``, sorting little more than the k smallest values.
+
+    A value ``cut`` above about 60 % of a sparse sample of ``x`` usually has k
+    or more values of ``x`` at or below it, and then they include the k
+    smallest (the same values, so the same sorted array); else the whole of
+    ``x`` is sorted. (``np.partition`` is slow on the many equal values of
+    clean data.)
+    """
+    sample = np.sort(x[:: _NOISE_SUBSAMPLE])
+    cut = sample[min(int(_NOISE_CUT * sample.size), sample.size - 1)]
+    below = x[x <= cut]
+    return np.sort(below if below.size >= k else x)[:k]
 
 
 def noise_scaled_config(config: Config, noise: float) -> Config:
@@ -231,7 +250,7 @@ def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
 
 
 def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float, *,
-                 origin: tuple[float, float] | None = None
+                 origin: tuple[float, float] | None = None, backend: Backend = "auto"
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gaussian-weighted local plane fits that use only ``mask`` pixels, at every pixel.
 
@@ -250,6 +269,10 @@ def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float, *,
         array given that array's frame gives bit for bit the same values as
         the whole array wherever no ``mask`` pixel outside the crop lies
         within :func:`blur_radius` of the pixel.
+    backend
+        ``"numpy"``: scipy's blurs (the reference); ``"numba"``: the compiled
+        :func:`rangeseg_cli._kernels.plane_fit` (the same values bit for bit);
+        ``"auto"``: numba when available (:func:`~rangeseg_cli.edges.select_kernels`).
 
     Returns
     -------
@@ -258,7 +281,7 @@ def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float, *,
         dz/dcol and dz/drow; NaN where fewer than a few ``mask`` pixels lie
         within reach or they lie on a line (the fit is degenerate).
     """
-    fit = _PlaneFit.of(z, mask, sigma, origin)
+    fit = _PlaneFit.of(z, mask, sigma, origin, backend)
     return fit.mz + fit.gx * (fit.u - fit.mu) + fit.gy * (fit.v - fit.mv), fit.gx, fit.gy
 
 
@@ -281,12 +304,23 @@ class _PlaneFit:
 
     @classmethod
     def of(cls, z: np.ndarray, mask: np.ndarray, sigma: float,
-           origin: tuple[float, float] | None) -> _PlaneFit:
-        """Fit the planes (weighted moments by Gaussian blurs of the masked products)."""
+           origin: tuple[float, float] | None, backend: Backend = "auto") -> _PlaneFit:
+        """Fit the planes (weighted moments by Gaussian blurs of the masked products).
+
+        With the compiled kernels (``backend``, as
+        :func:`~rangeseg_cli.edges.select_kernels` selects them) the same
+        values bit for bit from :func:`rangeseg_cli._kernels.plane_fit`.
+        """
         h, w = z.shape
         v0, u0 = (-h / 2.0, -w / 2.0) if origin is None else origin
         u = (np.arange(w, dtype=np.float64) + u0)[None, :]  # exact: integers and halves
         v = (np.arange(h, dtype=np.float64) + v0)[:, None]
+        kernels = select_kernels(backend)
+        if kernels is not None:
+            mu, mv, mz, gx, gy = kernels.plane_fit(
+                np.require(z, np.float64, ["C"]), np.require(mask, np.bool_, ["C"]),
+                _blur_weights(sigma), float(u0), float(v0), 1e-3 * sigma**4)
+            return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)
         m = mask.astype(np.float64)
         zc = np.where(mask, z, 0.0)
         s = _blur(m, sigma)
@@ -323,13 +357,23 @@ def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
     return ndimage.gaussian_filter(a, sigma, mode="constant", truncate=_TRUNCATE)
 
 
+@functools.lru_cache(maxsize=16)
+def _blur_weights(sigma: float) -> np.ndarray:
+    """The taps of :func:`_blur` (its response to a unit impulse: scipy's weights exactly)."""
+    impulse = np.zeros(2 * blur_radius(sigma) + 1)
+    impulse[impulse.size // 2] = 1.0
+    weights = _blur(impulse, sigma)
+    weights.setflags(write=False)
+    return weights
+
+
 def blur_radius(sigma: float) -> int:
     """Reach in pixels of the Gaussian weights of :func:`local_planes` (as scipy truncates)."""
     return int(_TRUNCATE * sigma + 0.5)
 
 
-def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float, *,
+                    backend: Backend = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Slopes of Gaussian-weighted local plane fits that use only ``mask`` pixels.
 
     Parameters
@@ -340,6 +384,8 @@ def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float
         bool (H, W) pixels to use (one component).
     sigma
         Gaussian sigma of the weights, pixels.
+    backend
+        As for :func:`local_planes`.
 
     Returns
     -------
@@ -347,7 +393,7 @@ def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float
         float64 (H, W) slopes dz/dcol and dz/drow; 0 outside ``mask`` and
         where the local fit is degenerate (the mask's pixels on a line).
     """
-    fit = _PlaneFit.of(z, mask, sigma, None)
+    fit = _PlaneFit.of(z, mask, sigma, None, backend)
     gx, gy = fit.gx, fit.gy
     keep = mask & np.isfinite(gx)
     return np.where(keep, gx, 0.0), np.where(keep, gy, 0.0)
@@ -422,6 +468,9 @@ class _Frame:
         A pixel may change to a part within this distance (chessboard).
     sigma
         Gaussian sigma of the local planes that judge the pixels, pixels.
+    backend
+        Of the local planes, nearest-label searches and window filters
+        (:func:`~rangeseg_cli.edges.select_kernels`): the same results either way.
     """
 
     mask: np.ndarray
@@ -430,9 +479,10 @@ class _Frame:
     thickness: int
     band: int
     sigma: float
+    backend: Backend = "auto"
 
     @classmethod
-    def of(cls, mask: np.ndarray, cfg: SplitConfig) -> _Frame:
+    def of(cls, mask: np.ndarray, cfg: SplitConfig, backend: Backend = "auto") -> _Frame:
         """The frame of ``mask`` with the scales of ``[split]``."""
         holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
         small = np.bincount(holes.ravel(), minlength=n + 1) < cfg.min_piece
@@ -440,7 +490,8 @@ class _Frame:
         closed = ndimage.binary_closing(mask, structure=np.ones((3, 3), bool))
         return cls(mask=mask, solid=mask | small[holes] | closed, min_piece=cfg.min_piece,
                    thickness=int(math.ceil(cfg.normal_sigma)),
-                   band=int(math.ceil(2.0 * cfg.normal_sigma)), sigma=2.0 * cfg.normal_sigma)
+                   band=int(math.ceil(2.0 * cfg.normal_sigma)), sigma=2.0 * cfg.normal_sigma,
+                   backend=backend)
 
 
 def _parts(labels: np.ndarray) -> np.ndarray:
@@ -486,16 +537,24 @@ def _search_offsets(radius: int) -> tuple[np.ndarray, np.ndarray]:
 _OFFSETS = _search_offsets(_SEARCH_RADIUS)
 
 
-def _nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+def _nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                    backend: Backend = "numpy") -> np.ndarray:
     """Label of the nearest labelled pixel of ``parts`` (Euclidean) for each pixel (rows, cols).
 
     The pixels are unlabelled. Those with a labelled pixel within
     :data:`_SEARCH_RADIUS` find it by trying the offsets of
     :func:`_search_offsets` in order; the rest take it from the feature
     transform of the whole array. Both give what the feature transform
-    gives for all of them.
+    gives for all of them. With the compiled kernels (``backend``) the search
+    is :func:`rangeseg_cli._kernels.nearest_labels`.
     """
     h, w = parts.shape
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        found = kernels.nearest_labels(np.require(parts, np.int32, ["C"]), rows, cols, *_OFFSETS)
+        todo = np.flatnonzero(found == 0)
+        return found if todo.size == 0 else _nearest_by_transform(parts, rows, cols, found,
+                                                                  todo)
     found = np.zeros(rows.size, np.int32)
     todo = np.arange(rows.size)
     for dr, dc in zip(*_OFFSETS, strict=True):
@@ -508,17 +567,24 @@ def _nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np
         todo = todo[~hit]
         if todo.size == 0:
             return found
+    return _nearest_by_transform(parts, rows, cols, found, todo)
+
+
+def _nearest_by_transform(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                          found: np.ndarray, todo: np.ndarray) -> np.ndarray:
+    """``found`` with its entries ``todo`` from the feature transform of ``parts``."""
     ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
                                             return_indices=True)
     found[todo] = parts[ir[rows[todo], cols[todo]], ic[rows[todo], cols[todo]]]
     return found
 
 
-def _fill_nearest(parts: np.ndarray, where: np.ndarray) -> np.ndarray:
+def _fill_nearest(parts: np.ndarray, where: np.ndarray, backend: Backend = "auto"
+                  ) -> np.ndarray:
     """``parts`` on ``where``, each unlabelled pixel taking its nearest labelled pixel's label.
 
     Ties go as :func:`scipy.ndimage.distance_transform_edt` breaks them
-    (:func:`_nearest_labels`).
+    (:func:`_nearest_labels`, which the compiled search makes cheap at any size).
     """
     out = np.where(where, parts, 0).astype(np.int32)
     if parts.max(initial=0) == 0:
@@ -526,7 +592,9 @@ def _fill_nearest(parts: np.ndarray, where: np.ndarray) -> np.ndarray:
     rows, cols = np.nonzero(where & (parts == 0))
     if rows.size == 0:
         return out
-    if parts.size < _SEARCH_MIN_PIXELS:  # the transform is cheaper than the search
+    if select_kernels(backend) is not None:
+        out[rows, cols] = _nearest_labels(parts, rows, cols, backend)
+    elif parts.size < _SEARCH_MIN_PIXELS:  # the transform is cheaper than the search
         ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
                                                 return_indices=True)
         out[rows, cols] = parts[ir[rows, cols], ic[rows, cols]]
@@ -541,13 +609,23 @@ def _core(parts: np.ndarray, frame: _Frame) -> np.ndarray:
     The border is where another part or the outside of ``frame.solid``
     begins (small holes are not border).
     """
-    filled = _fill_nearest(parts, frame.solid)
+    filled = _fill_nearest(parts, frame.solid, frame.backend)
     # Within ``thickness`` (chessboard) of p all filled pixels carry p's part and none
     # lies outside the frame: the window's minimum is its maximum.
-    size = 2 * frame.thickness + 1
-    inner = (ndimage.minimum_filter(filled, size=size, mode="constant", cval=0)
-             == ndimage.maximum_filter(filled, size=size, mode="constant", cval=0))
+    low, high = _window_extremes(filled, frame.thickness, 0, frame.backend)
+    inner = low == high
     return np.where(inner & frame.mask, parts, 0)
+
+
+def _window_extremes(a: np.ndarray, reach: int, cval: int, backend: Backend
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum and maximum filters of int ``a`` (``2 reach + 1`` square, ``cval`` outside)."""
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        return kernels.window_extremes(np.require(a, np.int32, ["C"]), reach, cval)
+    size = 2 * reach + 1
+    return (ndimage.minimum_filter(a, size=size, mode="constant", cval=cval),
+            ndimage.maximum_filter(a, size=size, mode="constant", cval=cval))
 
 
 def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
@@ -558,16 +636,16 @@ def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     below ``min_piece`` pixels -- a sliver along a crease, the steep rim of a
     curved surface, whose fit could not be judged -- go the same way.
     """
-    parts = np.where(frame.mask, _parts(_fill_nearest(labels, frame.solid)), 0)
+    parts = np.where(frame.mask, _parts(_fill_nearest(labels, frame.solid, frame.backend)), 0)
     sizes = np.bincount(parts.ravel())
     parts = _dense(_fill_nearest(np.where(sizes[parts] >= frame.min_piece, parts, 0),
-                                 frame.mask))
+                                 frame.mask, frame.backend))
     n = int(parts.max(initial=0))
     wide = np.bincount(_core(parts, frame).ravel(), minlength=n + 1) >= frame.min_piece
     wide[0] = False
     lut = np.zeros(n + 1, np.int32)
     lut[wide] = np.arange(1, int(wide.sum()) + 1, dtype=np.int32)
-    return _fill_nearest(lut[parts], frame.mask)
+    return _fill_nearest(lut[parts], frame.mask, frame.backend)
 
 
 def _crop(where: np.ndarray, pad: int) -> tuple[slice, slice]:
@@ -589,11 +667,9 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     doubtful pixels, and each part's planes to the pixels within reach of
     both its doubtful pixels and its core (:func:`_plane_heights`).
     """
-    size = 2 * frame.band + 1
-    big = np.iinfo(np.int32).max
-    high = ndimage.maximum_filter(parts, size=size, mode="constant", cval=0)
-    low = ndimage.minimum_filter(np.where(parts > 0, parts, big), size=size, mode="constant",
-                                 cval=big)
+    big = int(np.iinfo(np.int32).max)
+    _, high = _window_extremes(parts, frame.band, 0, frame.backend)
+    low, _ = _window_extremes(np.where(parts > 0, parts, big), frame.band, big, frame.backend)
     doubt = frame.mask & (high > 0) & (low != high)
     if not doubt.any():
         return parts
@@ -608,7 +684,8 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
         if not near.any() or not (core == k).any():
             continue
         cost = np.full(rows.size, np.inf)
-        cost[near] = _plane_heights(zb, core == k, frame.sigma, rows[near], cols[near])
+        cost[near] = _plane_heights(zb, core == k, frame.sigma, rows[near], cols[near],
+                                    frame.backend)
         cost[near] = np.abs(zb[rows[near], cols[near]] - cost[near])
         cost = np.where(np.isfinite(cost), cost, np.inf)
         better = cost < best_cost
@@ -635,7 +712,7 @@ def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray) -> 
 
 
 def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarray,
-                   cols: np.ndarray) -> np.ndarray:
+                   cols: np.ndarray, backend: Backend = "auto") -> np.ndarray:
     """Heights at (rows, cols) of the local planes of ``mask`` (:func:`local_planes` on ``z``).
 
     Bit for bit the values of ``local_planes(z, mask, sigma)[0][rows, cols]``,
@@ -656,12 +733,13 @@ def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarr
         return out
     inside = (rows >= r0) & (rows < r1) & (cols >= c0) & (cols < c1)
     height, _, _ = local_planes(z[r0:r1, c0:c1], mask[r0:r1, c0:c1], sigma,
-                                origin=(r0 - h / 2.0, c0 - w / 2.0))
+                                origin=(r0 - h / 2.0, c0 - w / 2.0), backend=backend)
     out[inside] = height[rows[inside] - r0, cols[inside] - c0]
     return out
 
 
-def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig) -> np.ndarray | None:
+def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Backend = "auto"
+                ) -> np.ndarray | None:
     """One split of the pixels of ``mask`` by their normals; None when there is none.
 
     The normals are divided in two (:func:`mode_split`); each class falls into
@@ -671,13 +749,13 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig) -> np.ndarray
     ``mask``'s grid, 0 off ``mask``.
     """
     rows, cols = np.nonzero(mask)
-    gx, gy = local_gradients(z, mask, cfg.normal_sigma)
+    gx, gy = local_gradients(z, mask, cfg.normal_sigma, backend=backend)
     gxs, gys = gx[rows, cols], gy[rows, cols]
     norm = np.sqrt(1.0 + gxs * gxs + gys * gys)
     cls = mode_split(np.stack([-gxs / norm, -gys / norm, 1.0 / norm], axis=1))
     if cls.all() or not cls.any():
         return None
-    frame = _Frame.of(mask, cfg)
+    frame = _Frame.of(mask, cfg, backend)
     classes = np.zeros(mask.shape, np.int32)
     classes[rows, cols] = np.where(cls, 2, 1)
     parts = _clean(classes, frame)
@@ -843,7 +921,7 @@ def _replace(pieces: np.ndarray, k: int, sub: np.ndarray, n: int, max_pieces: in
 
 
 def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: SplitConfig,
-                    grow: GrowConfig) -> np.ndarray:
+                    grow: GrowConfig, backend: Backend = "auto") -> np.ndarray:
     """Split one component that fails the fit test into pieces at its creases (Sec. VIII).
 
     Pieces that still fail are split again (breadth first) until none fails
@@ -862,6 +940,8 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     cfg, grow
         ``[split]`` and ``[grow]`` (``min_error``, ``error_factor``,
         ``planar_tolerance``).
+    backend
+        Of the local plane fits (:func:`local_planes`): the same pieces either way.
 
     Returns
     -------
@@ -875,7 +955,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     while queue and (n := int(pieces.max())) < cfg.max_pieces:
         k = queue.pop(0)
         box = _crop(pieces == k, 0)
-        sub = _split_once(z[box], pieces[box] == k, cfg)
+        sub = _split_once(z[box], pieces[box] == k, cfg, backend)
         if sub is None:
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
@@ -915,7 +995,7 @@ def _raster_renumber(labels: np.ndarray) -> np.ndarray:
 
 
 def split_components(z: np.ndarray, components: np.ndarray, config: Config,
-                     noise: float) -> np.ndarray | None:
+                     noise: float, *, backend: Backend = "auto") -> np.ndarray | None:
     """Components with every failing one replaced by its pieces (Sec. VIII).
 
     Parameters
@@ -928,6 +1008,8 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
         Uses ``[split]`` and ``grow.min_error``.
     noise
         Noise sigma of the image (:func:`estimate_noise`).
+    backend
+        Of the local plane fits (:func:`local_planes`): the same result either way.
 
     Returns
     -------
@@ -944,7 +1026,8 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
     for cid in failing.tolist():
         box = boxes[cid - 1]
         inside = out[box] == cid
-        pieces = split_component(z[box], inside, noise=noise, cfg=cfg, grow=config.grow)
+        pieces = split_component(z[box], inside, noise=noise, cfg=cfg, grow=config.grow,
+                                 backend=backend)
         k = int(pieces.max())
         if k < 2:
             continue
@@ -957,8 +1040,8 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
 
 
 def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
-                  labels: np.ndarray, config: Config, *, noise: float | None = None
-                  ) -> np.ndarray:
+                  labels: np.ndarray, config: Config, *, noise: float | None = None,
+                  backend: Backend = "auto") -> np.ndarray:
     """Test every component's fit, split the failing ones and regrow (Sec. VIII, V-4).
 
     Parameters
@@ -976,6 +1059,8 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
         The whole configuration (``[split]`` and ``[grow]``).
     noise
         Noise sigma of ``z`` (:func:`estimate_noise`); estimated when None.
+    backend
+        Of the local plane fits (:func:`local_planes`): the same labels either way.
 
     Returns
     -------
@@ -986,7 +1071,8 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
     """
     z = np.asarray(z, dtype=np.float64)
     noise = estimate_noise(z) if noise is None else noise
-    new = split_components(z, np.where(np.isfinite(z), components, 0), config, noise)
+    new = split_components(z, np.where(np.isfinite(z), components, 0), config, noise,
+                           backend=backend)
     if new is None:
         return labels
     return grow_regions(z, codes, new, config.grow)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import replace
 
 import numpy as np
@@ -374,3 +375,68 @@ def test_split_handles_small_holed_and_flat_images_deterministically() -> None:
         first = run_pipeline(z, eager, stages=3).labels
         np.testing.assert_array_equal(first, run_pipeline(z, eager, stages=3).labels)
         assert np.all(first[np.isnan(z)] == 0)
+
+
+requires_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
+                                    reason="numba is not installed")
+
+
+@requires_numba
+def test_local_planes_numba_equal_the_scipy_blurs_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    for sigma in (1.0, 2.0, 4.0):
+        z = rng.normal(0.0, 30.0, (37, 53)) + np.arange(53.0)
+        mask = rng.random(z.shape) < 0.6
+        for origin in (None, (-7.5, 12.0)):
+            ref = local_planes(z, mask, sigma, origin=origin, backend="numpy")
+            fast = local_planes(z, mask, sigma, origin=origin, backend="numba")
+            for a, b in zip(ref, fast, strict=True):
+                assert a.tobytes() == b.tobytes()  # NaNs and signed zeros included
+
+
+@requires_numba
+@pytest.mark.parametrize("scene", ["part1", "wedge", "frustum"])
+def test_split_numba_and_numpy_paths_give_identical_labels(scene: str) -> None:
+    from rangeseg_cli.synth import render_scene
+
+    image = render_scene(scene, size=(96, 128), noise=1.0, seed=0).image
+    result = run_pipeline(image, PAPER, stages=3)
+    z = result.heights
+    outs = [split_regions(z, result.edges, result.components, result.labels, SPLIT,
+                          backend=backend) for backend in ("numpy", "numba")]
+    assert outs[0] is not result.labels  # a component was split
+    assert outs[0].dtype == outs[1].dtype
+    assert outs[0].tobytes() == outs[1].tobytes()
+
+
+@requires_numba
+def test_compiled_nearest_labels_and_window_extremes_equal_scipys() -> None:
+    rng = np.random.default_rng(14)
+    for trial in range(200):
+        h, w = (int(v) for v in rng.integers(1, 40, size=2))
+        parts = np.where(rng.random((h, w)) < rng.uniform(0.02, 0.4),
+                         rng.integers(1, 5, (h, w)), 0).astype(np.int32)
+        if trial % 10 == 0:
+            parts[:] = 0
+            parts[h // 2, w // 2] = 3  # beyond the search radius: the transform
+        rows, cols = np.nonzero(parts == 0)
+        if parts.any() and rows.size:
+            np.testing.assert_array_equal(
+                split_module._nearest_labels(parts, rows, cols, "numba"),
+                split_module._nearest_labels(parts, rows, cols, "numpy"))
+        reach, cval = int(rng.integers(0, 5)), int(rng.choice([0, 2**31 - 1]))
+        for a, b in zip(split_module._window_extremes(parts, reach, cval, "numba"),
+                        split_module._window_extremes(parts, reach, cval, "numpy"),
+                        strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_smallest_sorted_equals_the_head_of_a_full_sort() -> None:
+    rng = np.random.default_rng(15)
+    for trial in range(200):
+        n = int(rng.integers(1, 3000))
+        x = np.abs(np.round(rng.normal(0.0, float(rng.choice([0.1, 1.0, 10.0])), n)))
+        if trial % 5 == 0:
+            x = np.sort(x)[::-1].copy()  # a sparse sample unlike the whole
+        k = int(rng.integers(0, n + 1))
+        assert split_module._smallest_sorted(x, k).tobytes() == np.sort(x)[:k].tobytes()
