@@ -231,10 +231,12 @@ def _best_piece(z: np.ndarray, left: np.ndarray, tol: float) -> np.ndarray | Non
     best = int(np.argmax(votes.sum(axis=1)))
     inliers = votes[best]
     for _ in range(2):  # refit to the inliers
+        if not inliers.any():  # no hypothesis won a single vote (e.g. NaN-ridden bands)
+            return None
         a = _plane(z, rows[inliers], cols[inliers])
         inliers = np.abs(z[rows, cols] - (a[0] + a[1] * cols + a[2] * rows)) < tol
-        if not inliers.any():
-            return None
+    if not inliers.any():
+        return None
     found = np.zeros(left.shape, bool)
     found[rows[inliers], cols[inliers]] = True
     parts, _ = ndimage.label(found, structure=_EIGHT)
