@@ -110,6 +110,7 @@ def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
 
     ``grow`` and ``run_pipeline`` use ``config`` (the split step on by
     default); the ``_nosplit`` tasks the same with ``[split] enabled = false``,
+    ``run_pipeline_paper`` without split and recovery (``--preset paper``),
     and ``grow_regions`` + ``describe`` are the two parts of ``grow_nosplit``.
     """
     nosplit = dataclasses.replace(config, split=dataclasses.replace(config.split,
@@ -134,6 +135,8 @@ def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
     tasks["grow"] = lambda: stage_grow(z, result.edges, result.components, config)
     tasks["holdsite"] = lambda: stage_holdsite(z, result.labels, result.surfaces, config)
     tasks["run_pipeline_nosplit"] = lambda: run_pipeline(image, nosplit)
+    paper = dataclasses.replace(config, split=load_config(preset="paper").split)
+    tasks["run_pipeline_paper"] = lambda: run_pipeline(image, paper)
     tasks["run_pipeline"] = lambda: run_pipeline(image, config)
     return tasks
 
@@ -259,7 +262,8 @@ def machine() -> dict[str, Any]:
 
 
 COLUMNS = ("to_heights", "edges", "edges_numpy", "noise", "link", "grow_regions", "describe",
-           "grow_nosplit", "grow", "holdsite", "run_pipeline_nosplit", "run_pipeline")
+           "grow_nosplit", "grow", "holdsite", "run_pipeline_nosplit", "run_pipeline_paper",
+           "run_pipeline")
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -272,7 +276,8 @@ def markdown(report: dict[str, Any]) -> str:
         f"{report['frames'][0]['repeats']} interleaved runs after a warm-up; G = "
         "`gaussian_filter(z, 4)` on the same float64 frame in the same run. Cells: ms (x G). "
         "`grow` and `run_pipeline` with the `[split]` step (the default), `_nosplit` "
-        "without; `grow_nosplit` = `grow_regions` + `describe` (surface descriptions); "
+        "without, `run_pipeline_paper` = `--preset paper` (no split, no recovery); "
+        "`grow_nosplit` = `grow_regions` + `describe` (surface descriptions); "
         "`noise` is the noise estimate `run_pipeline` makes.",
         "",
         "| frame | G ms | " + " | ".join(COLUMNS) + " | pipeline ms/Mpx |",
@@ -330,7 +335,8 @@ def main(argv: list[str] | None = None) -> int:
         "date": time.strftime("%Y-%m-%d %H:%M"), "quick": args.quick, "machine": machine(),
         "frames": frames,
         "scaling_exponent": {t: scaling_exponent(frames, t)
-                             for t in ("edges", "run_pipeline_nosplit", "run_pipeline")},
+                             for t in ("edges", "run_pipeline_nosplit", "run_pipeline_paper",
+                                       "run_pipeline")},
         "compile": bench_compile(), "batch": {},
     }
     if not args.no_batch:

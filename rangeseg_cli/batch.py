@@ -238,7 +238,8 @@ def _run_link(state: dict[str, Any], base: Path, config: Config) -> None:
 def _run_grow(state: dict[str, Any], base: Path, config: Config) -> None:
     from .surfaces import surfaces_to_json
 
-    labels, surfaces = stage_grow(state["z"], state["edges"], state["components"], config)
+    labels, surfaces = stage_grow(state["z"], state["edges"], state["components"], config,
+                                  noise=state.get("noise_sigma"))
     state["labels"], state["surfaces"] = labels, surfaces
     io.write_npy(_p(base, "labels.npy"), labels)
     io.write_json(_p(base, "surfaces.json"), surfaces_to_json(surfaces),

@@ -89,21 +89,21 @@ def stage_link(z: np.ndarray, codes: np.ndarray, config: Config
     return link_edges(codes, ~np.isnan(z), config.link)
 
 
-def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config: Config
-               ) -> tuple[np.ndarray, list[Surface]]:
+def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config: Config,
+               *, noise: float | None = None) -> tuple[np.ndarray, list[Surface]]:
     """Step 4 (Sec. V-4): final labels and their surface descriptions.
 
     With ``[split] enabled``, components that fail the fit test are split
     and regrown (Sec. VIII; :mod:`rangeseg_cli.split`); with ``[split]
     recover``, narrow faces left unlabelled get regions of their own
-    (:mod:`rangeseg_cli.recover`).
+    (:mod:`rangeseg_cli.recover`). ``noise`` is :func:`~rangeseg_cli.split.estimate_noise`
+    of ``z`` when the caller has it already (it is computed here otherwise).
     """
     from .grow import grow_regions
     from .surfaces import describe_surfaces
 
     labels = grow_regions(z, edges, components, config.grow)
-    noise = None
-    if config.split.enabled or config.split.recover:
+    if noise is None and (config.split.enabled or config.split.recover):
         from .split import estimate_noise
 
         noise = estimate_noise(z)
@@ -168,7 +168,7 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
     if stages >= 3:
         t0 = time.perf_counter()
         result.labels, result.surfaces = stage_grow(z, result.edges, result.components,
-                                                    config)
+                                                    config, noise=result.noise_sigma)
         timings["grow"] = time.perf_counter() - t0
     if stages >= 4:
         t0 = time.perf_counter()
