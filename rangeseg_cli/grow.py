@@ -50,6 +50,7 @@ from scipy import ndimage
 
 from .config import GrowConfig
 from .edges import Backend, select_kernels
+from .rangeimage import require_shape_of_z
 
 #: Number of terms of the quadric, of the plane and of the constant model.
 ORDER_TERMS: dict[int, int] = {2: 6, 1: 3, 0: 1}
@@ -230,9 +231,7 @@ def _to_image_coefficients(coef: np.ndarray, cx: np.ndarray, cy: np.ndarray,
 
 def _check_labels(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...]) -> None:
     """Validate the inputs of :func:`fit_models`."""
-    if labels.shape != np.shape(z):
-        raise ValueError(f"`labels` (shape {labels.shape}) must have the shape of `z` "
-                         f"({np.shape(z)})")
+    require_shape_of_z(z, labels=labels)
     if labels.size and (labels.min() < 0 or labels.max() > n):
         raise ValueError(f"`labels` must lie in 0..n = 0..{n}, got {labels.min()}.."
                          f"{labels.max()}")
@@ -530,10 +529,7 @@ def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: 
         When the shapes of ``z``, ``codes`` and ``components`` differ.
     """
     z = np.asarray(z, dtype=np.float64)
-    for name, arr in (("codes", codes), ("components", components)):
-        if np.shape(arr) != z.shape:
-            raise ValueError(f"`{name}` (shape {np.shape(arr)}) must have the shape of `z` "
-                             f"({z.shape})")
+    require_shape_of_z(z, codes=codes, components=components)
     valid = np.isfinite(z)
     labels = np.where(valid, components, 0).astype(np.int32)
     n = int(labels.max(initial=0))

@@ -104,3 +104,17 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image") -> np.ndarray
                          f"(|height| <= {MAX_ABS_HEIGHT:.0e} depth units); set [input] "
                          "invalid to the sensor's no-data value or adjust [input] scale")
     return z
+
+
+def require_shape_of_z(z: np.ndarray, **arrays: Any) -> None:
+    """Check that every named array has the shape of the heights ``z``.
+
+    Raises
+    ------
+    ValueError
+        Naming the first array whose shape differs, its shape and ``z``'s.
+    """
+    for name, arr in arrays.items():
+        if np.shape(arr) != np.shape(z):
+            raise ValueError(f"`{name}` (shape {np.shape(arr)}) must have the shape of `z` "
+                             f"({np.shape(z)})")

@@ -66,6 +66,7 @@ from scipy import ndimage
 
 from .config import Config
 from .grow import evaluate_quadric, fit_quadrics
+from .rangeimage import require_shape_of_z
 from .split import adjacent_pairs, estimate_noise, local_planes
 
 #: Chessboard reach (pixels) of the neighbours a label-0 pixel may be the boundary of.
@@ -425,10 +426,7 @@ def recover_faces(z: np.ndarray, components: np.ndarray, labels: np.ndarray, con
         When the shapes of ``z``, ``components`` and ``labels`` differ.
     """
     z = np.asarray(z, dtype=np.float64)
-    for name, arr in (("components", components), ("labels", labels)):
-        if np.shape(arr) != z.shape:
-            raise ValueError(f"`{name}` (shape {np.shape(arr)}) must have the shape of `z` "
-                             f"({z.shape})")
+    require_shape_of_z(z, components=components, labels=labels)
     n = int(np.max(labels, initial=0))
     noise = estimate_noise(z) if noise is None else noise
     if n == 0 or noise > config.split.recover_max_noise:
