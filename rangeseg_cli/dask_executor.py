@@ -51,6 +51,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 #: Seconds to wait for the scheduler to answer.
 CONNECT_TIMEOUT_S = 10.0
+#: Seconds to wait for a first worker to join a scheduler that has none.
+WORKER_WAIT_S = 10.0
 #: Retries of a task that raises (worker deaths are handled by the scheduler).
 RETRIES = 2
 
@@ -170,6 +172,12 @@ def _run_tasks(client: Client, todo: list[Job], out: Path, config: Config,
 def _check_workers(client: Client, paths: list[str]) -> None:
     """Fail before any work when a worker cannot run rangeseg or see the shared paths."""
     address = client.scheduler.address
+    try:
+        client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+    except TimeoutError:
+        raise ClusterError(f"the Dask scheduler at {address} has no workers (none joined "
+                           f"within {WORKER_WAIT_S:g} s): start workers with "
+                           f"`dask worker {address}`") from None
     try:
         answers: dict[str, Any] = client.run(worker_report, paths)
     except Exception as exc:  # noqa: BLE001 - e.g. rangeseg not installed on a worker

@@ -183,3 +183,17 @@ def test_worker_killed_mid_batch_still_completes_with_identical_bytes(
     statuses = [e["status"] for e in manifest(out)["images"].values()]
     assert statuses == ["done"] * N_IMAGES
     client.wait_for_workers(2, timeout=60)  # leave the cluster whole
+
+
+def test_scheduler_without_workers_exits_2_with_one_line(images, tmp_path, monkeypatch):
+    from distributed import LocalCluster
+
+    monkeypatch.setattr(dask_executor, "WORKER_WAIT_S", 1.0)
+    with LocalCluster(n_workers=0, processes=True, host="127.0.0.1",
+                      dashboard_address=":0") as empty:
+        out = tmp_path / "out"
+        code, output = run_cli(str(images), "-o", str(out), "--executor", "dask",
+                               "--scheduler", empty.scheduler_address)
+    assert code == 2, output
+    assert len(output.strip().splitlines()) == 1 and "has no workers" in output, output
+    assert not list(out.glob("*.npy"))
