@@ -215,7 +215,7 @@ def _run_edges(state: dict[str, Any], base: Path, config: Config) -> None:
 
     z = state["z"]
     state["noise_sigma"] = estimate_noise(z)  # for the manifest (robust, Sec. IV-B)
-    maps = stage_edges(z, config)
+    maps = stage_edges(z, config, noise=state["noise_sigma"])
     state["edges"] = maps.codes
     io.write_npy(_p(base, "range.npy"), z)
     io.write_npy(_p(base, "edges.npy"), maps.codes)

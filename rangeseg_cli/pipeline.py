@@ -69,15 +69,16 @@ class PipelineResult:
     noise_sigma: float | None = None
 
 
-def stage_edges(z: np.ndarray, config: Config) -> EdgeMaps:
+def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
     """Steps 1 and 2 (Sec. V-1, V-2) on heights ``z``.
 
-    With ``[input] auto_thresholds`` the thresholds are scaled to the noise of ``z``.
+    With ``[input] auto_thresholds`` the thresholds are scaled to the noise of
+    ``z``: ``noise`` when the caller has estimated it, computed here otherwise.
     """
     if config.input.auto_thresholds:
         from .split import estimate_noise, noise_scaled_config
 
-        config = noise_scaled_config(config, estimate_noise(z))
+        config = noise_scaled_config(config, estimate_noise(z) if noise is None else noise)
     return detect_edges(z, config)
 
 
@@ -155,12 +156,13 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     z = to_heights(image, config.input, name=name)
-    maps = stage_edges(z, config)
-    timings["edges"] = time.perf_counter() - t0
-    result = PipelineResult(heights=z, edge_maps=maps, edges=maps.codes, timings=timings)
     from .split import estimate_noise
 
-    result.noise_sigma = estimate_noise(z)
+    noise = estimate_noise(z)
+    maps = stage_edges(z, config, noise=noise)
+    timings["edges"] = time.perf_counter() - t0
+    result = PipelineResult(heights=z, edge_maps=maps, edges=maps.codes, timings=timings,
+                            noise_sigma=noise)
     if stages >= 2:
         t0 = time.perf_counter()
         result.edges, result.components = stage_link(z, maps.codes, config)
