@@ -6,7 +6,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,16 +14,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from conftest import box_scene
+from conftest import box_scene, tree_bytes
 from rangeseg_cli import run_pipeline
 from rangeseg_cli.cli import main
 from rangeseg_cli.errors import InputError
-
-
-def tree_bytes(folder: Path) -> dict[str, bytes]:
-    """Every file below ``folder`` except the manifest (it holds timings)."""
-    return {p.relative_to(folder).as_posix(): p.read_bytes()
-            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "rangeseg-run.json"}
 
 
 def scene(i: int, size: int = 48) -> np.ndarray:

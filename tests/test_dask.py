@@ -16,7 +16,7 @@ import pytest
 from click.testing import CliRunner
 from distributed import Client, LocalCluster
 
-from conftest import box_scene
+from conftest import box_scene, tree_bytes
 from rangeseg_cli import cli_report, dask_executor, load_config
 from rangeseg_cli.batch import Job
 from rangeseg_cli.cli import main
@@ -24,12 +24,6 @@ from rangeseg_cli.dask_executor import ClusterError, execute_on_dask
 from rangeseg_cli.pipeline import STAGES
 
 N_IMAGES = 16
-
-
-def tree_bytes(folder: Path) -> dict[str, bytes]:
-    """Every file below ``folder`` except the manifest (it holds timings)."""
-    return {p.relative_to(folder).as_posix(): p.read_bytes()
-            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "rangeseg-run.json"}
 
 
 def scene(i: int, size: int = 160) -> np.ndarray:
