@@ -1,0 +1,143 @@
+"""Segmentation quality over all synthetic scenes, in one process.
+
+Renders every scene of ``rangeseg_cli.synth.SCENES`` at noise 0, 1, 2 for
+seeds 0, 1, 2 (the same images ``rangeseg synth OUT --noise 0,1,2 --seed S``
+writes), runs ``run_pipeline`` with the given configuration and scores the
+labels with Hoover et al. (1996) at T = 0.8 on GT regions of >= 50 pixels.
+Prints one row per noise level (the table of ``docs/QUALITY.md``) and, with
+``--misses``, every GT region that is not correctly detected.
+
+Usage::
+
+    .venv/bin/python benchmarks/quality.py                       # defaults
+    .venv/bin/python benchmarks/quality.py --preset paper
+    .venv/bin/python benchmarks/quality.py --set split.merge=false --misses
+    .venv/bin/python benchmarks/quality.py --json out/quality.json --labels out/labels.npz
+
+``--labels`` saves every label image (key ``<scene>-n<noise>-s<seed>``) so two
+trees can be checked for identical output (``--compare A.npz B.npz``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tomllib
+from collections import defaultdict
+from typing import Any
+
+import numpy as np
+
+from rangeseg_cli.config import load_config
+from rangeseg_cli.evaluate import CURVE_TOLERANCES, correct_curve, hoover_compare
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.synth import SCENES, render_scene
+
+NOISES = (0.0, 1.0, 2.0)
+SEEDS = (0, 1, 2)
+KEYS = ("gt_regions", "correct", "over", "under", "missed", "noise")
+
+
+def _parse_set(items: list[str]) -> dict[str, dict[str, Any]]:
+    """``TABLE.KEY=VALUE`` items as nested overrides (values parsed as TOML)."""
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        key, _, raw = item.partition("=")
+        table, _, name = key.strip().partition(".")
+        try:
+            value = tomllib.loads(f"v = {raw.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw.strip()
+        out.setdefault(table, {})[name] = value
+    return out
+
+
+def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool
+            ) -> tuple[dict[float, dict[str, Any]], dict[str, np.ndarray], list[str]]:
+    """Per noise level: summed counts and curve; the label images; the misses."""
+    rows: dict[float, dict[str, Any]] = defaultdict(
+        lambda: {**{k: 0 for k in KEYS}, "curve": [0] * len(CURVE_TOLERANCES)})
+    labels: dict[str, np.ndarray] = {}
+    missed: list[str] = []
+    for seed in seeds:
+        for name in scenes:
+            for noise in NOISES:
+                scene = render_scene(name, noise=noise, seed=seed)
+                pred = run_pipeline(scene.image, config).labels
+                key = f"{name}-n{noise:g}-s{seed}"
+                labels[key] = pred
+                result = hoover_compare(scene.gt, pred)
+                counts = result.counts()
+                row = rows[noise]
+                for k in KEYS:
+                    row[k] += int(counts[k])
+                row["curve"] = [a + b for a, b in zip(row["curve"],
+                                                      correct_curve(scene.gt, pred))]
+                if misses:
+                    names = {s["id"]: s["name"] for s in scene.info["surfaces"]}
+                    good = {g for i in result.instances if i.kind == "correct" for g in i.gt}
+                    for g in result.gt_labels.tolist():
+                        if g not in good:
+                            missed.append(f"{key}: {names.get(g, g)} "
+                                          f"({int((scene.gt == g).sum())} px)")
+    return dict(rows), labels, missed
+
+
+def _print(rows: dict[float, dict[str, Any]]) -> None:
+    print("| σ | GT | correct | over | under | missed | noise | correct at T = 0.5 … 0.95 |")
+    print("|---|---|---|---|---|---|---|---|")
+    total = {k: 0 for k in KEYS}
+    for noise in sorted(rows):
+        r = rows[noise]
+        pct = 100.0 * r["correct"] / max(r["gt_regions"], 1)
+        print(f"| {noise:g} | {r['gt_regions']} | {r['correct']} ({pct:.1f} %) | {r['over']} | "
+              f"{r['under']} | {r['missed']} | {r['noise']} | {' '.join(map(str, r['curve']))} |")
+        for k in KEYS:
+            total[k] += r[k]
+    pct = 100.0 * total["correct"] / max(total["gt_regions"], 1)
+    print(f"| all | {total['gt_regions']} | {total['correct']} ({pct:.1f} %) | {total['over']} | "
+          f"{total['under']} | {total['missed']} | {total['noise']} | |")
+
+
+def compare(a: str, b: str) -> int:
+    """Print how many label images differ between two ``--labels`` files."""
+    la, lb = np.load(a), np.load(b)
+    keys = sorted(set(la.files) | set(lb.files))
+    diff = [k for k in keys if k not in la.files or k not in lb.files
+            or not np.array_equal(la[k], lb[k])]
+    print(f"{len(keys) - len(diff)} of {len(keys)} label images identical")
+    for k in diff:
+        print(f"  differs: {k}")
+    return 1 if diff else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--preset", default=None)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--scenes", default=",".join(SCENES), help="comma-separated scene names")
+    p.add_argument("--seeds", default="0,1,2")
+    p.add_argument("--misses", action="store_true", help="list GT regions not correctly detected")
+    p.add_argument("--json", default=None, help="write the rows as JSON here")
+    p.add_argument("--labels", default=None, help="save all label images to this .npz")
+    p.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two --labels files")
+    args = p.parse_args(argv)
+    if args.compare:
+        return compare(*args.compare)
+    config = load_config(preset=args.preset, overrides=_parse_set(args.set))
+    seeds = tuple(int(s) for s in args.seeds.split(","))
+    rows, labels, missed = measure(config, args.scenes.split(","), seeds, args.misses)
+    _print(rows)
+    for line in missed:
+        print(line)
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump({f"{k:g}": v for k, v in rows.items()}, fh, indent=1)
+    if args.labels:
+        np.savez_compressed(args.labels, **labels)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
