@@ -73,7 +73,7 @@ def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool
                 for k in KEYS:
                     row[k] += int(counts[k])
                 row["curve"] = [a + b for a, b in zip(row["curve"],
-                                                      correct_curve(scene.gt, pred))]
+                                                      correct_curve(scene.gt, pred), strict=True)]
                 if misses:
                     names = {s["id"]: s["name"] for s in scene.info["surfaces"]}
                     good = {g for i in result.instances if i.kind == "correct" for g in i.gt}
