@@ -127,12 +127,32 @@ def fill_edges(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig) -> np.ndarray
     coeffs, mse = surface_models(z, out, n, cfg)
     bound = cfg.error_factor * np.maximum(mse, cfg.min_error)
     bound[0] = 1.0  # never used: label 0 is not a neighbour
-    rows, cols = np.nonzero(valid & (out == 0))
+    open_ = valid & (out == 0)
+    rows, cols = np.nonzero(open_)
     while rows.size:
         best, ratio = _best_neighbour(z, out, coeffs, bound, rows, cols)
         join = ratio < 1.0
         if not join.any():
             break
         out[rows[join], cols[join]] = best[join]
-        rows, cols = rows[~join], cols[~join]
+        open_[rows[join], cols[join]] = False
+        rows, cols = _frontier(open_, rows[join], cols[join])
     return out
+
+
+def _frontier(open_: np.ndarray, rows: np.ndarray, cols: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The open pixels 8-adjacent to the pixels ``rows, cols``, in raster order.
+
+    Surfaces are fixed, so a pixel whose neighbours did not change in a pass
+    gets the same test result in the next one: only the pixels next to the
+    ones that just joined need testing again (on a real 640x480 frame the
+    passes run a hundred times over a shrinking band).
+    """
+    h, w = open_.shape
+    r = (rows[:, None] + np.array([dr for dr, _ in _OFFSETS])).ravel()
+    c = (cols[:, None] + np.array([dc for _, dc in _OFFSETS])).ravel()
+    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    flat = np.unique(r[inside] * w + c[inside])
+    flat = flat[open_.ravel()[flat]]
+    return flat // w, flat % w

@@ -135,3 +135,35 @@ def test_fill_only_labels_unlabelled_valid_pixels_from_their_neighbours(seed, sh
         window = padded[r:r + 3, c:c + 3].copy()
         window[1, 1] = 0
         assert out[r, c] in window
+
+
+def _fill_every_pixel_every_pass(z, labels, cfg):
+    """Reference: the fill of fill.py's Notes, testing every open pixel in every pass."""
+    from rangeseg_cli.fill import _best_neighbour, surface_models
+
+    valid = np.isfinite(z)
+    out = np.where(valid, labels, 0).astype(np.int32)
+    n = int(out.max(initial=0))
+    if n == 0:
+        return out
+    coeffs, mse = surface_models(z, out, n, cfg)
+    bound = cfg.error_factor * np.maximum(mse, cfg.min_error)
+    bound[0] = 1.0
+    while True:
+        rows, cols = np.nonzero(valid & (out == 0))
+        best, ratio = _best_neighbour(z, out, coeffs, bound, rows, cols)
+        join = ratio < 1.0
+        if not join.any():
+            return out
+        out[rows[join], cols[join]] = best[join]
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), holes=st.floats(0.2, 0.95))
+def test_testing_only_the_frontier_gives_the_same_fill(seed, holes):
+    """Only pixels next to the last pass's joins are retested; the labels are the same."""
+    rng = np.random.default_rng(seed)
+    z, truth = roof_scene(noise=float(rng.uniform(0, 2)), seed=int(rng.integers(1000)))
+    labels = np.where(rng.random(truth.shape) < holes, 0, truth).astype(np.int32)
+    np.testing.assert_array_equal(fill_edges(z, labels, GROW),
+                                  _fill_every_pixel_every_pass(z, labels, GROW))
