@@ -146,9 +146,9 @@ class SplitConfig:
                             "(regions then abut)")
     merge: bool = _opt(True, "last, merge touching regions whose union one quadric fits "
                        "within the fit test (the counterpart of the split)")
-    smooth_edges: bool = _opt(True, "after the merge, cut a region (or two touching regions) "
-                              "that is a plane with a tangent curved surface at the line "
-                              "where the plane ends (a smooth edge)")
+    recut: bool = _opt(True, "after the merge, cut a region (or re-cut two touching "
+                       "regions) along the straight line where a plane ends: a curved surface "
+                       "tangent to it (a smooth edge) or another plane (a crease)")
 
 
 @dataclass(frozen=True)
@@ -215,7 +215,7 @@ _TABLE_CLASSES: dict[str, type] = {
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill or merge)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
-                        "merge": False, "smooth_edges": False}},
+                        "merge": False, "recut": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,
