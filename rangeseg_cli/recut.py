@@ -134,8 +134,9 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
     q = np.maximum(u[None, :] - knots[:, None], 0.0)
     terms = [np.broadcast_to(t, q.shape) for t in (np.ones_like(zs), x, y)]
     a = np.stack(terms + [q ** p for p in powers], axis=-1)          # (knots, n, terms)
-    gram = np.einsum("cni,cnj->cij", a, a)
-    rhs = np.einsum("cni,n->ci", a, zs)
+    at = a.transpose(0, 2, 1)
+    gram = at @ a
+    rhs = at @ zs
     scale = np.sqrt(np.maximum(np.einsum("cii->ci", gram), 1e-300))
     inv = np.linalg.pinv(gram / scale[:, :, None] / scale[:, None, :], rcond=1e-10)
     coef = (inv @ (rhs / scale)[:, :, None])[:, :, 0] / scale

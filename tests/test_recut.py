@@ -118,7 +118,8 @@ def test_split_tangent_returns_the_plane_side_and_split_crease_the_crease_side()
     z, truth = _crease(1.0, 1.5)
     side = split_crease(z, np.ones_like(truth), 1, 0, noise=1.0, level=1.25, config=CONFIG)
     assert side is not None
-    assert np.mean(side[truth == 1]) > 0.95 and np.mean(side[truth == 2]) < 0.05
+    # two planes: either may be the side before the line
+    assert min(np.mean(side != (truth == 1)), np.mean(side != (truth == 2))) < 0.05
 
 
 def test_labels_without_regions_and_bad_shapes():
