@@ -80,8 +80,13 @@ _MIN_SMOOTH = 0.06
 _PAIR_TOLERANCE = 1.05
 #: Largest mean gap of two touching regions' surfaces, in fit-test levels.
 _MAX_GAP = 10.0
-#: The coarse knot search uses at most this many pixels.
+#: The coarse knot search uses at most this many pixels and this many knots.
 _COARSE_PIXELS = 1500
+_COARSE_KNOTS = 200
+#: The fine search uses at most this many pixels (its SSE scaled to all of them).
+_FINE_PIXELS = 20000
+#: The coarse search gives up above this many fit-test levels of RMS error.
+_GIVE_UP = 2.0
 #: Powers of ``q`` beside the plane: a smooth edge and a crease.
 SMOOTH: tuple[int, ...] = (2, 3)
 CREASE: tuple[int, ...] = (1,)
@@ -144,8 +149,17 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
 
 
 def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
-              powers: tuple[int, ...]) -> tuple[float, float, float]:
+              powers: tuple[int, ...], max_mse: float = math.inf
+              ) -> tuple[float, float, float]:
     """The best knot along ``d``, its SSE, and the SSE with no plane side (Notes 2).
+
+    Parameters
+    ----------
+    rows, cols, zs, d, powers
+        As for :func:`knot_sse`.
+    max_mse
+        Give up (NaN, infinities) when the coarse search's best mean squared
+        error is above this: the model cannot pass (a step between the regions).
 
     Returns
     -------
@@ -154,14 +168,20 @@ def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
         infinities when the pixels span less than a pixel along ``d``.
     """
     u = d[0] * rows + d[1] * cols
-    knots = np.arange(math.floor(u.min()) + 1.0, u.max(), 1.0)
+    step = max(1.0, float(np.ceil((u.max() - u.min()) / _COARSE_KNOTS)))
+    knots = np.arange(math.floor(u.min()) + step, u.max(), step)
     if knots.size == 0:
         return math.nan, math.inf, math.inf
     sub = slice(None, None, max(1, -(-zs.size // _COARSE_PIXELS)))
     coarse = knot_sse(rows[sub], cols[sub], zs[sub], d, knots, powers)
-    c = float(knots[int(np.argmin(coarse))])
+    k = int(np.argmin(coarse))
+    if coarse[k] > max_mse * zs[sub].size:
+        return math.nan, math.inf, math.inf
+    c = float(knots[k])
     fine = np.concatenate([[u.min() - 0.5], np.arange(c - 1.0, c + 1.0001, 0.1)])
-    sse = knot_sse(rows, cols, zs, d, fine, powers)
+    every = max(1, -(-zs.size // _FINE_PIXELS))
+    sse = knot_sse(rows[::every], cols[::every], zs[::every], d, fine, powers)
+    sse *= zs.size / zs[::every].size
     j = int(np.argmin(sse[1:])) + 1
     return float(fine[j]), float(sse[j]), float(sse[0])
 
@@ -172,8 +192,11 @@ def _line_fit(mask: np.ndarray, z: np.ndarray, powers: tuple[int, ...], min_pixe
     rows, cols = np.nonzero(mask)
     zs = z[rows, cols]
     d0 = curvature_direction(rows, cols, zs)
-    fits = [(best_knot(rows, cols, zs, d, powers), d) for d in (d0, -d0)]
+    fits = [(best_knot(rows, cols, zs, d, powers, (_GIVE_UP * level) ** 2), d)
+            for d in (d0, -d0)]
     (c, sse, sse_across), d = min(fits, key=lambda f: f[0][1])
+    if not math.isfinite(sse):
+        return None
     side = d[0] * rows + d[1] * cols < c
     n_side = int(side.sum())
     if n_side < min_pixels or zs.size - n_side < min_pixels or sse > zs.size * level ** 2:
