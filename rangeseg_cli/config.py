@@ -213,7 +213,7 @@ _TABLE_CLASSES: dict[str, type] = {
 
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    # the paper's algorithm alone (no Sec. VIII split, recovery, fill or merge)
+    # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge or recut)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
                         "merge": False, "recut": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
