@@ -23,14 +23,20 @@ Notes
    and the union of every pair of touching regions (8-neighbours), one of
    them curved, whose surfaces agree along their boundary within
    ``_MAX_GAP`` times the fit test (``split.fit_factor * max(noise,
-   sqrt(grow.min_error))``) and whose union's quadric fails that test.
+   sqrt(grow.min_error))``; across a step they do not). Whether the
+   candidate's quadric fails that test is noted: only then is a smooth
+   edge tried.
 2. Model (:func:`knot_sse`): along the direction ``d`` of the strongest
    curvature of the candidate's quadric (either sign), with ``u = d . (row,
    col)`` and ``q = max(0, u - c)``, heights are ``plane + k q^2 + m q^3``
    for a smooth edge (continuous height and slope at ``u = c``: a cylinder
    or cone meets its tangent plane along a straight line) and ``plane + k
    q`` for a crease (two planes). The knot ``c`` is searched one pixel apart
-   (on at most ``_COARSE_PIXELS`` pixels, every k-th), then 0.1 pixel apart.
+   (at most ``_COARSE_KNOTS`` knots, farther apart on wide candidates; on at
+   most ``_COARSE_PIXELS`` pixels, every k-th), then 0.1 pixel apart within
+   a pixel of the best (on at most ``_FINE_PIXELS``, the SSE scaled to all
+   pixels). A candidate whose coarse fit is over ``_GIVE_UP`` times the fit
+   test (RMS) is dropped there. Each knot is one small least-squares solve.
 3. Smooth edge (:func:`split_tangent`), for pairs and for regions whose
    quadric fails the fit test: the model's RMS error passes the fit test;
    both sides have ``link.min_component`` pixels or more; the plane side is
@@ -48,8 +54,8 @@ Notes
    within ``_PAIR_TOLERANCE`` times the sum of squared errors of the two
    regions' own surfaces (the line explains them as well as the boundary
    they had).
-5. Cuts are applied by decreasing gain (creases count 0), each region at
-   most once: a single region keeps its id beyond the line and the plane
+5. Cuts are applied by decreasing gain (creases count 0; then pairs before
+   single regions, then by ids), each region at most once: a single region keeps its id beyond the line and the plane
    side gets a new one; a pair becomes the side beyond the line (first id)
    and the plane side (second id). Ids are then made consecutive.
 
