@@ -55,9 +55,10 @@ Notes
    regions' own surfaces (the line explains them as well as the boundary
    they had).
 5. Cuts are applied by decreasing gain (creases count 0; then pairs before
-   single regions, then by ids), each region at most once: a single region keeps its id beyond the line and the plane
-   side gets a new one; a pair becomes the side beyond the line (first id)
-   and the plane side (second id). Ids are then made consecutive.
+   single regions, then by ids), each region at most once: a single region
+   keeps its id beyond the line and the plane side gets a new one; a pair
+   becomes the side beyond the line (first id) and the plane side (second
+   id). Ids are then made consecutive.
 
 Thresholds, measured on the 12 synthetic scenes (seeds 0-2, sigma 0-2): a
 plane with part1's tangent quarter cylinder gains 0.21-3.6 against one
