@@ -146,6 +146,9 @@ class SplitConfig:
                             "(regions then abut)")
     merge: bool = _opt(True, "last, merge touching regions whose union one quadric fits "
                        "within the fit test (the counterpart of the split)")
+    recut: bool = _opt(True, "after the merge, cut a region (or re-cut two touching "
+                       "regions) along the straight line where a plane ends: a curved surface "
+                       "tangent to it (a smooth edge) or another plane (a crease)")
 
 
 @dataclass(frozen=True)
@@ -210,9 +213,9 @@ _TABLE_CLASSES: dict[str, type] = {
 
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    # the paper's algorithm alone (no Sec. VIII split, recovery, fill or merge)
+    # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge or recut)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
-                        "merge": False}},
+                        "merge": False, "recut": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,

@@ -128,6 +128,11 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
 
         labels = merge_regions(z, labels, config,
                                noise=estimate_noise(z) if noise is None else noise)
+    if config.split.recut:
+        from .recut import recut_regions
+
+        labels = recut_regions(z, labels, config,
+                               noise=estimate_noise(z) if noise is None else noise)
     return labels, describe_surfaces(z, labels, config)
 
 

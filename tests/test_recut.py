@@ -1,0 +1,152 @@
+"""Regions are cut along the straight line where a plane ends (rangeseg_cli.recut)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rangeseg_cli.config import load_config
+from rangeseg_cli.evaluate import hoover_compare
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.recut import recut_regions, split_crease, split_tangent
+from rangeseg_cli.synth import render_scene
+
+CONFIG = load_config()
+OFF = load_config(overrides={"split": {"recut": False}})
+KNOT = 24.0
+RADIUS = 16.0
+#: Depth units per pixel of the model, about part1's (its fillet drops 39 units over 14 px).
+DEPTH_SCALE = 2.5
+
+
+def _grid(w: int) -> tuple[np.ndarray, np.ndarray]:
+    y, x = np.mgrid[0:56, 0:w].astype(np.float64)
+    return y, x
+
+
+def _plane_and_fillet(sigma: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A tilted plane (x < KNOT) that a cylinder leaves tangentially, and the truth.
+
+    Part1's block top and fillet (Fig. 10) in proportion: the cylinder is
+    kept up to 0.9 of its radius, where its slope stays within reach of the
+    growing (steeper pixels are step edges in the pipeline).
+    """
+    y, x = _grid(int(KNOT + 0.9 * RADIUS))
+    d = np.clip(x - KNOT, 0.0, None)
+    z = 80.0 + 0.1 * x + 0.05 * y - DEPTH_SCALE * (RADIUS - np.sqrt(RADIUS**2 - d**2))
+    truth = np.where(x < KNOT, 1, 2).astype(np.int32)
+    return z + np.random.default_rng(seed).normal(0.0, sigma, z.shape), truth
+
+
+def _crease(sigma: float, bend: float, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Two planes meeting at x = KNOT, the slope changing by ``bend`` units per pixel."""
+    y, x = _grid(40)
+    z = 80.0 + 0.1 * x + 0.05 * y - bend * np.clip(x - KNOT, 0.0, None)
+    truth = np.where(x < KNOT, 1, 2).astype(np.int32)
+    return z + np.random.default_rng(seed).normal(0.0, sigma, z.shape), truth
+
+
+def _correct(truth: np.ndarray, labels: np.ndarray) -> int:
+    return sum(i.kind == "correct" for i in hoover_compare(truth, labels).instances)
+
+
+def _found(scene_name: str, noise: float, seed: int, config) -> set[str]:
+    scene = render_scene(scene_name, noise=noise, seed=seed)
+    names = {s["id"]: s["name"] for s in scene.info["surfaces"]}
+    result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
+    return {names[g] for i in result.instances if i.kind == "correct" for g in i.gt}
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_one_region_holding_a_plane_and_its_fillet_is_cut(sigma, seed):
+    z, truth = _plane_and_fillet(sigma, seed)
+    out = recut_regions(z, np.ones_like(truth), CONFIG, noise=max(sigma, 0.3))
+    assert _correct(truth, out) == 2
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0])
+def test_two_regions_cut_in_the_fillet_are_recut_at_the_tangent_line(sigma):
+    z, truth = _plane_and_fillet(sigma)
+    x = _grid(z.shape[1])[1]
+    labels = np.where(x < KNOT + 5, 1, 2).astype(np.int32)   # the split's cut, too far out
+    assert _correct(truth, labels) < 2
+    out = recut_regions(z, labels, CONFIG, noise=max(sigma, 0.3))
+    assert _correct(truth, out) == 2
+
+
+@pytest.mark.parametrize("sigma", [0.0, 2.0])
+def test_one_region_holding_two_planes_at_a_crease_is_cut(sigma):
+    z, truth = _crease(sigma, 1.5)
+    out = recut_regions(z, np.ones_like(truth), CONFIG, noise=max(sigma, 0.3))
+    assert _correct(truth, out) == 2
+
+
+@pytest.mark.parametrize("sigma", [0.0, 2.0])
+def test_a_strip_given_to_the_wrong_plane_goes_back(sigma):
+    z, truth = _crease(sigma, 1.5)
+    x = _grid(z.shape[1])[1]
+    labels = np.where(x < KNOT - 5, 1, 2).astype(np.int32)
+    assert _correct(truth, labels) < 2
+    out = recut_regions(z, labels, CONFIG, noise=max(sigma, 0.3))
+    assert _correct(truth, out) == 2
+
+
+def test_a_crease_below_min_crease_is_left_alone():
+    z, truth = _crease(2.0, 0.05)
+    labels = np.ones_like(truth)
+    assert np.array_equal(recut_regions(z, labels, CONFIG, noise=2.0), labels)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 2.0])
+def test_a_cylinder_alone_is_left_alone(sigma):
+    y, x = _grid(64)
+    z = 30.0 + DEPTH_SCALE * np.sqrt(40.0**2 - (x - 30.0) ** 2)
+    z += np.random.default_rng(4).normal(0.0, sigma, z.shape)
+    labels = np.ones(z.shape, np.int32)
+    assert np.array_equal(recut_regions(z, labels, CONFIG, noise=max(sigma, 0.3)), labels)
+
+
+def test_split_tangent_returns_the_plane_side_and_split_crease_the_crease_side():
+    z, truth = _plane_and_fillet(1.0)
+    got = split_tangent(z, np.ones(z.shape, bool), noise=1.0, level=1.25,
+                        min_pixels=20, grow=CONFIG.grow)
+    assert got is not None
+    side, gain = got
+    assert gain > 0.15
+    assert np.mean(side[truth == 1]) > 0.95 and np.mean(side[truth == 2]) < 0.05
+    z, truth = _crease(1.0, 1.5)
+    side = split_crease(z, np.ones_like(truth), 1, 0, noise=1.0, level=1.25, config=CONFIG)
+    assert side is not None
+    # two planes: either may be the side before the line
+    assert min(np.mean(side != (truth == 1)), np.mean(side != (truth == 2))) < 0.05
+
+
+def test_labels_without_regions_and_bad_shapes():
+    z, truth = _plane_and_fillet(0.0)
+    assert np.all(recut_regions(z, np.zeros_like(truth), CONFIG, noise=0.3) == 0)
+    with pytest.raises(ValueError):
+        recut_regions(z, truth[:, :10], CONFIG, noise=0.3)
+
+
+@pytest.mark.parametrize("noise", [0.0, 1.0, 2.0])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_part1_block_top_and_fillet_are_both_found(noise, seed):
+    """At noise 2 they were one region, at 0 and 1 the fillet was cut too far out."""
+    assert {"block top", "fillet side"} <= _found("part1", noise, seed, CONFIG)
+    assert not {"block top", "fillet side"} <= _found("part1", noise, seed, OFF)
+
+
+def test_pile_frustum_top_and_side_one_region_at_sigma_2_are_cut():
+    assert {"frustum 4 top", "frustum 4 -x"} <= _found("pile", 2.0, 2, CONFIG)
+    assert not {"frustum 4 top", "frustum 4 -x"} & _found("pile", 2.0, 2, OFF)
+
+
+def test_part2_chamfer_gets_its_strip_back_at_sigma_2():
+    assert "base chamfer" in _found("part2", 2.0, 1, CONFIG)
+    assert "base chamfer" not in _found("part2", 2.0, 1, OFF)
+
+
+def test_paper_preset_turns_it_off():
+    assert load_config(preset="paper").split.recut is False
+    assert CONFIG.split.recut is True
