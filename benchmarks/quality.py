@@ -53,7 +53,8 @@ def _parse_set(items: list[str]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool
+def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool,
+            size: tuple[int, int] = (128, 128)
             ) -> tuple[dict[float, dict[str, Any]], dict[str, np.ndarray], list[str]]:
     """Per noise level: summed counts and curve; the label images; the misses."""
     rows: dict[float, dict[str, Any]] = defaultdict(
@@ -63,7 +64,7 @@ def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool
     for seed in seeds:
         for name in scenes:
             for noise in NOISES:
-                scene = render_scene(name, noise=noise, seed=seed)
+                scene = render_scene(name, size=size, noise=noise, seed=seed)
                 pred = run_pipeline(scene.image, config).labels
                 key = f"{name}-n{noise:g}-s{seed}"
                 labels[key] = pred
@@ -118,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--scenes", default=",".join(SCENES), help="comma-separated scene names")
     p.add_argument("--seeds", default="0,1,2")
+    p.add_argument("--size", default="128x128", help="ROWSxCOLS of the rendered scenes")
     p.add_argument("--misses", action="store_true", help="list GT regions not correctly detected")
     p.add_argument("--json", default=None, help="write the rows as JSON here")
     p.add_argument("--labels", default=None, help="save all label images to this .npz")
@@ -127,7 +129,9 @@ def main(argv: list[str] | None = None) -> int:
         return compare(*args.compare)
     config = load_config(preset=args.preset, overrides=_parse_set(args.set))
     seeds = tuple(int(s) for s in args.seeds.split(","))
-    rows, labels, missed = measure(config, args.scenes.split(","), seeds, args.misses)
+    size = tuple(int(v) for v in args.size.lower().split("x"))
+    rows, labels, missed = measure(config, args.scenes.split(","), seeds, args.misses,
+                                   (size[0], size[1]))
     _print(rows)
     for line in missed:
         print(line)
