@@ -419,5 +419,6 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
         out[side] = j if j else next_id
         next_id += 0 if j else 1
         used.update((i, j))
-    _, dense = np.unique(np.concatenate([[0], out.ravel()]), return_inverse=True)
-    return np.asarray(dense[1:].reshape(out.shape), dtype=np.int32)
+    present = np.bincount(out.ravel()) > 0
+    present[0] = True
+    return (np.cumsum(present, dtype=np.int32) - 1)[out]  # ids made consecutive
