@@ -979,6 +979,100 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
     return mu, mv, mz, gx, gy
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _column_blurs(pad: np.ndarray, w: np.ndarray, r: int, c0: int, c1: int, out: np.ndarray
+                  ) -> None:  # pragma: no cover - compiled
+    """The first (axis 0) blur of :func:`_blur_plane` of the products ``pad`` at row r.
+
+    ``pad`` (9, H + 2 radius, W + 2 radius) holds the nine zero-padded
+    products; ``out[which, k]`` gets ``tmp[r, c0 + k]`` of :func:`_blur_plane`
+    for padded columns c0..c1-1 (the same sums, in the same order).
+    """
+    radius = w.shape[0] // 2
+    wc = w[radius]
+    for which in range(9):
+        acc = out[which, :c1 - c0]
+        centre = pad[which, r + radius, c0:c1]
+        for k in range(c1 - c0):
+            acc[k] = centre[k] * wc
+        for d in range(radius, 0, -1):
+            above = pad[which, r + radius - d, c0:c1]
+            below = pad[which, r + radius + d, c0:c1]
+            wd = w[radius - d]
+            for k in range(c1 - c0):
+                acc[k] += (above[k] + below[k]) * wd
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def plane_heights_at(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: float,
+                     min_det: float, rows: np.ndarray, cols: np.ndarray
+                     ) -> np.ndarray:  # pragma: no cover - compiled
+    """Heights of the local planes of :func:`plane_fit` at the pixels (rows, cols) only.
+
+    ``mz + gx (u - mu) + gy (v - mv)`` (``split.local_planes``' height) from
+    the same blurred products, summed in the same order, as :func:`plane_fit`
+    forms them for the whole array: the same values bit for bit, NaN where
+    the fit is degenerate. The first blur runs only on the rows asked for, over
+    the columns within reach of their pixels, so the cost follows the number
+    of pixels asked for rather than the array's size. Pixels of one row are
+    best given together (raster order, as ``np.nonzero`` gives them); any
+    order gives the same values.
+    """
+    height, width = z.shape
+    radius = w.shape[0] // 2
+    wc = w[radius]
+    pad = np.zeros((9, height + 2 * radius, width + 2 * radius))
+    for which in range(9):
+        _masked_product(z, mask, u0, v0, which, radius, pad[which])
+    out = np.empty(rows.shape[0])
+    buf = np.empty((9, width + 2 * radius))
+    b = np.empty(9)
+    start = 0
+    while start < rows.shape[0]:
+        r = rows[start]
+        stop = start
+        lo, hi = cols[start], cols[start]
+        while stop < rows.shape[0] and rows[stop] == r:
+            lo, hi = min(lo, cols[stop]), max(hi, cols[stop])
+            stop += 1
+        # padded columns lo .. hi + 2 radius: those within reach of the row's pixels
+        _column_blurs(pad, w, r, lo, hi + 2 * radius + 1, buf)
+        for i in range(start, stop):
+            c = cols[i] - lo + radius
+            for which in range(9):
+                src = buf[which]
+                a = src[c] * wc
+                for d in range(radius, 0, -1):
+                    a += (src[c - d] + src[c + d]) * w[radius - d]
+                b[which] = a
+            out[i] = _height(b, min_det, cols[i] + u0, r + v0)
+        start = stop
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _height(b: np.ndarray, min_det: float, u: float, v: float) -> float:  # pragma: no cover
+    """The plane's height at (u, v) from the nine blurred products, as :func:`plane_fit`."""
+    s = b[0]
+    ok = s > 1e-3
+    if not ok:
+        s = 1.0
+    a, bb, e = b[1] / s, b[2] / s, b[3] / s
+    cuu = b[4] / s - a * a
+    cuv = b[5] / s - a * bb
+    cvv = b[6] / s - bb * bb
+    cuz = b[7] / s - a * e
+    cvz = b[8] / s - bb * e
+    det = cuu * cvv - cuv * cuv
+    if ok and det > min_det:
+        gx = (cvv * cuz - cuv * cvz) / det
+        gy = (cuu * cvz - cuv * cuz) / det
+    else:
+        gx = np.nan
+        gy = np.nan
+    return e + gx * (u - a) + gy * (v - bb)
+
+
 # --------------------------------------------------------------------------- split helpers
 
 

@@ -418,6 +418,25 @@ def test_local_planes_numba_equal_the_scipy_blurs_bit_for_bit() -> None:
 
 
 @requires_numba
+def test_plane_heights_at_the_asked_pixels_equal_the_whole_arrays_bit_for_bit() -> None:
+    rng = np.random.default_rng(16)
+    for trial in range(40):
+        h, w = (int(v) for v in rng.integers(3, 60, size=2))
+        z = rng.normal(0.0, 20.0, (h, w)) + rng.normal() * np.arange(float(w))
+        mask = rng.random((h, w)) < rng.uniform(0.05, 0.9)
+        sigma = float(rng.choice([1.0, 2.0, 2.5, 4.0]))
+        rows, cols = np.nonzero(rng.random((h, w)) < 0.3)
+        if trial % 2:  # any order, repeats included
+            order = rng.integers(0, max(rows.size, 1), rows.size)
+            rows, cols = rows[order], cols[order]
+        ref = split_module._plane_heights(z, mask, sigma, rows, cols, backend="numpy")
+        fast = split_module._plane_heights(z, mask, sigma, rows, cols, backend="numba")
+        assert ref.tobytes() == fast.tobytes()  # NaNs and signed zeros included
+        whole, _, _ = local_planes(z, mask, sigma, backend="numpy")
+        assert whole[rows, cols].tobytes() == fast.tobytes()
+
+
+@requires_numba
 @pytest.mark.parametrize("scene", ["part1", "wedge", "frustum"])
 def test_split_numba_and_numpy_paths_give_identical_labels(scene: str) -> None:
     from rangeseg_cli.synth import render_scene
