@@ -1077,6 +1077,64 @@ def _height(b: np.ndarray, min_det: float, u: float, v: float) -> float:  # prag
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def value_parts(labels: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """4-connected parts of every positive value of int32 ``labels``, numbered 1..k.
+
+    Numbered by value, then by the raster order of each part's first pixel,
+    as ``split._parts`` numbers them (one ``scipy.ndimage.label`` per value,
+    ascending); 0 stays 0. One flood fill in raster order.
+    """
+    height, width = labels.shape
+    out = np.zeros((height, width), dtype=np.int32)
+    stack = np.empty(height * width, dtype=np.int64)
+    values = np.empty(height * width, dtype=np.int64)
+    found = 0
+    for start in range(height * width):
+        r0, c0 = start // width, start % width
+        value = labels[r0, c0]
+        if value <= 0 or out[r0, c0] != 0:
+            continue
+        found += 1
+        values[found - 1] = value
+        out[r0, c0] = found
+        top = 0
+        stack[top] = start
+        top += 1
+        while top > 0:
+            top -= 1
+            r, c = stack[top] // width, stack[top] % width
+            for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+                if (0 <= rr < height and 0 <= cc < width and out[rr, cc] == 0
+                        and labels[rr, cc] == value):
+                    out[rr, cc] = found
+                    stack[top] = rr * width + cc
+                    top += 1
+    order = np.argsort(values[:found], kind="mergesort")  # by value, then first pixel
+    lut = np.zeros(found + 1, dtype=np.int32)
+    for rank in range(found):
+        lut[order[rank] + 1] = rank + 1
+    for r in range(height):
+        for c in range(width):
+            out[r, c] = lut[out[r, c]]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def first_pixels(labels: np.ndarray, n: int) -> np.ndarray:  # pragma: no cover - compiled
+    """Flat index of the first pixel (raster order) of each label 0..n; -1 where absent.
+
+    As ``np.unique(labels.ravel(), return_index=True)`` gives them, in one sweep.
+    """
+    first = np.full(n + 1, -1, dtype=np.int64)
+    flat = labels.ravel()
+    for i in range(flat.shape[0]):
+        lab = flat[i]
+        if first[lab] < 0:
+            first[lab] = i
+    return first
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray, dr: np.ndarray,
                    dc: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """Label of the first labelled pixel at offsets (dr, dc) tried in order from each pixel.

@@ -295,8 +295,7 @@ def mode_split(normals: np.ndarray) -> np.ndarray:
         bool (N,): True for the normals away from the mode (deterministic).
     """
     xy = normals[:, :2]
-    bins = int(round(2.0 / _MODE_BIN))
-    hist, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=[[-1, 1], [-1, 1]])
+    hist = _histogram(xy)
     peak = np.unravel_index(int(np.argmax(ndimage.gaussian_filter(hist, 1.0))), hist.shape)
     mode = -1.0 + (np.array(peak, dtype=np.float64) + 0.5) * _MODE_BIN
     near = np.sum((xy - mode) ** 2, axis=1) <= (2.0 * _MODE_BIN) ** 2
@@ -306,6 +305,32 @@ def mode_split(normals: np.ndarray) -> np.ndarray:
     if np.ptp(dist) <= 0:
         return np.zeros(len(normals), bool)
     return dist > _otsu(dist)
+
+
+@functools.lru_cache(maxsize=1)
+def _mode_edges() -> np.ndarray:
+    """Bin edges of the histogram of normals: -1..1 in steps of :data:`_MODE_BIN`."""
+    edges = np.linspace(-1.0, 1.0, int(round(2.0 / _MODE_BIN)) + 1)
+    edges.setflags(write=False)
+    return edges
+
+
+def _histogram(xy: np.ndarray) -> np.ndarray:
+    """float64 2-D histogram of the (N, 2) points ``xy`` in the bins of :func:`_mode_edges`.
+
+    What ``np.histogram2d(x, y, bins, range=[[-1, 1], [-1, 1]])`` gives, by
+    the same bin search (right-closed last bin, points outside dropped) and
+    one ``np.bincount``, without its generic set-up.
+    """
+    edges = _mode_edges()
+    k = edges.size + 1  # with an outlier bin at each end
+    index = []
+    for column in (xy[:, 0], xy[:, 1]):
+        i = np.searchsorted(edges, column, side="right")
+        i[column == edges[-1]] -= 1
+        index.append(i)
+    hist = np.bincount(index[0] * k + index[1], minlength=k * k).reshape(k, k)
+    return hist[1:-1, 1:-1].astype(np.float64)
 
 
 @dataclass(frozen=True)
@@ -355,8 +380,17 @@ class _Frame:
                    backend=backend)
 
 
-def _parts(labels: np.ndarray) -> np.ndarray:
-    """4-connected parts of every label, numbered 1..k (0 stays 0)."""
+def _parts(labels: np.ndarray, backend: Backend = "numpy") -> np.ndarray:
+    """4-connected parts of every label, numbered 1..k (0 stays 0).
+
+    Numbered by label, then in raster order of their first pixels: one
+    ``scipy.ndimage.label`` per label (the reference) or, with the compiled
+    kernels (``backend``), one flood fill
+    (:func:`rangeseg_cli._kernels.value_parts`; the same parts and numbers).
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        return kernels.value_parts(np.require(labels, np.int32, ["C"]))
     out = np.zeros(labels.shape, np.int32)
     count = 0
     for value in _present(labels).tolist():
@@ -497,7 +531,8 @@ def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     below ``min_piece`` pixels -- a sliver along a crease, the steep rim of a
     curved surface, whose fit could not be judged -- go the same way.
     """
-    parts = np.where(frame.mask, _parts(_fill_nearest(labels, frame.solid, frame.backend)), 0)
+    parts = np.where(frame.mask, _parts(_fill_nearest(labels, frame.solid, frame.backend),
+                                        frame.backend), 0)
     sizes = np.bincount(parts.ravel())
     parts = _dense(_fill_nearest(np.where(sizes[parts] >= frame.min_piece, parts, 0),
                                  frame.mask, frame.backend))
@@ -862,9 +897,21 @@ def _separate(labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def _raster_renumber(labels: np.ndarray) -> np.ndarray:
-    """Renumber labels 1..K in raster order of their first pixel (as link does)."""
-    ids, first = np.unique(labels.ravel(), return_index=True)
+def _raster_renumber(labels: np.ndarray, backend: Backend = "auto") -> np.ndarray:
+    """Renumber labels 1..K in raster order of their first pixel (as link does).
+
+    The first pixels come from ``np.unique`` (the reference) or, with the
+    compiled kernels (``backend``), from one sweep
+    (:func:`rangeseg_cli._kernels.first_pixels`): the same numbering.
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        first = kernels.first_pixels(np.require(labels, np.int32, ["C"]),
+                                     int(labels.max(initial=0)))
+        ids = np.flatnonzero(first >= 0)
+        first = first[ids]
+    else:
+        ids, first = np.unique(labels.ravel(), return_index=True)
     keep = ids > 0
     order = ids[keep][np.argsort(first[keep], kind="stable")]
     lut = np.zeros(int(ids.max(initial=0)) + 1, np.int32)
@@ -914,7 +961,7 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
         out[box] = np.where(inside, ids[pieces], out[box])
     if next_id == int(np.max(components, initial=0)) + 1:
         return None
-    return _raster_renumber(_separate(out))
+    return _raster_renumber(_separate(out), backend)
 
 
 def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,

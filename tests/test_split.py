@@ -473,6 +473,36 @@ def test_compiled_nearest_labels_and_window_extremes_equal_scipys() -> None:
             np.testing.assert_array_equal(a, b)
 
 
+@requires_numba
+def test_compiled_parts_and_raster_renumbering_equal_scipys_and_uniques() -> None:
+    rng = np.random.default_rng(17)
+    for trial in range(150):
+        h, w = (int(v) for v in rng.integers(1, 45, size=2))
+        labels = np.where(rng.random((h, w)) < rng.uniform(0.1, 1.0),
+                          rng.integers(1, int(rng.integers(2, 8)), (h, w)), 0).astype(np.int32)
+        if trial % 3 == 0:  # blobs rather than speckle
+            labels = np.repeat(np.repeat(labels[::4, ::4], 4, axis=0), 4, axis=1)[:h, :w]
+        for a, b in ((split_module._parts(labels, "numba"), split_module._parts(labels, "numpy")),
+                     (split_module._raster_renumber(labels, "numba"),
+                      split_module._raster_renumber(labels, "numpy"))):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    assert split_module._parts(np.array([[1, 0, 1], [1, 2, 2]], np.int32), "numba").tolist() \
+        == [[1, 0, 2], [1, 3, 3]]
+
+
+def test_histogram_of_normals_equals_numpys_histogram2d() -> None:
+    rng = np.random.default_rng(18)
+    for trial in range(100):
+        xy = rng.uniform(-1.05, 1.05, (int(rng.integers(1, 400)), 2))
+        if trial % 2:
+            xy = np.round(xy * 20.0) / 20.0  # on the bin edges, -1 and 1 included
+        ref, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=40, range=[[-1, 1], [-1, 1]])
+        fast = split_module._histogram(xy)
+        assert fast.dtype == ref.dtype
+        np.testing.assert_array_equal(fast, ref)
+
+
 def test_smallest_sorted_equals_the_head_of_a_full_sort() -> None:
     rng = np.random.default_rng(15)
     for trial in range(200):
