@@ -68,6 +68,11 @@ EIGHT_NEIGHBOURS = np.ones((3, 3), dtype=bool)
 _EXPONENTS: tuple[tuple[int, int], ...] = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
 
 
+#: Exponents of u and of v of the entries phi_i phi_j of the normal equations (6, 6).
+_POWER_U = np.add.outer(*[np.array([e[0] for e in _EXPONENTS])] * 2)
+_POWER_V = np.add.outer(*[np.array([e[1] for e in _EXPONENTS])] * 2)
+
+
 def _basis(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The six quadric terms (1, u, v, u^2, u v, v^2), stacked as (6, N)."""
     return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v])
@@ -179,10 +184,7 @@ def _normal_equations(m: RegionMoments) -> tuple[np.ndarray, np.ndarray]:
     The 36 entries need only the 15 monomial sums of :class:`RegionMoments`.
     """
     safe = np.maximum(m.counts, 1.0)
-    mat = np.empty((len(safe), 6, 6))
-    for i, (a, b) in enumerate(_EXPONENTS):
-        for j, (c, d) in enumerate(_EXPONENTS):
-            mat[:, i, j] = m.sums[:, a + c, b + d]
+    mat = m.sums[:, _POWER_U, _POWER_V]  # one gather
     return mat / safe[:, None, None], m.rhs / safe[:, None]
 
 

@@ -62,6 +62,7 @@ from .edges import Backend, select_kernels
 from .grow import fit_models, fit_quadrics, grow_regions, planar
 from .link import FOUR_CONNECTED
 from .noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
+from .surfaces import label_boxes
 
 #: Bin width of the histogram of normals (x, y components) whose peak is the mode.
 _MODE_BIN = 0.05
@@ -373,11 +374,25 @@ class _Frame:
         holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
         small = np.bincount(holes.ravel(), minlength=n + 1) < cfg.min_piece
         small[0] = False
-        closed = ndimage.binary_closing(mask, structure=np.ones((3, 3), bool))
+        closed = _closing(mask, backend)
         return cls(mask=mask, solid=mask | small[holes] | closed, min_piece=cfg.min_piece,
                    thickness=int(math.ceil(cfg.normal_sigma)),
                    band=int(math.ceil(2.0 * cfg.normal_sigma)), sigma=2.0 * cfg.normal_sigma,
                    backend=backend)
+
+
+def _closing(mask: np.ndarray, backend: Backend) -> np.ndarray:
+    """Binary closing of ``mask`` by the 3x3 square (outside counts as unset).
+
+    :func:`scipy.ndimage.binary_closing` (the reference) or, with the compiled
+    kernels (``backend``), the minimum of the maximum over 3x3 windows
+    (:func:`_window_extremes`, 0 outside): the same pixels.
+    """
+    if select_kernels(backend) is None:
+        return ndimage.binary_closing(mask, structure=np.ones((3, 3), bool))
+    _, dilated = _window_extremes(mask.astype(np.int32), 1, 0, backend)
+    closed, _ = _window_extremes(dilated, 1, 0, backend)
+    return closed.astype(bool)
 
 
 def _parts(labels: np.ndarray, backend: Backend = "numpy") -> np.ndarray:
@@ -947,9 +962,10 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
     failing = failing_components(z, components, noise, cfg, config.grow)
     out = np.asarray(components, dtype=np.int32).copy()
     next_id = int(out.max(initial=0)) + 1
-    boxes = ndimage.find_objects(out)
+    boxes = label_boxes(out, next_id - 1, backend=backend) if failing.size else None
     for cid in failing.tolist():
-        box = boxes[cid - 1]
+        r0, c0, r1, c1 = boxes[cid].tolist()  # type: ignore[index]
+        box = (slice(r0, r1 + 1), slice(c0, c1 + 1))
         inside = out[box] == cid
         pieces = split_component(z[box], inside, noise=noise, cfg=cfg, grow=config.grow,
                                  backend=backend)

@@ -491,6 +491,16 @@ def test_compiled_parts_and_raster_renumbering_equal_scipys_and_uniques() -> Non
         == [[1, 0, 2], [1, 3, 3]]
 
 
+@requires_numba
+def test_compiled_closing_equals_scipys_binary_closing() -> None:
+    rng = np.random.default_rng(19)
+    for _ in range(150):
+        h, w = (int(v) for v in rng.integers(1, 40, size=2))
+        mask = rng.random((h, w)) < rng.uniform(0.1, 0.95)
+        np.testing.assert_array_equal(split_module._closing(mask, "numba"),
+                                      split_module._closing(mask, "numpy"))
+
+
 def test_histogram_of_normals_equals_numpys_histogram2d() -> None:
     rng = np.random.default_rng(18)
     for trial in range(100):
