@@ -1077,6 +1077,70 @@ def _height(b: np.ndarray, min_det: float, u: float, v: float) -> float:  # prag
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def histogram2d(x: np.ndarray, y: np.ndarray, edges: np.ndarray
+                ) -> np.ndarray:  # pragma: no cover - compiled
+    """Counts of the points (x, y) in the bins of ``edges`` (both axes), as ``np.histogram2d``.
+
+    A point's bin along an axis is ``np.searchsorted(edges, value, side="right")``
+    (by bisection), less one on the last edge; bins 0 and ``len(edges)`` (the
+    outliers) are counted too, so the result is the (k + 1, k + 1) array of
+    ``np.histogramdd`` before it drops them (k = ``len(edges)``).
+    """
+    k = edges.shape[0]
+    counts = np.zeros((k + 1, k + 1), dtype=np.int64)
+    for i in range(x.shape[0]):
+        counts[_bin(edges, x[i]), _bin(edges, y[i])] += 1
+    return counts
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _bin(edges: np.ndarray, value: float) -> int:  # pragma: no cover - compiled
+    """``np.histogramdd``'s bin of ``value`` in the equally spaced ``edges`` (outliers 0, k).
+
+    ``np.searchsorted(edges, value, side="right")``, less one on the last
+    edge. The guess from the spacing is corrected by comparing with the edges, so
+    the count of edges <= value is exact.
+    """
+    k = edges.shape[0]
+    if value != value:  # NaN sorts last
+        return k
+    lo, hi = edges[0], edges[k - 1]
+    if value < lo:
+        return 0
+    if value >= hi:
+        return k - 1 if value == hi else k
+    j = min(max(int((value - lo) / (hi - lo) * (k - 1)), 0), k - 1)
+    while j < k and edges[j] <= value:
+        j += 1
+    while j > 0 and edges[j - 1] > value:
+        j -= 1
+    return j
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def otsu_index(xs: np.ndarray, total: float) -> int:  # pragma: no cover - compiled
+    """Split index of Otsu's threshold of the sorted ``xs`` (N >= 2) whose sum is ``total``.
+
+    The first i maximising ``k (n - k) (m0 - m1)^2`` (k = i + 1; m0, m1 the
+    means below and above), with the running sum formed as ``np.cumsum``
+    forms it and every other value by ``split._otsu``'s float64 operations.
+    """
+    n = xs.shape[0]
+    best, at = 0.0, 0
+    csum = 0.0
+    for i in range(n - 1):
+        csum = xs[0] if i == 0 else csum + xs[i]
+        k = i + 1
+        d = csum / k - (total - csum) / (n - k)
+        between = (k * (n - k)) * (d * d)
+        if between != between:  # NaN: np.argmax takes the first
+            return i
+        if i == 0 or between > best:
+            best, at = between, i
+    return at
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def value_parts(labels: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """4-connected parts of every positive value of int32 ``labels``, numbered 1..k.
 

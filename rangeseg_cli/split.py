@@ -261,9 +261,17 @@ def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float, *,
     return np.where(keep, gx, 0.0), np.where(keep, gy, 0.0)
 
 
-def _otsu(x: np.ndarray) -> float:
-    """Threshold of ``x`` that maximises the between-class variance (Otsu)."""
+def _otsu(x: np.ndarray, backend: Backend = "numpy") -> float:
+    """Threshold of ``x`` that maximises the between-class variance (Otsu).
+
+    With the compiled kernels (``backend``) the search over the sorted values
+    is :func:`rangeseg_cli._kernels.otsu_index` (the same threshold).
+    """
     xs = np.sort(x)
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        i = int(kernels.otsu_index(xs, float(xs.sum())))
+        return 0.5 * (xs[i] + xs[i + 1])
     n = xs.size
     k = np.arange(1, n)
     csum = np.cumsum(xs)[:-1]
@@ -274,7 +282,7 @@ def _otsu(x: np.ndarray) -> float:
     return 0.5 * (xs[i] + xs[i + 1])
 
 
-def mode_split(normals: np.ndarray) -> np.ndarray:
+def mode_split(normals: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
     """Divide unit normals into those of the dominant orientation and the rest.
 
     The mode is the peak of a smoothed 2-D histogram of the normals' (x, y)
@@ -289,6 +297,9 @@ def mode_split(normals: np.ndarray) -> np.ndarray:
     ----------
     normals
         float64 (N, 3) unit normals, N >= 2.
+    backend
+        Of the histogram and Otsu's search (:func:`_histogram`, :func:`_otsu`):
+        the same division either way.
 
     Returns
     -------
@@ -296,16 +307,27 @@ def mode_split(normals: np.ndarray) -> np.ndarray:
         bool (N,): True for the normals away from the mode (deterministic).
     """
     xy = normals[:, :2]
-    hist = _histogram(xy)
+    hist = _histogram(xy, backend)
     peak = np.unravel_index(int(np.argmax(ndimage.gaussian_filter(hist, 1.0))), hist.shape)
     mode = -1.0 + (np.array(peak, dtype=np.float64) + 0.5) * _MODE_BIN
-    near = np.sum((xy - mode) ** 2, axis=1) <= (2.0 * _MODE_BIN) ** 2
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    near = _squared_distance(x, y, mode) <= (2.0 * _MODE_BIN) ** 2
     if near.any():
         mode = xy[near].mean(axis=0)
-    dist = np.sqrt(np.sum((xy - mode) ** 2, axis=1))
+    dist = np.sqrt(_squared_distance(x, y, mode))
     if np.ptp(dist) <= 0:
         return np.zeros(len(normals), bool)
-    return dist > _otsu(dist)
+    return dist > _otsu(dist, backend)
+
+
+def _squared_distance(x: np.ndarray, y: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """``np.sum((xy - point) ** 2, axis=1)`` from the columns x, y (the same values)."""
+    dx = x - point[0]
+    dx *= dx
+    dy = y - point[1]
+    dy *= dy
+    dx += dy
+    return dx
 
 
 @functools.lru_cache(maxsize=1)
@@ -316,14 +338,20 @@ def _mode_edges() -> np.ndarray:
     return edges
 
 
-def _histogram(xy: np.ndarray) -> np.ndarray:
+def _histogram(xy: np.ndarray, backend: Backend = "numpy") -> np.ndarray:
     """float64 2-D histogram of the (N, 2) points ``xy`` in the bins of :func:`_mode_edges`.
 
     What ``np.histogram2d(x, y, bins, range=[[-1, 1], [-1, 1]])`` gives, by
     the same bin search (right-closed last bin, points outside dropped) and
-    one ``np.bincount``, without its generic set-up.
+    one ``np.bincount``, without its generic set-up; with the compiled
+    kernels (``backend``) in one sweep (:func:`rangeseg_cli._kernels.histogram2d`).
     """
     edges = _mode_edges()
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        counts = kernels.histogram2d(np.ascontiguousarray(xy[:, 0]),
+                                     np.ascontiguousarray(xy[:, 1]), edges)
+        return counts[1:-1, 1:-1].astype(np.float64)
     k = edges.size + 1  # with an outlier bin at each end
     index = []
     for column in (xy[:, 0], xy[:, 1]):
@@ -678,7 +706,8 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     gx, gy = local_gradients(z, mask, cfg.normal_sigma, backend=backend)
     gxs, gys = gx[rows, cols], gy[rows, cols]
     norm = np.sqrt(1.0 + gxs * gxs + gys * gys)
-    cls = mode_split(np.stack([-gxs / norm, -gys / norm, 1.0 / norm], axis=1))
+    cls = mode_split(np.stack([-gxs / norm, -gys / norm, 1.0 / norm], axis=1),
+                     backend=backend)
     if cls.all() or not cls.any():
         return None
     frame = _Frame.of(mask, cfg, backend)

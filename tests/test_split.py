@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from rangeseg_cli import noise as noise_module
 from rangeseg_cli import split as split_module
@@ -507,10 +508,52 @@ def test_histogram_of_normals_equals_numpys_histogram2d() -> None:
         xy = rng.uniform(-1.05, 1.05, (int(rng.integers(1, 400)), 2))
         if trial % 2:
             xy = np.round(xy * 20.0) / 20.0  # on the bin edges, -1 and 1 included
+        if trial % 5 == 0:  # just inside the outer edges, and NaN (an outlier)
+            xy[::3, 0] = np.nextafter(1.0, 0.0)
+            xy[::4, 1] = np.nextafter(-1.0, 0.0)
+            xy[::7, 1] = np.nan
         ref, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=40, range=[[-1, 1], [-1, 1]])
-        fast = split_module._histogram(xy)
-        assert fast.dtype == ref.dtype
-        np.testing.assert_array_equal(fast, ref)
+        for backend in ("numpy", "numba") if importlib.util.find_spec("numba") else ("numpy",):
+            fast = split_module._histogram(xy, backend)  # type: ignore[arg-type]
+            assert fast.dtype == ref.dtype
+            np.testing.assert_array_equal(fast, ref)
+
+
+def _reference_mode_split(normals: np.ndarray) -> np.ndarray:
+    """mode_split as first written: np.histogram2d, (N, 2) sums and Otsu by a full search."""
+    xy = normals[:, :2]
+    hist, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=40, range=[[-1, 1], [-1, 1]])
+    peak = np.unravel_index(int(np.argmax(ndimage.gaussian_filter(hist, 1.0))), hist.shape)
+    mode = -1.0 + (np.array(peak, dtype=np.float64) + 0.5) * 0.05
+    near = np.sum((xy - mode) ** 2, axis=1) <= 0.1**2
+    if near.any():
+        mode = xy[near].mean(axis=0)
+    dist = np.sqrt(np.sum((xy - mode) ** 2, axis=1))
+    if np.ptp(dist) <= 0:
+        return np.zeros(len(normals), bool)
+    xs = np.sort(dist)
+    k = np.arange(1, xs.size)
+    csum = np.cumsum(xs)[:-1]
+    between = k * (xs.size - k) * (csum / k - (xs.sum() - csum) / (xs.size - k)) ** 2
+    i = int(np.argmax(between))
+    return dist > 0.5 * (xs[i] + xs[i + 1])
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
+def test_mode_split_equals_its_first_form(backend: str) -> None:
+    rng = np.random.default_rng(20)
+    for trial in range(150):
+        n = int(rng.integers(2, 2000))
+        g = rng.normal(0.0, rng.uniform(0.01, 1.0), (n, 2))
+        g += rng.normal(0.0, 0.5, 2) * (rng.random((n, 1)) < 0.5)  # two faces
+        if trial % 4 == 0:
+            g = np.round(g * 10.0) / 10.0  # ties
+        if trial % 9 == 0:
+            g[:] = g[0]  # one normal: no split
+        norm = np.sqrt(1.0 + np.sum(g * g, axis=1))
+        normals = np.stack([-g[:, 0] / norm, -g[:, 1] / norm, 1.0 / norm], axis=1)
+        np.testing.assert_array_equal(split_module.mode_split(normals, backend=backend),
+                                      _reference_mode_split(normals))
 
 
 def test_smallest_sorted_equals_the_head_of_a_full_sort() -> None:
