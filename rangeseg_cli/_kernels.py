@@ -1220,6 +1220,40 @@ def nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray, dr: np
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def fill_nearest(parts: np.ndarray, where: np.ndarray, dr: np.ndarray, dc: np.ndarray
+                 ) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+    """``parts`` on ``where`` (0 elsewhere), its unlabelled pixels taking the nearest label.
+
+    The label is that of the first labelled pixel at the offsets (dr, dc)
+    tried in order (as :func:`nearest_labels`); pixels with none within them
+    get -1, and their number is returned with the array (the caller takes
+    their labels from the feature transform). All 0 when ``parts`` has no
+    labelled pixel.
+    """
+    height, width = parts.shape
+    out = np.zeros((height, width), dtype=np.int32)
+    if parts.size == 0 or parts.max() <= 0:
+        return out, 0
+    missing = 0
+    for r in range(height):
+        for c in range(width):
+            if not where[r, c]:
+                continue
+            lab = parts[r, c]
+            if lab == 0:
+                lab = -1
+                for k in range(dr.shape[0]):
+                    rr, cc = r + dr[k], c + dc[k]
+                    if 0 <= rr < height and 0 <= cc < width and parts[rr, cc] > 0:
+                        lab = parts[rr, cc]
+                        break
+                if lab < 0:
+                    missing += 1
+            out[r, c] = lab
+    return out, missing
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _fold_extremes(lo: np.ndarray, hi: np.ndarray, src_lo: np.ndarray, src_hi: np.ndarray
                    ) -> None:  # pragma: no cover - compiled
     """``lo = min(lo, src_lo)``, ``hi = max(hi, src_hi)`` elementwise (vectorised)."""

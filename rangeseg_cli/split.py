@@ -522,17 +522,26 @@ def _fill_nearest(parts: np.ndarray, where: np.ndarray, backend: Backend = "auto
     """``parts`` on ``where``, each unlabelled pixel taking its nearest labelled pixel's label.
 
     Ties go as :func:`scipy.ndimage.distance_transform_edt` breaks them
-    (:func:`_nearest_labels`, which the compiled search makes cheap at any size).
+    (:func:`_nearest_labels`); with the compiled kernels (``backend``) the
+    copy and the search are one sweep (:func:`rangeseg_cli._kernels.fill_nearest`).
     """
+    kernels = select_kernels(backend)
+    if kernels is not None:  # one sweep; the feature transform for what it leaves
+        out, missing = kernels.fill_nearest(np.require(parts, np.int32, ["C"]),
+                                            np.require(where, np.bool_, ["C"]), *_OFFSETS)
+        if missing:
+            rows, cols = np.nonzero(out < 0)
+            out[rows, cols] = _nearest_by_transform(parts, rows, cols,
+                                                    np.zeros(rows.size, np.int32),
+                                                    np.arange(rows.size))
+        return out
     out = np.where(where, parts, 0).astype(np.int32)
     if parts.max(initial=0) == 0:
         return out
     rows, cols = np.nonzero(where & (parts == 0))
     if rows.size == 0:
         return out
-    if select_kernels(backend) is not None:
-        out[rows, cols] = _nearest_labels(parts, rows, cols, backend)
-    elif parts.size < _SEARCH_MIN_PIXELS:  # the transform is cheaper than the search
+    if parts.size < _SEARCH_MIN_PIXELS:  # the transform is cheaper than the search
         ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
                                                 return_indices=True)
         out[rows, cols] = parts[ir[rows, cols], ic[rows, cols]]

@@ -502,6 +502,22 @@ def test_compiled_closing_equals_scipys_binary_closing() -> None:
                                       split_module._closing(mask, "numpy"))
 
 
+@requires_numba
+def test_compiled_fill_nearest_equals_the_feature_transforms() -> None:
+    rng = np.random.default_rng(21)
+    for trial in range(200):
+        h, w = (int(v) for v in rng.integers(1, 50, size=2))
+        parts = np.where(rng.random((h, w)) < rng.uniform(0.005, 0.5),
+                         rng.integers(1, 6, (h, w)), 0).astype(np.int32)
+        if trial % 10 == 0:  # none, or one far away: the transform
+            parts[:] = 0
+            if trial % 20 == 0:
+                parts[0, 0] = 2
+        where = rng.random((h, w)) < rng.uniform(0.2, 1.0)
+        np.testing.assert_array_equal(split_module._fill_nearest(parts, where, "numba"),
+                                      split_module._fill_nearest(parts, where, "numpy"))
+
+
 def test_histogram_of_normals_equals_numpys_histogram2d() -> None:
     rng = np.random.default_rng(18)
     for trial in range(100):
