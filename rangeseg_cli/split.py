@@ -399,7 +399,7 @@ class _Frame:
     @classmethod
     def of(cls, mask: np.ndarray, cfg: SplitConfig, backend: Backend = "auto") -> _Frame:
         """The frame of ``mask`` with the scales of ``[split]``."""
-        holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
+        holes, n = _holes(mask, backend)
         small = np.bincount(holes.ravel(), minlength=n + 1) < cfg.min_piece
         small[0] = False
         closed = _closing(mask, backend)
@@ -407,6 +407,20 @@ class _Frame:
                    thickness=int(math.ceil(cfg.normal_sigma)),
                    band=int(math.ceil(2.0 * cfg.normal_sigma)), sigma=2.0 * cfg.normal_sigma,
                    backend=backend)
+
+
+def _holes(mask: np.ndarray, backend: Backend) -> tuple[np.ndarray, int]:
+    """4-connected parts of ``~mask`` numbered 1..n, and n (:func:`scipy.ndimage.label`).
+
+    With the compiled kernels (``backend``) from :func:`rangeseg_cli._kernels.value_parts`
+    (the same numbers).
+    """
+    kernels = select_kernels(backend)
+    if kernels is None:
+        holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
+        return holes, int(n)
+    holes = kernels.value_parts(np.require(~mask, np.int32, ["C"]))
+    return holes, int(holes.max(initial=0))
 
 
 def _closing(mask: np.ndarray, backend: Backend) -> np.ndarray:
@@ -575,6 +589,23 @@ def _window_extremes(a: np.ndarray, reach: int, cval: int, backend: Backend
             ndimage.maximum_filter(a, size=size, mode="constant", cval=cval))
 
 
+def _label_extremes(parts: np.ndarray, reach: int, backend: Backend
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest and largest label > 0 within ``reach`` (chessboard) of every pixel.
+
+    The smallest is the largest int32 and the largest 0 where there is none:
+    two window filters (:func:`_window_extremes`), or with the compiled
+    kernels one call of :func:`rangeseg_cli._kernels.label_extremes`.
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        return kernels.label_extremes(np.require(parts, np.int32, ["C"]), reach)
+    big = int(np.iinfo(np.int32).max)
+    _, high = _window_extremes(parts, reach, 0, backend)
+    low, _ = _window_extremes(np.where(parts > 0, parts, big), reach, big, backend)
+    return low, high
+
+
 def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     """Wide 4-connected parts of ``labels``, renumbered 1..k, covering ``frame.mask``.
 
@@ -615,9 +646,7 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     doubtful pixels, and each part's planes to the pixels within reach of
     both its doubtful pixels and its core (:func:`_plane_heights`).
     """
-    big = int(np.iinfo(np.int32).max)
-    _, high = _window_extremes(parts, frame.band, 0, frame.backend)
-    low, _ = _window_extremes(np.where(parts > 0, parts, big), frame.band, big, frame.backend)
+    low, high = _label_extremes(parts, frame.band, frame.backend)
     doubt = frame.mask & (high > 0) & (low != high)
     if not doubt.any():
         return parts
@@ -733,7 +762,8 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     return parts
 
 
-def adjacent_pairs(pieces: np.ndarray, reach: int = 2) -> list[tuple[int, int]]:
+def adjacent_pairs(pieces: np.ndarray, reach: int = 2, *, backend: Backend = "auto"
+                   ) -> list[tuple[int, int]]:
     """Pairs (i < j) of labels with pixels within chessboard distance ``reach``.
 
     Parameters
@@ -743,12 +773,23 @@ def adjacent_pairs(pieces: np.ndarray, reach: int = 2) -> list[tuple[int, int]]:
     reach
         Largest chessboard distance between pixels of two neighbours (2: across
         a one-pixel line).
+    backend
+        ``"numpy"``: shifted comparisons of the array (the reference);
+        ``"numba"``: the pixel pairs of :func:`rangeseg_cli._kernels.neighbour_pairs`
+        (the same pairs); ``"auto"``: as :func:`~rangeseg_cli.edges.select_kernels`.
 
     Returns
     -------
     list of tuple
         Sorted unique pairs.
     """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        found = kernels.neighbour_pairs(np.require(pieces, np.int32, ["C"]), reach)
+        big = int(pieces.max(initial=0)) + 1
+        a, b = found[:, 4], found[:, 5]
+        uniq = np.unique(np.minimum(a, b) * big + np.maximum(a, b))
+        return [(int(k // big), int(k % big)) for k in uniq]
     h, w = pieces.shape
     padded = np.pad(pieces, reach)
     keys = []
@@ -886,6 +927,20 @@ def _replace(pieces: np.ndarray, k: int, sub: np.ndarray, n: int, max_pieces: in
     return ids[1:].tolist()
 
 
+def _fit_pieces(z: np.ndarray, pieces: np.ndarray, ids: list[int], backend: Backend
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`~rangeseg_cli.grow.fit_quadrics` of ``pieces``, valid for the pieces ``ids`` only.
+
+    The other pieces are left out of the sweep; a region's fit depends only
+    on its own pixels (summed in raster order on the same grid), so the fits
+    of ``ids`` are bit for bit those of all pieces fitted together.
+    """
+    n = int(pieces.max())
+    keep = np.zeros(n + 1, bool)
+    keep[ids] = True
+    return fit_quadrics(z, np.where(keep[pieces], pieces, 0), n, backend=backend)
+
+
 def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: SplitConfig,
                     grow: GrowConfig, backend: Backend = "auto") -> np.ndarray:
     """Split one component that fails the fit test into pieces at its creases (Sec. VIII).
@@ -925,7 +980,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
         if sub is None:
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
-        _, mse, counts = fit_quadrics(z, pieces, int(pieces.max()))
+        _, mse, counts = _fit_pieces(z, pieces, ids, backend)
         queue += [i for i in ids if mse[i] > level * level and counts[i] >= 2 * cfg.min_piece]
     return merge_back(z, pieces, level=level,
                       floor=math.sqrt(grow.error_factor * grow.min_error),

@@ -518,6 +518,40 @@ def test_compiled_fill_nearest_equals_the_feature_transforms() -> None:
                                       split_module._fill_nearest(parts, where, "numpy"))
 
 
+@requires_numba
+def test_compiled_label_extremes_holes_and_adjacent_pairs_equal_the_references() -> None:
+    rng = np.random.default_rng(22)
+    for trial in range(150):
+        h, w = (int(v) for v in rng.integers(1, 40, size=2))
+        parts = np.where(rng.random((h, w)) < rng.uniform(0.0, 1.0),
+                         rng.integers(1, 7, (h, w)), 0).astype(np.int32)
+        if trial % 3 == 0:  # blobs
+            parts = np.repeat(np.repeat(parts[::5, ::5], 5, axis=0), 5, axis=1)[:h, :w]
+        reach = int(rng.integers(0, 5))
+        for a, b in zip(split_module._label_extremes(parts, reach, "numba"),
+                        split_module._label_extremes(parts, reach, "numpy"), strict=True):
+            np.testing.assert_array_equal(a, b)
+        fast, slow = (split_module._holes(parts > 0, b) for b in ("numba", "numpy"))
+        assert fast[1] == slow[1]
+        np.testing.assert_array_equal(fast[0], slow[0])
+        assert split_module.adjacent_pairs(parts, reach, backend="numba") \
+            == split_module.adjacent_pairs(parts, reach, backend="numpy")
+
+
+def test_refitting_the_new_pieces_alone_gives_their_fits_bit_for_bit() -> None:
+    rng = np.random.default_rng(23)
+    z = rng.normal(50.0, 5.0, (60, 70)) + np.arange(70.0) * 0.3
+    pieces = np.repeat(np.repeat(rng.integers(0, 6, (12, 14)), 5, axis=0), 5, axis=1)
+    pieces = pieces.astype(np.int32)
+    ids = [2, 5]
+    coeffs, mse, counts = split_module._fit_pieces(z, pieces, ids, "auto")
+    all_coeffs, all_mse, all_counts = split_module.fit_quadrics(z, pieces, 5)
+    assert coeffs[ids].tobytes() == all_coeffs[ids].tobytes()
+    assert mse[ids].tobytes() == all_mse[ids].tobytes()
+    np.testing.assert_array_equal(counts[ids], all_counts[ids])
+    assert counts[1] == 0 and all_counts[1] > 0  # the others are left out
+
+
 def test_histogram_of_normals_equals_numpys_histogram2d() -> None:
     rng = np.random.default_rng(18)
     for trial in range(100):
