@@ -809,7 +809,8 @@ def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no
     per_row = np.zeros((dys.shape[0], height), dtype=np.int64)
     for k in range(dys.shape[0]):
         dy, dx = dys[k], dxs[k]
-        c0, c1 = max(0, -dx), min(width, width - dx)
+        c0 = max(0, -dx)
+        c1 = max(c0, min(width, width - dx))  # empty when |dx| >= width
         for r in range(height - dy):
             per_row[k, r] = _row_pair_count(labels[r], labels[r + dy], c0, c1, dx)
     out = np.empty((per_row.sum(), 6), dtype=np.int64)
@@ -817,7 +818,8 @@ def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no
     j = 0
     for k in range(dys.shape[0]):
         dy, dx = dys[k], dxs[k]
-        c0, c1 = max(0, -dx), min(width, width - dx)
+        c0 = max(0, -dx)
+        c1 = max(c0, min(width, width - dx))  # empty when |dx| >= width
         for r in range(height - dy):
             if per_row[k, r] > 0:
                 j = _row_pairs(labels[r, c0:c1], labels[r + dy, c0 + dx:c1 + dx], r, c0, dy,
@@ -1141,6 +1143,26 @@ def otsu_index(xs: np.ndarray, total: float) -> int:  # pragma: no cover - compi
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _flood(labels: np.ndarray, out: np.ndarray, r0: int, c0: int, part: int,
+           stack_r: np.ndarray, stack_c: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Set ``out`` to ``part`` on the 4-connected pixels of (r0, c0)'s value in ``labels``."""
+    height, width = labels.shape
+    value = labels[r0, c0]
+    out[r0, c0] = part
+    stack_r[0], stack_c[0] = r0, c0
+    top = 1
+    while top > 0:
+        top -= 1
+        r, c = stack_r[top], stack_c[top]
+        for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+            if (0 <= rr < height and 0 <= cc < width and out[rr, cc] == 0
+                    and labels[rr, cc] == value):
+                out[rr, cc] = part
+                stack_r[top], stack_c[top] = rr, cc
+                top += 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def value_parts(labels: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """4-connected parts of every positive value of int32 ``labels``, numbered 1..k.
 
@@ -1150,29 +1172,18 @@ def value_parts(labels: np.ndarray) -> np.ndarray:  # pragma: no cover - compile
     """
     height, width = labels.shape
     out = np.zeros((height, width), dtype=np.int32)
-    stack = np.empty(height * width, dtype=np.int64)
+    stack_r = np.empty(height * width, dtype=np.int64)
+    stack_c = np.empty(height * width, dtype=np.int64)
     values = np.empty(height * width, dtype=np.int64)
     found = 0
-    for start in range(height * width):
-        r0, c0 = start // width, start % width
-        value = labels[r0, c0]
-        if value <= 0 or out[r0, c0] != 0:
-            continue
-        found += 1
-        values[found - 1] = value
-        out[r0, c0] = found
-        top = 0
-        stack[top] = start
-        top += 1
-        while top > 0:
-            top -= 1
-            r, c = stack[top] // width, stack[top] % width
-            for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
-                if (0 <= rr < height and 0 <= cc < width and out[rr, cc] == 0
-                        and labels[rr, cc] == value):
-                    out[rr, cc] = found
-                    stack[top] = rr * width + cc
-                    top += 1
+    for r0 in range(height):
+        for c0 in range(width):
+            value = labels[r0, c0]
+            if value <= 0 or out[r0, c0] != 0:
+                continue
+            values[found] = value
+            found += 1
+            _flood(labels, out, r0, c0, found, stack_r, stack_c)
     order = np.argsort(values[:found], kind="mergesort")  # by value, then first pixel
     lut = np.zeros(found + 1, dtype=np.int32)
     for rank in range(found):
