@@ -105,16 +105,17 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
     """
-    from .grow import grow_regions
+    from .grow import component_fits, grow_regions
     from .surfaces import describe_surfaces
 
-    labels = grow_regions(z, edges, components, config.grow)
+    fits = component_fits(z, components)  # seeds the growth; the split tests them
+    labels = grow_regions(z, edges, components, config.grow, fits=fits)
     if noise is None and (config.split.enabled or config.split.recover or config.split.merge):
         noise = estimate_noise(z)
     if config.split.enabled:
         from .split import split_regions
 
-        labels = split_regions(z, edges, components, labels, config, noise=noise)
+        labels = split_regions(z, edges, components, labels, config, noise=noise, fits=fits)
     if config.split.recover:
         from .recover import recover_faces
 

@@ -59,7 +59,7 @@ from scipy import ndimage
 
 from .config import Config, GrowConfig, SplitConfig
 from .edges import Backend, select_kernels
-from .grow import fit_models, fit_quadrics, grow_regions, planar
+from .grow import Fits, fit_models, fit_quadrics, grow_regions, planar
 from .link import FOUR_CONNECTED
 from .noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
 from .surfaces import label_boxes
@@ -81,7 +81,8 @@ _TRUNCATE = 3.0
 
 
 def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
-                       cfg: SplitConfig, grow: GrowConfig) -> np.ndarray:
+                       cfg: SplitConfig, grow: GrowConfig, *, fits: Fits | None = None
+                       ) -> np.ndarray:
     """Ids of the components whose quadric fit fails the quality test (Sec. VIII).
 
     Parameters
@@ -94,6 +95,9 @@ def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
         Noise sigma of the image (:func:`estimate_noise`).
     cfg, grow
         ``[split]`` (``fit_factor``, ``min_piece``) and ``[grow]`` (``min_error``).
+    fits
+        :func:`~rangeseg_cli.grow.component_fits` of ``z`` and ``components``
+        when the caller has them (the components' fits are computed here otherwise).
 
     Returns
     -------
@@ -104,7 +108,9 @@ def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
     n = int(components.max(initial=0))
     if n == 0:
         return np.zeros(0, np.int64)
-    _, mse, counts = fit_quadrics(z, components, n)
+    _, mse, counts = fit_quadrics(z, components, n) if fits is None else fits
+    if len(mse) != n + 1:
+        raise ValueError(f"`fits` are of {len(mse) - 1} regions, the components {n}")
     level = cfg.fit_factor * max(noise, math.sqrt(grow.min_error))
     bad = (mse > level * level) & (counts >= 2 * cfg.min_piece)
     bad[0] = False
@@ -1028,7 +1034,8 @@ def _raster_renumber(labels: np.ndarray, backend: Backend = "auto") -> np.ndarra
 
 
 def split_components(z: np.ndarray, components: np.ndarray, config: Config,
-                     noise: float, *, backend: Backend = "auto") -> np.ndarray | None:
+                     noise: float, *, backend: Backend = "auto", fits: Fits | None = None
+                     ) -> np.ndarray | None:
     """Components with every failing one replaced by its pieces (Sec. VIII).
 
     Parameters
@@ -1043,6 +1050,8 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
         Noise sigma of the image (:func:`estimate_noise`).
     backend
         Of the local plane fits (:func:`local_planes`): the same result either way.
+    fits
+        For :func:`failing_components` (the components' fits, when known).
 
     Returns
     -------
@@ -1052,7 +1061,7 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
         component was split.
     """
     cfg = config.split
-    failing = failing_components(z, components, noise, cfg, config.grow)
+    failing = failing_components(z, components, noise, cfg, config.grow, fits=fits)
     out = np.asarray(components, dtype=np.int32).copy()
     next_id = int(out.max(initial=0)) + 1
     boxes = label_boxes(out, next_id - 1, backend=backend) if failing.size else None
@@ -1075,7 +1084,7 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
 
 def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
                   labels: np.ndarray, config: Config, *, noise: float | None = None,
-                  backend: Backend = "auto") -> np.ndarray:
+                  backend: Backend = "auto", fits: Fits | None = None) -> np.ndarray:
     """Test every component's fit, split the failing ones and regrow (Sec. VIII, V-4).
 
     Parameters
@@ -1095,6 +1104,9 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
         Noise sigma of ``z`` (:func:`estimate_noise`); estimated when None.
     backend
         Of the local plane fits (:func:`local_planes`): the same labels either way.
+    fits
+        :func:`~rangeseg_cli.grow.component_fits` of ``z`` and ``components``
+        when the caller has them (for the first round's fit test).
 
     Returns
     -------
@@ -1112,7 +1124,8 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
     valid = np.isfinite(z)
     for _ in range(config.split.rounds):
         new = split_components(z, np.where(valid, components, 0), config, noise,
-                               backend=backend)
+                               backend=backend, fits=fits)
+        fits = None  # they are of the first round's components
         if new is not None:
             labels = grow_regions(z, codes, new, config.grow)
         elif components is labels:

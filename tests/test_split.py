@@ -14,7 +14,7 @@ from rangeseg_cli import split as split_module
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.grow import grow_regions
+from rangeseg_cli.grow import fit_quadrics, grow_regions
 from rangeseg_cli.pipeline import run_pipeline, stage_edges, stage_grow
 from rangeseg_cli.split import (
     estimate_noise,
@@ -435,6 +435,30 @@ def test_plane_heights_at_the_asked_pixels_equal_the_whole_arrays_bit_for_bit() 
         assert ref.tobytes() == fast.tobytes()  # NaNs and signed zeros included
         whole, _, _ = local_planes(z, mask, sigma, backend="numpy")
         assert whole[rows, cols].tobytes() == fast.tobytes()
+
+
+@pytest.mark.parametrize("scene", ["part1", "frustum"])
+def test_the_components_fits_given_by_the_caller_change_nothing(scene: str) -> None:
+    from rangeseg_cli.grow import component_fits
+    from rangeseg_cli.synth import render_scene
+
+    image = render_scene(scene, size=(96, 128), noise=1.0, seed=0).image
+    result = run_pipeline(image, PAPER, stages=3)
+    z, edges, components = result.heights, result.edges, result.components
+    z[:3, :5] = np.nan  # invalid pixels are left out of the fits alike
+    fits = component_fits(z, components)
+    n = int(np.where(np.isfinite(z), components, 0).max())
+    assert all(a.tobytes() == b.tobytes()
+               for a, b in zip(fits, fit_quadrics(z, np.where(np.isfinite(z), components, 0), n),
+                               strict=True))
+    plain = grow_regions(z, edges, components, SPLIT.grow)
+    seeded = grow_regions(z, edges, components, SPLIT.grow, fits=fits)
+    np.testing.assert_array_equal(seeded, plain)
+    np.testing.assert_array_equal(
+        split_regions(z, edges, components, seeded, SPLIT, fits=fits),
+        split_regions(z, edges, components, plain, SPLIT))
+    with pytest.raises(ValueError, match="fits"):
+        grow_regions(z, edges, components, SPLIT.grow, fits=fit_quadrics(z, components, n + 1))
 
 
 @requires_numba
