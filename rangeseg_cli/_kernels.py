@@ -892,6 +892,30 @@ def _blur_plane(pad: np.ndarray, w: np.ndarray, tmp: np.ndarray, acc: np.ndarray
         out[r, :] = row
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _blur_row(pad: np.ndarray, w: np.ndarray, r: int, acc: np.ndarray, out: np.ndarray
+              ) -> None:  # pragma: no cover - compiled
+    """Row r of :func:`_blur_plane` of ``pad`` (``acc`` holds its ``tmp[r]``): the same sums."""
+    radius = w.shape[0] // 2
+    width = out.shape[0]
+    wide = acc.shape[0]
+    wc = w[radius]
+    centre = pad[r + radius]
+    for c in range(wide):
+        acc[c] = centre[c] * wc
+    for d in range(radius, 0, -1):
+        above, below, wd = pad[r + radius - d], pad[r + radius + d], w[radius - d]
+        for c in range(wide):
+            acc[c] += (above[c] + below[c]) * wd
+    for c in range(width):
+        out[c] = acc[c + radius] * wc
+    for d in range(radius, 0, -1):
+        left, right = acc[radius - d: radius - d + width], acc[radius + d: radius + d + width]
+        wd = w[radius - d]
+        for c in range(width):
+            out[c] += (left[c] + right[c]) * wd
+
+
 #: The nine products of the plane fit: (heights instead of the mask?, first factor,
 #: second factor), factors 0 none, 1 u, 2 v: m, m u, m v, zc, (m u) u, (m u) v,
 #: (m v) v, zc u, zc v.
@@ -933,10 +957,11 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
                                        np.ndarray]:  # pragma: no cover - compiled
     """Gaussian-weighted local plane fits of ``mask`` (see ``split._PlaneFit``).
 
-    The nine blurred moment images (weight, u, v, z, uu, uv, vv, uz, vz,
-    each of the masked pixels) one at a time in two reused buffers, then the
-    weighted means, covariances and slopes by the reference's float64
-    operations in its order: the same values bit for bit.
+    The nine masked products (weight, u, v, z, uu, uv, vv, uz, vz) are
+    padded once; then, row by row, their blurs (:func:`_blur_row`, the sums
+    of :func:`_blur_plane`) and from them the weighted means, covariances and
+    slopes by the reference's float64 operations in its order: the same
+    values bit for bit, without whole blurred images.
 
     Returns
     -------
@@ -946,32 +971,32 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
     """
     height, width = z.shape
     radius = w.shape[0] // 2
-    pad = np.zeros((height + 2 * radius, width + 2 * radius))
-    tmp = np.empty((height, width + 2 * radius))
-    acc = np.empty(width + 2 * radius)
-    blurred = np.empty((9, height, width))
+    pad = np.zeros((9, height + 2 * radius, width + 2 * radius))
     for which in range(9):
-        _masked_product(z, mask, u0, v0, which, radius, pad)
-        _blur_plane(pad, w, tmp, acc, blurred[which])
+        _masked_product(z, mask, u0, v0, which, radius, pad[which])
+    acc = np.empty(width + 2 * radius)
+    b = np.empty((9, width))
     mu = np.empty((height, width))
     mv = np.empty((height, width))
     mz = np.empty((height, width))
     gx = np.empty((height, width))
     gy = np.empty((height, width))
     for r in range(height):
+        for which in range(9):
+            _blur_row(pad[which], w, r, acc, b[which])
         for c in range(width):
-            s = blurred[0, r, c]
+            s = b[0, c]
             ok = s > 1e-3
             if not ok:
                 s = 1.0
-            a, b, e = blurred[1, r, c] / s, blurred[2, r, c] / s, blurred[3, r, c] / s
-            cuu = blurred[4, r, c] / s - a * a
-            cuv = blurred[5, r, c] / s - a * b
-            cvv = blurred[6, r, c] / s - b * b
-            cuz = blurred[7, r, c] / s - a * e
-            cvz = blurred[8, r, c] / s - b * e
+            a, bb, e = b[1, c] / s, b[2, c] / s, b[3, c] / s
+            cuu = b[4, c] / s - a * a
+            cuv = b[5, c] / s - a * bb
+            cvv = b[6, c] / s - bb * bb
+            cuz = b[7, c] / s - a * e
+            cvz = b[8, c] / s - bb * e
             det = cuu * cvv - cuv * cuv
-            mu[r, c], mv[r, c], mz[r, c] = a, b, e
+            mu[r, c], mv[r, c], mz[r, c] = a, bb, e
             if ok and det > min_det:
                 gx[r, c] = (cvv * cuz - cuv * cvz) / det
                 gy[r, c] = (cuu * cvz - cuv * cuz) / det
