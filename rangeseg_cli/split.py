@@ -663,7 +663,7 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     best = sub[rows, cols].copy()
     best_cost = np.full(rows.size, np.inf)
     for k in _present(sub).tolist():
-        near = _near(sub == k, frame.band, rows, cols)
+        near = _near(sub == k, frame.band, rows, cols, frame.backend)
         if not near.any() or not (core == k).any():
             continue
         cost = np.full(rows.size, np.inf)
@@ -679,17 +679,22 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     return out
 
 
-def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray,
+          backend: Backend = "numpy") -> np.ndarray:
     """Whether pixels (rows, cols) lie within chessboard distance ``reach`` of ``where``.
 
     The maximum filter runs on the bounding box of ``where`` grown by
-    ``reach`` only (the same values as on the whole array).
+    ``reach`` only (the same values as on the whole array); with the compiled
+    kernels (``backend``) it is :func:`_window_extremes`' maximum (the same pixels).
     """
     box = _crop(where, reach)
     inside = ((rows >= box[0].start) & (rows < box[0].stop)
               & (cols >= box[1].start) & (cols < box[1].stop))
     out = np.zeros(rows.size, bool)
-    grown = ndimage.maximum_filter(where[box], size=2 * reach + 1, mode="constant")
+    if select_kernels(backend) is not None:
+        _, grown = _window_extremes(where[box].astype(np.int32), reach, 0, backend)
+    else:
+        grown = ndimage.maximum_filter(where[box], size=2 * reach + 1, mode="constant")
     out[inside] = grown[rows[inside] - box[0].start, cols[inside] - box[1].start]
     return out
 

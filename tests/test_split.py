@@ -560,6 +560,11 @@ def test_compiled_label_extremes_holes_and_adjacent_pairs_equal_the_references()
         np.testing.assert_array_equal(fast[0], slow[0])
         assert split_module.adjacent_pairs(parts, reach, backend="numba") \
             == split_module.adjacent_pairs(parts, reach, backend="numpy")
+        if parts.any():
+            rows, cols = np.nonzero(rng.random((h, w)) < 0.5)
+            np.testing.assert_array_equal(
+                split_module._near(parts == parts.max(), reach, rows, cols, "numba"),
+                split_module._near(parts == parts.max(), reach, rows, cols, "numpy"))
 
 
 def test_refitting_the_new_pieces_alone_gives_their_fits_bit_for_bit() -> None:
