@@ -809,7 +809,8 @@ def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no
     per_row = np.zeros((dys.shape[0], height), dtype=np.int64)
     for k in range(dys.shape[0]):
         dy, dx = dys[k], dxs[k]
-        c0, c1 = max(0, -dx), min(width, width - dx)
+        c0 = max(0, -dx)
+        c1 = max(c0, min(width, width - dx))  # empty when |dx| >= width
         for r in range(height - dy):
             per_row[k, r] = _row_pair_count(labels[r], labels[r + dy], c0, c1, dx)
     out = np.empty((per_row.sum(), 6), dtype=np.int64)
@@ -817,7 +818,8 @@ def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no
     j = 0
     for k in range(dys.shape[0]):
         dy, dx = dys[k], dxs[k]
-        c0, c1 = max(0, -dx), min(width, width - dx)
+        c0 = max(0, -dx)
+        c1 = max(c0, min(width, width - dx))  # empty when |dx| >= width
         for r in range(height - dy):
             if per_row[k, r] > 0:
                 j = _row_pairs(labels[r, c0:c1], labels[r + dy, c0 + dx:c1 + dx], r, c0, dy,
@@ -890,6 +892,30 @@ def _blur_plane(pad: np.ndarray, w: np.ndarray, tmp: np.ndarray, acc: np.ndarray
         out[r, :] = row
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _blur_row(pad: np.ndarray, w: np.ndarray, r: int, acc: np.ndarray, out: np.ndarray
+              ) -> None:  # pragma: no cover - compiled
+    """Row r of :func:`_blur_plane` of ``pad`` (``acc`` holds its ``tmp[r]``): the same sums."""
+    radius = w.shape[0] // 2
+    width = out.shape[0]
+    wide = acc.shape[0]
+    wc = w[radius]
+    centre = pad[r + radius]
+    for c in range(wide):
+        acc[c] = centre[c] * wc
+    for d in range(radius, 0, -1):
+        above, below, wd = pad[r + radius - d], pad[r + radius + d], w[radius - d]
+        for c in range(wide):
+            acc[c] += (above[c] + below[c]) * wd
+    for c in range(width):
+        out[c] = acc[c + radius] * wc
+    for d in range(radius, 0, -1):
+        left, right = acc[radius - d: radius - d + width], acc[radius + d: radius + d + width]
+        wd = w[radius - d]
+        for c in range(width):
+            out[c] += (left[c] + right[c]) * wd
+
+
 #: The nine products of the plane fit: (heights instead of the mask?, first factor,
 #: second factor), factors 0 none, 1 u, 2 v: m, m u, m v, zc, (m u) u, (m u) v,
 #: (m v) v, zc u, zc v.
@@ -931,10 +957,11 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
                                        np.ndarray]:  # pragma: no cover - compiled
     """Gaussian-weighted local plane fits of ``mask`` (see ``split._PlaneFit``).
 
-    The nine blurred moment images (weight, u, v, z, uu, uv, vv, uz, vz,
-    each of the masked pixels) one at a time in two reused buffers, then the
-    weighted means, covariances and slopes by the reference's float64
-    operations in its order: the same values bit for bit.
+    The nine masked products (weight, u, v, z, uu, uv, vv, uz, vz) are
+    padded once; then, row by row, their blurs (:func:`_blur_row`, the sums
+    of :func:`_blur_plane`) and from them the weighted means, covariances and
+    slopes by the reference's float64 operations in its order: the same
+    values bit for bit, without whole blurred images.
 
     Returns
     -------
@@ -944,32 +971,32 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
     """
     height, width = z.shape
     radius = w.shape[0] // 2
-    pad = np.zeros((height + 2 * radius, width + 2 * radius))
-    tmp = np.empty((height, width + 2 * radius))
-    acc = np.empty(width + 2 * radius)
-    blurred = np.empty((9, height, width))
+    pad = np.zeros((9, height + 2 * radius, width + 2 * radius))
     for which in range(9):
-        _masked_product(z, mask, u0, v0, which, radius, pad)
-        _blur_plane(pad, w, tmp, acc, blurred[which])
+        _masked_product(z, mask, u0, v0, which, radius, pad[which])
+    acc = np.empty(width + 2 * radius)
+    b = np.empty((9, width))
     mu = np.empty((height, width))
     mv = np.empty((height, width))
     mz = np.empty((height, width))
     gx = np.empty((height, width))
     gy = np.empty((height, width))
     for r in range(height):
+        for which in range(9):
+            _blur_row(pad[which], w, r, acc, b[which])
         for c in range(width):
-            s = blurred[0, r, c]
+            s = b[0, c]
             ok = s > 1e-3
             if not ok:
                 s = 1.0
-            a, b, e = blurred[1, r, c] / s, blurred[2, r, c] / s, blurred[3, r, c] / s
-            cuu = blurred[4, r, c] / s - a * a
-            cuv = blurred[5, r, c] / s - a * b
-            cvv = blurred[6, r, c] / s - b * b
-            cuz = blurred[7, r, c] / s - a * e
-            cvz = blurred[8, r, c] / s - b * e
+            a, bb, e = b[1, c] / s, b[2, c] / s, b[3, c] / s
+            cuu = b[4, c] / s - a * a
+            cuv = b[5, c] / s - a * bb
+            cvv = b[6, c] / s - bb * bb
+            cuz = b[7, c] / s - a * e
+            cvz = b[8, c] / s - bb * e
             det = cuu * cvv - cuv * cuv
-            mu[r, c], mv[r, c], mz[r, c] = a, b, e
+            mu[r, c], mv[r, c], mz[r, c] = a, bb, e
             if ok and det > min_det:
                 gx[r, c] = (cvv * cuz - cuv * cvz) / det
                 gy[r, c] = (cuu * cvz - cuv * cuz) / det
@@ -979,7 +1006,232 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
     return mu, mv, mz, gx, gy
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _column_blurs(pad: np.ndarray, w: np.ndarray, r: int, c0: int, c1: int, out: np.ndarray
+                  ) -> None:  # pragma: no cover - compiled
+    """The first (axis 0) blur of :func:`_blur_plane` of the products ``pad`` at row r.
+
+    ``pad`` (9, H + 2 radius, W + 2 radius) holds the nine zero-padded
+    products; ``out[which, k]`` gets ``tmp[r, c0 + k]`` of :func:`_blur_plane`
+    for padded columns c0..c1-1 (the same sums, in the same order).
+    """
+    radius = w.shape[0] // 2
+    wc = w[radius]
+    for which in range(9):
+        acc = out[which, :c1 - c0]
+        centre = pad[which, r + radius, c0:c1]
+        for k in range(c1 - c0):
+            acc[k] = centre[k] * wc
+        for d in range(radius, 0, -1):
+            above = pad[which, r + radius - d, c0:c1]
+            below = pad[which, r + radius + d, c0:c1]
+            wd = w[radius - d]
+            for k in range(c1 - c0):
+                acc[k] += (above[k] + below[k]) * wd
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def plane_heights_at(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: float,
+                     min_det: float, rows: np.ndarray, cols: np.ndarray
+                     ) -> np.ndarray:  # pragma: no cover - compiled
+    """Heights of the local planes of :func:`plane_fit` at the pixels (rows, cols) only.
+
+    ``mz + gx (u - mu) + gy (v - mv)`` (``split.local_planes``' height) from
+    the same blurred products, summed in the same order, as :func:`plane_fit`
+    forms them for the whole array: the same values bit for bit, NaN where
+    the fit is degenerate. The first blur runs only on the rows asked for, over
+    the columns within reach of their pixels, so the cost follows the number
+    of pixels asked for rather than the array's size. Pixels of one row are
+    best given together (raster order, as ``np.nonzero`` gives them); any
+    order gives the same values.
+    """
+    height, width = z.shape
+    radius = w.shape[0] // 2
+    wc = w[radius]
+    pad = np.zeros((9, height + 2 * radius, width + 2 * radius))
+    for which in range(9):
+        _masked_product(z, mask, u0, v0, which, radius, pad[which])
+    out = np.empty(rows.shape[0])
+    buf = np.empty((9, width + 2 * radius))
+    b = np.empty(9)
+    start = 0
+    while start < rows.shape[0]:
+        r = rows[start]
+        stop = start
+        lo, hi = cols[start], cols[start]
+        while stop < rows.shape[0] and rows[stop] == r:
+            lo, hi = min(lo, cols[stop]), max(hi, cols[stop])
+            stop += 1
+        # padded columns lo .. hi + 2 radius: those within reach of the row's pixels
+        _column_blurs(pad, w, r, lo, hi + 2 * radius + 1, buf)
+        for i in range(start, stop):
+            c = cols[i] - lo + radius
+            for which in range(9):
+                src = buf[which]
+                a = src[c] * wc
+                for d in range(radius, 0, -1):
+                    a += (src[c - d] + src[c + d]) * w[radius - d]
+                b[which] = a
+            out[i] = _height(b, min_det, cols[i] + u0, r + v0)
+        start = stop
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _height(b: np.ndarray, min_det: float, u: float, v: float) -> float:  # pragma: no cover
+    """The plane's height at (u, v) from the nine blurred products, as :func:`plane_fit`."""
+    s = b[0]
+    ok = s > 1e-3
+    if not ok:
+        s = 1.0
+    a, bb, e = b[1] / s, b[2] / s, b[3] / s
+    cuu = b[4] / s - a * a
+    cuv = b[5] / s - a * bb
+    cvv = b[6] / s - bb * bb
+    cuz = b[7] / s - a * e
+    cvz = b[8] / s - bb * e
+    det = cuu * cvv - cuv * cuv
+    if ok and det > min_det:
+        gx = (cvv * cuz - cuv * cvz) / det
+        gy = (cuu * cvz - cuv * cuz) / det
+    else:
+        gx = np.nan
+        gy = np.nan
+    return e + gx * (u - a) + gy * (v - bb)
+
+
 # --------------------------------------------------------------------------- split helpers
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def histogram2d(x: np.ndarray, y: np.ndarray, edges: np.ndarray
+                ) -> np.ndarray:  # pragma: no cover - compiled
+    """Counts of the points (x, y) in the bins of ``edges`` (both axes), as ``np.histogram2d``.
+
+    A point's bin along an axis is ``np.searchsorted(edges, value, side="right")``
+    (by bisection), less one on the last edge; bins 0 and ``len(edges)`` (the
+    outliers) are counted too, so the result is the (k + 1, k + 1) array of
+    ``np.histogramdd`` before it drops them (k = ``len(edges)``).
+    """
+    k = edges.shape[0]
+    counts = np.zeros((k + 1, k + 1), dtype=np.int64)
+    for i in range(x.shape[0]):
+        counts[_bin(edges, x[i]), _bin(edges, y[i])] += 1
+    return counts
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _bin(edges: np.ndarray, value: float) -> int:  # pragma: no cover - compiled
+    """``np.histogramdd``'s bin of ``value`` in the equally spaced ``edges`` (outliers 0, k).
+
+    ``np.searchsorted(edges, value, side="right")``, less one on the last
+    edge. The guess from the spacing is corrected by comparing with the edges, so
+    the count of edges <= value is exact.
+    """
+    k = edges.shape[0]
+    if value != value:  # NaN sorts last
+        return k
+    lo, hi = edges[0], edges[k - 1]
+    if value < lo:
+        return 0
+    if value >= hi:
+        return k - 1 if value == hi else k
+    j = min(max(int((value - lo) / (hi - lo) * (k - 1)), 0), k - 1)
+    while j < k and edges[j] <= value:
+        j += 1
+    while j > 0 and edges[j - 1] > value:
+        j -= 1
+    return j
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def otsu_index(xs: np.ndarray, total: float) -> int:  # pragma: no cover - compiled
+    """Split index of Otsu's threshold of the sorted ``xs`` (N >= 2) whose sum is ``total``.
+
+    The first i maximising ``k (n - k) (m0 - m1)^2`` (k = i + 1; m0, m1 the
+    means below and above), with the running sum formed as ``np.cumsum``
+    forms it and every other value by ``split._otsu``'s float64 operations.
+    """
+    n = xs.shape[0]
+    best, at = 0.0, 0
+    csum = 0.0
+    for i in range(n - 1):
+        csum = xs[0] if i == 0 else csum + xs[i]
+        k = i + 1
+        d = csum / k - (total - csum) / (n - k)
+        between = (k * (n - k)) * (d * d)
+        if between != between:  # NaN: np.argmax takes the first
+            return i
+        if i == 0 or between > best:
+            best, at = between, i
+    return at
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _flood(labels: np.ndarray, out: np.ndarray, r0: int, c0: int, part: int,
+           stack_r: np.ndarray, stack_c: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Set ``out`` to ``part`` on the 4-connected pixels of (r0, c0)'s value in ``labels``."""
+    height, width = labels.shape
+    value = labels[r0, c0]
+    out[r0, c0] = part
+    stack_r[0], stack_c[0] = r0, c0
+    top = 1
+    while top > 0:
+        top -= 1
+        r, c = stack_r[top], stack_c[top]
+        for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+            if (0 <= rr < height and 0 <= cc < width and out[rr, cc] == 0
+                    and labels[rr, cc] == value):
+                out[rr, cc] = part
+                stack_r[top], stack_c[top] = rr, cc
+                top += 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def value_parts(labels: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """4-connected parts of every positive value of int32 ``labels``, numbered 1..k.
+
+    Numbered by value, then by the raster order of each part's first pixel,
+    as ``split._parts`` numbers them (one ``scipy.ndimage.label`` per value,
+    ascending); 0 stays 0. One flood fill in raster order.
+    """
+    height, width = labels.shape
+    out = np.zeros((height, width), dtype=np.int32)
+    stack_r = np.empty(height * width, dtype=np.int64)
+    stack_c = np.empty(height * width, dtype=np.int64)
+    values = np.empty(height * width, dtype=np.int64)
+    found = 0
+    for r0 in range(height):
+        for c0 in range(width):
+            value = labels[r0, c0]
+            if value <= 0 or out[r0, c0] != 0:
+                continue
+            values[found] = value
+            found += 1
+            _flood(labels, out, r0, c0, found, stack_r, stack_c)
+    order = np.argsort(values[:found], kind="mergesort")  # by value, then first pixel
+    lut = np.zeros(found + 1, dtype=np.int32)
+    for rank in range(found):
+        lut[order[rank] + 1] = rank + 1
+    for r in range(height):
+        for c in range(width):
+            out[r, c] = lut[out[r, c]]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def first_pixels(labels: np.ndarray, n: int) -> np.ndarray:  # pragma: no cover - compiled
+    """Flat index of the first pixel (raster order) of each label 0..n; -1 where absent.
+
+    As ``np.unique(labels.ravel(), return_index=True)`` gives them, in one sweep.
+    """
+    first = np.full(n + 1, -1, dtype=np.int64)
+    flat = labels.ravel()
+    for i in range(flat.shape[0]):
+        lab = flat[i]
+        if first[lab] < 0:
+            first[lab] = i
+    return first
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1001,6 +1253,40 @@ def nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray, dr: np
                 found[i] = parts[rr, cc]
                 break
     return found
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def fill_nearest(parts: np.ndarray, where: np.ndarray, dr: np.ndarray, dc: np.ndarray
+                 ) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+    """``parts`` on ``where`` (0 elsewhere), its unlabelled pixels taking the nearest label.
+
+    The label is that of the first labelled pixel at the offsets (dr, dc)
+    tried in order (as :func:`nearest_labels`); pixels with none within them
+    get -1, and their number is returned with the array (the caller takes
+    their labels from the feature transform). All 0 when ``parts`` has no
+    labelled pixel.
+    """
+    height, width = parts.shape
+    out = np.zeros((height, width), dtype=np.int32)
+    if parts.size == 0 or parts.max() <= 0:
+        return out, 0
+    missing = 0
+    for r in range(height):
+        for c in range(width):
+            if not where[r, c]:
+                continue
+            lab = parts[r, c]
+            if lab == 0:
+                lab = -1
+                for k in range(dr.shape[0]):
+                    rr, cc = r + dr[k], c + dc[k]
+                    if 0 <= rr < height and 0 <= cc < width and parts[rr, cc] > 0:
+                        lab = parts[rr, cc]
+                        break
+                if lab < 0:
+                    missing += 1
+            out[r, c] = lab
+    return out, missing
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1033,6 +1319,42 @@ def window_extremes(a: np.ndarray, reach: int, cval: int
         row_high[r, :] = src[:width]
         for d in range(1, span):
             _fold_extremes(row_low[r], row_high[r], src[d:d + width], src[d:d + width])
+    low = np.empty((height, width), dtype=np.int32)
+    high = np.empty((height, width), dtype=np.int32)
+    for r in range(height):
+        low[r, :] = row_low[r]
+        high[r, :] = row_high[r]
+        for d in range(1, span):
+            _fold_extremes(low[r], high[r], row_low[r + d], row_high[r + d])
+    return low, high
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def label_extremes(a: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """Smallest positive and largest value of int32 ``a`` over every (2 reach + 1)^2 window.
+
+    The minimum is of ``a`` with its values <= 0 and the outside taken as
+    the largest int32, the maximum of ``a`` with 0 outside: what
+    :func:`window_extremes` gives for each of the two arrays, in one call.
+    """
+    height, width = a.shape
+    big = np.int32(np.iinfo(np.int32).max)
+    span = 2 * reach + 1
+    pad_lo = np.full((height + 2 * reach, width + 2 * reach), big, dtype=np.int32)
+    pad_hi = np.zeros((height + 2 * reach, width + 2 * reach), dtype=np.int32)
+    for r in range(height):
+        for c in range(width):
+            v = a[r, c]
+            pad_lo[r + reach, c + reach] = v if v > 0 else big
+            pad_hi[r + reach, c + reach] = v
+    row_low = np.empty((height + 2 * reach, width), dtype=np.int32)
+    row_high = np.empty((height + 2 * reach, width), dtype=np.int32)
+    for r in range(height + 2 * reach):
+        row_low[r, :] = pad_lo[r, :width]
+        row_high[r, :] = pad_hi[r, :width]
+        for d in range(1, span):
+            _fold_extremes(row_low[r], row_high[r], pad_lo[r, d:d + width],
+                           pad_hi[r, d:d + width])
     low = np.empty((height, width), dtype=np.int32)
     high = np.empty((height, width), dtype=np.int32)
     for r in range(height):

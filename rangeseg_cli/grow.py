@@ -68,6 +68,11 @@ EIGHT_NEIGHBOURS = np.ones((3, 3), dtype=bool)
 _EXPONENTS: tuple[tuple[int, int], ...] = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
 
 
+#: Exponents of u and of v of the entries phi_i phi_j of the normal equations (6, 6).
+_POWER_U = np.add.outer(*[np.array([e[0] for e in _EXPONENTS])] * 2)
+_POWER_V = np.add.outer(*[np.array([e[1] for e in _EXPONENTS])] * 2)
+
+
 def _basis(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The six quadric terms (1, u, v, u^2, u v, v^2), stacked as (6, N)."""
     return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v])
@@ -179,10 +184,7 @@ def _normal_equations(m: RegionMoments) -> tuple[np.ndarray, np.ndarray]:
     The 36 entries need only the 15 monomial sums of :class:`RegionMoments`.
     """
     safe = np.maximum(m.counts, 1.0)
-    mat = np.empty((len(safe), 6, 6))
-    for i, (a, b) in enumerate(_EXPONENTS):
-        for j, (c, d) in enumerate(_EXPONENTS):
-            mat[:, i, j] = m.sums[:, a + c, b + d]
+    mat = m.sums[:, _POWER_U, _POWER_V]  # one gather
     return mat / safe[:, None, None], m.rhs / safe[:, None]
 
 
@@ -509,8 +511,40 @@ def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.n
     return int(join.sum())
 
 
+#: Quadric fits of regions as :func:`fit_quadrics` returns them: (coeffs, mse, counts).
+Fits = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def component_fits(z: np.ndarray, components: np.ndarray, *, backend: Backend = "auto"
+                   ) -> Fits:
+    """Quadric fits of the components at their valid pixels (Sec. V-4).
+
+    What :func:`grow_regions` fits to seed the growth, and
+    :func:`rangeseg_cli.split.failing_components` tests; a caller that runs
+    both computes them once.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    components
+        int (H, W) components 1..n of step 3, 0 = none.
+    backend
+        As for :func:`fit_quadrics`.
+
+    Returns
+    -------
+    coeffs, mse, counts
+        :func:`fit_quadrics` of ``components`` with invalid pixels left out,
+        n = the largest label at a valid pixel.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    labels = np.where(np.isfinite(z), components, 0).astype(np.int32)
+    return fit_quadrics(z, labels, int(labels.max(initial=0)), backend=backend)
+
+
 def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: GrowConfig,
-                 *, backend: Backend = "auto") -> np.ndarray:
+                 *, backend: Backend = "auto", fits: Fits | None = None) -> np.ndarray:
     """Step 4: iterative least-squares region growing (Sec. V-4).
 
     Every valid pixel with label 0 (edge, linked gap or dropped component)
@@ -537,6 +571,9 @@ def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: 
     backend
         ``"auto"``, ``"numba"`` or ``"numpy"`` for the fits and the passes
         (identical labels; see :func:`region_fits` and :func:`grow_pass`).
+    fits
+        :func:`component_fits` of ``z`` and ``components`` when the caller has
+        them (they are computed here otherwise).
 
     Returns
     -------
@@ -557,7 +594,9 @@ def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: 
     if n == 0:
         return labels
     # Quadric fit of each component and its average error e_A, floored (Sec. V-4)
-    coeffs, mse, _ = fit_quadrics(z, labels, n, backend=backend)
+    coeffs, mse, _ = fit_quadrics(z, labels, n, backend=backend) if fits is None else fits
+    if len(mse) != n + 1:
+        raise ValueError(f"`fits` are of {len(mse) - 1} regions, the components {n}")
     limit = cfg.error_factor * np.maximum(mse, cfg.min_error)
     # Growing passes: an edge pixel joins its one neighbouring surface if r^2 < 10 e_A
     max_passes = cfg.passes or int(np.count_nonzero(valid & (labels == 0))) + 1

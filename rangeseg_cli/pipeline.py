@@ -101,20 +101,25 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     (:mod:`rangeseg_cli.recover`); with ``[split] fill_edges`` the edge pixels
     left go to the surface that fits them best (:mod:`rangeseg_cli.fill`);
     with ``[split] merge`` touching regions that one surface fits are merged
-    (:mod:`rangeseg_cli.merge`).
+    (:mod:`rangeseg_cli.merge`); with ``[split] recut`` regions are cut along
+    the straight line where a plane meets a tangent surface or another
+    plane (:mod:`rangeseg_cli.recut`).
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
     """
-    from .grow import grow_regions
+    from .grow import component_fits, grow_regions
     from .surfaces import describe_surfaces
 
-    labels = grow_regions(z, edges, components, config.grow)
-    if noise is None and (config.split.enabled or config.split.recover or config.split.merge):
-        noise = estimate_noise(z)
+    fits = component_fits(z, components)  # seeds the growth; the split tests them
+    labels = grow_regions(z, edges, components, config.grow, fits=fits)
+    cfg = config.split
+    if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut):
+        return labels, describe_surfaces(z, labels, config)  # the paper's step 4 alone
+    noise = estimate_noise(z) if noise is None else noise
     if config.split.enabled:
         from .split import split_regions
 
-        labels = split_regions(z, edges, components, labels, config, noise=noise)
+        labels = split_regions(z, edges, components, labels, config, noise=noise, fits=fits)
     if config.split.recover:
         from .recover import recover_faces
 
@@ -126,13 +131,11 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     if config.split.merge:
         from .merge import merge_regions
 
-        labels = merge_regions(z, labels, config,
-                               noise=estimate_noise(z) if noise is None else noise)
+        labels = merge_regions(z, labels, config, noise=noise)
     if config.split.recut:
         from .recut import recut_regions
 
-        labels = recut_regions(z, labels, config,
-                               noise=estimate_noise(z) if noise is None else noise)
+        labels = recut_regions(z, labels, config, noise=noise)
     return labels, describe_surfaces(z, labels, config)
 
 

@@ -59,9 +59,10 @@ from scipy import ndimage
 
 from .config import Config, GrowConfig, SplitConfig
 from .edges import Backend, select_kernels
-from .grow import fit_models, fit_quadrics, grow_regions, planar
+from .grow import Fits, fit_models, fit_quadrics, grow_regions, planar
 from .link import FOUR_CONNECTED
 from .noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
+from .surfaces import label_boxes
 
 #: Bin width of the histogram of normals (x, y components) whose peak is the mode.
 _MODE_BIN = 0.05
@@ -80,7 +81,8 @@ _TRUNCATE = 3.0
 
 
 def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
-                       cfg: SplitConfig, grow: GrowConfig) -> np.ndarray:
+                       cfg: SplitConfig, grow: GrowConfig, *, fits: Fits | None = None
+                       ) -> np.ndarray:
     """Ids of the components whose quadric fit fails the quality test (Sec. VIII).
 
     Parameters
@@ -93,6 +95,9 @@ def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
         Noise sigma of the image (:func:`estimate_noise`).
     cfg, grow
         ``[split]`` (``fit_factor``, ``min_piece``) and ``[grow]`` (``min_error``).
+    fits
+        :func:`~rangeseg_cli.grow.component_fits` of ``z`` and ``components``
+        when the caller has them (the components' fits are computed here otherwise).
 
     Returns
     -------
@@ -103,7 +108,9 @@ def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
     n = int(components.max(initial=0))
     if n == 0:
         return np.zeros(0, np.int64)
-    _, mse, counts = fit_quadrics(z, components, n)
+    _, mse, counts = fit_quadrics(z, components, n) if fits is None else fits
+    if len(mse) != n + 1:
+        raise ValueError(f"`fits` are of {len(mse) - 1} regions, the components {n}")
     level = cfg.fit_factor * max(noise, math.sqrt(grow.min_error))
     bad = (mse > level * level) & (counts >= 2 * cfg.min_piece)
     bad[0] = False
@@ -260,9 +267,17 @@ def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float, *,
     return np.where(keep, gx, 0.0), np.where(keep, gy, 0.0)
 
 
-def _otsu(x: np.ndarray) -> float:
-    """Threshold of ``x`` that maximises the between-class variance (Otsu)."""
+def _otsu(x: np.ndarray, backend: Backend = "numpy") -> float:
+    """Threshold of ``x`` that maximises the between-class variance (Otsu).
+
+    With the compiled kernels (``backend``) the search over the sorted values
+    is :func:`rangeseg_cli._kernels.otsu_index` (the same threshold).
+    """
     xs = np.sort(x)
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        i = int(kernels.otsu_index(xs, float(xs.sum())))
+        return 0.5 * (xs[i] + xs[i + 1])
     n = xs.size
     k = np.arange(1, n)
     csum = np.cumsum(xs)[:-1]
@@ -273,7 +288,7 @@ def _otsu(x: np.ndarray) -> float:
     return 0.5 * (xs[i] + xs[i + 1])
 
 
-def mode_split(normals: np.ndarray) -> np.ndarray:
+def mode_split(normals: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
     """Divide unit normals into those of the dominant orientation and the rest.
 
     The mode is the peak of a smoothed 2-D histogram of the normals' (x, y)
@@ -288,6 +303,9 @@ def mode_split(normals: np.ndarray) -> np.ndarray:
     ----------
     normals
         float64 (N, 3) unit normals, N >= 2.
+    backend
+        Of the histogram and Otsu's search (:func:`_histogram`, :func:`_otsu`):
+        the same division either way.
 
     Returns
     -------
@@ -295,17 +313,59 @@ def mode_split(normals: np.ndarray) -> np.ndarray:
         bool (N,): True for the normals away from the mode (deterministic).
     """
     xy = normals[:, :2]
-    bins = int(round(2.0 / _MODE_BIN))
-    hist, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=[[-1, 1], [-1, 1]])
+    hist = _histogram(xy, backend)
     peak = np.unravel_index(int(np.argmax(ndimage.gaussian_filter(hist, 1.0))), hist.shape)
     mode = -1.0 + (np.array(peak, dtype=np.float64) + 0.5) * _MODE_BIN
-    near = np.sum((xy - mode) ** 2, axis=1) <= (2.0 * _MODE_BIN) ** 2
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    near = _squared_distance(x, y, mode) <= (2.0 * _MODE_BIN) ** 2
     if near.any():
         mode = xy[near].mean(axis=0)
-    dist = np.sqrt(np.sum((xy - mode) ** 2, axis=1))
+    dist = np.sqrt(_squared_distance(x, y, mode))
     if np.ptp(dist) <= 0:
         return np.zeros(len(normals), bool)
-    return dist > _otsu(dist)
+    return dist > _otsu(dist, backend)
+
+
+def _squared_distance(x: np.ndarray, y: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """``np.sum((xy - point) ** 2, axis=1)`` from the columns x, y (the same values)."""
+    dx = x - point[0]
+    dx *= dx
+    dy = y - point[1]
+    dy *= dy
+    dx += dy
+    return dx
+
+
+@functools.lru_cache(maxsize=1)
+def _mode_edges() -> np.ndarray:
+    """Bin edges of the histogram of normals: -1..1 in steps of :data:`_MODE_BIN`."""
+    edges = np.linspace(-1.0, 1.0, int(round(2.0 / _MODE_BIN)) + 1)
+    edges.setflags(write=False)
+    return edges
+
+
+def _histogram(xy: np.ndarray, backend: Backend = "numpy") -> np.ndarray:
+    """float64 2-D histogram of the (N, 2) points ``xy`` in the bins of :func:`_mode_edges`.
+
+    What ``np.histogram2d(x, y, bins, range=[[-1, 1], [-1, 1]])`` gives, by
+    the same bin search (right-closed last bin, points outside dropped) and
+    one ``np.bincount``, without its generic set-up; with the compiled
+    kernels (``backend``) in one sweep (:func:`rangeseg_cli._kernels.histogram2d`).
+    """
+    edges = _mode_edges()
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        counts = kernels.histogram2d(np.ascontiguousarray(xy[:, 0]),
+                                     np.ascontiguousarray(xy[:, 1]), edges)
+        return counts[1:-1, 1:-1].astype(np.float64)
+    k = edges.size + 1  # with an outlier bin at each end
+    index = []
+    for column in (xy[:, 0], xy[:, 1]):
+        i = np.searchsorted(edges, column, side="right")
+        i[column == edges[-1]] -= 1
+        index.append(i)
+    hist = np.bincount(index[0] * k + index[1], minlength=k * k).reshape(k, k)
+    return hist[1:-1, 1:-1].astype(np.float64)
 
 
 @dataclass(frozen=True)
@@ -345,18 +405,55 @@ class _Frame:
     @classmethod
     def of(cls, mask: np.ndarray, cfg: SplitConfig, backend: Backend = "auto") -> _Frame:
         """The frame of ``mask`` with the scales of ``[split]``."""
-        holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
+        holes, n = _holes(mask, backend)
         small = np.bincount(holes.ravel(), minlength=n + 1) < cfg.min_piece
         small[0] = False
-        closed = ndimage.binary_closing(mask, structure=np.ones((3, 3), bool))
+        closed = _closing(mask, backend)
         return cls(mask=mask, solid=mask | small[holes] | closed, min_piece=cfg.min_piece,
                    thickness=int(math.ceil(cfg.normal_sigma)),
                    band=int(math.ceil(2.0 * cfg.normal_sigma)), sigma=2.0 * cfg.normal_sigma,
                    backend=backend)
 
 
-def _parts(labels: np.ndarray) -> np.ndarray:
-    """4-connected parts of every label, numbered 1..k (0 stays 0)."""
+def _holes(mask: np.ndarray, backend: Backend) -> tuple[np.ndarray, int]:
+    """4-connected parts of ``~mask`` numbered 1..n, and n (:func:`scipy.ndimage.label`).
+
+    With the compiled kernels (``backend``) from :func:`rangeseg_cli._kernels.value_parts`
+    (the same numbers).
+    """
+    kernels = select_kernels(backend)
+    if kernels is None:
+        holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
+        return holes, int(n)
+    holes = kernels.value_parts(np.require(~mask, np.int32, ["C"]))
+    return holes, int(holes.max(initial=0))
+
+
+def _closing(mask: np.ndarray, backend: Backend) -> np.ndarray:
+    """Binary closing of ``mask`` by the 3x3 square (outside counts as unset).
+
+    :func:`scipy.ndimage.binary_closing` (the reference) or, with the compiled
+    kernels (``backend``), the minimum of the maximum over 3x3 windows
+    (:func:`_window_extremes`, 0 outside): the same pixels.
+    """
+    if select_kernels(backend) is None:
+        return ndimage.binary_closing(mask, structure=np.ones((3, 3), bool))
+    _, dilated = _window_extremes(mask.astype(np.int32), 1, 0, backend)
+    closed, _ = _window_extremes(dilated, 1, 0, backend)
+    return closed.astype(bool)
+
+
+def _parts(labels: np.ndarray, backend: Backend = "numpy") -> np.ndarray:
+    """4-connected parts of every label, numbered 1..k (0 stays 0).
+
+    Numbered by label, then in raster order of their first pixels: one
+    ``scipy.ndimage.label`` per label (the reference) or, with the compiled
+    kernels (``backend``), one flood fill
+    (:func:`rangeseg_cli._kernels.value_parts`; the same parts and numbers).
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        return kernels.value_parts(np.require(labels, np.int32, ["C"]))
     out = np.zeros(labels.shape, np.int32)
     count = 0
     for value in _present(labels).tolist():
@@ -445,17 +542,26 @@ def _fill_nearest(parts: np.ndarray, where: np.ndarray, backend: Backend = "auto
     """``parts`` on ``where``, each unlabelled pixel taking its nearest labelled pixel's label.
 
     Ties go as :func:`scipy.ndimage.distance_transform_edt` breaks them
-    (:func:`_nearest_labels`, which the compiled search makes cheap at any size).
+    (:func:`_nearest_labels`); with the compiled kernels (``backend``) the
+    copy and the search are one sweep (:func:`rangeseg_cli._kernels.fill_nearest`).
     """
+    kernels = select_kernels(backend)
+    if kernels is not None:  # one sweep; the feature transform for what it leaves
+        out, missing = kernels.fill_nearest(np.require(parts, np.int32, ["C"]),
+                                            np.require(where, np.bool_, ["C"]), *_OFFSETS)
+        if missing:
+            rows, cols = np.nonzero(out < 0)
+            out[rows, cols] = _nearest_by_transform(parts, rows, cols,
+                                                    np.zeros(rows.size, np.int32),
+                                                    np.arange(rows.size))
+        return out
     out = np.where(where, parts, 0).astype(np.int32)
     if parts.max(initial=0) == 0:
         return out
     rows, cols = np.nonzero(where & (parts == 0))
     if rows.size == 0:
         return out
-    if select_kernels(backend) is not None:
-        out[rows, cols] = _nearest_labels(parts, rows, cols, backend)
-    elif parts.size < _SEARCH_MIN_PIXELS:  # the transform is cheaper than the search
+    if parts.size < _SEARCH_MIN_PIXELS:  # the transform is cheaper than the search
         ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
                                                 return_indices=True)
         out[rows, cols] = parts[ir[rows, cols], ic[rows, cols]]
@@ -489,6 +595,23 @@ def _window_extremes(a: np.ndarray, reach: int, cval: int, backend: Backend
             ndimage.maximum_filter(a, size=size, mode="constant", cval=cval))
 
 
+def _label_extremes(parts: np.ndarray, reach: int, backend: Backend
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest and largest label > 0 within ``reach`` (chessboard) of every pixel.
+
+    The smallest is the largest int32 and the largest 0 where there is none:
+    two window filters (:func:`_window_extremes`), or with the compiled
+    kernels one call of :func:`rangeseg_cli._kernels.label_extremes`.
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        return kernels.label_extremes(np.require(parts, np.int32, ["C"]), reach)
+    big = int(np.iinfo(np.int32).max)
+    _, high = _window_extremes(parts, reach, 0, backend)
+    low, _ = _window_extremes(np.where(parts > 0, parts, big), reach, big, backend)
+    return low, high
+
+
 def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     """Wide 4-connected parts of ``labels``, renumbered 1..k, covering ``frame.mask``.
 
@@ -497,7 +620,8 @@ def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     below ``min_piece`` pixels -- a sliver along a crease, the steep rim of a
     curved surface, whose fit could not be judged -- go the same way.
     """
-    parts = np.where(frame.mask, _parts(_fill_nearest(labels, frame.solid, frame.backend)), 0)
+    parts = np.where(frame.mask, _parts(_fill_nearest(labels, frame.solid, frame.backend),
+                                        frame.backend), 0)
     sizes = np.bincount(parts.ravel())
     parts = _dense(_fill_nearest(np.where(sizes[parts] >= frame.min_piece, parts, 0),
                                  frame.mask, frame.backend))
@@ -528,9 +652,7 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     doubtful pixels, and each part's planes to the pixels within reach of
     both its doubtful pixels and its core (:func:`_plane_heights`).
     """
-    big = int(np.iinfo(np.int32).max)
-    _, high = _window_extremes(parts, frame.band, 0, frame.backend)
-    low, _ = _window_extremes(np.where(parts > 0, parts, big), frame.band, big, frame.backend)
+    low, high = _label_extremes(parts, frame.band, frame.backend)
     doubt = frame.mask & (high > 0) & (low != high)
     if not doubt.any():
         return parts
@@ -541,7 +663,7 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     best = sub[rows, cols].copy()
     best_cost = np.full(rows.size, np.inf)
     for k in _present(sub).tolist():
-        near = _near(sub == k, frame.band, rows, cols)
+        near = _near(sub == k, frame.band, rows, cols, frame.backend)
         if not near.any() or not (core == k).any():
             continue
         cost = np.full(rows.size, np.inf)
@@ -557,17 +679,22 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     return out
 
 
-def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray,
+          backend: Backend = "numpy") -> np.ndarray:
     """Whether pixels (rows, cols) lie within chessboard distance ``reach`` of ``where``.
 
     The maximum filter runs on the bounding box of ``where`` grown by
-    ``reach`` only (the same values as on the whole array).
+    ``reach`` only (the same values as on the whole array); with the compiled
+    kernels (``backend``) it is :func:`_window_extremes`' maximum (the same pixels).
     """
     box = _crop(where, reach)
     inside = ((rows >= box[0].start) & (rows < box[0].stop)
               & (cols >= box[1].start) & (cols < box[1].stop))
     out = np.zeros(rows.size, bool)
-    grown = ndimage.maximum_filter(where[box], size=2 * reach + 1, mode="constant")
+    if select_kernels(backend) is not None:
+        _, grown = _window_extremes(where[box].astype(np.int32), reach, 0, backend)
+    else:
+        grown = ndimage.maximum_filter(where[box], size=2 * reach + 1, mode="constant")
     out[inside] = grown[rows[inside] - box[0].start, cols[inside] - box[1].start]
     return out
 
@@ -579,6 +706,9 @@ def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarr
     Bit for bit the values of ``local_planes(z, mask, sigma)[0][rows, cols]``,
     computed on the pixels within reach (:func:`blur_radius`) of both the
     pixels asked for and ``mask``; NaN where no ``mask`` pixel is within reach.
+    With the compiled kernels (``backend``) only at the pixels asked for
+    (:func:`rangeseg_cli._kernels.plane_heights_at`, the same values bit for
+    bit; fastest with the pixels in raster order, as ``np.nonzero`` gives them).
     """
     reach = blur_radius(sigma)
     h, w = z.shape
@@ -593,6 +723,15 @@ def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarr
     if r1 <= r0 or c1 <= c0:
         return out
     inside = (rows >= r0) & (rows < r1) & (cols >= c0) & (cols < c1)
+    kernels = select_kernels(backend)
+    if kernels is not None:  # the planes at the pixels asked for only
+        out[inside] = kernels.plane_heights_at(
+            np.require(z[r0:r1, c0:c1], np.float64, ["C"]),
+            np.require(mask[r0:r1, c0:c1], np.bool_, ["C"]), _blur_weights(sigma),
+            float(c0 - w / 2.0), float(r0 - h / 2.0), 1e-3 * sigma**4,
+            np.ascontiguousarray(rows[inside] - r0, np.int64),
+            np.ascontiguousarray(cols[inside] - c0, np.int64))
+        return out
     height, _, _ = local_planes(z[r0:r1, c0:c1], mask[r0:r1, c0:c1], sigma,
                                 origin=(r0 - h / 2.0, c0 - w / 2.0), backend=backend)
     out[inside] = height[rows[inside] - r0, cols[inside] - c0]
@@ -616,7 +755,8 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     gx, gy = local_gradients(z, mask, cfg.normal_sigma, backend=backend)
     gxs, gys = gx[rows, cols], gy[rows, cols]
     norm = np.sqrt(1.0 + gxs * gxs + gys * gys)
-    cls = mode_split(np.stack([-gxs / norm, -gys / norm, 1.0 / norm], axis=1))
+    cls = mode_split(np.stack([-gxs / norm, -gys / norm, 1.0 / norm], axis=1),
+                     backend=backend)
     if cls.all() or not cls.any():
         return None
     frame = _Frame.of(mask, cfg, backend)
@@ -633,7 +773,8 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     return parts
 
 
-def adjacent_pairs(pieces: np.ndarray, reach: int = 2) -> list[tuple[int, int]]:
+def adjacent_pairs(pieces: np.ndarray, reach: int = 2, *, backend: Backend = "auto"
+                   ) -> list[tuple[int, int]]:
     """Pairs (i < j) of labels with pixels within chessboard distance ``reach``.
 
     Parameters
@@ -643,12 +784,23 @@ def adjacent_pairs(pieces: np.ndarray, reach: int = 2) -> list[tuple[int, int]]:
     reach
         Largest chessboard distance between pixels of two neighbours (2: across
         a one-pixel line).
+    backend
+        ``"numpy"``: shifted comparisons of the array (the reference);
+        ``"numba"``: the pixel pairs of :func:`rangeseg_cli._kernels.neighbour_pairs`
+        (the same pairs); ``"auto"``: as :func:`~rangeseg_cli.edges.select_kernels`.
 
     Returns
     -------
     list of tuple
         Sorted unique pairs.
     """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        found = kernels.neighbour_pairs(np.require(pieces, np.int32, ["C"]), reach)
+        big = int(pieces.max(initial=0)) + 1
+        a, b = found[:, 4], found[:, 5]
+        uniq = np.unique(np.minimum(a, b) * big + np.maximum(a, b))
+        return [(int(k // big), int(k % big)) for k in uniq]
     h, w = pieces.shape
     padded = np.pad(pieces, reach)
     keys = []
@@ -786,6 +938,20 @@ def _replace(pieces: np.ndarray, k: int, sub: np.ndarray, n: int, max_pieces: in
     return ids[1:].tolist()
 
 
+def _fit_pieces(z: np.ndarray, pieces: np.ndarray, ids: list[int], backend: Backend
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`~rangeseg_cli.grow.fit_quadrics` of ``pieces``, valid for the pieces ``ids`` only.
+
+    The other pieces are left out of the sweep; a region's fit depends only
+    on its own pixels (summed in raster order on the same grid), so the fits
+    of ``ids`` are bit for bit those of all pieces fitted together.
+    """
+    n = int(pieces.max())
+    keep = np.zeros(n + 1, bool)
+    keep[ids] = True
+    return fit_quadrics(z, np.where(keep[pieces], pieces, 0), n, backend=backend)
+
+
 def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: SplitConfig,
                     grow: GrowConfig, backend: Backend = "auto") -> np.ndarray:
     """Split one component that fails the fit test into pieces at its creases (Sec. VIII).
@@ -825,7 +991,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
         if sub is None:
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
-        _, mse, counts = fit_quadrics(z, pieces, int(pieces.max()))
+        _, mse, counts = _fit_pieces(z, pieces, ids, backend)
         queue += [i for i in ids if mse[i] > level * level and counts[i] >= 2 * cfg.min_piece]
     return merge_back(z, pieces, level=level,
                       floor=math.sqrt(grow.error_factor * grow.min_error),
@@ -850,9 +1016,21 @@ def _separate(labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def _raster_renumber(labels: np.ndarray) -> np.ndarray:
-    """Renumber labels 1..K in raster order of their first pixel (as link does)."""
-    ids, first = np.unique(labels.ravel(), return_index=True)
+def _raster_renumber(labels: np.ndarray, backend: Backend = "auto") -> np.ndarray:
+    """Renumber labels 1..K in raster order of their first pixel (as link does).
+
+    The first pixels come from ``np.unique`` (the reference) or, with the
+    compiled kernels (``backend``), from one sweep
+    (:func:`rangeseg_cli._kernels.first_pixels`): the same numbering.
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        first = kernels.first_pixels(np.require(labels, np.int32, ["C"]),
+                                     int(labels.max(initial=0)))
+        ids = np.flatnonzero(first >= 0)
+        first = first[ids]
+    else:
+        ids, first = np.unique(labels.ravel(), return_index=True)
     keep = ids > 0
     order = ids[keep][np.argsort(first[keep], kind="stable")]
     lut = np.zeros(int(ids.max(initial=0)) + 1, np.int32)
@@ -861,7 +1039,8 @@ def _raster_renumber(labels: np.ndarray) -> np.ndarray:
 
 
 def split_components(z: np.ndarray, components: np.ndarray, config: Config,
-                     noise: float, *, backend: Backend = "auto") -> np.ndarray | None:
+                     noise: float, *, backend: Backend = "auto", fits: Fits | None = None
+                     ) -> np.ndarray | None:
     """Components with every failing one replaced by its pieces (Sec. VIII).
 
     Parameters
@@ -876,6 +1055,8 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
         Noise sigma of the image (:func:`estimate_noise`).
     backend
         Of the local plane fits (:func:`local_planes`): the same result either way.
+    fits
+        For :func:`failing_components` (the components' fits, when known).
 
     Returns
     -------
@@ -885,12 +1066,13 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
         component was split.
     """
     cfg = config.split
-    failing = failing_components(z, components, noise, cfg, config.grow)
+    failing = failing_components(z, components, noise, cfg, config.grow, fits=fits)
     out = np.asarray(components, dtype=np.int32).copy()
     next_id = int(out.max(initial=0)) + 1
-    boxes = ndimage.find_objects(out)
+    boxes = label_boxes(out, next_id - 1, backend=backend) if failing.size else None
     for cid in failing.tolist():
-        box = boxes[cid - 1]
+        r0, c0, r1, c1 = boxes[cid].tolist()  # type: ignore[index]
+        box = (slice(r0, r1 + 1), slice(c0, c1 + 1))
         inside = out[box] == cid
         pieces = split_component(z[box], inside, noise=noise, cfg=cfg, grow=config.grow,
                                  backend=backend)
@@ -902,12 +1084,12 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
         out[box] = np.where(inside, ids[pieces], out[box])
     if next_id == int(np.max(components, initial=0)) + 1:
         return None
-    return _raster_renumber(_separate(out))
+    return _raster_renumber(_separate(out), backend)
 
 
 def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
                   labels: np.ndarray, config: Config, *, noise: float | None = None,
-                  backend: Backend = "auto") -> np.ndarray:
+                  backend: Backend = "auto", fits: Fits | None = None) -> np.ndarray:
     """Test every component's fit, split the failing ones and regrow (Sec. VIII, V-4).
 
     Parameters
@@ -927,6 +1109,9 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
         Noise sigma of ``z`` (:func:`estimate_noise`); estimated when None.
     backend
         Of the local plane fits (:func:`local_planes`): the same labels either way.
+    fits
+        :func:`~rangeseg_cli.grow.component_fits` of ``z`` and ``components``
+        when the caller has them (for the first round's fit test).
 
     Returns
     -------
@@ -944,7 +1129,8 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
     valid = np.isfinite(z)
     for _ in range(config.split.rounds):
         new = split_components(z, np.where(valid, components, 0), config, noise,
-                               backend=backend)
+                               backend=backend, fits=fits)
+        fits = None  # they are of the first round's components
         if new is not None:
             labels = grow_regions(z, codes, new, config.grow)
         elif components is labels:

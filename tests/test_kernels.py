@@ -366,6 +366,18 @@ def test_neighbour_pairs_are_identical_in_value_order_and_dtype(dtype, reach):
 
 
 @requires_numba
+@pytest.mark.parametrize("reach", [2, 3, 5])
+def test_neighbour_pairs_of_arrays_narrower_than_the_reach_are_identical(reach):
+    rng = np.random.default_rng(40 + reach)
+    for shape in [(1, 1), (1, 2), (2, 1), (3, 2), (2, 4), (6, 1), (5, 3)]:
+        labels = rng.integers(0, 4, shape).astype(np.int32)
+        ref = neighbour_pairs(labels, reach, backend="numpy")
+        fast = neighbour_pairs(labels, reach, backend="numba")
+        for a, b in zip(ref, fast, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+@requires_numba
 @pytest.mark.parametrize("seed", range(3))
 def test_pair_medians_are_identical_to_the_lexsort_reference(seed):
     from rangeseg_cli.surfaces import pair_medians

@@ -7,13 +7,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from rangeseg_cli import noise as noise_module
 from rangeseg_cli import split as split_module
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.grow import grow_regions
+from rangeseg_cli.grow import fit_quadrics, grow_regions
 from rangeseg_cli.pipeline import run_pipeline, stage_edges, stage_grow
 from rangeseg_cli.split import (
     estimate_noise,
@@ -418,6 +419,49 @@ def test_local_planes_numba_equal_the_scipy_blurs_bit_for_bit() -> None:
 
 
 @requires_numba
+def test_plane_heights_at_the_asked_pixels_equal_the_whole_arrays_bit_for_bit() -> None:
+    rng = np.random.default_rng(16)
+    for trial in range(40):
+        h, w = (int(v) for v in rng.integers(3, 60, size=2))
+        z = rng.normal(0.0, 20.0, (h, w)) + rng.normal() * np.arange(float(w))
+        mask = rng.random((h, w)) < rng.uniform(0.05, 0.9)
+        sigma = float(rng.choice([1.0, 2.0, 2.5, 4.0]))
+        rows, cols = np.nonzero(rng.random((h, w)) < 0.3)
+        if trial % 2:  # any order, repeats included
+            order = rng.integers(0, max(rows.size, 1), rows.size)
+            rows, cols = rows[order], cols[order]
+        ref = split_module._plane_heights(z, mask, sigma, rows, cols, backend="numpy")
+        fast = split_module._plane_heights(z, mask, sigma, rows, cols, backend="numba")
+        assert ref.tobytes() == fast.tobytes()  # NaNs and signed zeros included
+        whole, _, _ = local_planes(z, mask, sigma, backend="numpy")
+        assert whole[rows, cols].tobytes() == fast.tobytes()
+
+
+@pytest.mark.parametrize("scene", ["part1", "frustum"])
+def test_the_components_fits_given_by_the_caller_change_nothing(scene: str) -> None:
+    from rangeseg_cli.grow import component_fits
+    from rangeseg_cli.synth import render_scene
+
+    image = render_scene(scene, size=(96, 128), noise=1.0, seed=0).image
+    result = run_pipeline(image, PAPER, stages=3)
+    z, edges, components = result.heights, result.edges, result.components
+    z[:3, :5] = np.nan  # invalid pixels are left out of the fits alike
+    fits = component_fits(z, components)
+    n = int(np.where(np.isfinite(z), components, 0).max())
+    assert all(a.tobytes() == b.tobytes()
+               for a, b in zip(fits, fit_quadrics(z, np.where(np.isfinite(z), components, 0), n),
+                               strict=True))
+    plain = grow_regions(z, edges, components, SPLIT.grow)
+    seeded = grow_regions(z, edges, components, SPLIT.grow, fits=fits)
+    np.testing.assert_array_equal(seeded, plain)
+    np.testing.assert_array_equal(
+        split_regions(z, edges, components, seeded, SPLIT, fits=fits),
+        split_regions(z, edges, components, plain, SPLIT))
+    with pytest.raises(ValueError, match="fits"):
+        grow_regions(z, edges, components, SPLIT.grow, fits=fit_quadrics(z, components, n + 1))
+
+
+@requires_numba
 @pytest.mark.parametrize("scene", ["part1", "wedge", "frustum"])
 def test_split_numba_and_numpy_paths_give_identical_labels(scene: str) -> None:
     from rangeseg_cli.synth import render_scene
@@ -452,6 +496,143 @@ def test_compiled_nearest_labels_and_window_extremes_equal_scipys() -> None:
                         split_module._window_extremes(parts, reach, cval, "numpy"),
                         strict=True):
             np.testing.assert_array_equal(a, b)
+
+
+@requires_numba
+def test_compiled_parts_and_raster_renumbering_equal_scipys_and_uniques() -> None:
+    rng = np.random.default_rng(17)
+    for trial in range(150):
+        h, w = (int(v) for v in rng.integers(1, 45, size=2))
+        labels = np.where(rng.random((h, w)) < rng.uniform(0.1, 1.0),
+                          rng.integers(1, int(rng.integers(2, 8)), (h, w)), 0).astype(np.int32)
+        if trial % 3 == 0:  # blobs rather than speckle
+            labels = np.repeat(np.repeat(labels[::4, ::4], 4, axis=0), 4, axis=1)[:h, :w]
+        for a, b in ((split_module._parts(labels, "numba"), split_module._parts(labels, "numpy")),
+                     (split_module._raster_renumber(labels, "numba"),
+                      split_module._raster_renumber(labels, "numpy"))):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    assert split_module._parts(np.array([[1, 0, 1], [1, 2, 2]], np.int32), "numba").tolist() \
+        == [[1, 0, 2], [1, 3, 3]]
+
+
+@requires_numba
+def test_compiled_closing_equals_scipys_binary_closing() -> None:
+    rng = np.random.default_rng(19)
+    for _ in range(150):
+        h, w = (int(v) for v in rng.integers(1, 40, size=2))
+        mask = rng.random((h, w)) < rng.uniform(0.1, 0.95)
+        np.testing.assert_array_equal(split_module._closing(mask, "numba"),
+                                      split_module._closing(mask, "numpy"))
+
+
+@requires_numba
+def test_compiled_fill_nearest_equals_the_feature_transforms() -> None:
+    rng = np.random.default_rng(21)
+    for trial in range(200):
+        h, w = (int(v) for v in rng.integers(1, 50, size=2))
+        parts = np.where(rng.random((h, w)) < rng.uniform(0.005, 0.5),
+                         rng.integers(1, 6, (h, w)), 0).astype(np.int32)
+        if trial % 10 == 0:  # none, or one far away: the transform
+            parts[:] = 0
+            if trial % 20 == 0:
+                parts[0, 0] = 2
+        where = rng.random((h, w)) < rng.uniform(0.2, 1.0)
+        np.testing.assert_array_equal(split_module._fill_nearest(parts, where, "numba"),
+                                      split_module._fill_nearest(parts, where, "numpy"))
+
+
+@requires_numba
+def test_compiled_label_extremes_holes_and_adjacent_pairs_equal_the_references() -> None:
+    rng = np.random.default_rng(22)
+    for trial in range(150):
+        h, w = (int(v) for v in rng.integers(1, 40, size=2))
+        parts = np.where(rng.random((h, w)) < rng.uniform(0.0, 1.0),
+                         rng.integers(1, 7, (h, w)), 0).astype(np.int32)
+        if trial % 3 == 0:  # blobs
+            parts = np.repeat(np.repeat(parts[::5, ::5], 5, axis=0), 5, axis=1)[:h, :w]
+        reach = int(rng.integers(0, 5))
+        for a, b in zip(split_module._label_extremes(parts, reach, "numba"),
+                        split_module._label_extremes(parts, reach, "numpy"), strict=True):
+            np.testing.assert_array_equal(a, b)
+        fast, slow = (split_module._holes(parts > 0, b) for b in ("numba", "numpy"))
+        assert fast[1] == slow[1]
+        np.testing.assert_array_equal(fast[0], slow[0])
+        assert split_module.adjacent_pairs(parts, reach, backend="numba") \
+            == split_module.adjacent_pairs(parts, reach, backend="numpy")
+        if parts.any():
+            rows, cols = np.nonzero(rng.random((h, w)) < 0.5)
+            np.testing.assert_array_equal(
+                split_module._near(parts == parts.max(), reach, rows, cols, "numba"),
+                split_module._near(parts == parts.max(), reach, rows, cols, "numpy"))
+
+
+def test_refitting_the_new_pieces_alone_gives_their_fits_bit_for_bit() -> None:
+    rng = np.random.default_rng(23)
+    z = rng.normal(50.0, 5.0, (60, 70)) + np.arange(70.0) * 0.3
+    pieces = np.repeat(np.repeat(rng.integers(0, 6, (12, 14)), 5, axis=0), 5, axis=1)
+    pieces = pieces.astype(np.int32)
+    ids = [2, 5]
+    coeffs, mse, counts = split_module._fit_pieces(z, pieces, ids, "auto")
+    all_coeffs, all_mse, all_counts = split_module.fit_quadrics(z, pieces, 5)
+    assert coeffs[ids].tobytes() == all_coeffs[ids].tobytes()
+    assert mse[ids].tobytes() == all_mse[ids].tobytes()
+    np.testing.assert_array_equal(counts[ids], all_counts[ids])
+    assert counts[1] == 0 and all_counts[1] > 0  # the others are left out
+
+
+def test_histogram_of_normals_equals_numpys_histogram2d() -> None:
+    rng = np.random.default_rng(18)
+    for trial in range(100):
+        xy = rng.uniform(-1.05, 1.05, (int(rng.integers(1, 400)), 2))
+        if trial % 2:
+            xy = np.round(xy * 20.0) / 20.0  # on the bin edges, -1 and 1 included
+        if trial % 5 == 0:  # just inside the outer edges, and NaN (an outlier)
+            xy[::3, 0] = np.nextafter(1.0, 0.0)
+            xy[::4, 1] = np.nextafter(-1.0, 0.0)
+            xy[::7, 1] = np.nan
+        ref, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=40, range=[[-1, 1], [-1, 1]])
+        for backend in ("numpy", "numba") if importlib.util.find_spec("numba") else ("numpy",):
+            fast = split_module._histogram(xy, backend)  # type: ignore[arg-type]
+            assert fast.dtype == ref.dtype
+            np.testing.assert_array_equal(fast, ref)
+
+
+def _reference_mode_split(normals: np.ndarray) -> np.ndarray:
+    """mode_split as first written: np.histogram2d, (N, 2) sums and Otsu by a full search."""
+    xy = normals[:, :2]
+    hist, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=40, range=[[-1, 1], [-1, 1]])
+    peak = np.unravel_index(int(np.argmax(ndimage.gaussian_filter(hist, 1.0))), hist.shape)
+    mode = -1.0 + (np.array(peak, dtype=np.float64) + 0.5) * 0.05
+    near = np.sum((xy - mode) ** 2, axis=1) <= 0.1**2
+    if near.any():
+        mode = xy[near].mean(axis=0)
+    dist = np.sqrt(np.sum((xy - mode) ** 2, axis=1))
+    if np.ptp(dist) <= 0:
+        return np.zeros(len(normals), bool)
+    xs = np.sort(dist)
+    k = np.arange(1, xs.size)
+    csum = np.cumsum(xs)[:-1]
+    between = k * (xs.size - k) * (csum / k - (xs.sum() - csum) / (xs.size - k)) ** 2
+    i = int(np.argmax(between))
+    return dist > 0.5 * (xs[i] + xs[i + 1])
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
+def test_mode_split_equals_its_first_form(backend: str) -> None:
+    rng = np.random.default_rng(20)
+    for trial in range(150):
+        n = int(rng.integers(2, 2000))
+        g = rng.normal(0.0, rng.uniform(0.01, 1.0), (n, 2))
+        g += rng.normal(0.0, 0.5, 2) * (rng.random((n, 1)) < 0.5)  # two faces
+        if trial % 4 == 0:
+            g = np.round(g * 10.0) / 10.0  # ties
+        if trial % 9 == 0:
+            g[:] = g[0]  # one normal: no split
+        norm = np.sqrt(1.0 + np.sum(g * g, axis=1))
+        normals = np.stack([-g[:, 0] / norm, -g[:, 1] / norm, 1.0 / norm], axis=1)
+        np.testing.assert_array_equal(split_module.mode_split(normals, backend=backend),
+                                      _reference_mode_split(normals))
 
 
 def test_smallest_sorted_equals_the_head_of_a_full_sort() -> None:
