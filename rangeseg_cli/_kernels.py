@@ -1311,14 +1311,24 @@ def window_extremes(a: np.ndarray, reach: int, cval: int
     span = 2 * reach + 1
     padded = np.full((height + 2 * reach, width + 2 * reach), cval, dtype=np.int32)
     padded[reach:reach + height, reach:reach + width] = a
-    row_low = np.empty((height + 2 * reach, width), dtype=np.int32)
-    row_high = np.empty((height + 2 * reach, width), dtype=np.int32)
-    for r in range(height + 2 * reach):
-        src = padded[r]
-        row_low[r, :] = src[:width]
-        row_high[r, :] = src[:width]
+    return _window_folds(padded, padded, height, width, span)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _window_folds(pad_lo: np.ndarray, pad_hi: np.ndarray, height: int, width: int, span: int
+                  ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Window minima of ``pad_lo`` and maxima of ``pad_hi`` (padded by ``span // 2``).
+
+    Along the rows, then down the columns, both in branch-free row loops.
+    """
+    row_low = np.empty((height + span - 1, width), dtype=np.int32)
+    row_high = np.empty((height + span - 1, width), dtype=np.int32)
+    for r in range(height + span - 1):
+        row_low[r, :] = pad_lo[r, :width]
+        row_high[r, :] = pad_hi[r, :width]
         for d in range(1, span):
-            _fold_extremes(row_low[r], row_high[r], src[d:d + width], src[d:d + width])
+            _fold_extremes(row_low[r], row_high[r], pad_lo[r, d:d + width],
+                           pad_hi[r, d:d + width])
     low = np.empty((height, width), dtype=np.int32)
     high = np.empty((height, width), dtype=np.int32)
     for r in range(height):
@@ -1347,22 +1357,7 @@ def label_extremes(a: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]: 
             v = a[r, c]
             pad_lo[r + reach, c + reach] = v if v > 0 else big
             pad_hi[r + reach, c + reach] = v
-    row_low = np.empty((height + 2 * reach, width), dtype=np.int32)
-    row_high = np.empty((height + 2 * reach, width), dtype=np.int32)
-    for r in range(height + 2 * reach):
-        row_low[r, :] = pad_lo[r, :width]
-        row_high[r, :] = pad_hi[r, :width]
-        for d in range(1, span):
-            _fold_extremes(row_low[r], row_high[r], pad_lo[r, d:d + width],
-                           pad_hi[r, d:d + width])
-    low = np.empty((height, width), dtype=np.int32)
-    high = np.empty((height, width), dtype=np.int32)
-    for r in range(height):
-        low[r, :] = row_low[r]
-        high[r, :] = row_high[r]
-        for d in range(1, span):
-            _fold_extremes(low[r], high[r], row_low[r + d], row_high[r + d])
-    return low, high
+    return _window_folds(pad_lo, pad_hi, height, width, span)
 
 
 # --------------------------------------------------------------------------- noise sample
