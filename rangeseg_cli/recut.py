@@ -73,10 +73,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import ndimage
 
 from .config import Config, GrowConfig
 from .grow import fit_models, fit_quadrics, planar
-from .merge import touching_pairs
+from .merge import _join_box, touching_pairs
 from .rangeimage import require_shape_of_z
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
@@ -144,8 +145,10 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
     u = d[0] * rows + d[1] * cols
     x, y = cols - cols.mean(), rows - rows.mean()
     q = np.maximum(u[None, :] - knots[:, None], 0.0)
-    terms = [np.broadcast_to(t, q.shape) for t in (np.ones_like(zs), x, y)]
-    a = np.stack(terms + [q ** p for p in powers], axis=-1)          # (knots, n, terms)
+    a = np.empty(q.shape + (3 + len(powers),))                       # (knots, n, terms)
+    a[..., 0], a[..., 1], a[..., 2] = 1.0, x, y
+    for k, p in enumerate(powers):
+        a[..., 3 + k] = q ** p
     at = a.transpose(0, 2, 1)
     gram = at @ a
     rhs = at @ zs
@@ -193,10 +196,23 @@ def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
     return float(fine[j]), float(sse[j]), float(sse[0])
 
 
+Box = tuple[slice, slice]
+
+
+def _coords(mask: np.ndarray, box: Box | None) -> tuple[np.ndarray, np.ndarray]:
+    """``np.nonzero(mask)``, searched only within ``box`` when given (it holds every pixel)."""
+    if box is None:
+        rows, cols = np.nonzero(mask)
+        return rows, cols
+    rows, cols = np.nonzero(mask[box])
+    return rows + box[0].start, cols + box[1].start
+
+
 def _line_fit(mask: np.ndarray, z: np.ndarray, powers: tuple[int, ...], min_pixels: int,
-              level: float) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+              level: float, box: Box | None = None
+              ) -> tuple[np.ndarray, np.ndarray, float, float] | None:
     """Plane side (bool), curvature direction, SSE and no-plane-side SSE of the best line."""
-    rows, cols = np.nonzero(mask)
+    rows, cols = _coords(mask, box)
     zs = z[rows, cols]
     d0 = curvature_direction(rows, cols, zs)
     fits = [(best_knot(rows, cols, zs, d, powers, (_GIVE_UP * level) ** 2), d)
@@ -213,8 +229,9 @@ def _line_fit(mask: np.ndarray, z: np.ndarray, powers: tuple[int, ...], min_pixe
     return plane_side, d0, sse, sse_across
 
 
-def _crease_sse(mask: np.ndarray, z: np.ndarray, d0: np.ndarray) -> float:
-    rows, cols = np.nonzero(mask)
+def _crease_sse(mask: np.ndarray, z: np.ndarray, d0: np.ndarray, box: Box | None = None
+                ) -> float:
+    rows, cols = _coords(mask, box)
     zs = z[rows, cols]
     return min(best_knot(rows, cols, zs, d, CREASE)[1] for d in (d0, -d0))
 
@@ -225,7 +242,8 @@ def _quadric_sse(z: np.ndarray, mask: np.ndarray) -> float:
 
 
 def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
-                  min_pixels: int, grow: GrowConfig) -> tuple[np.ndarray, float] | None:
+                  min_pixels: int, grow: GrowConfig, box: Box | None = None
+                  ) -> tuple[np.ndarray, float] | None:
     """The plane side of ``mask`` when it is a plane with a tangent surface (Notes 2, 3).
 
     Parameters
@@ -242,6 +260,8 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
         Smallest plane side and curved side.
     grow
         ``min_error`` (noise floor) and ``planar_tolerance``.
+    box
+        A box holding all of ``mask`` (searched instead of the whole image).
 
     Returns
     -------
@@ -249,7 +269,7 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
         (bool (H, W) plane side, gain against one surface in units of s^2),
         or None when the test fails.
     """
-    fit = _line_fit(mask, z, SMOOTH, min_pixels, level)
+    fit = _line_fit(mask, z, SMOOTH, min_pixels, level, box)
     if fit is None:
         return None
     plane_side, d0, sse, sse_across = fit
@@ -259,7 +279,7 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
         return None
     s2n = int(mask.sum()) * max(noise ** 2, grow.min_error)
     gain = (min(_quadric_sse(z, mask), sse_across) - sse) / s2n
-    if gain < _MIN_GAIN or (_crease_sse(mask, z, d0) - sse) / s2n < _MIN_SMOOTH:
+    if gain < _MIN_GAIN or (_crease_sse(mask, z, d0, box) - sse) / s2n < _MIN_SMOOTH:
         return None
     return plane_side, gain
 
@@ -281,7 +301,7 @@ def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig) -> float:
 
 
 def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: float,
-                 level: float, config: Config) -> np.ndarray | None:
+                 level: float, config: Config, box: Box | None = None) -> np.ndarray | None:
     """The plane side of region i (and j) when two planes meet along a line (Notes 4).
 
     Parameters
@@ -296,14 +316,16 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
         Noise sigma of ``z`` and the split's fit test.
     config
         ``[link] min_component``, ``[split] min_crease``, ``[grow]``.
+    box
+        A box holding regions i and j (searched instead of the whole image).
 
     Returns
     -------
     numpy.ndarray or None
         bool (H, W) the side before the line, or None when the test fails.
     """
-    mask = _pixels(labels, i, j)
-    fit = _line_fit(mask, z, CREASE, config.link.min_component, level)
+    mask = _pixels(labels, i, j, box)
+    fit = _line_fit(mask, z, CREASE, config.link.min_component, level, box)
     if fit is None:
         return None
     side, _, sse, _ = fit
@@ -325,8 +347,12 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
     return side
 
 
-def _pixels(labels: np.ndarray, i: int, j: int) -> np.ndarray:
-    """Pixels of region i, or of regions i and j (j > 0)."""
+def _pixels(labels: np.ndarray, i: int, j: int, box: Box | None = None) -> np.ndarray:
+    """Pixels of region i, or of regions i and j (j > 0), within ``box`` if given."""
+    if box is not None:
+        mask = np.zeros(labels.shape, dtype=bool)
+        mask[box] = _pixels(labels[box], i, j)
+        return mask
     return (labels == i) | (labels == j) if j else labels == i
 
 
@@ -399,13 +425,17 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     zc = np.where(np.isfinite(z), z, 0.0)
     level = config.split.fit_factor * max(noise, math.sqrt(config.grow.min_error))
     found = []
+    boxes = ndimage.find_objects(lab)
     for i, j, fails in candidates(zc, lab, config, level):
+        box = _join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1]
         got = None
         if fails:
-            got = split_tangent(zc, _pixels(lab, i, j), noise=noise, level=level,
-                                min_pixels=config.link.min_component, grow=config.grow)
+            got = split_tangent(zc, _pixels(lab, i, j, box), noise=noise, level=level,
+                                min_pixels=config.link.min_component, grow=config.grow,
+                                box=box)
         if got is None:
-            side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config)
+            side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config,
+                                box=box)
             got = None if side is None else (side, 0.0)
         if got is not None:
             found.append((-got[1], 0 if j else 1, i, j, got[0]))
