@@ -150,3 +150,27 @@ def test_part2_chamfer_gets_its_strip_back_at_sigma_2():
 def test_paper_preset_turns_it_off():
     assert load_config(preset="paper").split.recut is False
     assert CONFIG.split.recut is True
+
+
+def test_searching_within_a_box_finds_the_same_cuts():
+    """The pipeline passes each candidate's box; the cut is the one the whole image gives."""
+    z, truth = _plane_and_fillet(0.5)
+    z = np.pad(z, ((7, 9), (5, 11)), constant_values=60.0)  # the candidate away from the corner
+    labels = np.pad(truth, ((7, 9), (5, 11)))
+    mask = labels > 0
+    box = (slice(7, 7 + truth.shape[0]), slice(5, 5 + truth.shape[1]))
+    kwargs = {"noise": 0.5, "level": 1.25 * 0.5, "min_pixels": 20, "grow": CONFIG.grow}
+    whole = split_tangent(z, mask, **kwargs)
+    boxed = split_tangent(z, mask, **kwargs, box=box)
+    assert whole is not None and boxed is not None
+    np.testing.assert_array_equal(whole[0], boxed[0])
+    assert whole[1] == boxed[1]
+    crease_z, crease_truth = _crease(1.0, 1.5)
+    one = np.pad(np.ones_like(crease_truth), 4)  # both planes as one region
+    crease_z = np.pad(crease_z, 4, constant_values=60.0)
+    crease_box = (slice(4, 4 + crease_truth.shape[0]), slice(4, 4 + crease_truth.shape[1]))
+    cut = {"noise": 1.0, "level": 1.25, "config": CONFIG}
+    whole_side = split_crease(crease_z, one, 1, 0, **cut)
+    boxed_side = split_crease(crease_z, one, 1, 0, **cut, box=crease_box)
+    assert whole_side is not None and boxed_side is not None
+    np.testing.assert_array_equal(whole_side, boxed_side)
