@@ -851,7 +851,7 @@ def _normals(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
 
 def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
                min_gain: float, min_crease: float, planar_tolerance: float,
-               min_error: float, creases: bool = False) -> np.ndarray:
+               min_error: float, creases: float | None = None) -> np.ndarray:
     """Merge neighbouring pieces that are one surface after all.
 
     Two neighbouring pieces i, j stay apart when one quadric fits their
@@ -886,13 +886,14 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     planar_tolerance, min_error
         ``grow.planar_tolerance`` and ``grow.min_error``.
     creases
-        ``split.crease_pieces`` (beyond the paper): two pieces whose planes
-        both pass the fit test also stay apart when their planes fit them
-        better than one quadric fits their union and meet at ``min_crease``
+        With ``split.crease_pieces`` (beyond the paper), a gain in squared
+        depth units per pixel: two pieces whose planes both pass the fit
+        test also stay apart when their planes fit them better by this much
+        than one quadric fits their union, and meet at ``min_crease``
         degrees or more, even if the planar rule calls one of them curved
         (at noise sigma 2 a quadric lowers a small face's error by more
         than ``planar_tolerance`` when it holds a few pixels of its
-        neighbour).
+        neighbour). None: the rule is off.
 
     Returns
     -------
@@ -910,11 +911,11 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
         apart = _rms_of_union(z, pieces, i, j) > max(floor, min_gain * max(rms[i], rms[j]))
         if not apart and flat[i] and flat[j]:
             apart = _crease_angle(pieces, planes, i, j) >= min_crease
-        elif (not apart and creases and mse_plane[i] <= level * level
+        elif (not apart and creases is not None and mse_plane[i] <= level * level
               and mse_plane[j] <= level * level):
             apart = _two_planes(z, pieces, i, j, float(counts[i] * mse_plane[i]
                                                        + counts[j] * mse_plane[j]),
-                                planes, min_crease)
+                                planes, min_crease, creases)
         if not apart:
             _union(parent, i, j)
     roots = np.array([_root(parent, k) for k in range(n + 1)])
@@ -986,16 +987,28 @@ def _crease_cut(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
     return np.where(mask, np.where(side, 1, 2), 0).astype(np.int32)
 
 
+def _crease_gain(noise: float, cfg: SplitConfig, grow: GrowConfig) -> float | None:
+    """The ``creases`` gain of :func:`merge_back`: the recut's least gain of a crease.
+
+    ``_MIN_GAIN`` of :mod:`rangeseg_cli.recut` times ``max(noise^2,
+    grow.min_error)``; None without ``split.crease_pieces``.
+    """
+    from .recut import _MIN_GAIN  # recut builds on merge, which imports this module
+
+    return _MIN_GAIN * max(noise * noise, grow.min_error) if cfg.crease_pieces else None
+
+
 def _two_planes(z: np.ndarray, pieces: np.ndarray, i: int, j: int, sse_planes: float,
-                planes: np.ndarray, min_crease: float) -> bool:
+                planes: np.ndarray, min_crease: float, gain: float) -> bool:
     """Whether pieces i, j are two planes at a crease rather than one quadric (beyond the paper).
 
     ``sse_planes`` (each piece's own plane: 6 coefficients in all) is below
-    the sum of squared errors of one quadric of their union (also 6), and
-    the planes meet at ``min_crease`` degrees or more along the boundary.
+    the sum of squared errors of one quadric of their union (also 6) by
+    ``gain`` per pixel or more, and the planes meet at ``min_crease``
+    degrees or more along the boundary.
     """
     n = int(((pieces == i) | (pieces == j)).sum())
-    return (sse_planes < _rms_of_union(z, pieces, i, j) ** 2 * n
+    return (sse_planes + gain * n <= _rms_of_union(z, pieces, i, j) ** 2 * n
             and _crease_angle(pieces, planes, i, j) >= min_crease)
 
 
@@ -1055,7 +1068,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
                       floor=math.sqrt(grow.error_factor * grow.min_error),
                       min_gain=cfg.min_gain, min_crease=cfg.min_crease,
                       planar_tolerance=grow.planar_tolerance, min_error=grow.min_error,
-                      creases=cfg.crease_pieces)
+                      creases=_crease_gain(noise, cfg, grow))
 
 
 def _separate(labels: np.ndarray) -> np.ndarray:
