@@ -22,11 +22,16 @@ Notes
    parts goes, twice, to the part whose local plane (fitted to the part's
    core, away from the crease) predicts it better. Pieces that still fail
    the test are split again, breadth first, up to ``split.max_pieces``.
+   With ``split.crease_pieces`` (beyond the paper) pieces whose plane fails
+   the test are split again too, and a piece the normals do not divide is
+   cut along a straight crease (:func:`~rangeseg_cli.recut.crease_side`).
 4. Merging back (:func:`merge_back`). Neighbouring pieces stay apart only
    when one quadric fits their union ``split.min_gain`` times worse than
    their own quadrics (and worse than region growing's noise-free
    tolerance), or when both are planes passing the test that meet at
-   ``split.min_crease`` degrees or more. A genuinely curved surface
+   ``split.min_crease`` degrees or more (with ``split.crease_pieces`` also
+   when two passing planes fit them better than the union's quadric by the
+   recut's least crease gain). A genuinely curved surface
    (cylinder, sphere) whose quadric fails the test is cut up and merged
    back whole; two faces meeting at a crease stay apart however shallow
    the crease, as long as it stands out of the noise.
