@@ -132,6 +132,10 @@ class SplitConfig:
                           "normal_sigma or more from its border), in pixels; smaller ones "
                           "join their nearest piece", min=1)
     max_pieces: int = _opt(8, "most pieces one component is split into", min=2, max=64)
+    crease_pieces: bool = _opt(True, "split a piece again when its plane fails the fit test "
+                               "(a quadric can absorb the crease of two small faces), along a "
+                               "straight crease when its normals do not divide it, and keep "
+                               "two pieces apart that two planes fit better than one quadric")
     rounds: int = _opt(2, "rounds of testing and splitting; each round tests the regions "
                        "grown from the last one's pieces", min=1, max=5)
     recover: bool = _opt(True, "after growing, give a narrow face its own region: a band of "

@@ -325,7 +325,57 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
         bool (H, W) the side before the line, or None when the test fails.
     """
     mask = _pixels(labels, i, j, box)
+    if not j:
+        return crease_side(z, mask, noise=noise, level=level,
+                           min_pixels=config.link.min_component,
+                           min_crease=config.split.min_crease, grow=config.grow, box=box)
     fit = _line_fit(mask, z, CREASE, config.link.min_component, level, box)
+    if fit is None:
+        return None
+    side, _, sse, _ = fit
+    two = side.astype(np.int32) + mask.astype(np.int32)        # 2 = plane side, 1 = beyond
+    ((_, _), (_, mse_p)), _ = fit_models(z, two, 2, (2, 1))
+    if np.any(mse_p[1:] > level ** 2):
+        return None
+    count = np.bincount(two.ravel(), minlength=3)
+    new = float(count[1] * mse_p[1] + count[2] * mse_p[2])
+    before = ((labels == i).astype(np.int32) + 2 * (labels == j)).astype(np.int32)
+    if new > _PAIR_TOLERANCE * _own_sse(z, before, config.grow):
+        return None
+    return side
+
+
+def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
+                min_pixels: int, min_crease: float, grow: GrowConfig, box: Box | None = None
+                ) -> np.ndarray | None:
+    """The side before the line when two planes along a straight crease fit ``mask`` (Notes 4).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, finite on ``mask``.
+    mask
+        bool (H, W) one region's pixels.
+    noise, level
+        Noise sigma of ``z`` and the split's fit test.
+    min_pixels
+        Smallest side.
+    min_crease
+        Least angle (degrees) between the two planes.
+    grow
+        ``min_error``.
+    box
+        A box holding all of ``mask`` (searched instead of the whole image).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        bool (H, W) the side before the line, or None: the model or a side's
+        plane fails the fit test, a side is under ``min_pixels``, the model
+        lowers the squared error per pixel against one quadric by less than
+        ``_MIN_GAIN`` s^2, or the planes meet at less than ``min_crease``.
+    """
+    fit = _line_fit(mask, z, CREASE, min_pixels, level, box)
     if fit is None:
         return None
     side, _, sse, _ = fit
@@ -333,16 +383,8 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
     ((_, _), (planes, mse_p)), _ = fit_models(z, two, 2, (2, 1))
     if np.any(mse_p[1:] > level ** 2):
         return None
-    if not j:
-        gain = (_quadric_sse(z, mask) - sse) / (mask.sum() * max(noise ** 2,
-                                                                 config.grow.min_error))
-        if gain < _MIN_GAIN or _plane_angle(planes[1], planes[2]) < config.split.min_crease:
-            return None
-        return side
-    count = np.bincount(two.ravel(), minlength=3)
-    new = float(count[1] * mse_p[1] + count[2] * mse_p[2])
-    before = ((labels == i).astype(np.int32) + 2 * (labels == j)).astype(np.int32)
-    if new > _PAIR_TOLERANCE * _own_sse(z, before, config.grow):
+    gain = (_quadric_sse(z, mask) - sse) / (mask.sum() * max(noise ** 2, grow.min_error))
+    if gain < _MIN_GAIN or _plane_angle(planes[1], planes[2]) < min_crease:
         return None
     return side
 

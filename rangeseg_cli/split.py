@@ -22,11 +22,16 @@ Notes
    parts goes, twice, to the part whose local plane (fitted to the part's
    core, away from the crease) predicts it better. Pieces that still fail
    the test are split again, breadth first, up to ``split.max_pieces``.
+   With ``split.crease_pieces`` (beyond the paper) pieces whose plane fails
+   the test are split again too, and a piece the normals do not divide is
+   cut along a straight crease (:func:`~rangeseg_cli.recut.crease_side`).
 4. Merging back (:func:`merge_back`). Neighbouring pieces stay apart only
    when one quadric fits their union ``split.min_gain`` times worse than
    their own quadrics (and worse than region growing's noise-free
    tolerance), or when both are planes passing the test that meet at
-   ``split.min_crease`` degrees or more. A genuinely curved surface
+   ``split.min_crease`` degrees or more (with ``split.crease_pieces`` also
+   when two passing planes fit them better than the union's quadric by the
+   recut's least crease gain). A genuinely curved surface
    (cylinder, sphere) whose quadric fails the test is cut up and merged
    back whole; two faces meeting at a crease stay apart however shallow
    the crease, as long as it stands out of the noise.
@@ -851,7 +856,7 @@ def _normals(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
 
 def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
                min_gain: float, min_crease: float, planar_tolerance: float,
-               min_error: float) -> np.ndarray:
+               min_error: float, creases: float | None = None) -> np.ndarray:
     """Merge neighbouring pieces that are one surface after all.
 
     Two neighbouring pieces i, j stay apart when one quadric fits their
@@ -885,6 +890,15 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
         ``split.min_gain`` and ``split.min_crease``.
     planar_tolerance, min_error
         ``grow.planar_tolerance`` and ``grow.min_error``.
+    creases
+        With ``split.crease_pieces`` (beyond the paper), a gain in squared
+        depth units per pixel: two pieces whose planes both pass the fit
+        test also stay apart when their planes fit them better by this much
+        than one quadric fits their union, and meet at ``min_crease``
+        degrees or more, even if the planar rule calls one of them curved
+        (at noise sigma 2 a quadric lowers a small face's error by more
+        than ``planar_tolerance`` when it holds a few pixels of its
+        neighbour). None: the rule is off.
 
     Returns
     -------
@@ -894,7 +908,7 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     n = int(pieces.max(initial=0))
     if n < 2:
         return pieces
-    ((_, mse), (planes, mse_plane)), _ = fit_models(z, pieces, n, (2, 1))
+    ((_, mse), (planes, mse_plane)), counts = fit_models(z, pieces, n, (2, 1))
     rms = np.sqrt(np.maximum(mse, 0.0))
     flat = (rms <= level) & planar(mse, mse_plane, planar_tolerance, min_error)
     parent = np.arange(n + 1)
@@ -902,6 +916,11 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
         apart = _rms_of_union(z, pieces, i, j) > max(floor, min_gain * max(rms[i], rms[j]))
         if not apart and flat[i] and flat[j]:
             apart = _crease_angle(pieces, planes, i, j) >= min_crease
+        elif (not apart and creases is not None and mse_plane[i] <= level * level
+              and mse_plane[j] <= level * level):
+            apart = _two_planes(z, pieces, i, j, float(counts[i] * mse_plane[i]
+                                                       + counts[j] * mse_plane[j]),
+                                planes, min_crease, creases)
         if not apart:
             _union(parent, i, j)
     roots = np.array([_root(parent, k) for k in range(n + 1)])
@@ -940,16 +959,62 @@ def _replace(pieces: np.ndarray, k: int, sub: np.ndarray, n: int, max_pieces: in
 
 def _fit_pieces(z: np.ndarray, pieces: np.ndarray, ids: list[int], backend: Backend
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`~rangeseg_cli.grow.fit_quadrics` of ``pieces``, valid for the pieces ``ids`` only.
+    """Mean squared errors of quadric and plane, and counts, valid for the pieces ``ids`` only.
 
-    The other pieces are left out of the sweep; a region's fit depends only
+    :func:`~rangeseg_cli.grow.fit_models` (orders 2 and 1, one sweep) of
+    ``pieces`` with the other pieces left out; a region's fit depends only
     on its own pixels (summed in raster order on the same grid), so the fits
     of ``ids`` are bit for bit those of all pieces fitted together.
     """
     n = int(pieces.max())
     keep = np.zeros(n + 1, bool)
     keep[ids] = True
-    return fit_quadrics(z, np.where(keep[pieces], pieces, 0), n, backend=backend)
+    ((_, mse), (_, mse_plane)), counts = fit_models(z, np.where(keep[pieces], pieces, 0), n,
+                                                    (2, 1), backend=backend)
+    return mse, mse_plane, counts
+
+
+def _crease_cut(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
+                cfg: SplitConfig, grow: GrowConfig) -> np.ndarray | None:
+    """Pieces 1, 2 of ``mask`` either side of a straight crease, or None (beyond the paper).
+
+    For a piece whose normals the split cannot divide (two faces, one a few
+    pixels wide): :func:`~rangeseg_cli.recut.crease_side` -- two planes
+    meeting along a line, each passing the fit test, at ``min_crease``
+    degrees or more, fitting better than one quadric.
+    """
+    from .recut import crease_side  # recut builds on merge, which imports this module
+
+    side = crease_side(z, mask, noise=noise, level=level, min_pixels=cfg.min_piece,
+                       min_crease=cfg.min_crease, grow=grow)
+    if side is None:
+        return None
+    return np.where(mask, np.where(side, 1, 2), 0).astype(np.int32)
+
+
+def _crease_gain(noise: float, cfg: SplitConfig, grow: GrowConfig) -> float | None:
+    """The ``creases`` gain of :func:`merge_back`: the recut's least gain of a crease.
+
+    ``_MIN_GAIN`` of :mod:`rangeseg_cli.recut` times ``max(noise^2,
+    grow.min_error)``; None without ``split.crease_pieces``.
+    """
+    from .recut import _MIN_GAIN  # recut builds on merge, which imports this module
+
+    return _MIN_GAIN * max(noise * noise, grow.min_error) if cfg.crease_pieces else None
+
+
+def _two_planes(z: np.ndarray, pieces: np.ndarray, i: int, j: int, sse_planes: float,
+                planes: np.ndarray, min_crease: float, gain: float) -> bool:
+    """Whether pieces i, j are two planes at a crease rather than one quadric (beyond the paper).
+
+    ``sse_planes`` (each piece's own plane: 6 coefficients in all) is below
+    the sum of squared errors of one quadric of their union (also 6) by
+    ``gain`` per pixel or more, and the planes meet at ``min_crease``
+    degrees or more along the boundary.
+    """
+    n = int(((pieces == i) | (pieces == j)).sum())
+    return (sse_planes + gain * n <= _rms_of_union(z, pieces, i, j) ** 2 * n
+            and _crease_angle(pieces, planes, i, j) >= min_crease)
 
 
 def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: SplitConfig,
@@ -959,7 +1024,12 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     Pieces that still fail are split again (breadth first) until none fails
     or can be split, or there are ``cfg.max_pieces``; then neighbouring
     pieces that one quadric fits about as well are merged back
-    (:func:`merge_back`).
+    (:func:`merge_back`). With ``split.crease_pieces`` (beyond the paper) a
+    piece whose plane fails the test is split again too (on a small piece
+    a quadric can pass the test across the crease of two faces, a
+    frustum's top and side at noise sigma 2), and a piece the normals do
+    not divide is cut along a straight crease when two planes fit it
+    (:func:`_crease_cut`).
 
     Parameters
     ----------
@@ -988,15 +1058,22 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
         k = queue.pop(0)
         box = _crop(pieces == k, 0)
         sub = _split_once(z[box], pieces[box] == k, cfg, backend)
+        if sub is None and cfg.crease_pieces:
+            sub = _crease_cut(z[box], pieces[box] == k, noise=noise, level=level, cfg=cfg,
+                              grow=grow)
         if sub is None:
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
-        _, mse, counts = _fit_pieces(z, pieces, ids, backend)
-        queue += [i for i in ids if mse[i] > level * level and counts[i] >= 2 * cfg.min_piece]
+        mse, mse_plane, counts = _fit_pieces(z, pieces, ids, backend)
+        fails = mse > level * level
+        if cfg.crease_pieces:
+            fails |= mse_plane > level * level
+        queue += [i for i in ids if fails[i] and counts[i] >= 2 * cfg.min_piece]
     return merge_back(z, pieces, level=level,
                       floor=math.sqrt(grow.error_factor * grow.min_error),
                       min_gain=cfg.min_gain, min_crease=cfg.min_crease,
-                      planar_tolerance=grow.planar_tolerance, min_error=grow.min_error)
+                      planar_tolerance=grow.planar_tolerance, min_error=grow.min_error,
+                      creases=_crease_gain(noise, cfg, grow))
 
 
 def _separate(labels: np.ndarray) -> np.ndarray:
