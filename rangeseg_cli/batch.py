@@ -674,7 +674,7 @@ def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[
     # At most 2 images per worker in flight: memory stays bounded for any batch size.
     pending: set[Future[Record]] = set()
     warm_up(config)
-    with ProcessPoolExecutor(max_workers=n_jobs, initializer=_ignore_sigint) as pool:
+    with ProcessPoolExecutor(max_workers=n_jobs, initializer=_init_worker) as pool:
         try:
             for job in todo:
                 stop.check()
@@ -717,9 +717,22 @@ def _collect(pending: set[Future[Record]], finish: Callable[[Record], None],
     return pending
 
 
-def _ignore_sigint() -> None:
-    """Workers leave Ctrl-C to the main process, which stops the batch cleanly."""
+_BLAS_LIMIT: list[Any] = []
+
+
+def _init_worker() -> None:
+    """Set up a worker process: Ctrl-C and BLAS threads are the batch's.
+
+    Workers leave Ctrl-C to the main process, which stops the batch cleanly.
+    Each worker keeps its BLAS to one thread: the batch already uses a process
+    per core, and OpenBLAS's own threads (one per core in every worker) would
+    spin against each other; on 2 cores that took ``--jobs 2`` from about
+    1.6x to 1.1x the throughput of ``--jobs 1``.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from threadpoolctl import threadpool_limits
+
+    _BLAS_LIMIT.append(threadpool_limits(limits=1, user_api="blas"))
 
 
 def default_jobs() -> int:

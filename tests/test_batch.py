@@ -202,3 +202,20 @@ def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path
     assert all((out / f"{k}.holdsite.json").exists() for k in done)
     res = subprocess.run([*cmd, "-o", str(out), "--resume", "--json"], capture_output=True, text=True)
     assert res.returncode == 0 and json.loads(res.stdout)["resumed"] >= len(done)
+
+
+def _blas_threads() -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+
+def test_pool_workers_keep_blas_to_one_thread():
+    # Two workers with a BLAS thread per core each would spin against each other.
+    from concurrent.futures import ProcessPoolExecutor
+
+    from rangeseg_cli.batch import _init_worker
+
+    with ProcessPoolExecutor(max_workers=2, initializer=_init_worker) as pool:
+        threads = pool.submit(_blas_threads).result()
+    assert threads and all(n == 1 for n in threads)
