@@ -457,7 +457,7 @@ def detect_edges_numba(z: np.ndarray, w_step: np.ndarray, step_threshold: float,
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def region_moments(z: np.ndarray, labels: np.ndarray, n: int
+def region_moments(z: np.ndarray, labels: np.ndarray, n: int, r0: int = 0, c0: int = 0
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                               np.ndarray]:  # pragma: no cover - compiled
     """Per-region frames and moment sums of the quadric fits (Sec. V-4), in three sweeps.
@@ -473,6 +473,10 @@ def region_moments(z: np.ndarray, labels: np.ndarray, n: int
         int32 (H, W) labels 0..n; 0 is left out.
     n
         Largest label.
+    r0, c0
+        Image row and column of ``z[0, 0]`` when ``z`` and ``labels`` are a
+        crop: frames and sums are those of the whole image (the same pixels
+        in the same order, so the same bits) when the crop holds every label.
 
     Returns
     -------
@@ -484,9 +488,9 @@ def region_moments(z: np.ndarray, labels: np.ndarray, n: int
     rhs
         float64 (n+1, 6): ``sum phi_i z`` for phi = (1, u, v, u^2, u v, v^2).
     """
-    counts, cx, cy = _region_centres(z, labels, n)
-    scale = _region_scale(z, labels, cx, cy, np.maximum(counts, 1.0))
-    sums, rhs = _region_sums(z, labels, cx, cy, scale)
+    counts, cx, cy = _region_centres(z, labels, n, r0, c0)
+    scale = _region_scale(z, labels, cx, cy, np.maximum(counts, 1.0), r0, c0)
+    sums, rhs = _region_sums(z, labels, cx, cy, scale, r0, c0)
     return counts, cx, cy, scale, sums, rhs
 
 
@@ -502,7 +506,7 @@ def _run_end(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no cover - c
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _region_centres(z: np.ndarray, labels: np.ndarray, n: int
+def _region_centres(z: np.ndarray, labels: np.ndarray, n: int, r0: int, c0: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """Sweep 1 of :func:`region_moments`: pixel count, centre column and row per label.
 
@@ -523,10 +527,10 @@ def _region_centres(z: np.ndarray, labels: np.ndarray, n: int
                 for cc in range(c, end):
                     if np.isfinite(z[r, cc]):
                         k += 1
-                        s += cc
+                        s += cc + c0
                 counts[lab] += k
                 sx[lab] += s
-                sy[lab] += k * r
+                sy[lab] += k * (r + r0)
             c = end
     safe = np.maximum(counts, 1).astype(np.float64)
     return counts.astype(np.float64), sx / safe, sy / safe
@@ -534,7 +538,7 @@ def _region_centres(z: np.ndarray, labels: np.ndarray, n: int
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _region_scale(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                  safe: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+                  safe: np.ndarray, r0: int, c0: int) -> np.ndarray:  # pragma: no cover - compiled
     """Sweep 2 of :func:`region_moments`: RMS spread about the centre, at least 1.
 
     A run of one label along a row is summed in registers, continuing the
@@ -550,11 +554,11 @@ def _region_scale(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndar
             end = _run_end(labels, r, c)
             if lab > 0:
                 ax, ay, x0 = vx[lab], vy[lab], cx[lab]
-                dy = r - cy[lab]
+                dy = (r + r0) - cy[lab]
                 dy2 = dy * dy
                 for cc in range(c, end):
                     if np.isfinite(z[r, cc]):
-                        dx = cc - x0
+                        dx = (cc + c0) - x0
                         ax += dx * dx
                         ay += dy2
                 vx[lab], vy[lab] = ax, ay
@@ -564,7 +568,8 @@ def _region_scale(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndar
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _region_sums(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                 scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+                 scale: np.ndarray, r0: int, c0: int
+                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """Sweep 3 of :func:`region_moments`: the monomial sums and right-hand sides.
 
     Runs of one label along a row are summed in registers (as in
@@ -582,8 +587,8 @@ def _region_sums(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarr
             if lab > 0:
                 x0, s = cx[lab], scale[lab]
                 for cc in range(end - c):  # the run's u, divided in a vectorised loop
-                    ubuf[cc] = ((c + cc) - x0) / s
-                _sum_run(z, r, c, end, ubuf, (r - cy[lab]) / s, sums[lab], rhs[lab])
+                    ubuf[cc] = ((c + cc + c0) - x0) / s
+                _sum_run(z, r, c, end, ubuf, ((r + r0) - cy[lab]) / s, sums[lab], rhs[lab])
             c = end
     return sums, rhs
 
@@ -636,7 +641,8 @@ def _sum_run(z: np.ndarray, r: int, c0: int, c1: int, us: np.ndarray, v: float,
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-               scale: np.ndarray, coef: np.ndarray) -> np.ndarray:  # pragma: no cover
+               scale: np.ndarray, coef: np.ndarray, r0: int = 0, c0: int = 0
+               ) -> np.ndarray:  # pragma: no cover
     """Sum of squared residuals per region of several fits, in one sweep (Sec. V-4, e_A).
 
     Parameters
@@ -647,6 +653,8 @@ def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray
         The frames of :func:`region_moments`.
     coef
         float64 (F, n+1, 6): F fits in frame coordinates (u, v).
+    r0, c0
+        As in :func:`region_moments`.
 
     Returns
     -------
@@ -665,9 +673,9 @@ def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray
             end = _run_end(labels, r, c)
             if lab > 0:
                 x0, s = cx[lab], scale[lab]
-                v = (r - cy[lab]) / s
+                v = ((r + r0) - cy[lab]) / s
                 for f in range(nfit):
-                    _squares_run(z[r, c:end], c, x0, v, s, coef[f, lab], squares)
+                    _squares_run(z[r, c:end], c + c0, x0, v, s, coef[f, lab], squares)
                     out[f, lab] = _add_finite(z[r, c:end], squares, out[f, lab])
             c = end
     return out

@@ -147,13 +147,14 @@ def _moment_sums(u: np.ndarray, v: np.ndarray, zs: np.ndarray, lab: np.ndarray, 
     return sums, rhs
 
 
-def _reference_moments(z: np.ndarray, labels: np.ndarray, n: int
-                       ) -> tuple[RegionMoments, _Pixels]:
+def _reference_moments(z: np.ndarray, labels: np.ndarray, n: int,
+                       origin: tuple[int, int] = (0, 0)) -> tuple[RegionMoments, _Pixels]:
     """The numpy reference of :func:`rangeseg_cli._kernels.region_moments`, and the pixels."""
     rows_i, cols_i = np.nonzero((labels > 0) & np.isfinite(z))
     lab = labels[rows_i, cols_i].astype(np.intp)
     zs = np.asarray(z, dtype=np.float64)[rows_i, cols_i]
-    rows, cols = rows_i.astype(np.float64), cols_i.astype(np.float64)
+    rows = (rows_i + origin[0]).astype(np.float64)
+    cols = (cols_i + origin[1]).astype(np.float64)
     cx, cy, scale, counts = _frames(rows, cols, lab, n)
     u, v = (cols - cx[lab]) / scale[lab], (rows - cy[lab]) / scale[lab]
     sums, rhs = _moment_sums(u, v, zs, lab, n)
@@ -266,7 +267,8 @@ class RegionFits:
 
 
 def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...] = (2,),
-                *, backend: Backend = "auto") -> RegionFits:
+                *, backend: Backend = "auto", origin: tuple[int, int] = (0, 0)
+                ) -> RegionFits:
     """Least-squares fits of every region 1..n at several model orders at once (Sec. V-4).
 
     The moment sums are gathered once and shared by all orders (the plane's
@@ -288,6 +290,11 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
         ``"numba"``: :func:`rangeseg_cli._kernels.region_moments` and
         ``region_sse``, which add the same terms in the same order (identical
         results); ``"auto"``: as :func:`rangeseg_cli.edges.detect_edges`.
+    origin
+        Image (row, col) of ``z[0, 0]`` when ``z`` and ``labels`` are a crop
+        of a frame: the fits are in the frame's coordinates, bit for bit
+        those of the whole frame when the crop holds every labelled pixel,
+        for the cost of the crop only.
 
     Returns
     -------
@@ -304,17 +311,17 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
     _check_labels(z, labels, n, orders)
     kernels = select_kernels(backend)
     if kernels is None:
-        moments, pixels = _reference_moments(z, labels, n)
+        moments, pixels = _reference_moments(z, labels, n, origin)
     else:
         zc = np.require(z, np.float64, ["C", "W"])
         lc = np.require(labels, np.int32, ["C", "W"])
-        moments = RegionMoments(*kernels.region_moments(zc, lc, n))
+        moments = RegionMoments(*kernels.region_moments(zc, lc, n, *origin))
     mat, rhs = _normal_equations(moments)
     coef = np.stack([_solve_cascade(mat, rhs, moments.counts, order) for order in orders])
     if kernels is None:
         sse = _reference_sse(pixels, coef, n)
     else:
-        sse = kernels.region_sse(zc, lc, moments.cx, moments.cy, moments.scale, coef)
+        sse = kernels.region_sse(zc, lc, moments.cx, moments.cy, moments.scale, coef, *origin)
     safe = np.maximum(moments.counts, 1.0)
     fits = [(_to_image_coefficients(c, moments.cx, moments.cy, moments.scale), e / safe)
             for c, e in zip(coef, sse, strict=True)]
@@ -323,7 +330,7 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
 
 
 def fit_models(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...] = (2,),
-               *, backend: Backend = "auto"
+               *, backend: Backend = "auto", origin: tuple[int, int] = (0, 0)
                ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
     """Least-squares fits of every region 1..n at several model orders at once (Sec. V-4).
 
@@ -343,6 +350,8 @@ def fit_models(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...
     backend
         ``"auto"``, ``"numba"`` or ``"numpy"`` (identical results; see
         :func:`region_fits`).
+    origin
+        Of a crop, as in :func:`region_fits`.
 
     Returns
     -------
@@ -351,7 +360,7 @@ def fit_models(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...
     counts : numpy.ndarray
         int64 (n+1,): number of pixels fitted per region.
     """
-    result = region_fits(z, labels, n, orders, backend=backend)
+    result = region_fits(z, labels, n, orders, backend=backend, origin=origin)
     return result.fits, result.counts
 
 

@@ -76,7 +76,7 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config, GrowConfig
-from .grow import fit_models, fit_quadrics, planar
+from .grow import fit_models, planar
 from .merge import _join_box, touching_pairs
 from .rangeimage import require_shape_of_z
 
@@ -236,9 +236,22 @@ def _crease_sse(mask: np.ndarray, z: np.ndarray, d0: np.ndarray, box: Box | None
     return min(best_knot(rows, cols, zs, d, CREASE)[1] for d in (d0, -d0))
 
 
-def _quadric_sse(z: np.ndarray, mask: np.ndarray) -> float:
-    _, mse, _ = fit_quadrics(z, mask.astype(np.int32), 1)
-    return float(mse[1]) * int(mask.sum())
+def _fits(z: np.ndarray, labels: np.ndarray, n: int, box: Box | None,
+          orders: tuple[int, ...] = (2, 1)
+          ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+    """Fits of labels 1..n (quadric, plane), within ``box`` (which holds them) if given.
+
+    The same bits as fitting the whole image (:func:`~rangeseg_cli.grow.region_fits`'s origin).
+    """
+    if box is None:
+        return fit_models(z, labels.astype(np.int32, copy=False), n, orders)
+    return fit_models(z[box], labels[box].astype(np.int32), n, orders,
+                      origin=(box[0].start, box[1].start))
+
+
+def _quadric_sse(z: np.ndarray, mask: np.ndarray, box: Box | None = None) -> float:
+    ((_, mse),), counts = _fits(z, mask, 1, box, (2,))
+    return float(mse[1]) * int(counts[1])
 
 
 def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
@@ -273,12 +286,12 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
     if fit is None:
         return None
     plane_side, d0, sse, sse_across = fit
-    ((_, mse_q), (_, mse_p)), _ = fit_models(z, plane_side.astype(np.int32), 1, (2, 1))
+    ((_, mse_q), (_, mse_p)), _ = _fits(z, plane_side, 1, box)
     if mse_p[1] > level ** 2 or not planar(mse_q[1:], mse_p[1:], grow.planar_tolerance,
                                            grow.min_error)[0]:
         return None
     s2n = int(mask.sum()) * max(noise ** 2, grow.min_error)
-    gain = (min(_quadric_sse(z, mask), sse_across) - sse) / s2n
+    gain = (min(_quadric_sse(z, mask, box), sse_across) - sse) / s2n
     if gain < _MIN_GAIN or (_crease_sse(mask, z, d0, box) - sse) / s2n < _MIN_SMOOTH:
         return None
     return plane_side, gain
@@ -292,9 +305,10 @@ def _plane_angle(p: np.ndarray, q: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, cos)))
 
 
-def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig) -> float:
+def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig, box: Box | None = None
+             ) -> float:
     """Sum of squared errors of labels 1 and 2 of ``two``, each by its own surface."""
-    ((_, mse_q), (_, mse_p)), _ = fit_models(z, two, 2, (2, 1))
+    ((_, mse_q), (_, mse_p)), _ = _fits(z, two, 2, box)
     flat = planar(mse_q, mse_p, grow.planar_tolerance, grow.min_error)
     count = np.bincount(two.ravel(), minlength=3)
     return float(sum(count[k] * (mse_p[k] if flat[k] else mse_q[k]) for k in (1, 2)))
@@ -334,13 +348,13 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
         return None
     side, _, sse, _ = fit
     two = side.astype(np.int32) + mask.astype(np.int32)        # 2 = plane side, 1 = beyond
-    ((_, _), (_, mse_p)), _ = fit_models(z, two, 2, (2, 1))
+    ((_, _), (_, mse_p)), _ = _fits(z, two, 2, box)
     if np.any(mse_p[1:] > level ** 2):
         return None
     count = np.bincount(two.ravel(), minlength=3)
     new = float(count[1] * mse_p[1] + count[2] * mse_p[2])
     before = ((labels == i).astype(np.int32) + 2 * (labels == j)).astype(np.int32)
-    if new > _PAIR_TOLERANCE * _own_sse(z, before, config.grow):
+    if new > _PAIR_TOLERANCE * _own_sse(z, before, config.grow, box):
         return None
     return side
 
@@ -380,10 +394,10 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         return None
     side, _, sse, _ = fit
     two = side.astype(np.int32) + mask.astype(np.int32)        # 2 = plane side, 1 = beyond
-    ((_, _), (planes, mse_p)), _ = fit_models(z, two, 2, (2, 1))
+    ((_, _), (planes, mse_p)), _ = _fits(z, two, 2, box)
     if np.any(mse_p[1:] > level ** 2):
         return None
-    gain = (_quadric_sse(z, mask) - sse) / (mask.sum() * max(noise ** 2, grow.min_error))
+    gain = (_quadric_sse(z, mask, box) - sse) / (mask.sum() * max(noise ** 2, grow.min_error))
     if gain < _MIN_GAIN or _plane_angle(planes[1], planes[2]) < min_crease:
         return None
     return side
@@ -426,9 +440,11 @@ def candidates(z: np.ndarray, labels: np.ndarray, config: Config, level: float
     out = [(k, 0, bool(mse[k] > level ** 2)) for k in np.nonzero(curved)[0].tolist()
            if sizes[k] >= 2 * config.link.min_component]
     coeffs = np.where(curved[:, None], quad, planes)
+    boxes = ndimage.find_objects(labels)
     for i, j in touching_pairs(labels, coeffs, _MAX_GAP * level):
         if curved[i] or curved[j]:
-            union = _quadric_sse(z, _pixels(labels, i, j))
+            box = _join_box(boxes[i - 1], boxes[j - 1])
+            union = _quadric_sse(z, _pixels(labels, i, j, box), box)
             out.append((i, j, union > level ** 2 * (sizes[i] + sizes[j])))
     return out
 

@@ -545,3 +545,27 @@ def test_pure_numpy_environment_variable_turns_the_kernels_off():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, env={**os.environ, "RANGESEG_PURE_NUMPY": "1"})
     assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
+@pytest.mark.parametrize("seed", range(3))
+def test_fits_of_a_crop_with_its_origin_are_those_of_the_whole_frame(seed, backend):
+    z, _, components = _stage3(random_boxes(70, 90, seed=seed, noise=1.0))
+    z[5:9, 40:47] = np.nan  # left out either way
+    n = int(components.max())
+    sizes = np.bincount(components.ravel())[1:]
+    ids = np.argsort(np.where(sizes > 0, sizes, sizes.max() + 1))[:2] + 1  # two smallest
+    keep = np.isin(components, ids) * components
+    rows, cols = np.nonzero(keep)
+    box = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+    whole = region_fits(z, keep, n, (2, 1), backend=backend)
+    crop = region_fits(z[box], keep[box], n, (2, 1), backend=backend,
+                       origin=(box[0].start, box[1].start))
+    assert box[0].start > 0 or box[1].start > 0
+    for (cw, ew), (cc, ec) in zip(whole.fits, crop.fits, strict=True):
+        np.testing.assert_array_equal(cw, cc)
+        np.testing.assert_array_equal(ew, ec)
+    np.testing.assert_array_equal(whole.centroid_col, crop.centroid_col)
+    np.testing.assert_array_equal(whole.centroid_row, crop.centroid_row)
+    off = region_fits(z[box], keep[box], n, (2, 1), backend=backend)
+    assert not np.array_equal(off.fits[0][0][ids[0]], whole.fits[0][0][ids[0]])
