@@ -109,10 +109,12 @@ def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
                 ) -> dict[str, Callable[[], Any]]:
     """The timed calls for one frame, with the inputs of each stage precomputed.
 
-    ``grow`` and ``run_pipeline`` use ``config`` (the split step on by
-    default); the ``_nosplit`` tasks the same with ``[split] enabled = false``,
-    ``run_pipeline_paper`` without split and recovery (``--preset paper``),
-    and ``grow_regions`` + ``describe`` are the two parts of ``grow_nosplit``.
+    ``grow`` (``stage_grow``) and ``run_pipeline`` use ``config`` (every
+    step beyond the paper on by default); the ``_nosplit`` tasks the same
+    with ``[split] enabled = false`` (recovery, fill, merge and recut still
+    on), ``run_pipeline_norecut`` with ``[split] recut = false``,
+    ``run_pipeline_paper`` with all of them off (``--preset paper``), whose
+    growth is ``grow_regions`` + ``describe``.
     """
     nosplit = dataclasses.replace(config, split=dataclasses.replace(config.split,
                                                                     enabled=False))
@@ -139,6 +141,8 @@ def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
     tasks["run_pipeline_nosplit"] = lambda: run_pipeline(image, nosplit)
     paper = dataclasses.replace(config, split=load_config(preset="paper").split)
     tasks["run_pipeline_paper"] = lambda: run_pipeline(image, paper)
+    norecut = dataclasses.replace(config, split=dataclasses.replace(config.split, recut=False))
+    tasks["run_pipeline_norecut"] = lambda: run_pipeline(image, norecut)
     tasks["run_pipeline"] = lambda: run_pipeline(image, config)
     return tasks
 
@@ -285,7 +289,7 @@ def machine() -> dict[str, Any]:
 
 COLUMNS = ("to_heights", "edges", "edges_numpy", "noise", "noise_numpy", "link", "grow_regions",
            "describe", "grow_nosplit", "grow", "holdsite", "run_pipeline_nosplit",
-           "run_pipeline_paper", "run_pipeline")
+           "run_pipeline_paper", "run_pipeline_norecut", "run_pipeline")
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -297,9 +301,11 @@ def markdown(report: dict[str, Any]) -> str:
         f"{report['machine']['numpy']}, numba {report['machine']['numba']}. Medians of "
         f"{report['frames'][0]['repeats']} interleaved runs after a warm-up; G = "
         "`gaussian_filter(z, 4)` on the same float64 frame in the same run. Cells: ms (x G). "
-        "`grow` and `run_pipeline` with the `[split]` step (the default), `_nosplit` "
-        "without, `run_pipeline_paper` = `--preset paper` (no split, no recovery); "
-        "`grow_nosplit` = `grow_regions` + `describe` (surface descriptions); "
+        "`grow` and `run_pipeline` with the defaults, `_nosplit` with `[split] enabled = "
+        "false` (the fit-test split off; recovery, fill, merge and recut still on), "
+        "`run_pipeline_norecut` with `[split] recut = false`, `run_pipeline_paper` = "
+        "`--preset paper` (every step beyond the paper off); "
+        "`grow_regions` + `describe` (surface descriptions) = the paper's growth; "
         "`noise` is the noise estimate `run_pipeline` makes (`noise.estimate_noise`), "
         "`noise_numpy` the same value by its numpy reference.",
         "",
@@ -365,7 +371,7 @@ def main(argv: list[str] | None = None) -> int:
         "frames": frames,
         "scaling_exponent": {t: scaling_exponent(frames, t)
                              for t in ("edges", "run_pipeline_nosplit", "run_pipeline_paper",
-                                       "run_pipeline")},
+                                       "run_pipeline_norecut", "run_pipeline")},
         "compile": bench_compile(), "batch": {},
     }
     if not args.no_batch:
