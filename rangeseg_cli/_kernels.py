@@ -2007,3 +2007,120 @@ def pair_heights(li: np.ndarray, lj: np.ndarray, rp: np.ndarray, cp: np.ndarray,
         above[k] = ((_quadric_at(cj, yp, xp) - _quadric_at(ci, yp, xp))
                     + (_quadric_at(ci, yq, xq) - _quadric_at(cj, yq, xq)))
     return gap, above
+
+
+# --------------------------------------------------------------------------- recut knot search
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _plane_sums(x: np.ndarray, y: np.ndarray, zs: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Upper triangle of ``sum a a^T`` and ``sum a z`` for ``a = (1, x, y)``, in pixel order."""
+    plane = np.zeros((3, 3))
+    plane_rhs = np.zeros(3)
+    for i in range(x.shape[0]):
+        xi, yi, zi = x[i], y[i], zs[i]
+        plane[0, 0] += 1.0
+        plane[0, 1] += xi
+        plane[0, 2] += yi
+        plane[1, 1] += xi * xi
+        plane[1, 2] += xi * yi
+        plane[2, 2] += yi * yi
+        plane_rhs[0] += zi
+        plane_rhs[1] += xi * zi
+        plane_rhs[2] += yi * zi
+    return plane, plane_rhs
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def knot_normal_equations(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
+                          knots: np.ndarray, powers: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Normal equations of ``plane + sum_p k_p q^p``, ``q = max(0, u - c)``, per knot c.
+
+    Terms ``a = (1, x, y, q^p1, ...)`` (powers 1, 2 or 3); ``gram[k] = sum a
+    a^T`` and ``rhs[k] = sum a z``, summed in pixel order; the plane block
+    once for all knots, the terms with q over the pixels with q > 0 only (the
+    others add zeros): bit for bit ``rangeseg_cli.recut._knot_normal_equations``.
+    """
+    n, nk, t = u.shape[0], knots.shape[0], 3 + powers.shape[0]
+    plane, plane_rhs = _plane_sums(x, y, zs)
+    gram = np.zeros((nk, t, t))
+    rhs = np.zeros((nk, t))
+    a = np.empty(t)
+    for k in range(nk):
+        g, r = gram[k], rhs[k]
+        g[:3, :3] = plane
+        r[:3] = plane_rhs
+        for i in range(n):
+            q = u[i] - knots[k]
+            if q <= 0.0:
+                continue
+            a[0], a[1], a[2] = 1.0, x[i], y[i]
+            for m in range(3, t):
+                p = powers[m - 3]
+                a[m] = q if p == 1 else (q * q if p == 2 else q * q * q)
+            for s in range(t):
+                for v in range(max(s, 3), t):
+                    g[s, v] += a[s] * a[v]
+            for m in range(3, t):
+                r[m] += a[m] * zs[i]
+        for s in range(t):
+            for v in range(s):
+                g[s, v] = g[v, s]
+    return gram, rhs
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def projected_sse(gram: np.ndarray, rhs: np.ndarray, zz: float, tol: float
+                  ) -> np.ndarray:  # pragma: no cover - compiled
+    """``max(0, zz - b^T A^+ b)`` per system: least-squares SSE from normal equations.
+
+    ``A`` is ``gram`` scaled to a unit diagonal; a Cholesky factor is built
+    column by column and a column whose pivot is at most ``tol`` (in that
+    dependent on the earlier ones) is dropped, which leaves the projection,
+    and so the SSE, unchanged. Bit for bit ``rangeseg_cli.recut._projected_sse``.
+    """
+    nk, t = gram.shape[0], gram.shape[1]
+    out = np.empty(nk)
+    low = np.zeros((t, t))
+    w = np.zeros(t)
+    s = np.empty(t)
+    for k in range(nk):
+        for i in range(t):
+            s[i] = np.sqrt(max(gram[k, i, i], 1e-300))
+        low[:, :] = 0.0
+        explained = 0.0
+        for j in range(t):
+            acc = 0.0
+            for m in range(j):
+                acc = acc + low[j, m] * low[j, m]
+            d = gram[k, j, j] / s[j] / s[j] - acc
+            w[j] = 0.0
+            if not d > tol:
+                continue
+            ljj = np.sqrt(d)
+            low[j, j] = ljj
+            for i in range(j + 1, t):
+                acc = 0.0
+                for m in range(j):
+                    acc = acc + low[i, m] * low[j, m]
+                low[i, j] = (gram[k, i, j] / s[i] / s[j] - acc) / ljj
+            acc = 0.0
+            for m in range(j):
+                acc = acc + low[j, m] * w[m]
+            w[j] = (rhs[k, j] / s[j] - acc) / ljj
+            explained = explained + w[j] * w[j]
+        out[k] = max(zz - explained, 0.0)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def knot_sse(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, knots: np.ndarray,
+             powers: np.ndarray, tol: float) -> np.ndarray:  # pragma: no cover - compiled
+    """SSE of ``plane + sum_p k_p q^p`` per knot (``rangeseg_cli.recut.knot_sse``)."""
+    gram, rhs = knot_normal_equations(u, x, y, zs, knots, powers)
+    zz = 0.0
+    for i in range(zs.shape[0]):
+        zz = zz + zs[i] * zs[i]
+    return projected_sse(gram, rhs, zz, tol)

@@ -76,6 +76,7 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config, GrowConfig
+from .edges import Backend, select_kernels
 from .grow import fit_models, planar
 from .merge import _join_box, touching_pairs
 from .rangeimage import require_shape_of_z
@@ -95,6 +96,9 @@ _COARSE_KNOTS = 200
 _FINE_PIXELS = 20000
 #: The coarse search gives up above this many fit-test levels of RMS error.
 _GIVE_UP = 2.0
+#: A knot's column whose Cholesky pivot (unit-diagonal normal equations) is at most
+#: this depends on the others and is dropped (as a pseudo-inverse drops it).
+_PIVOT_TOL = 1e-10
 #: Powers of ``q`` beside the plane: a smooth edge and a crease.
 SMOOTH: tuple[int, ...] = (2, 3)
 CREASE: tuple[int, ...] = (1,)
@@ -121,8 +125,77 @@ def curvature_direction(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray) -> n
     return np.asarray(v[:, int(np.argmax(np.abs(w)))], dtype=np.float64)
 
 
+def _ordered_sum(a: np.ndarray) -> np.ndarray:
+    """Sum over the last axis in index order (as a compiled loop adds)."""
+    return np.asarray(np.cumsum(a, axis=-1)[..., -1])
+
+
+def _knot_normal_equations(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
+                           knots: np.ndarray, powers: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Normal equations of ``plane + sum_p k_p q**p``, ``q = max(0, u - c)``, per knot c.
+
+    The numpy reference of :func:`rangeseg_cli._kernels.knot_normal_equations`
+    (bit for bit: every sum in pixel order).
+
+    Returns
+    -------
+    gram : numpy.ndarray
+        float64 (len(knots), t, t) ``sum a a^T``, ``a = (1, x, y, q**p, ...)``.
+    rhs : numpy.ndarray
+        float64 (len(knots), t) ``sum a z``.
+    """
+    t = 3 + len(powers)
+    q = np.maximum(u[None, :] - knots[:, None], 0.0)
+    qt = [q if p == 1 else (q * q if p == 2 else q * q * q) for p in powers.tolist()]
+    terms = [np.broadcast_to(b, q.shape) for b in (np.ones_like(x), x, y)] + qt
+    gram = np.empty((knots.size, t, t))
+    rhs = np.empty((knots.size, t))
+    for s in range(t):
+        rhs[:, s] = _ordered_sum(terms[s] * zs)
+        for v in range(s, t):
+            gram[:, s, v] = gram[:, v, s] = _ordered_sum(terms[s] * terms[v])
+    return gram, rhs
+
+
+def _projected_sse(gram: np.ndarray, rhs: np.ndarray, zz: float, tol: float) -> np.ndarray:
+    """``max(0, zz - b^T A^+ b)`` per knot, all knots at once.
+
+    The numpy reference of :func:`rangeseg_cli._kernels.projected_sse`: a
+    Cholesky factor of the unit-diagonal normal equations, column by column,
+    a column whose pivot is at most ``tol`` dropped (it depends on the
+    earlier ones; the projection, and so the SSE, is the same without it).
+    """
+    nk, t = gram.shape[:2]
+    s = np.sqrt(np.maximum(np.diagonal(gram, axis1=1, axis2=2), 1e-300))
+    low = np.zeros((nk, t, t))
+    w = np.zeros((nk, t))
+    explained = np.zeros(nk)
+    for j in range(t):
+        d = gram[:, j, j] / s[:, j] / s[:, j] - _dot_rows(low[:, j, :j], low[:, j, :j])
+        keep = d > tol
+        ljj = np.sqrt(np.where(keep, d, 1.0))
+        low[:, j, j] = np.where(keep, ljj, 0.0)
+        for i in range(j + 1, t):
+            acc = _dot_rows(low[:, i, :j], low[:, j, :j])
+            low[:, i, j] = np.where(keep, (gram[:, i, j] / s[:, i] / s[:, j] - acc) / ljj, 0.0)
+        w[:, j] = np.where(keep, (rhs[:, j] / s[:, j] - _dot_rows(low[:, j, :j], w[:, :j]))
+                           / ljj, 0.0)
+        explained = explained + w[:, j] * w[:, j]
+    return np.asarray(np.maximum(zz - explained, 0.0))
+
+
+def _dot_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``sum_m a[:, m] * b[:, m]``, added in order of m from 0.0."""
+    acc = np.zeros(a.shape[0])
+    for m in range(a.shape[1]):
+        acc = acc + a[:, m] * b[:, m]
+    return acc
+
+
 def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
-             knots: np.ndarray, powers: tuple[int, ...]) -> np.ndarray:
+             knots: np.ndarray, powers: tuple[int, ...], backend: Backend = "auto"
+             ) -> np.ndarray:
     """SSE of ``plane + sum_p k_p q**p``, ``q = max(0, d . (row, col) - c)``, per knot c.
 
     Parameters
@@ -135,27 +208,29 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
         Knot positions ``c`` along ``d``.
     powers
         Powers of ``q`` beside the plane: :data:`SMOOTH` or :data:`CREASE`.
+    backend
+        ``"numba"`` (:func:`rangeseg_cli._kernels.knot_sse`), ``"numpy"``
+        (the reference) or ``"auto"``: the same values either way.
 
     Returns
     -------
     numpy.ndarray
-        float64 (len(knots),) least-squares sums of squared errors, all knots
-        solved at once from their normal equations (scaled, pseudo-inverse).
+        float64 (len(knots),) least-squares sums of squared errors, from each
+        knot's normal equations (plane coordinates centred; scaled to a unit
+        diagonal; a column that depends on the others, as ``q`` does on the
+        plane when the knot lies before every pixel, dropped).
     """
-    u = d[0] * rows + d[1] * cols
-    x, y = cols - cols.mean(), rows - rows.mean()
-    q = np.maximum(u[None, :] - knots[:, None], 0.0)
-    a = np.empty(q.shape + (3 + len(powers),))                       # (knots, n, terms)
-    a[..., 0], a[..., 1], a[..., 2] = 1.0, x, y
-    for k, p in enumerate(powers):
-        a[..., 3 + k] = q ** p
-    at = a.transpose(0, 2, 1)
-    gram = at @ a
-    rhs = at @ zs
-    scale = np.sqrt(np.maximum(np.einsum("cii->ci", gram), 1e-300))
-    inv = np.linalg.pinv(gram / scale[:, :, None] / scale[:, None, :], rcond=1e-10)
-    coef = (inv @ (rhs / scale)[:, :, None])[:, :, 0] / scale
-    return np.asarray(np.maximum(float(zs @ zs) - np.einsum("ci,ci->c", coef, rhs), 0.0))
+    u = np.ascontiguousarray(d[0] * rows + d[1] * cols, dtype=np.float64)
+    x = np.ascontiguousarray(cols - cols.mean(), dtype=np.float64)
+    y = np.ascontiguousarray(rows - rows.mean(), dtype=np.float64)
+    z = np.ascontiguousarray(zs, dtype=np.float64)
+    args = (u, x, y, z, np.ascontiguousarray(knots, dtype=np.float64),
+            np.asarray(powers, dtype=np.int64))
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        return np.asarray(kernels.knot_sse(*args, _PIVOT_TOL))
+    gram, rhs = _knot_normal_equations(*args)
+    return _projected_sse(gram, rhs, float(_ordered_sum(z * z)), _PIVOT_TOL)
 
 
 def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,

@@ -569,3 +569,50 @@ def test_fits_of_a_crop_with_its_origin_are_those_of_the_whole_frame(seed, backe
     np.testing.assert_array_equal(whole.centroid_row, crop.centroid_row)
     off = region_fits(z[box], keep[box], n, (2, 1), backend=backend)
     assert not np.array_equal(off.fits[0][0][ids[0]], whole.fits[0][0][ids[0]])
+
+
+def _knot_problem(seed: int, n: int = 300):
+    rng = np.random.default_rng(seed)
+    rows = rng.integers(0, 60, n).astype(np.float64)
+    cols = rng.integers(0, 80, n).astype(np.float64)
+    d = np.array([0.6, 0.8])
+    u = d[0] * rows + d[1] * cols
+    c = float(np.median(u))
+    zs = 5.0 + 0.3 * cols - 0.2 * rows + 0.7 * np.maximum(u - c, 0.0) + rng.normal(0, 1, n)
+    knots = np.concatenate([[u.min() - 0.5], np.linspace(u.min() + 1, u.max() + 1, 17)])
+    return rows, cols, zs, d, u, knots
+
+
+@requires_numba
+@pytest.mark.parametrize("powers", [(1,), (2, 3), (2,), (3,)])
+@pytest.mark.parametrize("seed", range(3))
+def test_knot_search_kernels_are_bitwise_equal_to_the_reference(seed, powers):
+    from rangeseg_cli import _kernels, recut
+
+    rows, cols, zs, d, u, knots = _knot_problem(seed)
+    x, y = cols - cols.mean(), rows - rows.mean()
+    p = np.asarray(powers, dtype=np.int64)
+    ref = recut._knot_normal_equations(u, x, y, zs, knots, p)
+    fast = _kernels.knot_normal_equations(u, x, y, zs, knots, p)
+    for a, b in zip(ref, fast, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(recut._projected_sse(*ref, 123.0, 1e-10),
+                                  _kernels.projected_sse(*fast, 123.0, 1e-10))
+    np.testing.assert_array_equal(recut.knot_sse(rows, cols, zs, d, knots, powers, "numpy"),
+                                  recut.knot_sse(rows, cols, zs, d, knots, powers, "numba"))
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
+@pytest.mark.parametrize("powers", [(1,), (2, 3)])
+def test_knot_sse_is_the_least_squares_error_at_every_knot(powers, backend):
+    from rangeseg_cli.recut import knot_sse
+
+    rows, cols, zs, d, u, knots = _knot_problem(7)
+    got = knot_sse(rows, cols, zs, d, knots, powers, backend=backend)
+    for k, c in enumerate(knots):  # knot 0 lies before every pixel: q is linear (crease)
+        q = np.maximum(u - c, 0.0)
+        a = np.column_stack([np.ones_like(zs), cols, rows] + [q ** e for e in powers])
+        coef = np.linalg.lstsq(a, zs, rcond=None)[0]
+        want = float(np.sum((zs - a @ coef) ** 2))
+        assert got[k] == pytest.approx(want, rel=1e-6, abs=1e-6), k
+    assert 1 <= int(np.argmin(got[1:])) <= len(knots) - 3  # the crease is found inside
