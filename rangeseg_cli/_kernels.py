@@ -2032,39 +2032,82 @@ def _plane_sums(x: np.ndarray, y: np.ndarray, zs: np.ndarray
     return plane, plane_rhs
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _knot_power(q: float, p: int) -> float:  # pragma: no cover - compiled
+    """``q**p`` for p = 1, 2, 3 as the reference computes it (``q * q * q`` for 3)."""
+    return q if p == 1 else (q * q if p == 2 else q * q * q)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _one_knot_term(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, c: float,
+                   p: int, g: np.ndarray, r: np.ndarray) -> None:  # pragma: no cover
+    """Column 3 (``a = q**p``) of one knot's normal equations, in scalar accumulators."""
+    g03 = g13 = g23 = g33 = r3 = 0.0
+    for i in range(u.shape[0]):
+        q = u[i] - c
+        if q <= 0.0:
+            continue
+        a = _knot_power(q, p)
+        g03 += 1.0 * a
+        g13 += x[i] * a
+        g23 += y[i] * a
+        g33 += a * a
+        r3 += a * zs[i]
+    g[0, 3], g[1, 3], g[2, 3], g[3, 3], r[3] = g03, g13, g23, g33, r3
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _two_knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, c: float,
+                    p1: int, p2: int, g: np.ndarray, r: np.ndarray) -> None:  # pragma: no cover
+    """Columns 3, 4 (``q**p1``, ``q**p2``) of one knot's normal equations."""
+    g03 = g13 = g23 = g33 = r3 = 0.0
+    g04 = g14 = g24 = g34 = g44 = r4 = 0.0
+    for i in range(u.shape[0]):
+        q = u[i] - c
+        if q <= 0.0:
+            continue
+        a = _knot_power(q, p1)
+        b = _knot_power(q, p2)
+        xi, yi, zi = x[i], y[i], zs[i]
+        g03 += 1.0 * a
+        g04 += 1.0 * b
+        g13 += xi * a
+        g14 += xi * b
+        g23 += yi * a
+        g24 += yi * b
+        g33 += a * a
+        g34 += a * b
+        g44 += b * b
+        r3 += a * zi
+        r4 += b * zi
+    g[0, 3], g[1, 3], g[2, 3], g[3, 3], r[3] = g03, g13, g23, g33, r3
+    g[0, 4], g[1, 4], g[2, 4], g[3, 4], g[4, 4], r[4] = g04, g14, g24, g34, g44, r4
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def knot_normal_equations(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
                           knots: np.ndarray, powers: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """Normal equations of ``plane + sum_p k_p q^p``, ``q = max(0, u - c)``, per knot c.
 
-    Terms ``a = (1, x, y, q^p1, ...)`` (powers 1, 2 or 3); ``gram[k] = sum a
-    a^T`` and ``rhs[k] = sum a z``, summed in pixel order; the plane block
-    once for all knots, the terms with q over the pixels with q > 0 only (the
-    others add zeros): bit for bit ``rangeseg_cli.recut._knot_normal_equations``.
+    Terms ``a = (1, x, y, q^p1[, q^p2])`` (one or two powers, each 1, 2 or
+    3); ``gram[k] = sum a a^T`` and ``rhs[k] = sum a z``, summed in pixel
+    order; the plane block once for all knots, the terms with q over the
+    pixels with q > 0 only (the others add zeros): bit for bit
+    ``rangeseg_cli.recut._knot_normal_equations``.
     """
-    n, nk, t = u.shape[0], knots.shape[0], 3 + powers.shape[0]
+    nk, t = knots.shape[0], 3 + powers.shape[0]
     plane, plane_rhs = _plane_sums(x, y, zs)
     gram = np.zeros((nk, t, t))
     rhs = np.zeros((nk, t))
-    a = np.empty(t)
     for k in range(nk):
         g, r = gram[k], rhs[k]
         g[:3, :3] = plane
         r[:3] = plane_rhs
-        for i in range(n):
-            q = u[i] - knots[k]
-            if q <= 0.0:
-                continue
-            a[0], a[1], a[2] = 1.0, x[i], y[i]
-            for m in range(3, t):
-                p = powers[m - 3]
-                a[m] = q if p == 1 else (q * q if p == 2 else q * q * q)
-            for s in range(t):
-                for v in range(max(s, 3), t):
-                    g[s, v] += a[s] * a[v]
-            for m in range(3, t):
-                r[m] += a[m] * zs[i]
+        if t == 4:
+            _one_knot_term(u, x, y, zs, knots[k], powers[0], g, r)
+        else:
+            _two_knot_terms(u, x, y, zs, knots[k], powers[0], powers[1], g, r)
         for s in range(t):
             for v in range(s):
                 g[s, v] = g[v, s]

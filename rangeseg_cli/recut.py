@@ -207,7 +207,8 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
     knots
         Knot positions ``c`` along ``d``.
     powers
-        Powers of ``q`` beside the plane: :data:`SMOOTH` or :data:`CREASE`.
+        Powers of ``q`` beside the plane: :data:`SMOOTH` or :data:`CREASE`
+        (one or two of 1, 2, 3).
     backend
         ``"numba"`` (:func:`rangeseg_cli._kernels.knot_sse`), ``"numpy"``
         (the reference) or ``"auto"``: the same values either way.
@@ -220,6 +221,8 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
         diagonal; a column that depends on the others, as ``q`` does on the
         plane when the knot lies before every pixel, dropped).
     """
+    if len(powers) not in (1, 2) or any(p not in (1, 2, 3) for p in powers):
+        raise ValueError(f"`powers` = {powers!r}: one or two of 1, 2, 3")
     u = np.ascontiguousarray(d[0] * rows + d[1] * cols, dtype=np.float64)
     x = np.ascontiguousarray(cols - cols.mean(), dtype=np.float64)
     y = np.ascontiguousarray(rows - rows.mean(), dtype=np.float64)
