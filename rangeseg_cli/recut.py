@@ -220,6 +220,11 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
         knot's normal equations (plane coordinates centred; scaled to a unit
         diagonal; a column that depends on the others, as ``q`` does on the
         plane when the knot lies before every pixel, dropped).
+
+    Raises
+    ------
+    ValueError
+        When ``powers`` is not one or two of 1, 2, 3.
     """
     if len(powers) not in (1, 2) or any(p not in (1, 2, 3) for p in powers):
         raise ValueError(f"`powers` = {powers!r}: one or two of 1, 2, 3")
