@@ -116,11 +116,15 @@ def curvature_direction(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray) -> n
     -------
     numpy.ndarray
         float64 (2,): eigenvector of the quadric's Hessian with the largest
-        absolute eigenvalue.
+        absolute eigenvalue. The quadric is fitted in centred coordinates
+        scaled to unit RMS spread (which scales the Hessian, not its
+        eigenvectors), from its 6x6 normal equations.
     """
     x, y = cols - cols.mean(), rows - rows.mean()
-    a = np.column_stack([np.ones_like(zs), x, y, x * x, x * y, y * y])
-    c = np.linalg.lstsq(a, zs, rcond=None)[0]
+    spread = max(1.0, math.sqrt(float(np.mean(x * x + y * y)) / 2.0))
+    x, y = x / spread, y / spread
+    a = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    c = np.linalg.lstsq(a.T @ a, a.T @ zs, rcond=None)[0]
     w, v = np.linalg.eigh(np.array([[2 * c[5], c[4]], [c[4], 2 * c[3]]]))
     return np.asarray(v[:, int(np.argmax(np.abs(w)))], dtype=np.float64)
 
