@@ -35,7 +35,7 @@ import numpy as np
 
 from .config import GrowConfig
 from .grow import evaluate_quadric, fit_models, planar
-from .rangeimage import require_shape_of_z
+from .rangeimage import labels_on_valid
 
 #: The eight neighbour offsets (drow, dcol) in raster order of the 3x3 window.
 _OFFSETS: tuple[tuple[int, int], ...] = tuple(
@@ -117,10 +117,8 @@ def fill_edges(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig) -> np.ndarray
     ValueError
         When the shapes of ``z`` and ``labels`` differ.
     """
-    z = np.asarray(z, dtype=np.float64)
-    require_shape_of_z(z, labels=labels)
+    z, out = labels_on_valid(z, labels)
     valid = np.isfinite(z)
-    out = np.where(valid, labels, 0).astype(np.int32)
     n = int(out.max(initial=0))
     if n == 0:
         return out

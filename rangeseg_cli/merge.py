@@ -39,7 +39,7 @@ from scipy import ndimage
 
 from .config import Config
 from .grow import evaluate_quadric, fit_models, fit_quadrics, planar
-from .rangeimage import require_shape_of_z
+from .rangeimage import labels_on_valid
 from .split import _crease_angle
 
 #: Offsets (drow, dcol) that visit each pair of 8-neighbouring pixels once.
@@ -153,9 +153,7 @@ def merge_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     ValueError
         When the shapes of ``z`` and ``labels`` differ.
     """
-    z = np.asarray(z, dtype=np.float64)
-    require_shape_of_z(z, labels=labels)
-    lab = np.where(np.isfinite(z), labels, 0).astype(np.int32)
+    z, lab = labels_on_valid(z, labels)
     n = int(lab.max(initial=0))
     if n < 2:
         return lab

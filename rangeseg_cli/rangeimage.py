@@ -122,3 +122,16 @@ def require_shape_of_z(z: np.ndarray, **arrays: Any) -> None:
         if np.shape(arr) != np.shape(z):
             raise ValueError(f"`{name}` (shape {np.shape(arr)}) must have the shape of `z` "
                              f"({np.shape(z)})")
+
+
+def labels_on_valid(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Heights as float64 and labels as int32, 0 wherever the height is not finite.
+
+    Raises
+    ------
+    ValueError
+        When the shapes of ``z`` and ``labels`` differ.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    require_shape_of_z(z, labels=labels)
+    return z, np.where(np.isfinite(z), labels, 0).astype(np.int32)

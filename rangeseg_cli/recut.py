@@ -71,6 +71,7 @@ or a curved crease, is left as it is.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -79,7 +80,7 @@ from .config import Config, GrowConfig
 from .edges import Backend, select_kernels
 from .grow import fit_models, planar
 from .merge import _join_box, touching_pairs
-from .rangeimage import require_shape_of_z
+from .rangeimage import labels_on_valid
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
 _MIN_GAIN = 0.15
@@ -401,6 +402,30 @@ def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig, box: Box | None =
     return float(sum(count[k] * (mse_p[k] if flat[k] else mse_q[k]) for k in (1, 2)))
 
 
+class _Crease(NamedTuple):
+    """The best straight crease of a region and the planes either side of it."""
+
+    side: np.ndarray       #: bool (H, W) the side before the line (the plane side)
+    sse: float             #: sum of squared errors of the crease model
+    two: np.ndarray        #: int32 (H, W) 2 = the side before the line, 1 = beyond, 0 = off
+    planes: np.ndarray     #: (3, 6) image coefficients of the planes of labels 1 and 2
+    mse: np.ndarray        #: (3,) their mean squared errors
+
+
+def _crease_planes(mask: np.ndarray, z: np.ndarray, min_pixels: int, level: float,
+                   box: Box | None) -> _Crease | None:
+    """The best crease of ``mask`` (Notes 2) when each side's plane passes the fit test."""
+    fit = _line_fit(mask, z, CREASE, min_pixels, level, box)
+    if fit is None:
+        return None
+    side, _, sse, _ = fit
+    two = side.astype(np.int32) + mask.astype(np.int32)
+    ((_, _), (planes, mse)), _ = _fits(z, two, 2, box)
+    if np.any(mse[1:] > level ** 2):
+        return None
+    return _Crease(side, sse, two, planes, mse)
+
+
 def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: float,
                  level: float, config: Config, box: Box | None = None) -> np.ndarray | None:
     """The plane side of region i (and j) when two planes meet along a line (Notes 4).
@@ -430,20 +455,15 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
         return crease_side(z, mask, noise=noise, level=level,
                            min_pixels=config.link.min_component,
                            min_crease=config.split.min_crease, grow=config.grow, box=box)
-    fit = _line_fit(mask, z, CREASE, config.link.min_component, level, box)
-    if fit is None:
+    crease = _crease_planes(mask, z, config.link.min_component, level, box)
+    if crease is None:
         return None
-    side, _, sse, _ = fit
-    two = side.astype(np.int32) + mask.astype(np.int32)        # 2 = plane side, 1 = beyond
-    ((_, _), (_, mse_p)), _ = _fits(z, two, 2, box)
-    if np.any(mse_p[1:] > level ** 2):
-        return None
-    count = np.bincount(two.ravel(), minlength=3)
-    new = float(count[1] * mse_p[1] + count[2] * mse_p[2])
+    count = np.bincount(crease.two.ravel(), minlength=3)
+    new = float(count[1] * crease.mse[1] + count[2] * crease.mse[2])
     before = ((labels == i).astype(np.int32) + 2 * (labels == j)).astype(np.int32)
     if new > _PAIR_TOLERANCE * _own_sse(z, before, config.grow, box):
         return None
-    return side
+    return crease.side
 
 
 def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
@@ -476,18 +496,14 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         lowers the squared error per pixel against one quadric by less than
         ``_MIN_GAIN`` s^2, or the planes meet at less than ``min_crease``.
     """
-    fit = _line_fit(mask, z, CREASE, min_pixels, level, box)
-    if fit is None:
+    crease = _crease_planes(mask, z, min_pixels, level, box)
+    if crease is None:
         return None
-    side, _, sse, _ = fit
-    two = side.astype(np.int32) + mask.astype(np.int32)        # 2 = plane side, 1 = beyond
-    ((_, _), (planes, mse_p)), _ = _fits(z, two, 2, box)
-    if np.any(mse_p[1:] > level ** 2):
+    gain = ((_quadric_sse(z, mask, box) - crease.sse)
+            / (mask.sum() * max(noise ** 2, grow.min_error)))
+    if gain < _MIN_GAIN or _plane_angle(crease.planes[1], crease.planes[2]) < min_crease:
         return None
-    gain = (_quadric_sse(z, mask, box) - sse) / (mask.sum() * max(noise ** 2, grow.min_error))
-    if gain < _MIN_GAIN or _plane_angle(planes[1], planes[2]) < min_crease:
-        return None
-    return side
+    return crease.side
 
 
 def _pixels(labels: np.ndarray, i: int, j: int, box: Box | None = None) -> np.ndarray:
@@ -562,9 +578,7 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     ValueError
         When the shapes of ``z`` and ``labels`` differ.
     """
-    z = np.asarray(z, dtype=np.float64)
-    require_shape_of_z(z, labels=labels)
-    lab = np.where(np.isfinite(z), labels, 0).astype(np.int32)
+    z, lab = labels_on_valid(z, labels)
     if lab.max(initial=0) < 1:
         return lab
     zc = np.where(np.isfinite(z), z, 0.0)
