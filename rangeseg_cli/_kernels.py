@@ -864,46 +864,27 @@ def _row_pairs(aa: np.ndarray, bb: np.ndarray, r: int, c0: int, dy: int, dx: int
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _blur_plane(pad: np.ndarray, w: np.ndarray, tmp: np.ndarray, acc: np.ndarray,
-                out: np.ndarray) -> None:  # pragma: no cover - compiled
+def _blur_plane(pad: np.ndarray, w: np.ndarray, acc: np.ndarray, out: np.ndarray
+                ) -> None:  # pragma: no cover - compiled
     """Separable Gaussian blur of ``pad`` (zero-padded by ``len(w) // 2`` on every side).
 
-    As :func:`scipy.ndimage.gaussian_filter` with ``mode="constant"``: rows
-    (axis 0) first, then columns, each tap sum formed as scipy's symmetric
-    correlation forms it (centre tap, then the pairs from the farthest in).
-    The loops run along rows into the separate row buffer ``acc`` (as wide as
-    ``tmp``), so they vectorise without reordering any sum.
+    As :func:`scipy.ndimage.gaussian_filter` with ``mode="constant"``, row by
+    row (:func:`_blur_row`; ``acc`` as wide as a padded row).
     """
-    radius = w.shape[0] // 2
-    height, width = out.shape
-    wide = tmp.shape[1]
-    wc = w[radius]
-    for r in range(height):
-        centre = pad[r + radius]
-        for c in range(wide):
-            acc[c] = centre[c] * wc
-        for d in range(radius, 0, -1):
-            above, below, wd = pad[r + radius - d], pad[r + radius + d], w[radius - d]
-            for c in range(wide):
-                acc[c] += (above[c] + below[c]) * wd
-        tmp[r, :] = acc
-    row = acc[:width]
-    for r in range(height):
-        src = tmp[r]
-        for c in range(width):
-            row[c] = src[c + radius] * wc
-        for d in range(radius, 0, -1):
-            left, right = src[radius - d: radius - d + width], src[radius + d: radius + d + width]
-            wd = w[radius - d]
-            for c in range(width):
-                row[c] += (left[c] + right[c]) * wd
-        out[r, :] = row
+    for r in range(out.shape[0]):
+        _blur_row(pad, w, r, acc, out[r])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _blur_row(pad: np.ndarray, w: np.ndarray, r: int, acc: np.ndarray, out: np.ndarray
               ) -> None:  # pragma: no cover - compiled
-    """Row r of :func:`_blur_plane` of ``pad`` (``acc`` holds its ``tmp[r]``): the same sums."""
+    """Row r of the separable Gaussian blur of ``pad`` (see :func:`_blur_plane`).
+
+    Rows (axis 0) first, into ``acc`` (as wide as a padded row), then
+    columns, each tap sum formed as scipy's symmetric correlation forms it
+    (centre tap, then the pairs from the farthest in). The loops run along
+    the row, so they vectorise without reordering any sum.
+    """
     radius = w.shape[0] // 2
     width = out.shape[0]
     wide = acc.shape[0]
@@ -1017,10 +998,10 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
 @njit(cache=True, nogil=True, error_model="numpy")
 def _column_blurs(pad: np.ndarray, w: np.ndarray, r: int, c0: int, c1: int, out: np.ndarray
                   ) -> None:  # pragma: no cover - compiled
-    """The first (axis 0) blur of :func:`_blur_plane` of the products ``pad`` at row r.
+    """The first (axis 0) blur of :func:`_blur_row` of the products ``pad`` at row r.
 
     ``pad`` (9, H + 2 radius, W + 2 radius) holds the nine zero-padded
-    products; ``out[which, k]`` gets ``tmp[r, c0 + k]`` of :func:`_blur_plane`
+    products; ``out[which, k]`` gets ``acc[c0 + k]`` of :func:`_blur_row`
     for padded columns c0..c1-1 (the same sums, in the same order).
     """
     radius = w.shape[0] // 2
@@ -1836,18 +1817,17 @@ def ar_2d(z: np.ndarray, w: np.ndarray) -> np.ndarray:  # pragma: no cover - com
     height, width = z.shape
     radius = w.shape[0] // 2
     pad = np.zeros((height + 2 * radius, width + 2 * radius))
-    tmp = np.empty((height, width + 2 * radius))
     acc = np.empty(width + 2 * radius)
     num = np.empty((height, width))
     den = np.empty((height, width))
     for r in range(height):
         for c in range(width):
             pad[r + radius, c + radius] = 0.0 if np.isnan(z[r, c]) else z[r, c]
-    _blur_plane(pad, w, tmp, acc, num)
+    _blur_plane(pad, w, acc, num)
     for r in range(height):
         for c in range(width):
             pad[r + radius, c + radius] = 0.0 if np.isnan(z[r, c]) else 1.0
-    _blur_plane(pad, w, tmp, acc, den)
+    _blur_plane(pad, w, acc, den)
     for r in range(height):
         for c in range(width):
             num[r, c] = np.nan if np.isnan(z[r, c]) else abs(num[r, c] / den[r, c] - z[r, c])
