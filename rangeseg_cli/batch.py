@@ -717,9 +717,6 @@ def _collect(pending: set[Future[Record]], finish: Callable[[Record], None],
     return pending
 
 
-_BLAS_LIMIT: list[Any] = []
-
-
 def _init_worker() -> None:
     """Set up a worker process: Ctrl-C and BLAS threads are the batch's.
 
@@ -732,7 +729,7 @@ def _init_worker() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from threadpoolctl import threadpool_limits
 
-    _BLAS_LIMIT.append(threadpool_limits(limits=1, user_api="blas"))
+    threadpool_limits(limits=1, user_api="blas")  # set now; kept until the worker exits
 
 
 def default_jobs() -> int:
