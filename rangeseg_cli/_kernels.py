@@ -50,6 +50,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .parallel import map_bands, row_bands
+
 #: Row and column steps of the four directions of Fig. 8 (as ``edges.DIRECTIONS``).
 _DY = np.array([0, 1, 1, 1], dtype=np.int64)
 _DX = np.array([1, 0, 1, -1], dtype=np.int64)
@@ -447,10 +449,51 @@ def detect_edges_numba(z: np.ndarray, w_step: np.ndarray, step_threshold: float,
     # One argument type per parameter (C-contiguous, writeable float64 arrays), so that
     # one cached compilation serves all calls, read-only or float32 inputs included.
     symmetric = truncation == "symmetric"
-    return edge_maps(np.require(z, np.float64, ["C", "W"]),
-                     np.ascontiguousarray(w_step, dtype=np.float64), float(step_threshold),
-                     np.ascontiguousarray(w_roof, dtype=np.float64), float(threshold_a),
+    z = np.require(z, np.float64, ["C", "W"])
+    w_step = np.ascontiguousarray(w_step, dtype=np.float64)
+    w_roof = np.ascontiguousarray(w_roof, dtype=np.float64)
+    if len(row_bands(z.shape[0], z.shape[1], 0)) > 1:
+        return edge_maps_in_bands(z, w_step, float(step_threshold), w_roof, float(threshold_a),
+                                  float(threshold_b), int(radius), symmetric)
+    return edge_maps(z, w_step, float(step_threshold), w_roof, float(threshold_a),
                      float(threshold_b), int(radius), symmetric, symmetric)
+
+
+def edge_maps_in_bands(z: np.ndarray, w_step: np.ndarray, step_threshold: float,
+                       w_roof: np.ndarray, threshold_a: float, threshold_b: float, radius: int,
+                       symmetric: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`edge_maps` with each pass on row bands at once (``parallel.map_bands``).
+
+    A pass's edges at a row depend on the padded rows within reach of it
+    only: the AR reads ``len(w) // 2`` rows either side (eq. 3, Fig. 8), the
+    local maximum ``radius`` rows of AR; pass 2b reads pass 2a's edges
+    within its mask's reach. So each band runs the pass on its rows and
+    ``margin`` more either side (the rows of the padded image, real data
+    inside the image), and keeps its own rows: exactly the maps of one call.
+    """
+    height, width = z.shape
+    pad = max(w_step.shape[0] // 2, w_roof.shape[0] // 2, radius, 1)
+    zp, okp = _pad(z, pad)
+    step = np.empty((height, width), dtype=np.bool_)
+    roof_a = np.empty((height, width), dtype=np.bool_)
+    roof_b = np.empty((height, width), dtype=np.bool_)
+
+    def step_band(first: int, stop: int, lo: int, hi: int) -> None:
+        found = edges_pass(zp[lo: hi + 2 * pad], okp[lo: hi + 2 * pad], pad, w_step,
+                           step_threshold, 1, symmetric)
+        step[first:stop] = found[first - lo: stop - lo]
+
+    def roof_band(first: int, stop: int, lo: int, hi: int) -> None:
+        a, b = roof_passes(zp[lo: hi + 2 * pad], okp[lo: hi + 2 * pad], pad, w_roof,
+                           threshold_a, threshold_b, radius, symmetric)
+        roof_a[first:stop] = a[first - lo: stop - lo]
+        roof_b[first:stop] = b[first - lo: stop - lo]
+
+    map_bands(step_band, height, width, 2)
+    _exclude(okp, pad, step)
+    # 2b's maxima (radius) of AR whose masks (half) see 2a's maxima (radius) of AR
+    map_bands(roof_band, height, width, 2 * radius + w_roof.shape[0] // 2 + 2)
+    return step, roof_a, roof_b
 
 
 # --------------------------------------------------------------------------- Sec. V-4

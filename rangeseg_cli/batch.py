@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, io, render
+from . import __version__, io, parallel, render
 from .config import Config, InputConfig, build_config
 from .errors import ClusterLost, InputError, OutputError, RangesegError
 from .io import Location
@@ -176,10 +176,11 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
     try:
         state = _initial_state(job, out, stages[0], config)
         state["then_link"] = "link" in stages  # link writes edges.npy; write it once
-        for stage in stages:
-            t0 = time.perf_counter()
-            _STAGE_RUNNERS[stage](state, out / job.rel, config)
-            record.timings[stage] = time.perf_counter() - t0
+        with parallel.blas_one_thread():
+            for stage in stages:
+                t0 = time.perf_counter()
+                _STAGE_RUNNERS[stage](state, out / job.rel, config)
+                record.timings[stage] = time.perf_counter() - t0
         record.noise_sigma = state.get("noise_sigma")
         _remove_later_outputs(out / job.rel, stages[-1])
     except RangesegError as exc:
@@ -674,7 +675,8 @@ def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[
     # At most 2 images per worker in flight: memory stays bounded for any batch size.
     pending: set[Future[Record]] = set()
     warm_up(config)
-    with ProcessPoolExecutor(max_workers=n_jobs, initializer=_init_worker) as pool:
+    with ProcessPoolExecutor(max_workers=n_jobs, initializer=_init_worker,
+                             initargs=(parallel.per_process(n_jobs),)) as pool:
         try:
             for job in todo:
                 stop.check()
@@ -717,8 +719,11 @@ def _collect(pending: set[Future[Record]], finish: Callable[[Record], None],
     return pending
 
 
-def _init_worker() -> None:
-    """Set up a worker process: Ctrl-C and BLAS threads are the batch's.
+def _init_worker(threads: int = 1) -> None:
+    """Set up a worker process: Ctrl-C, its threads and BLAS threads are the batch's.
+
+    ``threads`` is the worker's share of the cores for the kernels of one
+    image (:func:`rangeseg_cli.parallel.per_process`).
 
     Workers leave Ctrl-C to the main process, which stops the batch cleanly.
     Each worker keeps its BLAS to one thread: the batch already uses a process
@@ -727,6 +732,7 @@ def _init_worker() -> None:
     1.6x to 1.1x the throughput of ``--jobs 1``.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parallel.set_threads(threads)
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")  # set now; kept until the worker exits

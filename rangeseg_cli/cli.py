@@ -38,6 +38,10 @@ set_opt = click.option("--set", "settings", multiple=True, metavar="TABLE.KEY=VA
 jobs_opt = click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
                         help="Worker processes (default: all cores); with --executor dask, "
                              "at most N images on the cluster at once (default: no limit).")
+threads_opt = click.option("--threads", type=click.IntRange(min=1), default=None,
+                           help="Threads for one image (default: the cores shared out among "
+                                "--jobs, or RANGESEG_THREADS); the results are the same for "
+                                "any number.")
 resume_opt = click.option("--resume", is_flag=True,
                           help="Complete only what is missing in OUT (same config).")
 overwrite_opt = click.option("--overwrite", is_flag=True,
@@ -70,8 +74,8 @@ def verbosity_opts(f: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _batch_options(f: Callable[..., Any]) -> Callable[..., Any]:
-    for opt in (json_opt, overwrite_opt, resume_opt, scheduler_opt, executor_opt, jobs_opt,
-                set_opt, preset_opt, config_opt):
+    for opt in (json_opt, overwrite_opt, resume_opt, scheduler_opt, executor_opt, threads_opt,
+                jobs_opt, set_opt, preset_opt, config_opt):
         f = opt(f)
     return verbosity_opts(f)
 
@@ -136,6 +140,7 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
     if opts["resume"] and opts["overwrite"]:
         raise click.UsageError("--resume and --overwrite exclude each other: --resume "
                                "completes what is missing, --overwrite redoes every image")
+    _set_threads(opts["threads"])
     reporter = BatchReporter(quiet=opts["quiet"] > 0, verbose=opts["verbose"])
     # Dask: --jobs caps the images in flight; without it the cluster sets the parallelism.
     n_jobs = opts["jobs"] if opts["executor"] == "dask" else opts["jobs"] or default_jobs()
@@ -155,6 +160,17 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
     if opts["as_json"]:
         click.echo(json.dumps(summary.to_dict(), sort_keys=True, indent=2))
     _exit(ctx, summary)
+
+
+def _set_threads(threads: int | None) -> None:
+    """--threads, or a RANGESEG_THREADS that is not a whole number >= 1 as a usage error."""
+    from . import parallel
+
+    try:
+        parallel.set_threads(threads)
+        parallel.thread_count()
+    except ValueError as exc:
+        raise UsageProblem(str(exc)) from None
 
 
 def _exit(ctx: click.Context, summary: Any) -> None:

@@ -26,6 +26,7 @@ from .config import Config, load_config
 from .edges import EdgeMaps, detect_edges
 from .models import Surface
 from .noise import estimate_noise
+from .parallel import blas_one_thread
 from .rangeimage import to_heights
 
 #: Stage names in order.
@@ -192,6 +193,12 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
     elif not isinstance(config, Config):
         raise TypeError(f"config must be a rangeseg_cli.config.Config (load_config() makes one "
                         f"from a TOML file, a preset or overrides), got {type(config).__name__}")
+    with blas_one_thread():
+        return _run(image, config, stages, name)
+
+
+def _run(image: Any, config: Config, stages: int, name: str) -> PipelineResult:
+    """:func:`run_pipeline` after its checks."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     z = to_heights(image, config.input, name=name)

@@ -80,6 +80,7 @@ from .config import Config, GrowConfig
 from .edges import Backend, select_kernels
 from .grow import fit_models, planar
 from .merge import _join_box, touching_pairs
+from .parallel import map_tasks
 from .rangeimage import labels_on_valid
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
@@ -583,10 +584,14 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
         return lab
     zc = np.where(np.isfinite(z), z, 0.0)
     level = config.split.fit_factor * max(noise, math.sqrt(config.grow.min_error))
-    found = []
     boxes = ndimage.find_objects(lab)
-    for i, j, fails in candidates(zc, lab, config, level):
-        box = _join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1]
+
+    def box_of(i: int, j: int) -> tuple[slice, slice]:
+        return _join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1]
+
+    def cut(candidate: tuple[int, int, bool]) -> tuple[np.ndarray, float] | None:
+        i, j, fails = candidate
+        box = box_of(i, j)
         got = None
         if fails:
             got = split_tangent(zc, _pixels(lab, i, j, box), noise=noise, level=level,
@@ -596,8 +601,13 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
             side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config,
                                 box=box)
             got = None if side is None else (side, 0.0)
-        if got is not None:
-            found.append((-got[1], 0 if j else 1, i, j, got[0]))
+        return got
+
+    todo = candidates(zc, lab, config, level)
+    areas = [float(np.prod([b.stop - b.start for b in box_of(i, j)])) for i, j, _ in todo]
+    cuts = map_tasks(cut, todo, areas)  # each candidate on its own: at once, applied in order
+    found = [(-got[1], 0 if j else 1, i, j, got[0])
+             for (i, j, _), got in zip(todo, cuts, strict=True) if got is not None]
     out = lab.copy()
     used: set[int] = set()
     next_id = int(lab.max()) + 1

@@ -58,6 +58,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 from scipy import ndimage
@@ -67,6 +68,7 @@ from .edges import Backend, select_kernels
 from .grow import Fits, fit_models, fit_quadrics, grow_regions, planar
 from .link import FOUR_CONNECTED
 from .noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
+from .parallel import map_bands, map_tasks, row_bands
 from .surfaces import label_boxes
 
 #: Bin width of the histogram of normals (x, y components) whose peak is the mode.
@@ -190,8 +192,8 @@ class _PlaneFit:
         v = (np.arange(h, dtype=np.float64) + v0)[:, None]
         kernels = select_kernels(backend)
         if kernels is not None:
-            mu, mv, mz, gx, gy = kernels.plane_fit(
-                np.require(z, np.float64, ["C"]), np.require(mask, np.bool_, ["C"]),
+            mu, mv, mz, gx, gy = _compiled_plane_fit(
+                kernels, np.require(z, np.float64, ["C"]), np.require(mask, np.bool_, ["C"]),
                 _blur_weights(sigma), float(u0), float(v0), 1e-3 * sigma**4)
             return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)
         m = mask.astype(np.float64)
@@ -223,6 +225,30 @@ class _PlaneFit:
         gx = np.where(ok, (cvv * cuz - cuv * cvz) / safe, np.nan)
         gy = np.where(ok, (cuu * cvz - cuv * cuz) / safe, np.nan)
         return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)
+
+
+def _compiled_plane_fit(kernels: ModuleType, z: np.ndarray, mask: np.ndarray, w: np.ndarray,
+                        u0: float, v0: float, min_det: float) -> tuple[np.ndarray, ...]:
+    """:func:`rangeseg_cli._kernels.plane_fit`, on row bands at once when there are threads.
+
+    A fit reads the rows within the blur's reach only, so a band with that
+    many rows more either side (and its own row origin, ``v0`` + its first
+    row: integers and halves, exact) gives its rows bit for bit
+    (:func:`~rangeseg_cli.parallel.map_bands`).
+    """
+    height, width = z.shape
+    reach = w.shape[0] // 2
+    if len(row_bands(height, width, reach)) == 1:
+        return tuple(kernels.plane_fit(z, mask, w, u0, v0, min_det))
+    out = tuple(np.empty((height, width)) for _ in range(5))
+
+    def band(first: int, stop: int, lo: int, hi: int) -> None:
+        parts = kernels.plane_fit(z[lo:hi], mask[lo:hi], w, u0, v0 + lo, min_det)
+        for whole, part in zip(out, parts, strict=True):
+            whole[first:stop] = part[first - lo: stop - lo]
+
+    map_bands(band, height, width, reach)
+    return out
 
 
 def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
@@ -730,16 +756,43 @@ def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarr
     inside = (rows >= r0) & (rows < r1) & (cols >= c0) & (cols < c1)
     kernels = select_kernels(backend)
     if kernels is not None:  # the planes at the pixels asked for only
-        out[inside] = kernels.plane_heights_at(
-            np.require(z[r0:r1, c0:c1], np.float64, ["C"]),
+        out[inside] = _compiled_heights(
+            kernels, np.require(z[r0:r1, c0:c1], np.float64, ["C"]),
             np.require(mask[r0:r1, c0:c1], np.bool_, ["C"]), _blur_weights(sigma),
-            float(c0 - w / 2.0), float(r0 - h / 2.0), 1e-3 * sigma**4,
+            (float(c0 - w / 2.0), float(r0 - h / 2.0), 1e-3 * sigma**4),
             np.ascontiguousarray(rows[inside] - r0, np.int64),
             np.ascontiguousarray(cols[inside] - c0, np.int64))
         return out
     height, _, _ = local_planes(z[r0:r1, c0:c1], mask[r0:r1, c0:c1], sigma,
                                 origin=(r0 - h / 2.0, c0 - w / 2.0), backend=backend)
     out[inside] = height[rows[inside] - r0, cols[inside] - c0]
+    return out
+
+
+def _compiled_heights(kernels: ModuleType, z: np.ndarray, mask: np.ndarray, w: np.ndarray,
+                      frame: tuple[float, float, float], rows: np.ndarray, cols: np.ndarray
+                      ) -> np.ndarray:
+    """:func:`rangeseg_cli._kernels.plane_heights_at` (``frame``: u0, v0, min_det) in bands.
+
+    The pixels (in raster order) are divided by row among the bands of
+    :func:`~rangeseg_cli.parallel.map_bands`; each band's call sees its rows
+    and the blur's reach either side, with its own row origin: the same
+    heights bit for bit (as :func:`_compiled_plane_fit`).
+    """
+    u0, v0, min_det = frame
+    height, width = z.shape
+    reach = w.shape[0] // 2
+    if len(row_bands(height, width, reach)) == 1 or np.any(rows[1:] < rows[:-1]):
+        return kernels.plane_heights_at(z, mask, w, u0, v0, min_det, rows, cols)
+    out = np.empty(rows.size)
+
+    def band(first: int, stop: int, lo: int, hi: int) -> None:
+        i, j = np.searchsorted(rows, (first, stop))
+        if j > i:
+            out[i:j] = kernels.plane_heights_at(z[lo:hi], mask[lo:hi], w, u0, v0 + lo,
+                                                min_det, rows[i:j] - lo, cols[i:j])
+
+    map_bands(band, height, width, reach)
     return out
 
 
@@ -1076,6 +1129,11 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
                       creases=_crease_gain(noise, cfg, grow))
 
 
+def _area(box: tuple[slice, slice]) -> int:
+    """Pixels of a box of slices with set ends."""
+    return int((box[0].stop - box[0].start) * (box[1].stop - box[1].start))
+
+
 def _separate(labels: np.ndarray) -> np.ndarray:
     """Unlabel the pixel of higher label of every 4-adjacent pair of different labels.
 
@@ -1147,12 +1205,19 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
     out = np.asarray(components, dtype=np.int32).copy()
     next_id = int(out.max(initial=0)) + 1
     boxes = label_boxes(out, next_id - 1, backend=backend) if failing.size else None
-    for cid in failing.tolist():
-        r0, c0, r1, c1 = boxes[cid].tolist()  # type: ignore[index]
-        box = (slice(r0, r1 + 1), slice(c0, c1 + 1))
+    spans = [(slice(r0, r1 + 1), slice(c0, c1 + 1))
+             for r0, c0, r1, c1 in (boxes[failing].tolist() if boxes is not None else [])]
+
+    def split_one(task: tuple[int, tuple[slice, slice]]) -> np.ndarray:
+        cid, box = task
+        return split_component(z[box], out[box] == cid, noise=noise, cfg=cfg,
+                               grow=config.grow, backend=backend)
+
+    tasks = list(zip(failing.tolist(), spans, strict=True))
+    # the components are disjoint: split at once, then numbered in order as one by one
+    results = map_tasks(split_one, tasks, cost=[float(_area(box)) for box in spans])
+    for (cid, box), pieces in zip(tasks, results, strict=True):
         inside = out[box] == cid
-        pieces = split_component(z[box], inside, noise=noise, cfg=cfg, grow=config.grow,
-                                 backend=backend)
         k = int(pieces.max())
         if k < 2:
             continue

@@ -30,6 +30,15 @@ def box_scene(size: int = 64, noise: float = 0.0, seed: int = 0) -> np.ndarray:
     return z
 
 
+@pytest.fixture(autouse=True)
+def _automatic_threads():
+    """``--threads`` or a test may set the process's thread count: back to automatic after."""
+    yield
+    from rangeseg_cli import parallel
+
+    parallel.set_threads(None)
+
+
 @pytest.fixture
 def write_png():
     """Write a uint8/uint16 array as PNG and return its path."""

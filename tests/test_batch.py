@@ -219,3 +219,41 @@ def test_pool_workers_keep_blas_to_one_thread():
     with ProcessPoolExecutor(max_workers=2, initializer=_init_worker) as pool:
         threads = pool.submit(_blas_threads).result()
     assert threads and all(n == 1 for n in threads)
+
+
+def _kernel_threads() -> int:
+    from rangeseg_cli import parallel
+
+    return parallel.thread_count()
+
+
+def test_pool_workers_get_their_share_of_the_cores():
+    from concurrent.futures import ProcessPoolExecutor
+
+    from rangeseg_cli.batch import _init_worker
+
+    with ProcessPoolExecutor(max_workers=2, initializer=_init_worker, initargs=(3,)) as pool:
+        assert pool.submit(_kernel_threads).result() == 3
+
+
+def test_threads_option_gives_the_same_bytes(good_folder, tmp_path, monkeypatch):
+    from rangeseg_cli import parallel
+
+    monkeypatch.setattr(parallel, "MIN_BAND_ROWS", 1)  # the small images are cut into bands too
+    monkeypatch.setattr(parallel, "MIN_BAND_PIXELS", 1)
+    runner = CliRunner()
+    for n in ("1", "3"):
+        res = runner.invoke(main, ["run", str(good_folder), "-o", str(tmp_path / n), "-j", "1",
+                                   "--threads", n, "-q"])
+        assert res.exit_code == 0, res.output
+    assert tree_bytes(tmp_path / "1") == tree_bytes(tmp_path / "3")
+
+
+def test_bad_thread_counts_are_usage_errors(good_folder, tmp_path, monkeypatch):
+    runner = CliRunner()
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(tmp_path / "a"), "--threads", "0"])
+    assert res.exit_code == 2 and "--threads" in res.output
+    monkeypatch.setenv("RANGESEG_THREADS", "lots")
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(tmp_path / "b")])
+    assert res.exit_code == 2 and "RANGESEG_THREADS = 'lots'" in res.output
+    assert not (tmp_path / "b").exists()

@@ -1,0 +1,183 @@
+"""Threads within one image (rangeseg_cli.parallel): row bands give the same bits as one call.
+
+Every kernel run on bands (edges of Sec. V-1, V-2; the split's local plane
+fits) is checked against one call on the whole image, with bands of a few
+rows so that every band edge falls among edges and creases.
+"""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import Future
+
+import numpy as np
+import pytest
+
+from rangeseg_cli import parallel
+from rangeseg_cli import split as split_module
+from rangeseg_cli.config import load_config
+from rangeseg_cli.edges import detect_edges
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.synth import render_scene
+
+CFG = load_config()
+
+
+@pytest.fixture
+def tiny_bands(monkeypatch):
+    """Any image is cut into bands of a few rows; restores the automatic count after."""
+    monkeypatch.setattr(parallel, "MIN_BAND_ROWS", 1)
+    monkeypatch.setattr(parallel, "MIN_BAND_PIXELS", 1)
+    monkeypatch.setattr(parallel, "MIN_TASKS_COST", 0)  # and any components split at once
+    yield
+    parallel.set_threads(None)
+
+
+def pile(size: tuple[int, int] = (96, 112), noise: float = 1.0, seed: int = 3) -> np.ndarray:
+    """A bin pile with invalid pixels: steps, creases, curved faces and holes."""
+    z = render_scene("pile", size=size, noise=noise, seed=seed).image.astype(np.float64)
+    z[np.random.default_rng(seed).random(z.shape) < 0.02] = np.nan
+    return z
+
+
+def in_threads(n: int, fn, *args, **kwargs):
+    parallel.set_threads(n)
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        parallel.set_threads(None)
+
+
+@pytest.mark.parametrize("threads", [2, 3, 7])
+@pytest.mark.parametrize("truncation", ["symmetric", "one-sided"])
+def test_edges_on_bands_are_those_of_one_pass(tiny_bands, threads, truncation) -> None:
+    config = load_config(overrides={"roof": {"truncation": truncation}})
+    z = pile()
+    whole = in_threads(1, detect_edges, z, config)
+    banded = in_threads(threads, detect_edges, z, config)
+    assert whole.roof_a.any() and whole.roof_b.any() and whole.step.any()
+    for name in ("step", "roof_a", "roof_b", "codes"):
+        np.testing.assert_array_equal(getattr(banded, name), getattr(whole, name), err_msg=name)
+
+
+def test_edge_bands_with_fewer_rows_than_the_filter_reach(tiny_bands) -> None:
+    # 7 bands of 3-4 rows: each band reads far more rows than it keeps.
+    z = pile(size=(24, 40))
+    whole = in_threads(1, detect_edges, z, CFG)
+    banded = in_threads(7, detect_edges, z, CFG)
+    np.testing.assert_array_equal(banded.codes, whole.codes)
+
+
+@pytest.mark.parametrize("threads", [2, 5])
+def test_local_planes_on_bands_are_bitwise_those_of_one_call(tiny_bands, threads) -> None:
+    z = np.nan_to_num(pile(noise=0.5), nan=40.0)
+    mask = z > np.median(z)
+    whole = in_threads(1, split_module.local_planes, z, mask, 2.0)
+    banded = in_threads(threads, split_module.local_planes, z, mask, 2.0)
+    assert np.isfinite(whole[1]).sum() > 1000
+    for a, b in zip(whole, banded, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_plane_heights_on_bands_are_bitwise_those_of_one_call(tiny_bands) -> None:
+    z = np.nan_to_num(pile(noise=0.5), nan=40.0)
+    mask = z > np.median(z)
+    rows, cols = np.nonzero(np.arange(z.size).reshape(z.shape) % 3 == 0)
+    whole = in_threads(1, split_module._plane_heights, z, mask, 4.0, rows, cols)
+    banded = in_threads(4, split_module._plane_heights, z, mask, 4.0, rows, cols)
+    assert np.isfinite(whole).sum() > 500
+    np.testing.assert_array_equal(banded, whole)
+    shuffled = np.random.default_rng(0).permutation(rows.size)  # not raster order: one call
+    np.testing.assert_array_equal(
+        in_threads(4, split_module._plane_heights, z, mask, 4.0, rows[shuffled],
+                   cols[shuffled]), whole[shuffled])
+
+
+def test_pipeline_labels_do_not_depend_on_the_threads(tiny_bands) -> None:
+    z = pile(size=(80, 96), noise=1.0, seed=5)
+    one = in_threads(1, run_pipeline, z, CFG)
+    three = in_threads(3, run_pipeline, z, CFG)
+    assert one.labels.max() > 3
+    np.testing.assert_array_equal(three.edges, one.edges)
+    np.testing.assert_array_equal(three.labels, one.labels)
+    assert three.holdsite == one.holdsite
+
+
+def test_row_bands_cover_every_row_once_and_read_their_margin() -> None:
+    bands = parallel.row_bands(100, 300, 5, count=3)
+    assert [b[:2] for b in bands] == [(0, 33), (33, 67), (67, 100)]
+    assert [b[2:] for b in bands] == [(0, 38), (28, 72), (62, 100)]
+    assert parallel.row_bands(40, 40, 5, count=4) == [(0, 40, 0, 40)]  # too small to divide
+    assert len(parallel.row_bands(10_000, 10_000, 5, count=64)) == 64
+
+
+def test_a_band_error_is_raised_to_the_caller(tiny_bands) -> None:
+    parallel.set_threads(3)
+
+    def run(first, stop, lo, hi):
+        if first > 0:
+            raise RuntimeError(f"band {first}")
+
+    with pytest.raises(RuntimeError, match="band"):
+        parallel.map_bands(run, 90, 90, 2)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_set_threads_refuses_what_is_not_a_count(bad) -> None:
+    with pytest.raises(ValueError, match="threads"):
+        parallel.set_threads(bad)
+
+
+def test_threads_from_the_environment(monkeypatch) -> None:
+    parallel.set_threads(None)
+    monkeypatch.setenv("RANGESEG_THREADS", "3")
+    assert parallel.thread_count() == 3
+    assert parallel.per_process(2) == 3
+    monkeypatch.setenv("RANGESEG_THREADS", "many")
+    with pytest.raises(ValueError, match="RANGESEG_THREADS = 'many'"):
+        parallel.thread_count()
+
+
+def test_automatic_threads_share_the_cores(monkeypatch) -> None:
+    parallel.set_threads(None)
+    monkeypatch.delenv("RANGESEG_THREADS", raising=False)
+    monkeypatch.setattr(parallel, "cores", lambda: 8)
+    assert parallel.thread_count() == 8
+    assert parallel.per_process(3) == 2
+    assert parallel.per_process(16) == 1
+    seen = []
+    worker = threading.Thread(target=lambda: seen.append(parallel.thread_count()))
+    worker.start()
+    worker.join()
+    assert seen == [1]  # a thread of someone else's pool does not divide its image again
+
+
+def test_tasks_come_back_in_order_and_run_their_kernels_on_one_thread(tiny_bands) -> None:
+    parallel.set_threads(2)
+    out = parallel.map_tasks(lambda item: (item * 10, parallel.thread_count()), [1, 2, 3, 4],
+                             cost=[1.0, 1.0, 5.0, 1.0])
+    assert out == [(10, 1), (20, 1), (30, 1), (40, 1)]
+    assert parallel.thread_count() == 2  # this thread is not a task
+
+
+def test_the_costliest_task_is_handed_out_first(tiny_bands, monkeypatch) -> None:
+    submitted = []
+
+    class Recorder:
+        def submit(self, fn, *args):
+            submitted.append(args[-1])
+            future = Future()
+            future.set_result(fn(*args))
+            return future
+
+    monkeypatch.setattr(parallel, "_executor", lambda workers: Recorder())
+    parallel.set_threads(2)
+    assert parallel.map_tasks(str, [1, 2, 3, 4], cost=[1.0, 2.0, 5.0, 1.0]) == list("1234")
+    assert submitted == [3, 2, 1, 4]
+
+
+def test_small_task_lists_stay_in_this_thread(monkeypatch) -> None:
+    parallel.set_threads(2)
+    names = parallel.map_tasks(lambda _: threading.current_thread().name, [0, 1],
+                               cost=[10.0, 10.0])
+    assert names == [threading.current_thread().name] * 2
