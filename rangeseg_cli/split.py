@@ -298,17 +298,26 @@ def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float, *,
     return np.where(keep, gx, 0.0), np.where(keep, gy, 0.0)
 
 
+#: Values from which :func:`_otsu` sorts by radix (below, ``np.sort`` is faster).
+_RADIX_FROM = 10_000
+
+
 def _otsu(x: np.ndarray, backend: Backend = "numpy") -> float:
     """Threshold of ``x`` that maximises the between-class variance (Otsu).
 
     With the compiled kernels (``backend``) the search over the sorted values
-    is :func:`rangeseg_cli._kernels.otsu_index` (the same threshold).
+    is :func:`rangeseg_cli._kernels.otsu_index` (the same threshold), and
+    from :data:`_RADIX_FROM` values on the sort is a radix sort of their bits
+    (:func:`rangeseg_cli._kernels.smallest_sorted`: the same array, for the
+    non-negative ``x`` here; 3x faster than ``np.sort`` on 270,000 values).
     """
-    xs = np.sort(x)
     kernels = select_kernels(backend)
     if kernels is not None:
+        xs = (kernels.smallest_sorted(np.require(x, np.float64, ["C"]), x.size)
+              if x.size >= _RADIX_FROM and not np.signbit(x).any() else np.sort(x))
         i = int(kernels.otsu_index(xs, float(xs.sum())))
         return 0.5 * (xs[i] + xs[i + 1])
+    xs = np.sort(x)
     n = xs.size
     k = np.arange(1, n)
     csum = np.cumsum(xs)[:-1]

@@ -635,6 +635,25 @@ def test_mode_split_equals_its_first_form(backend: str) -> None:
                                       _reference_mode_split(normals))
 
 
+@requires_numba
+def test_mode_split_of_many_normals_sorts_by_radix_to_the_same_division() -> None:
+    rng = np.random.default_rng(21)
+    assert split_module._RADIX_FROM <= 12_000
+    for trial in range(6):
+        n = int(rng.integers(12_000, 60_000))
+        g = rng.normal(0.0, 0.05, (n, 2)) + rng.normal(0.0, 0.5, 2) * (rng.random((n, 1)) < 0.3)
+        if trial % 2:
+            g = np.round(g * 50.0) / 50.0  # ties, and distances exactly 0
+        norm = np.sqrt(1.0 + np.sum(g * g, axis=1))
+        normals = np.stack([-g[:, 0] / norm, -g[:, 1] / norm, 1.0 / norm], axis=1)
+        np.testing.assert_array_equal(split_module.mode_split(normals, backend="numba"),
+                                      _reference_mode_split(normals))
+    signed = rng.normal(0.0, 1.0, 20_000)  # not the distances of mode_split: np.sort
+    signed[:5] = -0.0
+    assert (split_module._otsu(signed, backend="numba")
+            == split_module._otsu(signed, backend="numpy"))
+
+
 def test_smallest_sorted_equals_the_head_of_a_full_sort() -> None:
     rng = np.random.default_rng(15)
     for trial in range(200):
