@@ -1019,20 +1019,26 @@ def _replace(pieces: np.ndarray, k: int, sub: np.ndarray, n: int, max_pieces: in
     return ids[1:].tolist()
 
 
-def _fit_pieces(z: np.ndarray, pieces: np.ndarray, ids: list[int], backend: Backend
+def _fit_pieces(z: np.ndarray, pieces: np.ndarray, ids: list[int], backend: Backend,
+                box: tuple[slice, slice] | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean squared errors of quadric and plane, and counts, valid for the pieces ``ids`` only.
 
     :func:`~rangeseg_cli.grow.fit_models` (orders 2 and 1, one sweep) of
     ``pieces`` with the other pieces left out; a region's fit depends only
     on its own pixels (summed in raster order on the same grid), so the fits
-    of ``ids`` are bit for bit those of all pieces fitted together.
+    of ``ids`` are bit for bit those of all pieces fitted together. ``box``,
+    when it holds every pixel of ``ids``, is all that is swept (the fits in
+    the whole array's coordinates: ``origin`` of ``fit_models``).
     """
     n = int(pieces.max())
     keep = np.zeros(n + 1, bool)
     keep[ids] = True
-    ((_, mse), (_, mse_plane)), counts = fit_models(z, np.where(keep[pieces], pieces, 0), n,
-                                                    (2, 1), backend=backend)
+    box = box or (slice(0, pieces.shape[0]), slice(0, pieces.shape[1]))
+    sub = pieces[box]
+    ((_, mse), (_, mse_plane)), counts = fit_models(
+        z[box], np.where(keep[sub], sub, 0), n, (2, 1), backend=backend,
+        origin=(box[0].start, box[1].start))
     return mse, mse_plane, counts
 
 
@@ -1126,7 +1132,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
         if sub is None:
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
-        mse, mse_plane, counts = _fit_pieces(z, pieces, ids, backend)
+        mse, mse_plane, counts = _fit_pieces(z, pieces, ids, backend, box)
         fails = mse > level * level
         if cfg.crease_pieces:
             fails |= mse_plane > level * level

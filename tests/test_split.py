@@ -579,6 +579,14 @@ def test_refitting_the_new_pieces_alone_gives_their_fits_bit_for_bit() -> None:
     assert mse_plane[ids].tobytes() == all_plane[ids].tobytes()
     np.testing.assert_array_equal(counts[ids], all_counts[ids])
     assert counts[1] == 0 and all_counts[1] > 0  # the others are left out
+    box = (slice(20, 60), slice(20, 70))
+    outside = np.ones(pieces.shape, bool)
+    outside[box] = False
+    pieces[outside & np.isin(pieces, ids)] = 0  # the box holds every pixel of 2 and 5
+    boxed = split_module._fit_pieces(z, pieces, ids, "auto", box)
+    whole = split_module._fit_pieces(z, pieces, ids, "auto")
+    for a, b in zip(boxed, whole, strict=True):
+        assert a[ids].tobytes() == b[ids].tobytes()
 
 
 def test_histogram_of_normals_equals_numpys_histogram2d() -> None:
