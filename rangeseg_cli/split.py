@@ -975,14 +975,15 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     flat = (rms <= level) & planar(mse, mse_plane, planar_tolerance, min_error)
     parent = np.arange(n + 1)
     for i, j in adjacent_pairs(pieces):
-        apart = _rms_of_union(z, pieces, i, j) > max(floor, min_gain * max(rms[i], rms[j]))
+        union = _rms_of_union(z, pieces, i, j)
+        apart = union > max(floor, min_gain * max(rms[i], rms[j]))
         if not apart and flat[i] and flat[j]:
             apart = _crease_angle(pieces, planes, i, j) >= min_crease
         elif (not apart and creases is not None and mse_plane[i] <= level * level
               and mse_plane[j] <= level * level):
-            apart = _two_planes(z, pieces, i, j, float(counts[i] * mse_plane[i]
-                                                       + counts[j] * mse_plane[j]),
-                                planes, min_crease, creases)
+            apart = _two_planes(pieces, i, j, float(counts[i] * mse_plane[i]
+                                                    + counts[j] * mse_plane[j]),
+                                union, planes, min_crease, creases)
         if not apart:
             _union(parent, i, j)
     roots = np.array([_root(parent, k) for k in range(n + 1)])
@@ -1071,17 +1072,18 @@ def _crease_gain(noise: float, cfg: SplitConfig, grow: GrowConfig) -> float | No
     return _MIN_GAIN * max(noise * noise, grow.min_error) if cfg.crease_pieces else None
 
 
-def _two_planes(z: np.ndarray, pieces: np.ndarray, i: int, j: int, sse_planes: float,
+def _two_planes(pieces: np.ndarray, i: int, j: int, sse_planes: float, union_rms: float,
                 planes: np.ndarray, min_crease: float, gain: float) -> bool:
     """Whether pieces i, j are two planes at a crease rather than one quadric (beyond the paper).
 
     ``sse_planes`` (each piece's own plane: 6 coefficients in all) is below
-    the sum of squared errors of one quadric of their union (also 6) by
-    ``gain`` per pixel or more, and the planes meet at ``min_crease``
-    degrees or more along the boundary.
+    the sum of squared errors of one quadric of their union (also 6; its RMS
+    error ``union_rms``, :func:`_rms_of_union`) by ``gain`` per pixel or
+    more, and the planes meet at ``min_crease`` degrees or more along the
+    boundary.
     """
     n = int(((pieces == i) | (pieces == j)).sum())
-    return (sse_planes + gain * n <= _rms_of_union(z, pieces, i, j) ** 2 * n
+    return (sse_planes + gain * n <= union_rms ** 2 * n
             and _crease_angle(pieces, planes, i, j) >= min_crease)
 
 
