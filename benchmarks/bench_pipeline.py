@@ -18,8 +18,10 @@ and reports medians of ``--repeats`` runs after one warm-up, as milliseconds
 and as multiples of G. Then the numba compile time (cold cache) and the
 start-up cost with a warm cache, each in a fresh interpreter, and the batch
 throughput of the real CLI, ``rangeseg run DIR -o OUT --jobs N -q``, on a
-folder of 128x128 PNGs (``--jobs 1`` and ``--jobs 2``, I/O and interpreter
-start-up included).
+folder of 128x128 PNGs (``--jobs 1``, ``--jobs 2`` and ``--jobs 1 --threads
+1``, I/O and interpreter start-up included). Stages run with the automatic
+threads of :mod:`rangeseg_cli.parallel` (every core); the ``_1thread``
+columns with one.
 
 Run ``.venv/bin/python benchmarks/bench_pipeline.py`` (or ``make bench``);
 ``--quick`` times 128x128 and 640x480 only, with 5 repeats and 50 batch images.
@@ -45,7 +47,7 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from rangeseg_cli import __version__, io
+from rangeseg_cli import __version__, io, parallel
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.edges import detect_edges
 from rangeseg_cli.grow import grow_regions
@@ -143,8 +145,22 @@ def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
     tasks["run_pipeline_paper"] = lambda: run_pipeline(image, paper)
     norecut = dataclasses.replace(config, split=dataclasses.replace(config.split, recut=False))
     tasks["run_pipeline_norecut"] = lambda: run_pipeline(image, norecut)
+    tasks["run_pipeline_paper_1thread"] = _one_thread(lambda: run_pipeline(image, paper))
+    tasks["run_pipeline_1thread"] = _one_thread(lambda: run_pipeline(image, config))
     tasks["run_pipeline"] = lambda: run_pipeline(image, config)
     return tasks
+
+
+def _one_thread(fn: Callable[[], Any]) -> Callable[[], Any]:
+    """``fn`` with the kernels of one image on one thread (``--threads 1``)."""
+    def run() -> Any:
+        parallel.set_threads(1)
+        try:
+            return fn()
+        finally:
+            parallel.set_threads(None)
+
+    return run
 
 
 def bench_frame(rows: int, cols: int, repeats: int, numpy_edges: bool) -> dict[str, Any]:
@@ -228,12 +244,18 @@ def _cli() -> list[str]:
     return [exe] if exe else [sys.executable, "-c", "from rangeseg_cli.cli import main; main()"]
 
 
-def _walls(folder: Path, out_root: Path, n: int, runs: int) -> float:
-    """Median wall time of ``rangeseg run folder --jobs n -q`` over ``runs`` runs."""
+#: The batch commands timed: name, and the options after ``rangeseg run DIR -o OUT -q``.
+BATCH_RUNS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("jobs1", ("--jobs", "1")), ("jobs2", ("--jobs", "2")),
+    ("jobs1_threads1", ("--jobs", "1", "--threads", "1")))
+
+
+def _walls(folder: Path, out_root: Path, options: tuple[str, ...], runs: int) -> float:
+    """Median wall time of ``rangeseg run folder OPTIONS -q`` over ``runs`` runs."""
     walls = []
     for r in range(runs):
-        out = out_root / f"out-{folder.name}-{n}-{r}"
-        cmd = [*_cli(), "run", str(folder), "-o", str(out), "--jobs", str(n), "-q"]
+        out = out_root / f"out-{folder.name}-{'-'.join(options)}-{r}"
+        cmd = [*_cli(), "run", str(folder), "-o", str(out), *options, "-q"]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, capture_output=True)
         walls.append(time.perf_counter() - t0)
@@ -241,14 +263,17 @@ def _walls(folder: Path, out_root: Path, n: int, runs: int) -> float:
     return float(np.median(walls))
 
 
-def bench_batch(count: int, runs: int, jobs: tuple[int, ...] = (1, 2)) -> dict[str, Any]:
+def bench_batch(count: int, runs: int) -> dict[str, Any]:
     """Images per second of ``rangeseg run DIR -o OUT --jobs N -q`` (median of ``runs``).
 
-    Also the wall time of the same command on the first 2 images (start-up:
-    interpreter, imports, loading the compiled kernels, forking the workers)
-    and the steady throughput without it, ``(count - 2) / (wall - wall_2)``:
-    the start-up is paid once per command, and with ``--jobs 2`` it is not
-    shared, so it caps the wall-time speed-up of a short batch (Amdahl).
+    For each of :data:`BATCH_RUNS`: ``--jobs 1`` (one process, its image's
+    kernels on every core), ``--jobs 2`` (two processes of one thread each on
+    2 cores) and ``--jobs 1 --threads 1``. Also the wall time of the same
+    command on the first 2 images (start-up: interpreter, imports, loading
+    the compiled kernels, forking the workers) and the steady throughput
+    without it, ``(count - 2) / (wall - wall_2)``: the start-up is paid once
+    per command, and with ``--jobs 2`` it is not shared, so it caps the
+    wall-time speed-up of a short batch (Amdahl).
     """
     result: dict[str, Any] = {"images": count, "size": [128, 128], "runs": runs}
     with tempfile.TemporaryDirectory(prefix="rangeseg-bench-") as tmp:
@@ -258,16 +283,16 @@ def bench_batch(count: int, runs: int, jobs: tuple[int, ...] = (1, 2)) -> dict[s
         write_batch(folder, count)
         for name in sorted(p.name for p in folder.iterdir())[:2]:
             shutil.copy(folder / name, two / name)
-        for n in jobs:
-            wall = _walls(folder, Path(tmp), n, runs)
-            start = _walls(two, Path(tmp), n, runs)
-            result[f"jobs{n}"] = {"wall_s": wall, "images_per_s": count / wall,
-                                  "startup_s": start,
-                                  "steady_images_per_s": (count - 2) / max(wall - start, 1e-9)}
-    if all(f"jobs{n}" in result for n in (1, 2)):
-        one, two_ = result["jobs1"], result["jobs2"]
-        result["speedup_jobs2"] = two_["images_per_s"] / one["images_per_s"]
-        result["speedup_jobs2_steady"] = two_["steady_images_per_s"] / one["steady_images_per_s"]
+        for name, options in BATCH_RUNS:
+            wall = _walls(folder, Path(tmp), options, runs)
+            start = _walls(two, Path(tmp), options, runs)
+            result[name] = {"wall_s": wall, "images_per_s": count / wall, "startup_s": start,
+                            "steady_images_per_s": (count - 2) / max(wall - start, 1e-9)}
+    two_ = result["jobs2"]
+    for base, key in (("jobs1", "speedup_jobs2"), ("jobs1_threads1", "speedup_jobs2_vs_1x1")):
+        result[key] = two_["images_per_s"] / result[base]["images_per_s"]
+        result[key + "_steady"] = (two_["steady_images_per_s"]
+                                   / result[base]["steady_images_per_s"])
     return result
 
 
@@ -284,12 +309,14 @@ def machine() -> dict[str, Any]:
         cores = os.cpu_count()
     return {"python": platform.python_version(), "numpy": np.__version__,
             "scipy": scipy.__version__, "numba": numba.__version__, "cores": cores,
+            "threads": parallel.thread_count(),
             "cpu": platform.processor() or platform.machine(), "rangeseg": __version__}
 
 
 COLUMNS = ("to_heights", "edges", "edges_numpy", "noise", "noise_numpy", "link", "grow_regions",
            "describe", "grow_nosplit", "grow", "holdsite", "run_pipeline_nosplit",
-           "run_pipeline_paper", "run_pipeline_norecut", "run_pipeline")
+           "run_pipeline_paper", "run_pipeline_paper_1thread", "run_pipeline_norecut",
+           "run_pipeline_1thread", "run_pipeline")
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -307,7 +334,10 @@ def markdown(report: dict[str, Any]) -> str:
         "`--preset paper` (every step beyond the paper off); "
         "`grow_regions` + `describe` (surface descriptions) = the paper's growth; "
         "`noise` is the noise estimate `run_pipeline` makes (`noise.estimate_noise`), "
-        "`noise_numpy` the same value by its numpy reference.",
+        "`noise_numpy` the same value by its numpy reference. Every task with the "
+        f"automatic threads ({report['machine'].get('threads', '?')} here: row bands of "
+        "the edge passes and plane fits, components and recut candidates at once; "
+        "`rangeseg_cli.parallel`) but the `_1thread` ones (`--threads 1`).",
         "",
         "| frame | G ms | " + " | ".join(COLUMNS) + " | pipeline ms/Mpx |",
         "|---" * (len(COLUMNS) + 3) + "|",
@@ -331,21 +361,22 @@ def markdown(report: dict[str, Any]) -> str:
               f"{c['warm_cache']['import_s']:.2f} s of imports."]
     b = report["batch"]
     if b:
-        lines += ["", f"Batch, `rangeseg run DIR -o OUT --jobs N -q`, {b['images']} PNGs of "
+        lines += ["", f"Batch, `rangeseg run DIR -o OUT OPTIONS -q`, {b['images']} PNGs of "
                   "128x128, wall time incl. start-up and I/O (median of "
                   f"{b['runs']}):", "",
-                  "| jobs | s | images/s | start-up s (2 images) | steady images/s |",
+                  "| options | s | images/s | start-up s (2 images) | steady images/s |",
                   "|---|---|---|---|---|"]
-        for n in (1, 2):
-            if f"jobs{n}" in b:
-                j = b[f"jobs{n}"]
-                lines.append(f"| {n} | {j['wall_s']:.2f} | {j['images_per_s']:.1f} | "
-                             f"{j.get('startup_s', float('nan')):.2f} | "
-                             f"{j.get('steady_images_per_s', float('nan')):.1f} |")
+        for name, options in BATCH_RUNS:
+            if name in b:
+                j = b[name]
+                lines.append(f"| {' '.join(options)} | {j['wall_s']:.2f} | "
+                             f"{j['images_per_s']:.1f} | {j['startup_s']:.2f} | "
+                             f"{j['steady_images_per_s']:.1f} |")
         if "speedup_jobs2" in b:
             lines += ["", f"--jobs 2 / --jobs 1 throughput: {b['speedup_jobs2']:.2f}x "
-                      f"(wall time); {b.get('speedup_jobs2_steady', float('nan')):.2f}x "
-                      "without the start-up."]
+                      f"(wall time); {b['speedup_jobs2_steady']:.2f}x without the start-up. "
+                      f"--jobs 2 / --jobs 1 --threads 1: {b['speedup_jobs2_vs_1x1']:.2f}x "
+                      f"(wall), {b['speedup_jobs2_vs_1x1_steady']:.2f}x (steady)."]
     return "\n".join(lines) + "\n"
 
 
@@ -371,7 +402,8 @@ def main(argv: list[str] | None = None) -> int:
         "frames": frames,
         "scaling_exponent": {t: scaling_exponent(frames, t)
                              for t in ("edges", "run_pipeline_nosplit", "run_pipeline_paper",
-                                       "run_pipeline_norecut", "run_pipeline")},
+                                       "run_pipeline_norecut", "run_pipeline_1thread",
+                                       "run_pipeline")},
         "compile": bench_compile(), "batch": {},
     }
     if not args.no_batch:
