@@ -250,32 +250,32 @@ BATCH_RUNS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("jobs1_threads1", ("--jobs", "1", "--threads", "1")))
 
 
-def _walls(folder: Path, out_root: Path, options: tuple[str, ...], runs: int) -> float:
-    """Median wall time of ``rangeseg run folder OPTIONS -q`` over ``runs`` runs."""
-    walls = []
-    for r in range(runs):
-        out = out_root / f"out-{folder.name}-{'-'.join(options)}-{r}"
-        cmd = [*_cli(), "run", str(folder), "-o", str(out), *options, "-q"]
-        t0 = time.perf_counter()
-        subprocess.run(cmd, check=True, capture_output=True)
-        walls.append(time.perf_counter() - t0)
-        shutil.rmtree(out)
-    return float(np.median(walls))
+def _wall(folder: Path, out: Path, options: tuple[str, ...]) -> float:
+    """Wall time of one ``rangeseg run folder -o out OPTIONS -q``."""
+    cmd = [*_cli(), "run", str(folder), "-o", str(out), *options, "-q"]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, capture_output=True)
+    wall = time.perf_counter() - t0
+    shutil.rmtree(out)
+    return wall
 
 
 def bench_batch(count: int, runs: int) -> dict[str, Any]:
-    """Images per second of ``rangeseg run DIR -o OUT --jobs N -q`` (median of ``runs``).
+    """Images per second of ``rangeseg run DIR -o OUT OPTIONS -q`` (median of ``runs``).
 
     For each of :data:`BATCH_RUNS`: ``--jobs 1`` (one process, its image's
     kernels on every core), ``--jobs 2`` (two processes of one thread each on
-    2 cores) and ``--jobs 1 --threads 1``. Also the wall time of the same
-    command on the first 2 images (start-up: interpreter, imports, loading
-    the compiled kernels, forking the workers) and the steady throughput
-    without it, ``(count - 2) / (wall - wall_2)``: the start-up is paid once
-    per command, and with ``--jobs 2`` it is not shared, so it caps the
-    wall-time speed-up of a short batch (Amdahl).
+    2 cores) and ``--jobs 1 --threads 1``, the runs interleaved so that load
+    on the machine hits all alike. Also the wall time of the same command on
+    the first 2 images (start-up: interpreter, imports, loading the compiled
+    kernels, forking the workers) and the steady throughput without it,
+    ``(count - 2) / (wall - wall_2)``: the start-up is paid once per command,
+    and with ``--jobs 2`` it is not shared, so it caps the wall-time speed-up
+    of a short batch (Amdahl).
     """
     result: dict[str, Any] = {"images": count, "size": [128, 128], "runs": runs}
+    walls: dict[str, list[float]] = {name: [] for name, _ in BATCH_RUNS}
+    starts: dict[str, list[float]] = {name: [] for name, _ in BATCH_RUNS}
     with tempfile.TemporaryDirectory(prefix="rangeseg-bench-") as tmp:
         folder, two = Path(tmp) / "in", Path(tmp) / "two"
         folder.mkdir()
@@ -283,11 +283,14 @@ def bench_batch(count: int, runs: int) -> dict[str, Any]:
         write_batch(folder, count)
         for name in sorted(p.name for p in folder.iterdir())[:2]:
             shutil.copy(folder / name, two / name)
-        for name, options in BATCH_RUNS:
-            wall = _walls(folder, Path(tmp), options, runs)
-            start = _walls(two, Path(tmp), options, runs)
-            result[name] = {"wall_s": wall, "images_per_s": count / wall, "startup_s": start,
-                            "steady_images_per_s": (count - 2) / max(wall - start, 1e-9)}
+        for _ in range(runs):
+            for name, options in BATCH_RUNS:
+                walls[name].append(_wall(folder, Path(tmp) / "out", options))
+                starts[name].append(_wall(two, Path(tmp) / "out", options))
+    for name, _ in BATCH_RUNS:
+        wall, start = float(np.median(walls[name])), float(np.median(starts[name]))
+        result[name] = {"wall_s": wall, "images_per_s": count / wall, "startup_s": start,
+                        "steady_images_per_s": (count - 2) / max(wall - start, 1e-9)}
     two_ = result["jobs2"]
     for base, key in (("jobs1", "speedup_jobs2"), ("jobs1_threads1", "speedup_jobs2_vs_1x1")):
         result[key] = two_["images_per_s"] / result[base]["images_per_s"]
