@@ -164,20 +164,51 @@ def map_tasks(run: Callable[[T], R], items: Sequence[T], cost: Sequence[float] |
 
     For independent pieces of one image (the components the split divides).
     With more than one thread (:func:`thread_count`) and item, and a total
-    ``cost`` (pixels) of :data:`MIN_TASKS_COST` or more, the items go to the
-    process-wide pool, the costliest first so that a large one does not
-    start last; inside the tasks the kernels run on one thread each. The
-    results come back in the order of ``items``. Small work stays in this
-    thread: the tasks' Python code takes turns on the GIL, and on many
-    small tasks the turns cost more than the second core gives.
+    ``cost`` (pixels) of :data:`MIN_TASKS_COST` or more, the items are
+    taken in order of cost: the pool's threads take the costliest first,
+    this thread the cheapest first, until they meet (a large item starts at
+    once, and this thread's GIL-bound small ones overlap with it). Inside
+    the tasks the kernels run on one thread each. The results come back in
+    the order of ``items``. Small work stays in this thread: the tasks'
+    Python code takes turns on the GIL, and on many small tasks the turns
+    cost more than the second core gives.
     """
     threads = min(thread_count(), len(items))
     if threads <= 1 or cost is None or sum(cost) < MIN_TASKS_COST:
         return [run(item) for item in items]
-    order = sorted(range(len(items)), key=lambda i: -(cost[i] if cost is not None else 0.0))
-    pool = _executor(threads)
-    futures = {i: pool.submit(_as_task, run, items[i]) for i in order}
-    return [futures[i].result() for i in range(len(items))]
+    queue = _Ends(sorted(range(len(items)), key=lambda i: -cost[i]))
+    results: list[Any] = [None] * len(items)
+
+    def work(costliest_first: bool) -> None:
+        while (i := queue.take(costliest_first)) is not None:
+            results[i] = run(items[i])
+
+    pool = _executor(threads - 1)
+    futures = [pool.submit(_as_task, work, True) for _ in range(threads - 1)]
+    try:
+        _as_task(work, False)
+    finally:
+        for future in futures:
+            future.result()
+    return results
+
+
+class _Ends:
+    """Indices taken from either end of a list, each once, under a lock."""
+
+    def __init__(self, order: list[int]) -> None:
+        self._order, self._lo, self._hi = order, 0, len(order)
+        self._lock = threading.Lock()
+
+    def take(self, first: bool) -> int | None:
+        with self._lock:
+            if self._lo >= self._hi:
+                return None
+            if first:
+                self._lo += 1
+                return self._order[self._lo - 1]
+            self._hi -= 1
+            return self._order[self._hi]
 
 
 def _as_task(run: Callable[[T], R], item: T) -> R:

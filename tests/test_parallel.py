@@ -160,20 +160,43 @@ def test_tasks_come_back_in_order_and_run_their_kernels_on_one_thread(tiny_bands
     assert parallel.thread_count() == 2  # this thread is not a task
 
 
-def test_the_costliest_task_is_handed_out_first(tiny_bands, monkeypatch) -> None:
-    submitted = []
+def test_the_pool_takes_the_costliest_tasks_first_and_this_thread_the_cheapest(
+        tiny_bands, monkeypatch) -> None:
+    calls = []
 
-    class Recorder:
+    class Inline:  # runs a submitted worker at once: it drains the queue, costliest first
         def submit(self, fn, *args):
-            submitted.append(args[-1])
             future = Future()
             future.set_result(fn(*args))
             return future
 
-    monkeypatch.setattr(parallel, "_executor", lambda workers: Recorder())
+    monkeypatch.setattr(parallel, "_executor", lambda workers: Inline())
     parallel.set_threads(2)
-    assert parallel.map_tasks(str, [1, 2, 3, 4], cost=[1.0, 2.0, 5.0, 1.0]) == list("1234")
-    assert submitted == [3, 2, 1, 4]
+    out = parallel.map_tasks(lambda item: calls.append(item) or str(item), [1, 2, 3, 4],
+                             cost=[1.0, 2.0, 5.0, 0.5])
+    assert out == list("1234") and calls == [3, 2, 1, 4]
+    ends = parallel._Ends([7, 8, 9])
+    assert [ends.take(False), ends.take(True), ends.take(False), ends.take(True)] == \
+        [9, 7, 8, None]
+
+
+def test_many_tasks_on_real_threads_come_back_complete(tiny_bands) -> None:
+    parallel.set_threads(3)
+    items = list(range(200))
+    out = parallel.map_tasks(lambda i: i * i, items, cost=[float(i % 7) for i in items])
+    assert out == [i * i for i in items]
+
+
+def test_a_task_error_is_raised_to_the_caller(tiny_bands) -> None:
+    parallel.set_threads(2)
+
+    def run(i):
+        if i == 5:
+            raise RuntimeError("task 5")
+        return i
+
+    with pytest.raises(RuntimeError, match="task 5"):
+        parallel.map_tasks(run, list(range(10)), cost=[1.0] * 10)
 
 
 def test_small_task_lists_stay_in_this_thread(monkeypatch) -> None:
