@@ -104,10 +104,11 @@ def test_pipeline_labels_do_not_depend_on_the_threads(tiny_bands) -> None:
 
 
 def test_row_bands_cover_every_row_once_and_read_their_margin() -> None:
-    bands = parallel.row_bands(100, 300, 5, count=3)
+    bands = parallel.row_bands(100, 3000, 5, count=3)
     assert [b[:2] for b in bands] == [(0, 33), (33, 67), (67, 100)]
     assert [b[2:] for b in bands] == [(0, 38), (28, 72), (62, 100)]
     assert parallel.row_bands(40, 40, 5, count=4) == [(0, 40, 0, 40)]  # too small to divide
+    assert len(parallel.row_bands(128, 128, 5, count=2)) == 1  # not worth a thread
     assert len(parallel.row_bands(10_000, 10_000, 5, count=64)) == 64
 
 
