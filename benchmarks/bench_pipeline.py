@@ -339,7 +339,7 @@ def markdown(report: dict[str, Any]) -> str:
         "`noise` is the noise estimate `run_pipeline` makes (`noise.estimate_noise`), "
         "`noise_numpy` the same value by its numpy reference. Every task with the "
         f"automatic threads ({report['machine'].get('threads', '?')} here: row bands of "
-        "the edge passes and plane fits, components and recut candidates at once; "
+        "the edge passes and the split's plane fits, the split's components at once; "
         "`rangeseg_cli.parallel`) but the `_1thread` ones (`--threads 1`).",
         "",
         "| frame | G ms | " + " | ".join(COLUMNS) + " | pipeline ms/Mpx |",
