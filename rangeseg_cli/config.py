@@ -125,6 +125,12 @@ class SplitConfig:
     min_gain: float = _opt(1.5, "two pieces stay apart when one quadric fits their "
                            "union this many times worse (RMS) than their own quadrics",
                            min=1.0)
+    min_excess: float = _opt(0.0, "two pieces also stay apart when one quadric of their union "
+                             "leaves more squared error per pixel than their own quadrics by "
+                             "this many times the fit test's level squared (fit_factor x "
+                             "noise)^2, as when a small piece's few stray pixels raise its own "
+                             "RMS; 0 = off (the default: it needs a noise estimate that holds, "
+                             "8 suits the synthetic scenes)", min=0.0)
     min_crease: float = _opt(10.0, "two planar pieces that pass the fit test also stay apart "
                              "when their planes meet at this angle in degrees or more",
                              min=0.0, max=90.0)

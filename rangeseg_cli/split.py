@@ -918,7 +918,8 @@ def _normals(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
 
 def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
                min_gain: float, min_crease: float, planar_tolerance: float,
-               min_error: float, creases: float | None = None) -> np.ndarray:
+               min_error: float, creases: float | None = None, excess: float | None = None
+               ) -> np.ndarray:
     """Merge neighbouring pieces that are one surface after all.
 
     Two neighbouring pieces i, j stay apart when one quadric fits their
@@ -929,10 +930,12 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     approximately) fits about as badly whole as in pieces -- or, when both
     are planes that pass the fit test (so their fits are trustworthy and a
     crease between them well defined), when the planes meet at a median
-    angle of ``min_crease`` degrees or more along the boundary. Otherwise
-    they are merged. A piece is a plane when its quadric lowers the plane's
-    mean squared error by at most ``planar_tolerance`` of it (floored at
-    ``min_error``), as in :func:`~rangeseg_cli.surfaces.describe_surfaces`.
+    angle of ``min_crease`` degrees or more along the boundary, or (with
+    ``excess``) when the union's quadric leaves much more error than the
+    pieces' own. Otherwise they are merged. A piece is a plane when its
+    quadric lowers the plane's mean squared error by at most
+    ``planar_tolerance`` of it (floored at ``min_error``), as in
+    :func:`~rangeseg_cli.surfaces.describe_surfaces`.
 
     Parameters
     ----------
@@ -961,6 +964,15 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
         (at noise sigma 2 a quadric lowers a small face's error by more
         than ``planar_tolerance`` when it holds a few pixels of its
         neighbour). None: the rule is off.
+    excess
+        With ``split.min_excess`` (beyond the paper), squared depth units per
+        pixel: two pieces also stay apart when one quadric of their union
+        leaves more than this per pixel beyond the sum of their own quadrics'
+        squared errors. The RMS rule compares the union with the worse of
+        the two pieces; a small piece holding a few pixels of its neighbour
+        (a ramp's piece beside the floor it rises from) has a high RMS of
+        its own, and the union's far larger error then passes as "about as
+        bad". A curved surface cut in two leaves little excess. None: off.
 
     Returns
     -------
@@ -977,6 +989,10 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     for i, j in adjacent_pairs(pieces):
         union = _rms_of_union(z, pieces, i, j)
         apart = union > max(floor, min_gain * max(rms[i], rms[j]))
+        if not apart and excess is not None:
+            both = counts[i] + counts[j]
+            own = counts[i] * mse[i] + counts[j] * mse[j]
+            apart = union * union * both - own > excess * both
         if not apart and flat[i] and flat[j]:
             apart = _crease_angle(pieces, planes, i, j) >= min_crease
         elif (not apart and creases is not None and mse_plane[i] <= level * level
@@ -1143,7 +1159,8 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
                       floor=math.sqrt(grow.error_factor * grow.min_error),
                       min_gain=cfg.min_gain, min_crease=cfg.min_crease,
                       planar_tolerance=grow.planar_tolerance, min_error=grow.min_error,
-                      creases=_crease_gain(noise, cfg, grow))
+                      creases=_crease_gain(noise, cfg, grow),
+                      excess=cfg.min_excess * level * level if cfg.min_excess > 0 else None)
 
 
 def _area(box: tuple[slice, slice]) -> int:

@@ -216,6 +216,50 @@ def test_merge_back_joins_two_halves_of_one_plane_and_keeps_a_crease() -> None:
     assert merge_back(z, halves, **rules).max() == 2
 
 
+def test_merge_back_keeps_a_ramp_apart_whose_piece_holds_stray_floor_pixels() -> None:
+    """A ramp rising from a floor, its piece with a column of the floor beyond its top.
+
+    The stray column raises the ramp piece's own RMS error (2.7) above two
+    thirds of the union's (2.8), so the RMS rule merges the two; the union's
+    quadric leaves 6 squared units per pixel more than the pieces' own, over
+    the 3.1 of ``excess`` = 8 x level^2: they stay apart. Two halves of one
+    plane and a parabolic cylinder cut in two stay merged with the rule on.
+    """
+    rules = {"level": 0.625, "floor": 1.58, "min_gain": 1.5, "min_crease": 10.0,
+             "planar_tolerance": 0.1, "min_error": 0.25}
+    excess = 8.0 * 0.625**2
+    y, x = np.mgrid[0:40, 0:40].astype(np.float64)
+    ramp = (y >= 8) & (y < 32) & (x >= 12) & (x < 26)
+    z = np.round(30.0 + 0.1 * y + np.where(ramp, x - 12.0, 0.0))
+    pieces = np.where(ramp, 2, 1).astype(np.int32)
+    pieces[8:32, 26] = 2  # floor pixels just past the ramp's top
+    assert merge_back(z, pieces, **rules).max() == 1
+    assert merge_back(z, pieces, **rules, excess=excess).max() == 2
+    halves = np.where(x < 20, 1, 2).astype(np.int32)
+    assert merge_back(np.round(30.0 + 0.3 * x + 0.2 * y), halves, **rules,
+                      excess=excess).max() == 1
+    cylinder = np.round(50.0 + 0.2 * y + 20.0 * (x / 40.0) ** 2)
+    assert merge_back(cylinder, halves, **rules, excess=excess).max() == 1
+
+
+def test_min_excess_is_off_by_default_and_reaches_merge_back(monkeypatch) -> None:
+    seen = []
+    real = split_module.merge_back
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["excess"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(split_module, "merge_back", spy)
+    z, _ = crease_scene(change=1.0)
+    mask = np.ones(z.shape, bool)
+    for value in (0.0, 8.0):
+        cfg = load_config(overrides={"split": {"min_excess": value}})
+        split_module.split_component(z, mask, noise=1.0, cfg=cfg.split, grow=cfg.grow)
+    assert load_config().split.min_excess == 0.0
+    assert seen[0] is None and seen[1] == pytest.approx(8.0 * 1.25**2)
+
+
 def test_max_pieces_bounds_the_split() -> None:
     z, _ = frustum_scene()
     config = load_config(overrides={"split": {"max_pieces": 2}})
