@@ -65,7 +65,15 @@ from scipy import ndimage
 
 from .config import Config, GrowConfig, SplitConfig
 from .edges import Backend, select_kernels
-from .grow import Fits, fit_models, fit_quadrics, grow_regions, planar
+from .grow import (
+    Fits,
+    fit_models,
+    fit_quadrics,
+    grow_regions,
+    planar,
+    region_fits,
+    union_quadric_mse,
+)
 from .link import FOUR_CONNECTED
 from .noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
 from .parallel import map_bands, map_tasks, row_bands
@@ -884,14 +892,6 @@ def adjacent_pairs(pieces: np.ndarray, reach: int = 2, *, backend: Backend = "au
     return [(int(k // big), int(k % big)) for k in uniq]
 
 
-def _rms_of_union(z: np.ndarray, pieces: np.ndarray, i: int, j: int) -> float:
-    """RMS error of one quadric fitted to pieces i and j together."""
-    both = (pieces == i) | (pieces == j)
-    box = _crop(both, 0)
-    _, mse, _ = fit_quadrics(z[box], both[box].astype(np.int32), 1)
-    return math.sqrt(max(float(mse[1]), 0.0))
-
-
 def _crease_angle(pieces: np.ndarray, coeffs: np.ndarray, i: int, j: int) -> float:
     """Median angle in degrees between the fits of pieces i and j along their boundary."""
     square = np.ones((3, 3), bool)
@@ -982,12 +982,14 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     n = int(pieces.max(initial=0))
     if n < 2:
         return pieces
-    ((_, mse), (planes, mse_plane)), counts = fit_models(z, pieces, n, (2, 1))
+    fitted = region_fits(z, pieces, n, (2, 1))
+    ((_, mse), (planes, mse_plane)), counts = fitted.fits, fitted.counts
+    squares = _sums_of_squares(z, pieces, n)
     rms = np.sqrt(np.maximum(mse, 0.0))
     flat = (rms <= level) & planar(mse, mse_plane, planar_tolerance, min_error)
     parent = np.arange(n + 1)
     for i, j in adjacent_pairs(pieces):
-        union = _rms_of_union(z, pieces, i, j)
+        union = math.sqrt(union_quadric_mse(fitted.moments, squares, i, j))
         apart = union > max(floor, min_gain * max(rms[i], rms[j]))
         if not apart and excess is not None:
             both = counts[i] + counts[j]
@@ -1005,6 +1007,12 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     roots = np.array([_root(parent, k) for k in range(n + 1)])
     _, dense = np.unique(roots, return_inverse=True)
     return dense.astype(np.int32)[pieces]
+
+
+def _sums_of_squares(z: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """float64 (n+1,) sum of squared heights of each label's finite pixels."""
+    keep = (labels > 0) & np.isfinite(z)
+    return np.bincount(labels[keep], z[keep] ** 2, minlength=n + 1)
 
 
 def _union(parent: np.ndarray, i: int, j: int) -> None:
@@ -1093,8 +1101,9 @@ def _two_planes(pieces: np.ndarray, i: int, j: int, sse_planes: float, union_rms
     """Whether pieces i, j are two planes at a crease rather than one quadric (beyond the paper).
 
     ``sse_planes`` (each piece's own plane: 6 coefficients in all) is below
-    the sum of squared errors of one quadric of their union (also 6; its RMS
-    error ``union_rms``, :func:`_rms_of_union`) by ``gain`` per pixel or
+    the sum of squared errors of one quadric of their union (also 6; its
+    RMS error ``union_rms``, from
+    :func:`~rangeseg_cli.grow.union_quadric_mse`) by ``gain`` per pixel or
     more, and the planes meet at ``min_crease`` degrees or more along the
     boundary.
     """

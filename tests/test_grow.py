@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rangeseg_cli.config import GrowConfig
-from rangeseg_cli.grow import fit_quadrics, grow_regions
+from rangeseg_cli.grow import fit_quadrics, grow_regions, region_fits, union_quadric_mse
 from rangeseg_cli.pipeline import run_pipeline
 
 N = 128
@@ -117,6 +117,30 @@ def test_fit_quadrics_falls_back_to_plane_and_constant() -> None:
     np.testing.assert_allclose(coeffs[2], [10.0, 0.5, -0.25, 0, 0, 0], atol=1e-9)
     assert _quadric(coeffs[1], 20.0, 30.0) == pytest.approx(plane[20, 30])
     np.testing.assert_allclose(coeffs[3], [plane[100, 100], 0, 0, 0, 0, 0], atol=1e-9)
+
+
+def test_the_union_fit_from_moments_is_the_fit_of_the_union_pixels() -> None:
+    # Two regions side by side (a step, a crease, curvature, noise, holes, NaNs):
+    # one quadric of both from their moment sums equals the direct fit to 1e-8.
+    rng = np.random.default_rng(0)
+    for trial in range(120):
+        h, w = (int(v) for v in rng.integers(20, 100, 2))
+        y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+        z = (50.0 + rng.normal(0.0, 3.0) * x / w * 10.0 + 0.02 * rng.normal() * (x - w / 2) ** 2
+             + 0.01 * rng.normal() * x * y + rng.normal(0.0, rng.uniform(0.0, 2.0), (h, w))
+             + np.where(x > w * rng.uniform(0.3, 0.7), rng.uniform(0.0, 20.0), 0.0))
+        if trial % 4 == 0:
+            z = np.round(z)  # 8-bit steps, noise-free: the smallest errors
+        labels = np.where(x < int(w * rng.uniform(0.2, 0.8)), 1, 2).astype(np.int32)
+        labels[rng.random((h, w)) < 0.05] = 0
+        if trial % 3 == 0:
+            z[rng.random((h, w)) < 0.02] = np.nan
+        fits = region_fits(z, labels, 2, (2,))
+        keep = np.isfinite(z) & (labels > 0)
+        squares = np.bincount(labels[keep], z[keep] ** 2, minlength=3)
+        got = union_quadric_mse(fits.moments, squares, 1, 2)
+        _, mse, _ = fit_quadrics(z, (labels > 0).astype(np.int32), 1)
+        assert got == pytest.approx(float(mse[1]), rel=1e-8, abs=1e-9)
 
 
 def test_fit_quadrics_leaves_out_nan_pixels() -> None:
