@@ -450,6 +450,38 @@ requires_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
 
 
 @requires_numba
+def test_far_nearest_label_search_breaks_ties_as_the_feature_transform_does() -> None:
+    # The compiled search's wide radius: sparse labels (pixels up to 16 away) and labels
+    # on a grid (many equally near ones), against scipy's feature transform.
+    from scipy import ndimage
+
+    from rangeseg_cli import _kernels
+
+    rng = np.random.default_rng(31)
+    dr, dc = split_module._FAR_OFFSETS
+    for trial in range(200):
+        h, w = (int(v) for v in rng.integers(5, 60, size=2))
+        parts = np.where(rng.random((h, w)) < rng.choice([0.003, 0.02, 0.1]),
+                         rng.integers(1, 6, (h, w)), 0).astype(np.int32)
+        if trial % 4 == 0:
+            parts[:] = 0
+            step = int(rng.integers(3, 12))
+            parts[::step, ::step] = rng.integers(1, 6, parts[::step, ::step].shape)
+        if not parts.any():
+            continue
+        rows, cols = np.nonzero(parts == 0)
+        found = _kernels.nearest_labels(parts, rows.astype(np.int64), cols.astype(np.int64),
+                                        dr, dc)
+        ir, ic = ndimage.distance_transform_edt(parts == 0, return_distances=False,
+                                                return_indices=True)
+        hit = found > 0
+        np.testing.assert_array_equal(found[hit], parts[ir[rows, cols], ic[rows, cols]][hit])
+        filled = split_module._fill_nearest(parts, np.ones(parts.shape, bool), "numba")
+        np.testing.assert_array_equal(filled, split_module._fill_nearest(
+            parts, np.ones(parts.shape, bool), "numpy"))
+
+
+@requires_numba
 def test_local_planes_numba_equal_the_scipy_blurs_bit_for_bit() -> None:
     rng = np.random.default_rng(5)
     for sigma in (1.0, 2.0, 4.0):
