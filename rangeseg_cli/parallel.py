@@ -1,12 +1,15 @@
-"""Threads within one image: row bands of a compiled kernel computed at once.
+"""Threads within one image: row bands of a kernel, and independent pieces, at once.
 
 Beyond the paper (an implementation matter). The compiled kernels release
 the GIL (``nogil``), so Python threads run them on several cores. A kernel
 whose output row depends only on the input rows within a fixed reach of it
 (the AR of Sec. V-1, V-2 and its maxima; the Gaussian-weighted plane fits of
-the split) is run on horizontal bands of the image, each band with
-``margin`` extra rows either side, and each band keeps its own rows: the
-same values bit for bit as one call on the whole image.
+the split) is run on horizontal bands of the image (:func:`map_bands`), each
+band with ``margin`` extra rows either side, and each band keeps its own
+rows: the same values bit for bit as one call on the whole image. Pieces of
+work that do not depend on each other (the components the split divides)
+are shared among the threads (:func:`map_tasks`) and their results used in
+their order: the same result as one after the other.
 
 How many threads (:func:`thread_count`): :func:`set_threads` (or the
 environment variable ``RANGESEG_THREADS``); unset, every core this process
@@ -235,7 +238,7 @@ def _executor(workers: int) -> ThreadPoolExecutor:
 
 @functools.cache
 def _blas_controller() -> Any:
-    """The loaded BLAS libraries, as threadpoolctl sees libraries (made once: about 1 ms)."""
+    """Controller of the loaded BLAS libraries (threadpoolctl; made once, about 1 ms)."""
     from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()
