@@ -1396,36 +1396,6 @@ def label_extremes(a: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]: 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _whole_row(ok: np.ndarray, r: int, axis: int, half: int, out: np.ndarray
-               ) -> int:  # pragma: no cover - compiled
-    """Flag the pixels of row ``r`` whose whole mask along ``axis`` is valid; their number.
-
-    As ``scipy.ndimage.minimum_filter1d`` of the validity ``ok`` (uint8) with
-    ``mode="constant"`` (0 outside the image).
-    """
-    height, width = ok.shape
-    out[:] = 0
-    if axis == 0:
-        if r < half or r >= height - half:
-            return 0
-        out[:] = 1
-        for k in range(-half, half + 1):
-            src = ok[r + k]
-            for c in range(width):
-                out[c] &= src[c]
-    else:
-        run = 0
-        for c in range(width):
-            run = run + 1 if ok[r, c] else 0
-            if run > 2 * half:
-                out[c - half] = 1
-    count = 0
-    for c in range(width):
-        count += out[c]
-    return count
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
 def _symmetric_residual(z: np.ndarray, r: int, c0: int, dy: int, dx: int, w: np.ndarray,
                         out: np.ndarray) -> None:  # pragma: no cover - compiled
     """|correlate1d - z| along (dy, dx) at (r, c0 ..), summed as scipy sums a symmetric mask.
@@ -1492,28 +1462,60 @@ def noise_residuals(z: np.ndarray, w: np.ndarray, max_samples: int
     """
     height, width = z.shape
     half = w.shape[0] // 2
-    ok = np.empty((height, width), dtype=np.uint8)
-    for r in range(height):
-        for c in range(width):
-            ok[r, c] = np.isfinite(z[r, c])
-    whole = np.empty(width, dtype=np.uint8)
-    total = 0
-    for axis in range(2):
-        for r in range(height):
-            total += _whole_row(ok, r, axis, half, whole)
+    whole, counts = _whole_masks(z, half)
+    total = counts.sum()
     step = total // max_samples if total > max_samples else 1
     out = np.empty((total + step - 1) // step)
     ar = np.empty(width)
     i = j = 0  # whole pixels seen; values kept
     for axis in range(2):
         for r in range(height):
-            count = _whole_row(ok, r, axis, half, whole)
+            count = counts[axis, r]
             if i + count > j * step:  # a kept value in this row
                 _residual_row(z, r, axis, w, ar)
-                i, j = _take_kept(whole, ar, i, j, step, out)
+                i, j = _take_kept(whole[axis, r], ar, i, j, step, out)
             else:
                 i += count
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _whole_masks(z: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which pixels' masks along each axis are whole (valid), per row, and their counts.
+
+    uint8 (2, H, W) flags, as ``scipy.ndimage.minimum_filter1d`` of the
+    validity (``mode="constant"``: 0 outside the image) along axis 0 and 1
+    of ``2 half + 1`` taps; int64 (2, H) their number per row. Axis 0 from
+    the run of valid pixels down each column (a pixel's mask is whole when
+    the run at its last row is that long), axis 1 from the run along the
+    row; one sweep for both.
+    """
+    height, width = z.shape
+    whole = np.zeros((2, height, width), dtype=np.uint8)
+    counts = np.zeros((2, height), dtype=np.int64)
+    run = np.zeros(width, dtype=np.int64)
+    ok = np.empty(width, dtype=np.uint8)
+    for r in range(height):
+        for c in range(width):
+            ok[c] = np.isfinite(z[r, c])
+            run[c] = run[c] + 1 if ok[c] else 0
+        q = r - half  # the row whose axis-0 mask ends at row r
+        if half <= q < height - half:
+            n = 0
+            for c in range(width):
+                flag = run[c] > 2 * half
+                whole[0, q, c] = flag
+                n += flag
+            counts[0, q] = n
+        length = 0
+        n = 0
+        for c in range(width):
+            length = length + 1 if ok[c] else 0
+            if length > 2 * half:
+                whole[1, r, c - half] = 1
+                n += 1
+        counts[1, r] = n
+    return whole, counts
 
 
 #: Bits per digit of the radix sort of :func:`smallest_sorted`.

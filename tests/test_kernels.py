@@ -213,6 +213,15 @@ def test_compiled_noise_estimate_is_the_numpy_one_bit_for_bit():
     scenes = [io.read_image(p).astype(np.float64) for p in SAMPLES[:4]]
     scenes += [random_boxes(200, 260, seed=1, noise=n, holes=0.02) for n in (0.0, 0.5, 2.0)]
     scenes += [np.full((20, 20), 7.0), np.zeros((4, 4))]
+    rng = np.random.default_rng(4)  # masks cut by invalid pixels along both axes
+    for shape in ((3, 40), (40, 3), (9, 9), (60, 45)):
+        z = rng.normal(20.0, 1.5, shape)
+        z[rng.random(shape) < 0.15] = np.nan
+        scenes.append(z)
+    stripes = rng.normal(20.0, 1.0, (50, 50))
+    stripes[:, ::7] = np.nan
+    stripes[::5, :] = np.nan
+    scenes.append(stripes)
     for z in scenes:
         assert repr(estimate_noise(z, backend="numba")) == repr(estimate_noise(z, backend="numpy"))
 
