@@ -353,8 +353,8 @@ def union_quadric_mse(moments: RegionMoments, squares: np.ndarray, i: int, j: in
         :class:`RegionMoments` of a label image holding regions i and j
         (``region_fits(...).moments``).
     squares
-        float64 (n+1,) sum of squared heights per region (``np.bincount`` of
-        ``z**2`` over the labelled finite pixels).
+        float64 (n+1,) sum of squared heights per region
+        (:func:`sums_of_squares`).
     i, j
         Two distinct regions with pixels.
 
@@ -383,6 +383,15 @@ def union_quadric_mse(moments: RegionMoments, squares: np.ndarray, i: int, j: in
     coef = _solve_cascade((mat / total)[None], (vec / total)[None], np.array([total]), 2)[0]
     sse = squares[i] + squares[j] - 2.0 * float(coef @ vec) + float(coef @ mat @ coef)
     return max(sse / total, 0.0)
+
+
+def sums_of_squares(z: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """Sum of squared heights of each label's finite pixels, float64 (n+1,).
+
+    The ``squares`` of :func:`union_quadric_mse`.
+    """
+    keep = (labels > 0) & np.isfinite(z)
+    return np.bincount(labels[keep], z[keep] ** 2, minlength=n + 1)
 
 
 def _affine_powers(a: float, b: float) -> np.ndarray:

@@ -72,6 +72,7 @@ from .grow import (
     grow_regions,
     planar,
     region_fits,
+    sums_of_squares,
     union_quadric_mse,
 )
 from .link import FOUR_CONNECTED
@@ -993,7 +994,7 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
         return pieces
     fitted = region_fits(z, pieces, n, (2, 1))
     ((_, mse), (planes, mse_plane)), counts = fitted.fits, fitted.counts
-    squares = _sums_of_squares(z, pieces, n)
+    squares = sums_of_squares(z, pieces, n)
     rms = np.sqrt(np.maximum(mse, 0.0))
     flat = (rms <= level) & planar(mse, mse_plane, planar_tolerance, min_error)
     parent = np.arange(n + 1)
@@ -1016,12 +1017,6 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     roots = np.array([_root(parent, k) for k in range(n + 1)])
     _, dense = np.unique(roots, return_inverse=True)
     return dense.astype(np.int32)[pieces]
-
-
-def _sums_of_squares(z: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
-    """float64 (n+1,) sum of squared heights of each label's finite pixels."""
-    keep = (labels > 0) & np.isfinite(z)
-    return np.bincount(labels[keep], z[keep] ** 2, minlength=n + 1)
 
 
 def _union(parent: np.ndarray, i: int, j: int) -> None:
