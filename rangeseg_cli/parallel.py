@@ -29,8 +29,15 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import mmap
+import multiprocessing
 import os
+import pickle
+import signal
+import struct
+import sys
 import threading
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, TypeVar
@@ -47,6 +54,14 @@ MIN_BAND_PIXELS = 32768
 #: Least total cost (pixels) of :func:`map_tasks`' items to share them among threads
 #: (measured: 128x128 frames got slower with their components on two threads).
 MIN_TASKS_COST = 65536
+
+#: Fewest items :func:`map_tasks` gives to processes rather than threads. Measured (2
+#: cores): the SR300 frame's split rounds (71, 100 components) and recut (379
+#: candidates) took 336 / 394 / 363 ms in one thread, 259 / 333 / 336 on two threads,
+#: 204 / 219 / 203 in two processes; a 640x480 pile's split (6 components, the bin's
+#: floor 2/3 of the work) 161 ms, 120 and 146 (a fork of this 200 MB process costs
+#: about 9 ms, and the floor's kernels release the GIL).
+MIN_PROCESS_ITEMS = 24
 
 _requested: int | None = None
 _inside = threading.local()  # .task: this thread runs a task of map_tasks
@@ -164,22 +179,27 @@ def map_bands(run: Callable[[int, int, int, int], None], height: int, width: int
 
 def map_tasks(run: Callable[[T], R], items: Sequence[T], cost: Sequence[float] | None = None
               ) -> list[R]:
-    """``[run(item) for item in items]``, the items shared among the threads.
+    """``[run(item) for item in items]``, the items shared among threads or processes.
 
-    For independent pieces of one image (the components the split divides).
-    With more than one thread (:func:`thread_count`) and item, and a total
-    ``cost`` (pixels) of :data:`MIN_TASKS_COST` or more, the items are
-    taken in order of cost: the pool's threads take the costliest first,
-    this thread the cheapest first, until they meet (a large item starts at
-    once, and this thread's GIL-bound small ones overlap with it). Inside
-    the tasks the kernels run on one thread each. The results come back in
-    the order of ``items``. Small work stays in this thread: the tasks'
-    Python code takes turns on the GIL, and on many small tasks the turns
-    cost more than the second core gives.
+    For independent pieces of one image (the components the split divides,
+    the recut's candidates). With more than one thread (:func:`thread_count`)
+    and item, and a total ``cost`` (pixels) of :data:`MIN_TASKS_COST` or
+    more, the items are taken in order of cost: the others take the
+    costliest first, this thread the cheapest first, until they meet (a
+    large item starts at once). Inside the tasks the kernels run on one
+    thread each. The results come back in the order of ``items``.
+
+    A few items share this process's threads: their time goes mostly to
+    compiled kernels, which release the GIL. :data:`MIN_PROCESS_ITEMS` or
+    more go to forked processes (:func:`map_processes`; the results must
+    pickle): many small items are mostly Python, whose turns on the GIL
+    would leave the second core idle. Small work stays in this thread.
     """
     threads = min(thread_count(), len(items))
     if threads <= 1 or cost is None or sum(cost) < MIN_TASKS_COST:
         return [run(item) for item in items]
+    if len(items) >= MIN_PROCESS_ITEMS and _can_fork():
+        return map_processes(run, items, cost)
     queue = _Ends(sorted(range(len(items)), key=lambda i: -cost[i]))
     results: list[Any] = [None] * len(items)
 
@@ -195,6 +215,123 @@ def map_tasks(run: Callable[[T], R], items: Sequence[T], cost: Sequence[float] |
         for future in futures:
             future.result()
     return results
+
+
+def map_processes(run: Callable[[T], R], items: Sequence[T], cost: Sequence[float]
+                  ) -> list[R]:
+    """``[run(item) for item in items]``, the items shared with forked processes.
+
+    For independent pieces of one image whose work is mostly Python (the
+    split's components, the recut's candidates): threads would take turns
+    on the GIL, processes do not. The results come back in the order of
+    ``items``: the same values as one after the other here (results that do
+    not pickle are made here again).
+
+    With :func:`thread_count` ``k`` above 1, more than one item and a total
+    ``cost`` of :data:`MIN_TASKS_COST` pixels or more (on Linux, in the
+    main thread, not in a daemon process), this process forks ``k - 1``
+    children for the call. They see ``run`` and the items as they are (no
+    copying), take the items costliest first while this process takes the
+    cheapest first, until they meet; each child sends its results back
+    when it is done and exits. An item a child could not finish (an error,
+    or the child killed) is run here, so its error is raised here. Inside,
+    the kernels use one thread. Otherwise everything runs here.
+    """
+    children = min(thread_count(), len(items)) - 1
+    if children < 1 or sum(cost) < MIN_TASKS_COST or not _can_fork():
+        return [run(item) for item in items]
+    order = sorted(range(len(items)), key=lambda i: -cost[i])
+    ends = _SharedEnds(len(order))
+    forked: list[tuple[int, int]] = []
+    results: dict[int, Any] = {}
+    try:
+        with warnings.catch_warnings():  # 3.12+: forking while the band threads exist
+            warnings.simplefilter("ignore", DeprecationWarning)
+            for _ in range(children):
+                forked.append(_fork_child(run, items, order, ends))
+        while (k := ends.take(False)) is not None:
+            results[order[k]] = _as_task(run, items[order[k]])
+        for pid, fd in forked:
+            results.update(_child_results(pid, fd))
+    finally:
+        for pid, fd in forked:
+            _reap(pid, fd)
+    for i in range(len(items)):  # left by a child that failed: here, errors and all
+        if i not in results:
+            results[i] = _as_task(run, items[i])
+    return [results[i] for i in range(len(items))]
+
+
+def _can_fork() -> bool:
+    """Whether :func:`map_processes` may fork here (see there)."""
+    return (sys.platform.startswith("linux") and hasattr(os, "fork")
+            and threading.current_thread() is threading.main_thread()
+            and not multiprocessing.current_process().daemon)
+
+
+def _fork_child(run: Callable[[T], R], items: Sequence[T], order: list[int],
+                ends: _SharedEnds) -> tuple[int, int]:
+    """Fork a child that runs items costliest first and pickles ``{index: result}`` back."""
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid:
+        os.close(write)
+        return pid, read
+    code = 1
+    try:  # the child: never returns into the caller's code
+        os.close(read)
+        _inside.task = True
+        done: dict[int, Any] = {}
+        try:
+            while (k := ends.take(True)) is not None:
+                done[order[k]] = run(items[order[k]])
+        except Exception:  # noqa: BLE001 - the parent runs this item again and raises
+            pass
+        with os.fdopen(write, "wb") as out:
+            pickle.dump(done, out, protocol=pickle.HIGHEST_PROTOCOL)
+        code = 0
+    finally:
+        os._exit(code)
+
+
+def _child_results(pid: int, fd: int) -> dict[int, Any]:
+    """A child's results; empty when it died before sending them."""
+    with os.fdopen(os.dup(fd), "rb") as pipe:
+        try:
+            got = pickle.load(pipe)
+        except Exception:  # noqa: BLE001 - cut short (the child died): its items run here
+            return {}
+    return got if isinstance(got, dict) else {}
+
+
+def _reap(pid: int, fd: int) -> None:
+    """Close a child's pipe and wait for it (killed first when it is still running)."""
+    os.close(fd)
+    try:
+        done, _ = os.waitpid(pid, os.WNOHANG)
+        if not done:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+    except ChildProcessError:  # pragma: no cover - reaped already
+        pass
+
+
+class _SharedEnds:
+    """:class:`_Ends` over ``range(n)`` shared by forked processes (shared memory and a lock)."""
+
+    def __init__(self, n: int) -> None:
+        self._ends = mmap.mmap(-1, 16)  # shared with the children (MAP_SHARED)
+        self._ends[:] = struct.pack("qq", 0, n)
+        self._lock = multiprocessing.get_context("fork").Lock()
+
+    def take(self, first: bool) -> int | None:
+        with self._lock:
+            lo, hi = struct.unpack("qq", self._ends[:])
+            if lo >= hi:
+                return None
+            lo, hi, k = (lo + 1, hi, lo) if first else (lo, hi - 1, hi - 1)
+            self._ends[:] = struct.pack("qq", lo, hi)
+            return k
 
 
 class _Ends:

@@ -80,6 +80,7 @@ from .config import Config, GrowConfig
 from .edges import Backend, select_kernels
 from .grow import fit_models, planar
 from .merge import _join_box, touching_pairs
+from .parallel import map_tasks
 from .rangeimage import labels_on_valid
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
@@ -552,6 +553,28 @@ def candidates(z: np.ndarray, labels: np.ndarray, config: Config, level: float
     return out
 
 
+_Test = tuple[int, int, bool, Box]
+_Cut = tuple[float, int, int, int, Box, np.ndarray]
+
+
+def _box_area(box: Box) -> float:
+    return float((box[0].stop - box[0].start) * (box[1].stop - box[1].start))
+
+
+def _recut_one(zc: np.ndarray, lab: np.ndarray, test: _Test, *, noise: float, level: float,
+               config: Config) -> _Cut | None:
+    """The cut of one candidate (Notes 3, 4): sort key, box, and the new side in the box."""
+    i, j, fails, box = test
+    got = None
+    if fails:
+        got = split_tangent(zc, _pixels(lab, i, j, box), noise=noise, level=level,
+                            min_pixels=config.link.min_component, grow=config.grow, box=box)
+    if got is None:
+        side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config, box=box)
+        got = None if side is None else (side, 0.0)
+    return None if got is None else (-got[1], 0 if j else 1, i, j, box, got[0][box])
+
+
 def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
                   ) -> np.ndarray:
     """Cut regions, and re-cut touching pairs, along smooth edges and creases (see Notes).
@@ -583,31 +606,23 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
         return lab
     zc = np.where(np.isfinite(z), z, 0.0)
     level = config.split.fit_factor * max(noise, math.sqrt(config.grow.min_error))
-    found = []
     boxes = ndimage.find_objects(lab)
-    # The candidates are independent, but on two threads they were slower (SR300 frame:
-    # 407 -> 484 ms): their work is mostly Python, which takes turns on the GIL.
-    for i, j, fails in candidates(zc, lab, config, level):
-        box = _join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1]
-        got = None
-        if fails:
-            got = split_tangent(zc, _pixels(lab, i, j, box), noise=noise, level=level,
-                                min_pixels=config.link.min_component, grow=config.grow,
-                                box=box)
-        if got is None:
-            side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config,
-                                box=box)
-            got = None if side is None else (side, 0.0)
-        if got is not None:
-            found.append((-got[1], 0 if j else 1, i, j, got[0]))
+    tests = [(i, j, fails, _join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1])
+             for i, j, fails in candidates(zc, lab, config, level)]
+    # The candidates are independent; their work is mostly Python, so many of them go to
+    # processes (on threads they take turns on the GIL).
+    cuts = map_tasks(
+        lambda test: _recut_one(zc, lab, test, noise=noise, level=level, config=config),
+        tests, cost=[_box_area(t[3]) for t in tests])
+    found = [cut for cut in cuts if cut is not None]
     out = lab.copy()
     used: set[int] = set()
     next_id = int(lab.max()) + 1
-    for _, _, i, j, side in sorted(found, key=lambda f: f[:4]):
+    for _, _, i, j, box, side in sorted(found, key=lambda f: f[:4]):
         if i in used or (j and j in used):
             continue
         out[_pixels(lab, i, j)] = i
-        out[side] = j if j else next_id
+        out[box][side] = j if j else next_id
         next_id += 0 if j else 1
         used.update((i, j))
     present = np.bincount(out.ravel()) > 0

@@ -1261,7 +1261,8 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
                                grow=config.grow, backend=backend)
 
     tasks = list(zip(failing.tolist(), spans, strict=True))
-    # the components are disjoint: split at once, then numbered in order as one by one
+    # The components are disjoint: split at once (many of them in processes: their work
+    # is mostly Python), then numbered in order as one by one.
     results = map_tasks(split_one, tasks, cost=[float(_area(box)) for box in spans])
     for (cid, box), pieces in zip(tasks, results, strict=True):
         inside = out[box] == cid

@@ -7,7 +7,9 @@ rows so that every band edge falls among edges and creases.
 
 from __future__ import annotations
 
+import os
 import threading
+import time
 from concurrent.futures import Future
 
 import numpy as np
@@ -181,7 +183,8 @@ def test_the_pool_takes_the_costliest_tasks_first_and_this_thread_the_cheapest(
         [9, 7, 8, None]
 
 
-def test_many_tasks_on_real_threads_come_back_complete(tiny_bands) -> None:
+def test_many_tasks_on_real_threads_come_back_complete(tiny_bands, monkeypatch) -> None:
+    monkeypatch.setattr(parallel, "MIN_PROCESS_ITEMS", 10_000)
     parallel.set_threads(3)
     items = list(range(200))
     out = parallel.map_tasks(lambda i: i * i, items, cost=[float(i % 7) for i in items])
@@ -205,3 +208,82 @@ def test_small_task_lists_stay_in_this_thread(monkeypatch) -> None:
     names = parallel.map_tasks(lambda _: threading.current_thread().name, [0, 1],
                                cost=[10.0, 10.0])
     assert names == [threading.current_thread().name] * 2
+
+
+# --------------------------------------------------------------------------- processes
+
+
+@pytest.fixture
+def in_processes(tiny_bands, monkeypatch):
+    """Any list of two or more tasks goes to forked processes."""
+    monkeypatch.setattr(parallel, "MIN_PROCESS_ITEMS", 2)
+    parallel.set_threads(2)
+
+
+def test_many_tasks_go_to_a_forked_process_and_come_back_in_order(in_processes) -> None:
+    def run(i):
+        time.sleep(0.02)  # long enough for the child to take its share
+        return i * i, os.getpid(), parallel.thread_count()
+
+    items = list(range(30))
+    out = parallel.map_tasks(run, items, cost=[float(i) for i in items])
+    assert [o[0] for o in out] == [i * i for i in items]
+    pids = {o[1] for o in out}
+    assert os.getpid() in pids and len(pids) == 2  # this process and one child
+    assert {o[2] for o in out} == {1}  # every task's kernels on one thread
+    child = next(p for p in pids if p != os.getpid())
+    assert out[-1][1] == child  # the costliest item went to the child
+    assert out[0][1] == os.getpid()  # the cheapest stayed here
+    with pytest.raises(ChildProcessError):  # the child has exited and been waited for
+        os.waitpid(child, os.WNOHANG)
+
+
+def test_an_error_in_a_process_is_raised_here(in_processes) -> None:
+    def run(i):
+        if i == 7:
+            raise RuntimeError(f"task {i} in {os.getpid()}")
+        return i
+
+    with pytest.raises(RuntimeError, match=f"task 7 in {os.getpid()}"):  # re-run here
+        parallel.map_tasks(run, list(range(10)), cost=[float(i) for i in range(10)])
+
+
+def test_items_of_a_child_that_dies_are_run_here(in_processes) -> None:
+    parent = os.getpid()
+
+    def run(i):
+        if os.getpid() != parent and i == 9:
+            os._exit(3)  # killed, as by the out-of-memory killer
+        return i + 100
+
+    items = list(range(10))
+    assert parallel.map_tasks(run, items, cost=[float(i) for i in items]) == \
+        [i + 100 for i in items]
+
+
+def test_results_that_do_not_pickle_are_made_here(in_processes) -> None:
+    out = parallel.map_tasks(lambda i: (lambda: i), list(range(6)), cost=[1.0] * 6)
+    assert [f() for f in out] == list(range(6))
+
+
+def test_pipeline_labels_do_not_depend_on_processes(in_processes) -> None:
+    z = pile(size=(96, 112), noise=2.0, seed=6)
+    forked = run_pipeline(z, CFG)
+    one = in_threads(1, run_pipeline, z, CFG)
+    assert one.labels.max() > 3
+    np.testing.assert_array_equal(forked.labels, one.labels)
+    assert forked.holdsite == one.holdsite
+
+
+def test_no_processes_from_another_thread(in_processes) -> None:
+    seen = []
+
+    def from_thread():
+        parallel.set_threads(2)
+        seen.append(parallel.map_tasks(lambda i: os.getpid(), list(range(30)),
+                                       cost=[1.0] * 30))
+
+    worker = threading.Thread(target=from_thread)
+    worker.start()
+    worker.join()
+    assert set(seen[0]) == {os.getpid()}
