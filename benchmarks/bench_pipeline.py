@@ -185,6 +185,63 @@ def bench_frame(rows: int, cols: int, repeats: int, numpy_edges: bool) -> dict[s
     }
 
 
+#: The real depth frame of ``sample_data/arc`` (Intel RealSense SR300) and its settings.
+REAL_FRAME = ROOT / "sample_data" / "arc" / "suction-scene.depth.png"
+REAL_CONFIG = ROOT / "sample_data" / "arc" / "suction.toml"
+
+
+def _threads_only(fn: Callable[[], Any]) -> Callable[[], Any]:
+    """``fn`` with many tasks on threads, as few are (no forked processes)."""
+    def run() -> Any:
+        saved = parallel.MIN_PROCESS_ITEMS
+        parallel.MIN_PROCESS_ITEMS = 1 << 62
+        try:
+            return fn()
+        finally:
+            parallel.MIN_PROCESS_ITEMS = saved
+
+    return run
+
+
+def bench_real_frame(repeats: int) -> dict[str, Any]:
+    """The SR300 frame with ``suction.toml``: stages and ``run_pipeline`` three ways.
+
+    ``run_pipeline`` with the automatic threads (many independent tasks of
+    the split and the recut in forked processes), ``run_pipeline_threads``
+    with every task on threads, ``run_pipeline_1thread`` on one thread, and
+    ``--preset paper`` with the frame's settings.
+    """
+    from rangeseg_cli.io import read_image
+
+    config = load_config(REAL_CONFIG)
+    image = read_image(str(REAL_FRAME))
+    result = run_pipeline(image, config)
+    z = result.heights
+    paper = dataclasses.replace(config, split=load_config(preset="paper").split)
+    tasks: dict[str, Callable[[], Any]] = {
+        "gaussian": lambda: gaussian_filter(np.nan_to_num(z), 4),
+        "edges": lambda: stage_edges(z, config),
+        "grow": lambda: stage_grow(z, result.edges, result.components, config),
+        "holdsite": lambda: stage_holdsite(z, result.labels, result.surfaces, config),
+        "run_pipeline_paper": lambda: run_pipeline(image, paper),
+        "run_pipeline_1thread": _one_thread(lambda: run_pipeline(image, config)),
+        "run_pipeline_threads": _threads_only(lambda: run_pipeline(image, config)),
+        "run_pipeline": lambda: run_pipeline(image, config),
+    }
+    for fn in tasks.values():
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in tasks}
+    for _ in range(repeats):
+        for name, fn in tasks.items():
+            times[name].append(_timed(fn))
+    median = {name: float(np.median(t)) for name, t in times.items()}
+    return {"rows": int(z.shape[0]), "cols": int(z.shape[1]), "repeats": repeats,
+            "regions": int(result.labels.max()),
+            "median_ms": {k: v * 1e3 for k, v in median.items()},
+            "gaussian_passes": {k: v / median["gaussian"] for k, v in median.items()
+                                if k != "gaussian"}}
+
+
 def scaling_exponent(frames: list[dict[str, Any]], task: str) -> float | None:
     """Slope of log(time) against log(pixels): 1 means time linear in pixels."""
     if len(frames) < 2:
@@ -339,7 +396,8 @@ def markdown(report: dict[str, Any]) -> str:
         "`noise` is the noise estimate `run_pipeline` makes (`noise.estimate_noise`), "
         "`noise_numpy` the same value by its numpy reference. Every task with the "
         f"automatic threads ({report['machine'].get('threads', '?')} here: row bands of "
-        "the edge passes and the split's plane fits, the split's components at once; "
+        "the edge passes and the split's plane fits, the split's components and the "
+        "recut's candidates at once, on threads or, 24 or more, in forked processes; "
         "`rangeseg_cli.parallel`) but the `_1thread` ones (`--threads 1`).",
         "",
         "| frame | G ms | " + " | ".join(COLUMNS) + " | pipeline ms/Mpx |",
@@ -354,6 +412,19 @@ def markdown(report: dict[str, Any]) -> str:
                 cells.append("-")
         cells.append(f"{f['ms_per_megapixel']['run_pipeline']:.0f}")
         lines.append("| " + " | ".join(cells) + " |")
+    real = report.get("real_frame")
+    if real:
+        order = ["edges", "grow", "holdsite", "run_pipeline_paper", "run_pipeline_1thread",
+                 "run_pipeline_threads", "run_pipeline"]
+        lines += ["", f"Real frame: the SR300 frame of `sample_data/arc` ({real['cols']}x"
+                  f"{real['rows']}, `suction.toml`, {real['regions']} regions), medians of "
+                  f"{real['repeats']} interleaved runs. `run_pipeline` with the automatic "
+                  "threads (many tasks of the split and the recut in forked processes), "
+                  "`_threads` with every task on threads, `_1thread` on one.", "",
+                  "| G ms | " + " | ".join(order) + " |", "|---" * (len(order) + 1) + "|",
+                  f"| {real['median_ms']['gaussian']:.2f} | " + " | ".join(
+                      f"{real['median_ms'][k]:.1f} ({real['gaussian_passes'][k]:.1f})"
+                      for k in order) + " |"]
     exps = report["scaling_exponent"]
     lines += ["", "Time ~ pixels^k: " + ", ".join(
         f"{k} k = {v:.2f}" for k, v in exps.items() if v is not None) + "."]
@@ -407,6 +478,7 @@ def main(argv: list[str] | None = None) -> int:
                              for t in ("edges", "run_pipeline_nosplit", "run_pipeline_paper",
                                        "run_pipeline_norecut", "run_pipeline_1thread",
                                        "run_pipeline")},
+        "real_frame": bench_real_frame(repeats),
         "compile": bench_compile(), "batch": {},
     }
     if not args.no_batch:
