@@ -1,4 +1,4 @@
-"""Threads within one image: row bands of a kernel, and independent pieces, at once.
+"""Threads (and processes) within one image: row bands of a kernel, and independent pieces.
 
 Beyond the paper (an implementation matter). The compiled kernels release
 the GIL (``nogil``), so Python threads run them on several cores. A kernel
@@ -7,16 +7,20 @@ whose output row depends only on the input rows within a fixed reach of it
 the split) is run on horizontal bands of the image (:func:`map_bands`), each
 band with ``margin`` extra rows either side, and each band keeps its own
 rows: the same values bit for bit as one call on the whole image. Pieces of
-work that do not depend on each other (the components the split divides)
-are shared among the threads (:func:`map_tasks`) and their results used in
-their order: the same result as one after the other.
+work that do not depend on each other (the components the split divides,
+the recut's candidates) are shared out (:func:`map_tasks`) and their results
+used in their order: the same result as one after the other. A few pieces
+share the threads; many (:data:`MIN_PROCESS_ITEMS`) go to processes forked
+for the call (:func:`map_processes`, Linux): their work is mostly Python,
+on which threads take turns (the GIL).
 
-How many threads (:func:`thread_count`): :func:`set_threads` (or the
-environment variable ``RANGESEG_THREADS``); unset, every core this process
-may use when called from the main thread, and one thread from any other
-thread (a Dask worker's or a caller's own thread pool, which already keeps
-the cores busy). ``rangeseg run --jobs N`` gives each of its N worker
-processes ``cores // N`` threads.
+How many threads (:func:`thread_count`; the processes of a call are this
+count, the caller's included): :func:`set_threads` (or the environment
+variable ``RANGESEG_THREADS``); unset, every core this process may use when
+called from the main thread, and one thread from any other thread (a Dask
+worker's or a caller's own thread pool, which already keeps the cores
+busy). ``rangeseg run --jobs N`` gives each of its N worker processes
+``cores // N`` threads.
 
 While a pipeline runs with more than one thread, BLAS (OpenBLAS under
 numpy) is held to one thread (:func:`blas_one_thread`): its matrices here
@@ -199,7 +203,7 @@ def map_tasks(run: Callable[[T], R], items: Sequence[T], cost: Sequence[float] |
     if threads <= 1 or cost is None or sum(cost) < MIN_TASKS_COST:
         return [run(item) for item in items]
     if len(items) >= MIN_PROCESS_ITEMS and _can_fork():
-        return map_processes(run, items, cost)
+        return map_processes(run, items, cost)  # else as a few, on threads
     queue = _Ends(sorted(range(len(items)), key=lambda i: -cost[i]))
     results: list[Any] = [None] * len(items)
 
@@ -235,7 +239,10 @@ def map_processes(run: Callable[[T], R], items: Sequence[T], cost: Sequence[floa
     cheapest first, until they meet; each child sends its results back
     when it is done and exits. An item a child could not finish (an error,
     or the child killed) is run here, so its error is raised here. Inside,
-    the kernels use one thread. Otherwise everything runs here.
+    the kernels use one thread. Otherwise everything runs here. The
+    environment variable ``RANGESEG_FORK=0`` turns forking off (for a host
+    program whose libraries must not be forked): many tasks then share the
+    threads as a few do.
     """
     children = min(thread_count(), len(items)) - 1
     if children < 1 or sum(cost) < MIN_TASKS_COST or not _can_fork():
@@ -263,8 +270,9 @@ def map_processes(run: Callable[[T], R], items: Sequence[T], cost: Sequence[floa
 
 
 def _can_fork() -> bool:
-    """Whether :func:`map_processes` may fork here (see there)."""
+    """Whether :func:`map_processes` may fork here (see there; ``RANGESEG_FORK=0``: never)."""
     return (sys.platform.startswith("linux") and hasattr(os, "fork")
+            and os.environ.get("RANGESEG_FORK", "").strip() != "0"
             and threading.current_thread() is threading.main_thread()
             and not multiprocessing.current_process().daemon)
 

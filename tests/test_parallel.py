@@ -287,3 +287,9 @@ def test_no_processes_from_another_thread(in_processes) -> None:
     worker.start()
     worker.join()
     assert set(seen[0]) == {os.getpid()}
+
+
+def test_forking_can_be_turned_off(in_processes, monkeypatch) -> None:
+    monkeypatch.setenv("RANGESEG_FORK", "0")
+    pids = parallel.map_tasks(lambda i: os.getpid(), list(range(30)), cost=[1.0] * 30)
+    assert set(pids) == {os.getpid()}
