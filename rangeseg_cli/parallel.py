@@ -248,14 +248,20 @@ def map_processes(run: Callable[[T], R], items: Sequence[T], cost: Sequence[floa
     if children < 1 or sum(cost) < MIN_TASKS_COST or not _can_fork():
         return [run(item) for item in items]
     order = sorted(range(len(items)), key=lambda i: -cost[i])
-    ends = _SharedEnds(len(order))
+    try:
+        ends = _SharedEnds(len(order))
+    except OSError:  # no shared semaphores here (a locked-down container): all here
+        return [run(item) for item in items]
     forked: list[tuple[int, int]] = []
     results: dict[int, Any] = {}
     try:
         with warnings.catch_warnings():  # 3.12+: forking while the band threads exist
             warnings.simplefilter("ignore", DeprecationWarning)
             for _ in range(children):
-                forked.append(_fork_child(run, items, order, ends))
+                try:
+                    forked.append(_fork_child(run, items, order, ends))
+                except OSError:  # out of memory or processes, no pipe: fewer children
+                    break
         while (k := ends.take(False)) is not None:
             results[order[k]] = _as_task(run, items[order[k]])
         for pid, fd in forked:
@@ -281,7 +287,12 @@ def _fork_child(run: Callable[[T], R], items: Sequence[T], order: list[int],
                 ends: _SharedEnds) -> tuple[int, int]:
     """Fork a child that runs items costliest first and pickles ``{index: result}`` back."""
     read, write = os.pipe()
-    pid = os.fork()
+    try:
+        pid = os.fork()
+    except OSError:
+        os.close(read)
+        os.close(write)
+        raise
     if pid:
         os.close(write)
         return pid, read

@@ -293,3 +293,12 @@ def test_forking_can_be_turned_off(in_processes, monkeypatch) -> None:
     monkeypatch.setenv("RANGESEG_FORK", "0")
     pids = parallel.map_tasks(lambda i: os.getpid(), list(range(30)), cost=[1.0] * 30)
     assert set(pids) == {os.getpid()}
+
+
+def test_a_failed_fork_leaves_the_work_to_this_process(in_processes, monkeypatch) -> None:
+    def no_fork():
+        raise OSError(12, "Cannot allocate memory")
+
+    monkeypatch.setattr(os, "fork", no_fork)
+    assert parallel.map_tasks(lambda i: (i, os.getpid()), list(range(30)), cost=[1.0] * 30) \
+        == [(i, os.getpid()) for i in range(30)]
