@@ -67,6 +67,7 @@ from scipy import ndimage
 from .config import Config
 from .grow import evaluate_quadric, fit_quadrics
 from .noise import estimate_noise
+from .parallel import map_tasks
 from .rangeimage import require_shape_of_z
 from .split import adjacent_pairs, local_planes
 
@@ -260,19 +261,22 @@ def _seed_faces(z: np.ndarray, labels: np.ndarray, fits: _Fits, config: Config, 
         return faces
     planes = _Fits.of(z, groups, k, config, order=1)
     boxes = ndimage.find_objects(groups)
+    seeds = [g for g in np.flatnonzero(planes.counts >= min_seed).tolist()
+             if g > 0 and (planes.mse[g] <= level * level or planes.counts[g] <= MAX_GROUP)]
+    cut = [g for g in seeds if planes.mse[g] > level * level]
+
+    def pieces_of(g: int) -> list[np.ndarray]:
+        return plane_pieces(z[boxes[g - 1]], groups[boxes[g - 1]] == g, level=level,
+                            min_pixels=min_seed)
+
+    # The groups are independent: many (a real frame's) go to processes. Their work is
+    # the consensus votes, MAX_HYPOTHESES per pixel (parallel.map_tasks' cost).
+    found = dict(zip(cut, map_tasks(pieces_of, cut, cost=[
+        float(MAX_HYPOTHESES * planes.counts[g]) for g in cut]), strict=True))
     count = 0
-    for g in np.flatnonzero(planes.counts >= min_seed).tolist():
-        if g == 0:
-            continue
+    for g in seeds:
         box = boxes[g - 1]
-        inside = groups[box] == g
-        if planes.mse[g] <= level * level:
-            pieces = [inside]
-        elif planes.counts[g] <= MAX_GROUP:
-            pieces = plane_pieces(z[box], inside, level=level, min_pixels=min_seed)
-        else:
-            continue
-        for piece in pieces:
+        for piece in found.get(g, [groups[box] == g]):
             count += 1
             faces[box][piece] = count
     return faces
