@@ -2192,3 +2192,108 @@ def knot_sse(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, knots:
     for i in range(zs.shape[0]):
         zz = zz + zs[i] * zs[i]
     return projected_sse(gram, rhs, zz, tol)
+
+
+# --------------------------------------------------------------------------- fill (edge pixels)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fill_choice(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound: np.ndarray,
+                 r: int, c: int) -> int:  # pragma: no cover - compiled
+    """``fill._best_neighbour`` of one pixel: the joining label, or 0 (ratio >= 1 or none).
+
+    The 8 neighbours in raster order of the 3x3 window; a later one wins only
+    with a strictly smaller ``r^2 / bound`` (the same operations in the same
+    order as the numpy reference).
+    """
+    h, w = labels.shape
+    best, ratio = 0, np.inf
+    height = z[r, c]
+    for dr in range(-1, 2):
+        for dc in range(-1, 2):
+            rr, cc = r + dr, c + dc
+            if (dr == 0 and dc == 0) or rr < 0 or rr >= h or cc < 0 or cc >= w:
+                continue
+            k = labels[rr, cc]
+            if k <= 0:
+                continue
+            res = height - _quadric_at(coeffs[k], float(r), float(c))
+            q = res * res / bound[k]
+            if q < ratio:
+                ratio, best = q, k
+    return best if ratio < 1.0 else 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def fill_passes(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound: np.ndarray
+                ) -> None:  # pragma: no cover - compiled
+    """``fill.fill_edges``' passes, in place on int32 ``labels`` (0 = open where z is finite).
+
+    Each pass decides every candidate from the labels at its start, then
+    applies the joins (simultaneous passes); the next pass's candidates are
+    the open pixels 8-adjacent to a pixel that joined. The first pass tests
+    every open pixel. The same labels as the numpy reference.
+    """
+    size = labels.size
+    cand = np.empty(size, np.int64)
+    join = np.empty(size, np.int64)
+    to = np.empty(size, np.int32)
+    seen = np.zeros(size, np.bool_)
+    n = _open_pixels(z, labels, cand)
+    while n > 0:
+        m = _fill_decide(z, labels, coeffs, bound, cand, n, join, to)
+        if m == 0:
+            return
+        w = labels.shape[1]
+        for i in range(m):
+            labels[join[i] // w, join[i] % w] = to[i]
+        n = _fill_frontier(z, labels, join, m, cand, seen)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _open_pixels(z: np.ndarray, labels: np.ndarray, out: np.ndarray
+                 ) -> int:  # pragma: no cover - compiled
+    """Flat indices of the unlabelled finite pixels into ``out``; their number."""
+    h, w = labels.shape
+    n = 0
+    for r in range(h):
+        for c in range(w):
+            if labels[r, c] == 0 and np.isfinite(z[r, c]):
+                out[n] = r * w + c
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fill_decide(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound: np.ndarray,
+                 cand: np.ndarray, n: int, join: np.ndarray, to: np.ndarray
+                 ) -> int:  # pragma: no cover - compiled
+    """One pass's joins (pixel, label) from the labels as they are; their number."""
+    w = labels.shape[1]
+    m = 0
+    for i in range(n):
+        k = _fill_choice(z, labels, coeffs, bound, cand[i] // w, cand[i] % w)
+        if k > 0:
+            join[m], to[m] = cand[i], k
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fill_frontier(z: np.ndarray, labels: np.ndarray, join: np.ndarray, m: int,
+                   out: np.ndarray, seen: np.ndarray) -> int:  # pragma: no cover - compiled
+    """The open pixels 8-adjacent to the ``m`` joined ones, each once, into ``out``."""
+    h, w = labels.shape
+    n = 0
+    for i in range(m):
+        r, c = join[i] // w, join[i] % w
+        for rr in range(max(r - 1, 0), min(r + 2, h)):
+            for cc in range(max(c - 1, 0), min(c + 2, w)):
+                q = rr * w + cc
+                if not seen[q] and labels[rr, cc] == 0 and np.isfinite(z[rr, cc]):
+                    seen[q] = True
+                    out[n] = q
+                    n += 1
+    for i in range(n):
+        seen[out[i]] = False
+    return n

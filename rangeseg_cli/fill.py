@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import GrowConfig
+from .edges import Backend, select_kernels
 from .grow import evaluate_quadric, fit_models, planar
 from .rangeimage import labels_on_valid
 
@@ -92,7 +93,8 @@ def surface_models(z: np.ndarray, labels: np.ndarray, n: int, cfg: GrowConfig
     return np.where(flat[:, None], plane, quad), np.where(flat, mse_plane, mse_quad)
 
 
-def fill_edges(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig) -> np.ndarray:
+def fill_edges(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig, *,
+               backend: Backend = "auto") -> np.ndarray:
     """Give each remaining edge pixel to the neighbouring surface that fits it best.
 
     Parameters
@@ -104,6 +106,11 @@ def fill_edges(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig) -> np.ndarray
     cfg
         ``[grow]``: ``error_factor`` and ``min_error`` give each surface's
         bound (Sec. V-4).
+    backend
+        ``"numpy"``: the passes as numpy calls over the pixels to test (the
+        reference); ``"numba"``: :func:`rangeseg_cli._kernels.fill_passes`,
+        all passes in one compiled call (the same labels); ``"auto"``: as
+        :func:`~rangeseg_cli.edges.detect_edges`.
 
     Returns
     -------
@@ -125,6 +132,12 @@ def fill_edges(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig) -> np.ndarray
     coeffs, mse = surface_models(z, out, n, cfg)
     bound = cfg.error_factor * np.maximum(mse, cfg.min_error)
     bound[0] = 1.0  # never used: label 0 is not a neighbour
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        kernels.fill_passes(np.require(z, np.float64, ["C"]), out,
+                            np.ascontiguousarray(coeffs, dtype=np.float64),
+                            np.ascontiguousarray(bound, dtype=np.float64))
+        return out
     open_ = valid & (out == 0)
     rows, cols = np.nonzero(open_)
     while rows.size:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -14,6 +16,9 @@ from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth import render_scene
 
 GROW = load_config().grow
+
+requires_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
+                                    reason="numba is not installed")
 
 
 def roof_scene(noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -167,3 +172,31 @@ def test_testing_only_the_frontier_gives_the_same_fill(seed, holes):
     labels = np.where(rng.random(truth.shape) < holes, 0, truth).astype(np.int32)
     np.testing.assert_array_equal(fill_edges(z, labels, GROW),
                                   _fill_every_pixel_every_pass(z, labels, GROW))
+
+
+@requires_numba
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), shape=st.tuples(st.integers(1, 30), st.integers(1, 30)),
+       regions=st.integers(1, 6), holes=st.floats(0.0, 0.95), invalid=st.floats(0.0, 0.3))
+def test_compiled_fill_gives_the_labels_of_the_numpy_passes(seed, shape, regions, holes,
+                                                            invalid):
+    rng = np.random.default_rng(seed)
+    z = rng.normal(50.0, 3.0, shape) + rng.uniform(-3, 3) * np.arange(shape[1])[None, :]
+    z[rng.random(shape) < invalid] = np.nan
+    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
+    labels[rng.random(shape) < holes] = 0
+    np.testing.assert_array_equal(fill_edges(z, labels, GROW, backend="numba"),
+                                  fill_edges(z, labels, GROW, backend="numpy"))
+
+
+@requires_numba
+@pytest.mark.parametrize("scene", ["pile", "cup", "part2", "cube-holes"])
+def test_compiled_fill_on_grown_scenes(scene):
+    cfg = load_config(overrides={"split": {"fill_edges": False, "merge": False,
+                                           "recut": False}})
+    result = run_pipeline(render_scene(scene, size=(96, 96), noise=2.0, seed=4).image, cfg)
+    assert (result.labels == 0).sum() > 100  # bands to fill
+    np.testing.assert_array_equal(fill_edges(result.heights, result.labels, GROW,
+                                             backend="numba"),
+                                  fill_edges(result.heights, result.labels, GROW,
+                                             backend="numpy"))
