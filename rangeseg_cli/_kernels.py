@@ -2297,3 +2297,34 @@ def _fill_frontier(z: np.ndarray, labels: np.ndarray, join: np.ndarray, m: int,
     for i in range(n):
         seen[out[i]] = False
     return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def explained_faces(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, ids: np.ndarray, k: int,
+                    coeffs: np.ndarray, limit: np.ndarray, regions: np.ndarray
+                    ) -> np.ndarray:  # pragma: no cover - compiled
+    """``recover._drop_explained``'s test: faces 0..k some region's surface explains.
+
+    Face f is explained when, for a region in ``regions``, the mean of the
+    squared residuals of its pixels (``rows``, ``cols``, face ``ids``) to the
+    region's surface ``coeffs`` is below the region's ``limit``. The sums run
+    in pixel order, as ``np.bincount`` adds them in the reference.
+    """
+    size = np.ones(k + 1, np.int64)
+    counts = np.zeros(k + 1, np.int64)
+    for i in range(ids.size):
+        counts[ids[i]] += 1
+    for f in range(k + 1):
+        size[f] = max(counts[f], 1)
+    explained = np.zeros(k + 1, np.bool_)
+    acc = np.empty(k + 1)
+    for region in regions:
+        acc[:] = 0.0
+        a = coeffs[region]
+        for i in range(ids.size):
+            r = z[rows[i], cols[i]] - _quadric_at(a, float(rows[i]), float(cols[i]))
+            acc[ids[i]] += r * r
+        for f in range(k + 1):
+            if acc[f] / size[f] < limit[region]:
+                explained[f] = True
+    return explained

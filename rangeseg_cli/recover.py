@@ -65,6 +65,7 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config
+from .edges import Backend, select_kernels
 from .grow import evaluate_quadric, fit_quadrics
 from .noise import estimate_noise
 from .parallel import map_tasks
@@ -282,21 +283,32 @@ def _seed_faces(z: np.ndarray, labels: np.ndarray, fits: _Fits, config: Config, 
     return faces
 
 
-def _drop_explained(z: np.ndarray, faces: np.ndarray, fits: _Fits) -> np.ndarray:
+def _drop_explained(z: np.ndarray, faces: np.ndarray, fits: _Fits, *,
+                    backend: Backend = "auto") -> np.ndarray:
     """Faces, renumbered, without those whose pixels an existing region's surface fits.
 
     A face is explained when, for some region, the mean squared residual of
     the face's pixels to the region's surface is below the region's growing
-    bound (Sec. V-4).
+    bound (Sec. V-4). ``backend``: numpy calls per region (the reference) or
+    :func:`rangeseg_cli._kernels.explained_faces` (the same faces), as
+    :func:`~rangeseg_cli.edges.select_kernels` chooses.
     """
     k = int(faces.max(initial=0))
     rows, cols = np.nonzero(faces)
     ids = faces[rows, cols]
-    size = np.maximum(np.bincount(ids, minlength=k + 1), 1)
-    explained = np.zeros(k + 1, bool)
-    for region in np.flatnonzero(fits.counts > 0).tolist():
-        res = _squared_residuals(z, fits.coeffs, np.full(rows.size, region), rows, cols)
-        explained |= np.bincount(ids, res, minlength=k + 1) / size < fits.limit[region]
+    regions = np.flatnonzero(fits.counts > 0)
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        explained = kernels.explained_faces(
+            np.require(z, np.float64, ["C"]), rows, cols, ids.astype(np.int64), k,
+            np.ascontiguousarray(fits.coeffs, np.float64),
+            np.ascontiguousarray(fits.limit, np.float64), regions.astype(np.int64))
+    else:
+        size = np.maximum(np.bincount(ids, minlength=k + 1), 1)
+        explained = np.zeros(k + 1, bool)
+        for region in regions.tolist():
+            res = _squared_residuals(z, fits.coeffs, np.full(rows.size, region), rows, cols)
+            explained |= np.bincount(ids, res, minlength=k + 1) / size < fits.limit[region]
     keep = ~explained
     keep[0] = False
     keep &= np.bincount(ids, minlength=k + 1) > 0

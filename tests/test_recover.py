@@ -180,3 +180,24 @@ def test_recovery_is_on_by_default_and_off_in_the_paper_preset() -> None:
 def test_recover_keys_are_validated(values: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         load_config(overrides=values)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_explained_faces_equal_the_numpy_reference(seed):
+    from rangeseg_cli import recover
+
+    rng = np.random.default_rng(seed)
+    h, w = 40, 50
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = 30.0 + 0.3 * x - 0.2 * y + 0.01 * x * y + rng.normal(0.0, 0.5, (h, w))
+    labels = (1 + (x // 13) + 4 * (y // 11)).astype(np.int32)
+    labels[rng.random((h, w)) < 0.2] = 0
+    config = load_config()
+    fits = recover._Fits.of(z, labels, int(labels.max()), config, order=2)
+    faces = np.where(rng.random((h, w)) < 0.3, rng.integers(1, 9, (h, w)), 0).astype(np.int32)
+    faces[:, :5] = np.where(faces[:, :5] > 0, 9, 0)  # a face the tilted planes fit badly
+    z[:, :5] += 40.0
+    numpy = recover._drop_explained(z, faces, fits, backend="numpy")
+    compiled = recover._drop_explained(z, faces, fits, backend="numba")
+    np.testing.assert_array_equal(compiled, numpy)
+    assert 0 < int(numpy.max()) < 9  # some faces explained, some kept
