@@ -263,6 +263,9 @@ def _compiled_kernels() -> ModuleType | None:
     return _kernels
 
 
+_BACKENDS: tuple[str, ...] = get_args(Backend)
+
+
 def select_kernels(backend: str) -> ModuleType | None:
     """The compiled kernels when ``backend`` selects them, else None; validates ``backend``.
 
@@ -271,8 +274,8 @@ def select_kernels(backend: str) -> ModuleType | None:
     ``"numba"`` the kernels (an ImportError without numba), ``"auto"`` the
     kernels when numba is installed and ``RANGESEG_PURE_NUMPY`` is not ``1``.
     """
-    if backend not in get_args(Backend):
-        raise ValueError(f"`backend` ({backend!r}) must be one of {get_args(Backend)}")
+    if backend not in _BACKENDS:
+        raise ValueError(f"`backend` ({backend!r}) must be one of {_BACKENDS}")
     if backend == "numpy" or (backend == "auto" and not _USE_NUMBA):
         return None
     kernels = _compiled_kernels()

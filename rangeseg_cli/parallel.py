@@ -67,6 +67,12 @@ MIN_TASKS_COST = 65536
 #: about 9 ms, and the floor's kernels release the GIL).
 MIN_PROCESS_ITEMS = 24
 
+#: :func:`map_processes` forks at most one child per this many items, and at most
+#: ``MAX_CHILDREN``: this process forks them one after the other (about 9 ms each here,
+#: more for a larger process), and a child must have enough work to be worth it. (Not
+#: measured beyond 2 cores.)
+ITEMS_PER_CHILD, MAX_CHILDREN = 8, 7
+
 _requested: int | None = None
 _inside = threading.local()  # .task: this thread runs a task of map_tasks
 _pool: ThreadPoolExecutor | None = None
@@ -231,20 +237,21 @@ def map_processes(run: Callable[[T], R], items: Sequence[T], cost: Sequence[floa
     ``items``: the same values as one after the other here (results that do
     not pickle are made here again).
 
-    With :func:`thread_count` ``k`` above 1, more than one item and a total
-    ``cost`` of :data:`MIN_TASKS_COST` pixels or more (on Linux, in the
-    main thread, not in a daemon process), this process forks ``k - 1``
-    children for the call. They see ``run`` and the items as they are (no
-    copying), take the items costliest first while this process takes the
-    cheapest first, until they meet; each child sends its results back
-    when it is done and exits. An item a child could not finish (an error,
-    or the child killed) is run here, so its error is raised here. Inside,
-    the kernels use one thread. Otherwise everything runs here. The
-    environment variable ``RANGESEG_FORK=0`` turns forking off (for a host
-    program whose libraries must not be forked): many tasks then share the
-    threads as a few do.
+    With :func:`thread_count` ``k`` above 1, a total ``cost`` of
+    :data:`MIN_TASKS_COST` pixels or more (on Linux, in the main thread, not
+    in a daemon process), this process forks ``k - 1`` children for the call
+    (at most one per :data:`ITEMS_PER_CHILD` items, and :data:`MAX_CHILDREN`).
+    They see ``run`` and the items as they are (no copying), take the items
+    costliest first while this process takes the cheapest first, until they
+    meet; each child sends its results back when it is done and exits. An
+    item a child could not finish (an error, or the child killed) is run
+    here, so its error is raised here. Inside, the kernels use one thread.
+    Otherwise everything runs here. The environment variable
+    ``RANGESEG_FORK=0`` turns forking off (for a host program whose
+    libraries must not be forked): many tasks then share the threads as a
+    few do.
     """
-    children = min(thread_count(), len(items)) - 1
+    children = _child_count(thread_count(), len(items))
     if children < 1 or sum(cost) < MIN_TASKS_COST or not _can_fork():
         return [run(item) for item in items]
     order = sorted(range(len(items)), key=lambda i: -cost[i])
@@ -273,6 +280,11 @@ def map_processes(run: Callable[[T], R], items: Sequence[T], cost: Sequence[floa
         if i not in results:
             results[i] = _as_task(run, items[i])
     return [results[i] for i in range(len(items))]
+
+
+def _child_count(threads: int, items: int) -> int:
+    """Children :func:`map_processes` forks for ``items`` with ``threads`` (0: none)."""
+    return max(0, min(threads - 1, items // ITEMS_PER_CHILD, MAX_CHILDREN))
 
 
 def _can_fork() -> bool:

@@ -217,6 +217,7 @@ def test_small_task_lists_stay_in_this_thread(monkeypatch) -> None:
 def in_processes(tiny_bands, monkeypatch):
     """Any list of two or more tasks goes to forked processes."""
     monkeypatch.setattr(parallel, "MIN_PROCESS_ITEMS", 2)
+    monkeypatch.setattr(parallel, "ITEMS_PER_CHILD", 1)
     parallel.set_threads(2)
 
 
@@ -302,3 +303,12 @@ def test_a_failed_fork_leaves_the_work_to_this_process(in_processes, monkeypatch
     monkeypatch.setattr(os, "fork", no_fork)
     assert parallel.map_tasks(lambda i: (i, os.getpid()), list(range(30)), cost=[1.0] * 30) \
         == [(i, os.getpid()) for i in range(30)]
+
+
+def test_children_are_few_for_few_items_and_capped() -> None:
+    per, cap = parallel.ITEMS_PER_CHILD, parallel.MAX_CHILDREN
+    assert parallel._child_count(2, 100) == 1
+    assert parallel._child_count(1, 100) == 0
+    assert parallel._child_count(64, per - 1) == 0
+    assert parallel._child_count(64, 3 * per) == 3
+    assert parallel._child_count(64, 1000 * per) == cap
