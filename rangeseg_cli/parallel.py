@@ -37,10 +37,12 @@ import mmap
 import multiprocessing
 import os
 import pickle
+import select
 import signal
 import struct
 import sys
 import threading
+import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -72,6 +74,10 @@ MIN_PROCESS_ITEMS = 24
 #: more for a larger process), and a child must have enough work to be worth it. (Not
 #: measured beyond 2 cores.)
 ITEMS_PER_CHILD, MAX_CHILDREN = 8, 7
+
+#: Seconds a forked child may take beyond 10 times this process's own share before it
+#: is taken for hung and killed (its pieces are then done here).
+CHILD_PATIENCE = 60.0
 
 _requested: int | None = None
 _inside = threading.local()  # .task: this thread runs a task of map_tasks
@@ -269,10 +275,12 @@ def map_processes(run: Callable[[T], R], items: Sequence[T], cost: Sequence[floa
                     forked.append(_fork_child(run, items, order, ends))
                 except OSError:  # out of memory or processes, no pipe: fewer children
                     break
+        start = time.perf_counter()
         while (k := ends.take(False)) is not None:
             results[order[k]] = _as_task(run, items[order[k]])
+        patience = CHILD_PATIENCE + 10.0 * (time.perf_counter() - start)
         for pid, fd in forked:
-            results.update(_child_results(pid, fd))
+            results.update(_child_results(pid, fd, patience))
     finally:
         for pid, fd in forked:
             _reap(pid, fd)
@@ -325,8 +333,18 @@ def _fork_child(run: Callable[[T], R], items: Sequence[T], order: list[int],
         os._exit(code)
 
 
-def _child_results(pid: int, fd: int) -> dict[int, Any]:
-    """A child's results; empty when it died before sending them."""
+def _child_results(pid: int, fd: int, patience: float) -> dict[int, Any]:
+    """A child's results; empty when it died before sending them or sent none in time.
+
+    A child that has not begun to send within ``patience`` seconds is taken
+    for hung (a lock held at the fork, which should not happen) and killed:
+    its items are then run here, late but right.
+    """
+    poll = select.poll()  # not select.select: no limit on the descriptor's number
+    poll.register(fd, select.POLLIN | select.POLLHUP | select.POLLERR)
+    if not poll.poll(patience * 1000.0):
+        os.kill(pid, signal.SIGKILL)
+        return {}
     with os.fdopen(os.dup(fd), "rb") as pipe:
         try:
             got = pickle.load(pipe)

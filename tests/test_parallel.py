@@ -312,3 +312,18 @@ def test_children_are_few_for_few_items_and_capped() -> None:
     assert parallel._child_count(64, per - 1) == 0
     assert parallel._child_count(64, 3 * per) == 3
     assert parallel._child_count(64, 1000 * per) == cap
+
+
+def test_a_child_that_hangs_is_killed_and_its_items_run_here(in_processes, monkeypatch) -> None:
+    monkeypatch.setattr(parallel, "CHILD_PATIENCE", 0.5)
+    parent = os.getpid()
+
+    def run(i):
+        if os.getpid() != parent:
+            time.sleep(60)  # as if a lock held at the fork never came free
+        return i * 3
+
+    started = time.perf_counter()
+    assert parallel.map_tasks(run, list(range(12)), cost=[float(i) for i in range(12)]) == \
+        [i * 3 for i in range(12)]
+    assert time.perf_counter() - started < 20
