@@ -163,17 +163,26 @@ def _one_thread(fn: Callable[[], Any]) -> Callable[[], Any]:
     return run
 
 
-def bench_frame(rows: int, cols: int, repeats: int, numpy_edges: bool) -> dict[str, Any]:
-    """Median seconds of every task over ``repeats`` interleaved runs after a warm-up."""
-    config = load_config()
-    image = bin_scene(rows, cols, seed=rows + cols)
-    tasks = frame_tasks(image, config, numpy_edges)
-    for fn in tasks.values():  # warm-up: compiled kernels loaded, caches filled
+def interleaved(tasks: dict[str, Callable[[], Any]], repeats: int) -> dict[str, list[float]]:
+    """Seconds of each task in ``repeats`` rounds of all of them, after one warm-up round.
+
+    The warm-up loads the compiled kernels and fills caches; interleaving
+    lets load on the machine hit every task alike.
+    """
+    for fn in tasks.values():
         fn()
     times: dict[str, list[float]] = {name: [] for name in tasks}
     for _ in range(repeats):
         for name, fn in tasks.items():
             times[name].append(_timed(fn))
+    return times
+
+
+def bench_frame(rows: int, cols: int, repeats: int, numpy_edges: bool) -> dict[str, Any]:
+    """Median seconds of every task over ``repeats`` interleaved runs after a warm-up."""
+    config = load_config()
+    image = bin_scene(rows, cols, seed=rows + cols)
+    times = interleaved(frame_tasks(image, config, numpy_edges), repeats)
     median = {name: float(np.median(t)) for name, t in times.items()}
     g = median["gaussian"]
     return {
@@ -228,13 +237,7 @@ def bench_real_frame(repeats: int) -> dict[str, Any]:
         "run_pipeline_threads": _threads_only(lambda: run_pipeline(image, config)),
         "run_pipeline": lambda: run_pipeline(image, config),
     }
-    for fn in tasks.values():
-        fn()
-    times: dict[str, list[float]] = {name: [] for name in tasks}
-    for _ in range(repeats):
-        for name, fn in tasks.items():
-            times[name].append(_timed(fn))
-    median = {name: float(np.median(t)) for name, t in times.items()}
+    median = {name: float(np.median(t)) for name, t in interleaved(tasks, repeats).items()}
     return {"rows": int(z.shape[0]), "cols": int(z.shape[1]), "repeats": repeats,
             "regions": int(result.labels.max()),
             "median_ms": {k: v * 1e3 for k, v in median.items()},
