@@ -558,6 +558,7 @@ _Cut = tuple[float, int, int, int, Box, np.ndarray]
 
 
 def _box_area(box: Box) -> float:
+    """Pixels of a candidate's box (the cost of its tests, for ``parallel.map_tasks``)."""
     return float((box[0].stop - box[0].start) * (box[1].stop - box[1].start))
 
 
