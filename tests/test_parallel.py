@@ -14,6 +14,8 @@ from concurrent.futures import Future
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from rangeseg_cli import parallel
 from rangeseg_cli import split as split_module
@@ -327,3 +329,14 @@ def test_a_child_that_hangs_is_killed_and_its_items_run_here(in_processes, monke
     assert parallel.map_tasks(run, list(range(12)), cost=[float(i) for i in range(12)]) == \
         [i * 3 for i in range(12)]
     assert time.perf_counter() - started < 20
+
+
+@settings(max_examples=20, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(costs=st.lists(st.floats(0.0, 1e6), min_size=2, max_size=60))
+def test_forked_tasks_give_what_one_after_the_other_gives(in_processes, costs) -> None:
+    items = list(range(len(costs)))
+    out = parallel.map_tasks(lambda i: (i, np.arange(i % 7) * costs[i]), items, cost=costs)
+    assert [o[0] for o in out] == items
+    for (_, got), i in zip(out, items, strict=True):
+        np.testing.assert_array_equal(got, np.arange(i % 7) * costs[i])

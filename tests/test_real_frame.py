@@ -9,6 +9,7 @@ Two items there carry an acceptable window: the flat one beside the left wall
 (around row 408, col 357, 588 mm away).
 """
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -53,3 +54,20 @@ def test_real_frame_holdsite_is_above_the_tote_floor_not_on_it(result):
     assert site["holdsite"]["elevation"] > floor.mean_height + 20.0
     x, y, zc = site["holdsite"]["point_camera"]
     assert 0.55 < zc < 0.65  # metres from the camera
+
+
+def test_real_frame_labels_are_the_same_with_forked_processes_and_one_thread(result,
+                                                                              monkeypatch):
+    from rangeseg_cli import parallel
+
+    raw, config, _ = result
+    forks = []
+    real_fork = os.fork
+    monkeypatch.setattr(os, "fork", lambda: forks.append(1) or real_fork())
+    parallel.set_threads(2)
+    forked = run_pipeline(raw, config)
+    assert len(forks) >= 2  # the split's and the recut's many pieces went to a child
+    parallel.set_threads(1)
+    alone = run_pipeline(raw, config)
+    np.testing.assert_array_equal(forked.labels, alone.labels)
+    assert forked.holdsite.to_dict() == alone.holdsite.to_dict()
