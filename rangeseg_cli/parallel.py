@@ -207,21 +207,22 @@ def map_tasks(run: Callable[[T], R], items: Sequence[T], cost: Sequence[float] |
 
     A few items share this process's threads: their time goes mostly to
     compiled kernels, which release the GIL. :data:`MIN_PROCESS_ITEMS` or
-    more go to forked processes (:func:`map_processes`; the results must
-    pickle): many small items are mostly Python, whose turns on the GIL
-    would leave the second core idle. Small work stays in this thread.
+    more go to forked processes (:func:`map_processes`): many small items
+    are mostly Python, whose turns on the GIL would leave the second core
+    idle. Small work stays in this thread.
     """
     threads = min(thread_count(), len(items))
     if threads <= 1 or cost is None or sum(cost) < MIN_TASKS_COST:
         return [run(item) for item in items]
     if len(items) >= MIN_PROCESS_ITEMS and _can_fork():
         return map_processes(run, items, cost)  # else as a few, on threads
-    queue = _Ends(sorted(range(len(items)), key=lambda i: -cost[i]))
+    order = sorted(range(len(items)), key=lambda i: -cost[i])
+    queue = _Ends(len(order))
     results: list[Any] = [None] * len(items)
 
     def work(costliest_first: bool) -> None:
-        while (i := queue.take(costliest_first)) is not None:
-            results[i] = run(items[i])
+        while (k := queue.take(costliest_first)) is not None:
+            results[order[k]] = run(items[order[k]])
 
     pool = _executor(threads - 1)
     futures = [pool.submit(_as_task, work, True) for _ in range(threads - 1)]
@@ -262,7 +263,7 @@ def map_processes(run: Callable[[T], R], items: Sequence[T], cost: Sequence[floa
         return [run(item) for item in items]
     order = sorted(range(len(items)), key=lambda i: -cost[i])
     try:
-        ends = _SharedEnds(len(order))
+        ends = _Ends(len(order), shared=True)
     except OSError:  # no shared semaphores here (a locked-down container): all here
         return [run(item) for item in items]
     forked: list[tuple[int, int]] = []
@@ -304,7 +305,7 @@ def _can_fork() -> bool:
 
 
 def _fork_child(run: Callable[[T], R], items: Sequence[T], order: list[int],
-                ends: _SharedEnds) -> tuple[int, int]:
+                ends: _Ends) -> tuple[int, int]:
     """Fork a child that runs items costliest first and pickles ``{index: result}`` back."""
     read, write = os.pipe()
     try:
@@ -365,13 +366,24 @@ def _reap(pid: int, fd: int) -> None:
         pass
 
 
-class _SharedEnds:
-    """:class:`_Ends` over ``range(n)`` shared by forked processes (shared memory and a lock)."""
+class _Ends:
+    """Indices 0..n-1 taken from either end, each once, under a lock.
 
-    def __init__(self, n: int) -> None:
-        self._ends = mmap.mmap(-1, 16)  # shared with the children (MAP_SHARED)
+    With ``shared`` the two ends live in shared memory under a
+    process-shared lock, so that children forked afterwards take from the
+    same queue (:func:`map_processes`); an OSError where the system has no
+    such locks.
+    """
+
+    def __init__(self, n: int, shared: bool = False) -> None:
+        self._ends: mmap.mmap | bytearray
+        if shared:
+            self._ends = mmap.mmap(-1, 16)  # MAP_SHARED: seen by forked children
+            self._lock: Any = multiprocessing.get_context("fork").Lock()
+        else:
+            self._ends = bytearray(16)
+            self._lock = threading.Lock()
         self._ends[:] = struct.pack("qq", 0, n)
-        self._lock = multiprocessing.get_context("fork").Lock()
 
     def take(self, first: bool) -> int | None:
         with self._lock:
@@ -381,24 +393,6 @@ class _SharedEnds:
             lo, hi, k = (lo + 1, hi, lo) if first else (lo, hi - 1, hi - 1)
             self._ends[:] = struct.pack("qq", lo, hi)
             return k
-
-
-class _Ends:
-    """Indices taken from either end of a list, each once, under a lock."""
-
-    def __init__(self, order: list[int]) -> None:
-        self._order, self._lo, self._hi = order, 0, len(order)
-        self._lock = threading.Lock()
-
-    def take(self, first: bool) -> int | None:
-        with self._lock:
-            if self._lo >= self._hi:
-                return None
-            if first:
-                self._lo += 1
-                return self._order[self._lo - 1]
-            self._hi -= 1
-            return self._order[self._hi]
 
 
 def _as_task(run: Callable[[T], R], item: T) -> R:

@@ -277,7 +277,7 @@ def _seed_faces(z: np.ndarray, labels: np.ndarray, fits: _Fits, config: Config, 
     count = 0
     for g in seeds:
         box = boxes[g - 1]
-        for piece in found.get(g, [groups[box] == g]):
+        for piece in found[g] if g in found else [groups[box] == g]:
             count += 1
             faces[box][piece] = count
     return faces

@@ -180,9 +180,10 @@ def test_the_pool_takes_the_costliest_tasks_first_and_this_thread_the_cheapest(
     out = parallel.map_tasks(lambda item: calls.append(item) or str(item), [1, 2, 3, 4],
                              cost=[1.0, 2.0, 5.0, 0.5])
     assert out == list("1234") and calls == [3, 2, 1, 4]
-    ends = parallel._Ends([7, 8, 9])
-    assert [ends.take(False), ends.take(True), ends.take(False), ends.take(True)] == \
-        [9, 7, 8, None]
+    for shared in (False, True):
+        ends = parallel._Ends(3, shared=shared)
+        assert [ends.take(False), ends.take(True), ends.take(False), ends.take(True)] == \
+            [2, 0, 1, None]
 
 
 def test_many_tasks_on_real_threads_come_back_complete(tiny_bands, monkeypatch) -> None:
