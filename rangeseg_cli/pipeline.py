@@ -16,6 +16,7 @@ running the stages one by one from files gives the same results as
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -57,7 +58,10 @@ class PipelineResult:
         Seconds spent per stage.
     noise_sigma
         Estimated noise of the heights, depth units
-        (:func:`~rangeseg_cli.noise.estimate_noise`).
+        (:func:`~rangeseg_cli.noise.estimate_noise`): estimated while the
+        pipeline runs when its configuration uses it (:func:`uses_noise`),
+        else on first use of this attribute (the paper's pipeline, ``--preset
+        paper``, does not need it: about a tenth of its time at 640x480).
     """
 
     heights: np.ndarray
@@ -68,7 +72,25 @@ class PipelineResult:
     surfaces: list[Surface] | None = None
     holdsite: Any = None
     timings: dict[str, float] = field(default_factory=dict)
-    noise_sigma: float | None = None
+    _noise: float | None = field(default=None, repr=False)
+
+    @property
+    def noise_sigma(self) -> float:
+        """The noise estimate of :attr:`heights` (see the class notes)."""
+        if self._noise is None:
+            self._noise = estimate_noise(self.heights)
+        return self._noise
+
+
+def uses_noise(config: Config) -> bool:
+    """Whether a stage of ``config`` uses the image's noise estimate.
+
+    The noise-scaled thresholds (``[input] auto_thresholds``, Sec. V-1, V-2)
+    and the split, recovery, merge and recut of ``[split]`` (beyond the
+    paper; the fill does not).
+    """
+    s = config.split
+    return config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
 
 
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
@@ -116,15 +138,17 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     cfg = config.split
     if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut):
         return labels, describe_surfaces(z, labels, config)  # the paper's step 4 alone
-    noise = estimate_noise(z) if noise is None else noise
+    if uses_noise(config):  # the fill alone does not
+        noise = estimate_noise(z) if noise is None else noise
+    sigma = math.nan if noise is None else noise
     if config.split.enabled:
         from .split import split_regions
 
-        labels = split_regions(z, edges, components, labels, config, noise=noise, fits=fits)
+        labels = split_regions(z, edges, components, labels, config, noise=sigma, fits=fits)
     if config.split.recover:
         from .recover import recover_faces
 
-        labels = recover_faces(z, components, labels, config, noise=noise)
+        labels = recover_faces(z, components, labels, config, noise=sigma)
     if config.split.fill_edges:
         from .fill import fill_edges
 
@@ -132,11 +156,11 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     if config.split.merge:
         from .merge import merge_regions
 
-        labels = merge_regions(z, labels, config, noise=noise)
+        labels = merge_regions(z, labels, config, noise=sigma)
     if config.split.recut:
         from .recut import recut_regions
 
-        labels = recut_regions(z, labels, config, noise=noise)
+        labels = recut_regions(z, labels, config, noise=sigma)
     return labels, describe_surfaces(z, labels, config)
 
 
@@ -152,7 +176,7 @@ def _finish(result: PipelineResult, z: np.ndarray, edges: np.ndarray, components
             config: Config, stages: int) -> None:
     """Stages 3 and 4 of :func:`run_pipeline`, into ``result``."""
     t0 = time.perf_counter()
-    labels, surfaces = stage_grow(z, edges, components, config, noise=result.noise_sigma)
+    labels, surfaces = stage_grow(z, edges, components, config, noise=result._noise)
     result.labels, result.surfaces = labels, surfaces
     result.timings["grow"] = time.perf_counter() - t0
     if stages >= 4:
@@ -202,11 +226,11 @@ def _run(image: Any, config: Config, stages: int, name: str) -> PipelineResult:
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     z = to_heights(image, config.input, name=name)
-    noise = estimate_noise(z)
+    noise = estimate_noise(z) if uses_noise(config) else None  # else when asked for
     maps = stage_edges(z, config, noise=noise)
     timings["edges"] = time.perf_counter() - t0
     result = PipelineResult(heights=z, edge_maps=maps, edges=maps.codes, timings=timings,
-                            noise_sigma=noise)
+                            _noise=noise)
     if stages >= 2:
         t0 = time.perf_counter()
         edges, components = stage_link(z, maps.codes, config)

@@ -839,3 +839,25 @@ def test_crease_cut_divides_a_piece_along_the_crease_or_returns_none() -> None:
     flat = 50.0 + 0.2 * y + np.random.default_rng(6).normal(0.0, 1.0, z.shape)
     assert split_module._crease_cut(flat, mask, noise=1.0, level=1.25, cfg=cfg.split,
                                     grow=cfg.grow) is None
+
+
+def test_the_paper_pipeline_estimates_the_noise_only_when_asked(monkeypatch) -> None:
+    import rangeseg_cli.pipeline as pipeline
+
+    calls = []
+    monkeypatch.setattr(pipeline, "estimate_noise",
+                        lambda z: calls.append(1) or estimate_noise(z))
+    z = tilted_plane(2.0, 5)
+    paper = load_config(preset="paper")
+    fill_only = load_config(preset="paper", overrides={"split": {"fill_edges": True}})
+    assert not pipeline.uses_noise(paper) and not pipeline.uses_noise(fill_only)
+    assert pipeline.uses_noise(load_config())
+    assert pipeline.uses_noise(load_config(preset="paper",
+                                           overrides={"input": {"auto_thresholds": True}}))
+    result = run_pipeline(z, paper)
+    run_pipeline(z, fill_only)
+    assert calls == []  # nothing of these configurations uses it
+    assert result.noise_sigma == estimate_noise(result.heights)  # on first use
+    assert result.noise_sigma == result.noise_sigma and len(calls) == 1  # then kept
+    run_pipeline(z)
+    assert len(calls) == 2  # the defaults: once, shared by every stage that uses it
