@@ -2310,12 +2310,10 @@ def explained_faces(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, ids: np.n
     region's surface ``coeffs`` is below the region's ``limit``. The sums run
     in pixel order, as ``np.bincount`` adds them in the reference.
     """
-    size = np.ones(k + 1, np.int64)
-    counts = np.zeros(k + 1, np.int64)
+    size = np.zeros(k + 1, np.int64)
     for i in range(ids.size):
-        counts[ids[i]] += 1
-    for f in range(k + 1):
-        size[f] = max(counts[f], 1)
+        size[ids[i]] += 1
+    size = np.maximum(size, 1)
     explained = np.zeros(k + 1, np.bool_)
     acc = np.empty(k + 1)
     for region in regions:

@@ -82,6 +82,7 @@ from .grow import fit_models, planar
 from .merge import _join_box, touching_pairs
 from .parallel import map_tasks
 from .rangeimage import labels_on_valid
+from .split import _area
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
 _MIN_GAIN = 0.15
@@ -557,11 +558,6 @@ _Test = tuple[int, int, bool, Box]
 _Cut = tuple[float, int, int, int, Box, np.ndarray]
 
 
-def _box_area(box: Box) -> float:
-    """Pixels of a candidate's box (the cost of its tests, for ``parallel.map_tasks``)."""
-    return float((box[0].stop - box[0].start) * (box[1].stop - box[1].start))
-
-
 def _recut_one(zc: np.ndarray, lab: np.ndarray, test: _Test, *, noise: float, level: float,
                config: Config) -> _Cut | None:
     """The cut of one candidate (Notes 3, 4): sort key, box, and the new side in the box."""
@@ -614,7 +610,7 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     # processes (on threads they take turns on the GIL).
     cuts = map_tasks(
         lambda test: _recut_one(zc, lab, test, noise=noise, level=level, config=config),
-        tests, cost=[_box_area(t[3]) for t in tests])
+        tests, cost=[float(_area(t[3])) for t in tests])  # pixels of each box
     found = [cut for cut in cuts if cut is not None]
     out = lab.copy()
     used: set[int] = set()
