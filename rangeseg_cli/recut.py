@@ -298,13 +298,30 @@ def _coords(mask: np.ndarray, box: Box | None) -> tuple[np.ndarray, np.ndarray]:
     return rows + box[0].start, cols + box[1].start
 
 
-def _line_fit(mask: np.ndarray, z: np.ndarray, powers: tuple[int, ...], min_pixels: int,
-              level: float, box: Box | None = None
-              ) -> tuple[np.ndarray, np.ndarray, float, float] | None:
-    """Plane side (bool), curvature direction, SSE and no-plane-side SSE of the best line."""
+class _Points(NamedTuple):
+    """A candidate's pixels, their heights and its direction of strongest curvature.
+
+    Computed once per candidate (:func:`_points`) and shared by the smooth-edge
+    and crease searches, which fit the same pixels along the same direction.
+    """
+
+    rows: np.ndarray  #: int row of each pixel
+    cols: np.ndarray  #: int column of each pixel
+    zs: np.ndarray    #: float64 height of each pixel
+    d0: np.ndarray    #: :func:`curvature_direction` of the pixels
+
+
+def _points(mask: np.ndarray, z: np.ndarray, box: Box | None = None) -> _Points:
+    """The :class:`_Points` of ``mask`` (searched within ``box`` when given)."""
     rows, cols = _coords(mask, box)
     zs = z[rows, cols]
-    d0 = curvature_direction(rows, cols, zs)
+    return _Points(rows, cols, zs, curvature_direction(rows, cols, zs))
+
+
+def _line_fit(mask: np.ndarray, pts: _Points, powers: tuple[int, ...], min_pixels: int,
+              level: float) -> tuple[np.ndarray, float, float] | None:
+    """Plane side (bool, on ``mask``'s grid), SSE and no-plane-side SSE of the best line."""
+    rows, cols, zs, d0 = pts
     fits = [(best_knot(rows, cols, zs, d, powers, (_GIVE_UP * level) ** 2), d)
             for d in (d0, -d0)]
     (c, sse, sse_across), d = min(fits, key=lambda f: f[0][1])
@@ -316,13 +333,12 @@ def _line_fit(mask: np.ndarray, z: np.ndarray, powers: tuple[int, ...], min_pixe
         return None
     plane_side = np.zeros_like(mask)
     plane_side[rows[side], cols[side]] = True
-    return plane_side, d0, sse, sse_across
+    return plane_side, sse, sse_across
 
 
-def _crease_sse(mask: np.ndarray, z: np.ndarray, d0: np.ndarray, box: Box | None = None
-                ) -> float:
-    rows, cols = _coords(mask, box)
-    zs = z[rows, cols]
+def _crease_sse(pts: _Points) -> float:
+    """SSE of the best crease along the candidate's curvature direction (either sign)."""
+    rows, cols, zs, d0 = pts
     return min(best_knot(rows, cols, zs, d, CREASE)[1] for d in (d0, -d0))
 
 
@@ -345,8 +361,8 @@ def _quadric_sse(z: np.ndarray, mask: np.ndarray, box: Box | None = None) -> flo
 
 
 def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
-                  min_pixels: int, grow: GrowConfig, box: Box | None = None
-                  ) -> tuple[np.ndarray, float] | None:
+                  min_pixels: int, grow: GrowConfig, box: Box | None = None,
+                  pts: _Points | None = None) -> tuple[np.ndarray, float] | None:
     """The plane side of ``mask`` when it is a plane with a tangent surface (Notes 2, 3).
 
     Parameters
@@ -365,6 +381,8 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
         ``min_error`` (noise floor) and ``planar_tolerance``.
     box
         A box holding all of ``mask`` (searched instead of the whole image).
+    pts
+        :func:`_points` of ``mask`` when the caller has them.
 
     Returns
     -------
@@ -372,17 +390,18 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
         (bool (H, W) plane side, gain against one surface in units of s^2),
         or None when the test fails.
     """
-    fit = _line_fit(mask, z, SMOOTH, min_pixels, level, box)
+    pts = _points(mask, z, box) if pts is None else pts
+    fit = _line_fit(mask, pts, SMOOTH, min_pixels, level)
     if fit is None:
         return None
-    plane_side, d0, sse, sse_across = fit
+    plane_side, sse, sse_across = fit
     ((_, mse_q), (_, mse_p)), _ = _fits(z, plane_side, 1, box)
     if mse_p[1] > level ** 2 or not planar(mse_q[1:], mse_p[1:], grow.planar_tolerance,
                                            grow.min_error)[0]:
         return None
     s2n = int(mask.sum()) * max(noise ** 2, grow.min_error)
     gain = (min(_quadric_sse(z, mask, box), sse_across) - sse) / s2n
-    if gain < _MIN_GAIN or (_crease_sse(mask, z, d0, box) - sse) / s2n < _MIN_SMOOTH:
+    if gain < _MIN_GAIN or (_crease_sse(pts) - sse) / s2n < _MIN_SMOOTH:
         return None
     return plane_side, gain
 
@@ -415,12 +434,13 @@ class _Crease(NamedTuple):
 
 
 def _crease_planes(mask: np.ndarray, z: np.ndarray, min_pixels: int, level: float,
-                   box: Box | None) -> _Crease | None:
+                   box: Box | None, pts: _Points | None = None) -> _Crease | None:
     """The best crease of ``mask`` (Notes 2) when each side's plane passes the fit test."""
-    fit = _line_fit(mask, z, CREASE, min_pixels, level, box)
+    pts = _points(mask, z, box) if pts is None else pts
+    fit = _line_fit(mask, pts, CREASE, min_pixels, level)
     if fit is None:
         return None
-    side, _, sse, _ = fit
+    side, sse, _ = fit
     two = side.astype(np.int32) + mask.astype(np.int32)
     ((_, _), (planes, mse)), _ = _fits(z, two, 2, box)
     if np.any(mse[1:] > level ** 2):
@@ -429,7 +449,8 @@ def _crease_planes(mask: np.ndarray, z: np.ndarray, min_pixels: int, level: floa
 
 
 def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: float,
-                 level: float, config: Config, box: Box | None = None) -> np.ndarray | None:
+                 level: float, config: Config, box: Box | None = None,
+                 pts: _Points | None = None) -> np.ndarray | None:
     """The plane side of region i (and j) when two planes meet along a line (Notes 4).
 
     Parameters
@@ -446,6 +467,8 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
         ``[link] min_component``, ``[split] min_crease``, ``[grow]``.
     box
         A box holding regions i and j (searched instead of the whole image).
+    pts
+        :func:`_points` of the pixels of i and j when the caller has them.
 
     Returns
     -------
@@ -456,8 +479,9 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
     if not j:
         return crease_side(z, mask, noise=noise, level=level,
                            min_pixels=config.link.min_component,
-                           min_crease=config.split.min_crease, grow=config.grow, box=box)
-    crease = _crease_planes(mask, z, config.link.min_component, level, box)
+                           min_crease=config.split.min_crease, grow=config.grow, box=box,
+                           pts=pts)
+    crease = _crease_planes(mask, z, config.link.min_component, level, box, pts)
     if crease is None:
         return None
     count = np.bincount(crease.two.ravel(), minlength=3)
@@ -469,8 +493,8 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
 
 
 def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
-                min_pixels: int, min_crease: float, grow: GrowConfig, box: Box | None = None
-                ) -> np.ndarray | None:
+                min_pixels: int, min_crease: float, grow: GrowConfig, box: Box | None = None,
+                pts: _Points | None = None) -> np.ndarray | None:
     """The side before the line when two planes along a straight crease fit ``mask`` (Notes 4).
 
     Parameters
@@ -489,6 +513,8 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         ``min_error``.
     box
         A box holding all of ``mask`` (searched instead of the whole image).
+    pts
+        :func:`_points` of ``mask`` when the caller has them.
 
     Returns
     -------
@@ -498,7 +524,7 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         lowers the squared error per pixel against one quadric by less than
         ``_MIN_GAIN`` s^2, or the planes meet at less than ``min_crease``.
     """
-    crease = _crease_planes(mask, z, min_pixels, level, box)
+    crease = _crease_planes(mask, z, min_pixels, level, box, pts)
     if crease is None:
         return None
     gain = ((_quadric_sse(z, mask, box) - crease.sse)
@@ -562,12 +588,15 @@ def _recut_one(zc: np.ndarray, lab: np.ndarray, test: _Test, *, noise: float, le
                config: Config) -> _Cut | None:
     """The cut of one candidate (Notes 3, 4): sort key, box, and the new side in the box."""
     i, j, fails, box = test
+    mask = _pixels(lab, i, j, box)
+    pts = _points(mask, zc, box)  # both searches fit these pixels along the same direction
     got = None
     if fails:
-        got = split_tangent(zc, _pixels(lab, i, j, box), noise=noise, level=level,
+        got = split_tangent(zc, mask, noise=noise, level=level, pts=pts,
                             min_pixels=config.link.min_component, grow=config.grow, box=box)
     if got is None:
-        side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config, box=box)
+        side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config, box=box,
+                            pts=pts)
         got = None if side is None else (side, 0.0)
     return None if got is None else (-got[1], 0 if j else 1, i, j, box, got[0][box])
 
