@@ -362,7 +362,8 @@ def _quadric_sse(z: np.ndarray, mask: np.ndarray, box: Box | None = None) -> flo
 
 def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
                   min_pixels: int, grow: GrowConfig, box: Box | None = None,
-                  pts: _Points | None = None) -> tuple[np.ndarray, float] | None:
+                  pts: _Points | None = None, quadric_sse: float | None = None
+                  ) -> tuple[np.ndarray, float] | None:
     """The plane side of ``mask`` when it is a plane with a tangent surface (Notes 2, 3).
 
     Parameters
@@ -381,8 +382,8 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
         ``min_error`` (noise floor) and ``planar_tolerance``.
     box
         A box holding all of ``mask`` (searched instead of the whole image).
-    pts
-        :func:`_points` of ``mask`` when the caller has them.
+    pts, quadric_sse
+        :func:`_points` of ``mask`` and :func:`_quadric_sse`, when the caller has them.
 
     Returns
     -------
@@ -400,7 +401,9 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
                                            grow.min_error)[0]:
         return None
     s2n = int(mask.sum()) * max(noise ** 2, grow.min_error)
-    gain = (min(_quadric_sse(z, mask, box), sse_across) - sse) / s2n
+    if quadric_sse is None:
+        quadric_sse = _quadric_sse(z, mask, box)
+    gain = (min(quadric_sse, sse_across) - sse) / s2n
     if gain < _MIN_GAIN or (_crease_sse(pts) - sse) / s2n < _MIN_SMOOTH:
         return None
     return plane_side, gain
@@ -450,7 +453,8 @@ def _crease_planes(mask: np.ndarray, z: np.ndarray, min_pixels: int, level: floa
 
 def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: float,
                  level: float, config: Config, box: Box | None = None,
-                 pts: _Points | None = None) -> np.ndarray | None:
+                 pts: _Points | None = None, quadric_sse: float | None = None
+                 ) -> np.ndarray | None:
     """The plane side of region i (and j) when two planes meet along a line (Notes 4).
 
     Parameters
@@ -467,8 +471,9 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
         ``[link] min_component``, ``[split] min_crease``, ``[grow]``.
     box
         A box holding regions i and j (searched instead of the whole image).
-    pts
-        :func:`_points` of the pixels of i and j when the caller has them.
+    pts, quadric_sse
+        :func:`_points` of the pixels of i (and j), and the SSE of their quadric
+        (:func:`_quadric_sse`), when the caller has them.
 
     Returns
     -------
@@ -480,7 +485,7 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
         return crease_side(z, mask, noise=noise, level=level,
                            min_pixels=config.link.min_component,
                            min_crease=config.split.min_crease, grow=config.grow, box=box,
-                           pts=pts)
+                           pts=pts, quadric_sse=quadric_sse)
     crease = _crease_planes(mask, z, config.link.min_component, level, box, pts)
     if crease is None:
         return None
@@ -494,7 +499,8 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
 
 def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
                 min_pixels: int, min_crease: float, grow: GrowConfig, box: Box | None = None,
-                pts: _Points | None = None) -> np.ndarray | None:
+                pts: _Points | None = None, quadric_sse: float | None = None
+                ) -> np.ndarray | None:
     """The side before the line when two planes along a straight crease fit ``mask`` (Notes 4).
 
     Parameters
@@ -513,8 +519,8 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         ``min_error``.
     box
         A box holding all of ``mask`` (searched instead of the whole image).
-    pts
-        :func:`_points` of ``mask`` when the caller has them.
+    pts, quadric_sse
+        :func:`_points` of ``mask`` and :func:`_quadric_sse`, when the caller has them.
 
     Returns
     -------
@@ -527,7 +533,9 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
     crease = _crease_planes(mask, z, min_pixels, level, box, pts)
     if crease is None:
         return None
-    gain = ((_quadric_sse(z, mask, box) - crease.sse)
+    if quadric_sse is None:
+        quadric_sse = _quadric_sse(z, mask, box)
+    gain = ((quadric_sse - crease.sse)
             / (mask.sum() * max(noise ** 2, grow.min_error)))
     if gain < _MIN_GAIN or _plane_angle(crease.planes[1], crease.planes[2]) < min_crease:
         return None
@@ -544,7 +552,7 @@ def _pixels(labels: np.ndarray, i: int, j: int, box: Box | None = None) -> np.nd
 
 
 def candidates(z: np.ndarray, labels: np.ndarray, config: Config, level: float
-               ) -> list[tuple[int, int, bool]]:
+               ) -> list[tuple[int, int, bool, float]]:
     """Regions (k, 0) and touching pairs (i, j) to test, and whether their quadric fails.
 
     Parameters
@@ -561,42 +569,46 @@ def candidates(z: np.ndarray, labels: np.ndarray, config: Config, level: float
     Returns
     -------
     list of tuple
-        (i, j, fails) per Notes 1; j = 0 for a single region.
+        (i, j, fails, sse) per Notes 1; j = 0 for a single region; ``sse`` is
+        the sum of squared errors of the candidate's quadric (whose RMS error
+        ``fails`` the fit test or not), as :func:`_quadric_sse` gives it.
     """
     n = int(labels.max(initial=0))
     ((quad, mse), (planes, mse_plane)), _ = fit_models(z, labels, n, (2, 1))
     curved = ~planar(mse, mse_plane, config.grow.planar_tolerance, config.grow.min_error)
     curved[0] = False
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    out = [(k, 0, bool(mse[k] > level ** 2)) for k in np.nonzero(curved)[0].tolist()
-           if sizes[k] >= 2 * config.link.min_component]
+    # Each region's quadric here is the one of its pixels alone (the same moments and
+    # the same solve, so the same bits): its SSE is not fitted again.
+    out = [(k, 0, bool(mse[k] > level ** 2), float(mse[k]) * int(sizes[k]))
+           for k in np.nonzero(curved)[0].tolist() if sizes[k] >= 2 * config.link.min_component]
     coeffs = np.where(curved[:, None], quad, planes)
     boxes = ndimage.find_objects(labels)
     for i, j in touching_pairs(labels, coeffs, _MAX_GAP * level):
         if curved[i] or curved[j]:
             box = _join_box(boxes[i - 1], boxes[j - 1])
             union = _quadric_sse(z, _pixels(labels, i, j, box), box)
-            out.append((i, j, union > level ** 2 * (sizes[i] + sizes[j])))
+            out.append((i, j, union > level ** 2 * (sizes[i] + sizes[j]), union))
     return out
 
 
-_Test = tuple[int, int, bool, Box]
+_Test = tuple[int, int, bool, float, Box]
 _Cut = tuple[float, int, int, int, Box, np.ndarray]
 
 
 def _recut_one(zc: np.ndarray, lab: np.ndarray, test: _Test, *, noise: float, level: float,
                config: Config) -> _Cut | None:
     """The cut of one candidate (Notes 3, 4): sort key, box, and the new side in the box."""
-    i, j, fails, box = test
+    i, j, fails, sse, box = test
     mask = _pixels(lab, i, j, box)
     pts = _points(mask, zc, box)  # both searches fit these pixels along the same direction
     got = None
     if fails:
-        got = split_tangent(zc, mask, noise=noise, level=level, pts=pts,
+        got = split_tangent(zc, mask, noise=noise, level=level, pts=pts, quadric_sse=sse,
                             min_pixels=config.link.min_component, grow=config.grow, box=box)
     if got is None:
         side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config, box=box,
-                            pts=pts)
+                            pts=pts, quadric_sse=sse)
         got = None if side is None else (side, 0.0)
     return None if got is None else (-got[1], 0 if j else 1, i, j, box, got[0][box])
 
@@ -633,13 +645,13 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     zc = np.where(np.isfinite(z), z, 0.0)
     level = config.split.fit_factor * max(noise, math.sqrt(config.grow.min_error))
     boxes = ndimage.find_objects(lab)
-    tests = [(i, j, fails, _join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1])
-             for i, j, fails in candidates(zc, lab, config, level)]
+    tests = [(i, j, fails, sse, _join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1])
+             for i, j, fails, sse in candidates(zc, lab, config, level)]
     # The candidates are independent; their work is mostly Python, so many of them go to
     # processes (on threads they take turns on the GIL).
     cuts = map_tasks(
         lambda test: _recut_one(zc, lab, test, noise=noise, level=level, config=config),
-        tests, cost=[float(_area(t[3])) for t in tests])  # pixels of each box
+        tests, cost=[float(_area(t[4])) for t in tests])  # pixels of each box
     found = [cut for cut in cuts if cut is not None]
     out = lab.copy()
     used: set[int] = set()
