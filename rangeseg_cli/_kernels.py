@@ -1085,19 +1085,18 @@ def plane_heights_at(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, 
         _masked_product(z, mask, u0, v0, which, radius, pad[which])
     out = np.empty(rows.shape[0])
     buf = np.empty((9, width + 2 * radius))
+    need = np.zeros(width + 2 * radius, dtype=np.bool_)
     b = np.empty(9)
     start = 0
     while start < rows.shape[0]:
         r = rows[start]
         stop = start
-        lo, hi = cols[start], cols[start]
         while stop < rows.shape[0] and rows[stop] == r:
-            lo, hi = min(lo, cols[stop]), max(hi, cols[stop])
             stop += 1
-        # padded columns lo .. hi + 2 radius: those within reach of the row's pixels
-        _column_blurs(pad, w, r, lo, hi + 2 * radius + 1, buf)
+        # the first blur at the padded columns within reach of the row's pixels only
+        _blur_needed_columns(pad, w, r, cols[start:stop], need, buf)
         for i in range(start, stop):
-            c = cols[i] - lo + radius
+            c = cols[i] + radius
             for which in range(9):
                 src = buf[which]
                 a = src[c] * wc
@@ -1107,6 +1106,32 @@ def plane_heights_at(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, 
             out[i] = _height(b, min_det, cols[i] + u0, r + v0)
         start = stop
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _blur_needed_columns(pad: np.ndarray, w: np.ndarray, r: int, cols: np.ndarray,
+                         need: np.ndarray, buf: np.ndarray) -> None:  # pragma: no cover
+    """:func:`_column_blurs` of row r at the padded columns the pixels ``cols`` need.
+
+    Into ``buf[:, c]`` at the padded columns c that the second blur of the
+    pixels ``cols`` of that row reads (``cols[i] .. cols[i] + 2 radius``),
+    run by run; ``need`` (all False) is a scratch mask, left all False.
+    """
+    reach = w.shape[0] - 1
+    for c in cols:
+        need[c: c + reach + 1] = True
+    n = need.shape[0]
+    c = 0
+    while c < n:
+        if not need[c]:
+            c += 1
+            continue
+        end = c
+        while end < n and need[end]:
+            need[end] = False
+            end += 1
+        _column_blurs(pad, w, r, c, end, buf[:, c:end])
+        c = end
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
