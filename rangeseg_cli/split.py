@@ -18,7 +18,9 @@ Notes
    pixels). They are divided into those near the dominant orientation and
    the rest (:func:`mode_split`); each class falls into its 4-connected
    parts; speckle and thin parts (slivers along a crease, the steep rim of a
-   curved surface) go to their nearest wide part; then every pixel near two
+   curved surface) go to their nearest wide part (when that leaves one part,
+   the class of the dominant orientation is divided again by its own mode:
+   :func:`_split_mode_class`); then every pixel near two
    parts goes, twice, to the part whose local plane (fitted to the part's
    core, away from the crease) predicts it better. Pieces that still fail
    the test are split again, breadth first, up to ``split.max_pieces``.
@@ -840,15 +842,17 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     gx, gy = local_gradients(z, mask, cfg.normal_sigma, backend=backend)
     gxs, gys = gx[rows, cols], gy[rows, cols]
     norm = np.sqrt(1.0 + gxs * gxs + gys * gys)
-    cls = mode_split(np.stack([-gxs / norm, -gys / norm, 1.0 / norm], axis=1),
-                     backend=backend)
+    normals = np.stack([-gxs / norm, -gys / norm, 1.0 / norm], axis=1)
+    cls = mode_split(normals, backend=backend)
     if cls.all() or not cls.any():
         return None
     frame = _Frame.of(mask, cfg, backend)
     classes = np.zeros(mask.shape, np.int32)
     classes[rows, cols] = np.where(cls, 2, 1)
-    parts = _clean(classes, frame)
-    if parts.max(initial=0) < 2:
+    first = _clean(classes, frame)
+    parts = first if first.max(initial=0) >= 2 else _split_mode_class(normals, cls, rows,
+                                                                         cols, frame)
+    if parts is None:
         return None
     for _ in range(_REFINE_ROUNDS):
         refined = _clean(_reassign(z, parts, frame), frame)
@@ -856,6 +860,33 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
             break
         parts = refined
     return parts
+
+
+def _split_mode_class(normals: np.ndarray, away: np.ndarray, rows: np.ndarray,
+                      cols: np.ndarray, frame: _Frame) -> np.ndarray | None:
+    """Parts from the mode class divided again, when the normals away from it made none.
+
+    Beyond the paper. With three faces in a piece (two large ones at a crease
+    and a sliver of a third, steeper one), Otsu's threshold can part the
+    sliver from the two others, which then stay in the mode's class: the
+    sliver is too thin to be a part, and the crease between the two large
+    faces is never cut. Here the mode's class alone is divided by its own
+    mode (:func:`mode_split`); the sliver's pixels are a third class, which
+    :func:`_clean` gives to their neighbours when it is too thin. None when
+    that makes fewer than two wide parts.
+    """
+    near = ~away
+    if np.count_nonzero(near) < 2:
+        return None
+    sub = mode_split(normals[near], backend=frame.backend)
+    if sub.all() or not sub.any():
+        return None
+    labels = np.full(rows.size, 3, np.int32)
+    labels[near] = np.where(sub, 2, 1)
+    classes = np.zeros(frame.mask.shape, np.int32)
+    classes[rows, cols] = labels
+    parts = _clean(classes, frame)
+    return parts if parts.max(initial=0) >= 2 else None
 
 
 def adjacent_pairs(pieces: np.ndarray, reach: int = 2, *, backend: Backend = "auto"

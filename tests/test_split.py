@@ -184,6 +184,34 @@ def test_two_coplanar_ish_faces_at_a_one_unit_crease_are_split(sigma: float) -> 
     np.testing.assert_allclose(slopes, [-0.5, 0.5], atol=0.02)
 
 
+def sliver_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two planes at a crease (slopes 1 and 2.5 along x) and, along the bottom edge of
+    the left one, a steep sliver of a third face two pixels wide: heights, left, sliver."""
+    yy, xx = np.mgrid[0:60, 0:80].astype(np.float64)
+    z = np.where(xx < 40, 100 + xx, 140 + 2.5 * (xx - 40))
+    sliver = (yy >= 58) & (xx < 30)
+    return np.round(np.where(sliver, z + 6.0 * (yy - 57), z)), xx < 40, sliver
+
+
+def test_a_sliver_of_a_third_face_does_not_hide_the_crease_between_two_others(
+        monkeypatch) -> None:
+    # The sliver's normals are the farthest from the mode: Otsu parts them from both
+    # planes, and the sliver is too thin to be a part. The mode's class is divided again.
+    z, left, sliver = sliver_scene()
+    mask = np.ones(z.shape, bool)
+    cfg = Config()
+
+    def planes_apart() -> bool:
+        pieces = split_module.split_component(z, mask, noise=0.0, cfg=cfg.split,
+                                              grow=cfg.grow)
+        a, b = (np.bincount(pieces[side & ~sliver]).argmax() for side in (left, ~left))
+        return bool(a != b and a > 0 and b > 0)
+
+    assert planes_apart()
+    monkeypatch.setattr(split_module, "_split_mode_class", lambda *args, **kwargs: None)
+    assert not planes_apart()  # without the second division it stays whole
+
+
 @pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
 @pytest.mark.parametrize("scene", [cylinder_scene, sphere_scene], ids=["cylinder", "sphere"])
 def test_genuinely_curved_surface_is_not_split(scene, sigma: float) -> None:
