@@ -211,7 +211,7 @@ def plane_pieces(z: np.ndarray, mask: np.ndarray, *, level: float, min_pixels: i
     for _ in range(MAX_PIECES):
         if np.count_nonzero(left) < min_pixels:
             break
-        piece = _best_piece(z, left, tol)
+        piece = consensus_plane(z, left, tol)
         if piece is None:
             break
         left &= ~piece
@@ -220,8 +220,14 @@ def plane_pieces(z: np.ndarray, mask: np.ndarray, *, level: float, min_pixels: i
     return pieces
 
 
-def _best_piece(z: np.ndarray, left: np.ndarray, tol: float) -> np.ndarray | None:
-    """The connected inliers of the local plane most pixels of ``left`` fit; None if none."""
+def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float) -> np.ndarray | None:
+    """The connected inliers of the local plane most pixels of ``left`` fit; None if none.
+
+    Every pixel's local plane (:data:`HYPOTHESIS_SIGMA`) is a hypothesis (at most
+    :data:`MAX_HYPOTHESES`, in raster order); the one most pixels fit within ``tol`` wins,
+    is refitted twice to its inliers, and the connected part (8-neighbours) of the
+    inliers holding the winning pixel is returned (bool, ``left``'s shape).
+    """
     rows, cols = np.nonzero(left)
     height, gx, gy = local_planes(z, left, HYPOTHESIS_SIGMA)
     hyp = np.flatnonzero(np.isfinite(gx[rows, cols]))

@@ -27,6 +27,9 @@ Notes
    With ``split.crease_pieces`` (beyond the paper) pieces whose plane fails
    the test are split again too, and a piece the normals do not divide is
    cut along a straight crease (:func:`~rangeseg_cli.recut.crease_side`).
+   With ``split.trim_pieces`` (beyond the paper) a failing piece that
+   neither divides leaves out the pixels off its dominant surface (a sliver
+   of a neighbouring face, :func:`_trim`); they are regrown later.
 4. Merging back (:func:`merge_back`). Neighbouring pieces stay apart only
    when one quadric fits their union ``split.min_gain`` times worse than
    their own quadrics (and worse than region growing's noise-free
@@ -1192,6 +1195,8 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
             sub = _crease_cut(z[box], pieces[box] == k, noise=noise, level=level, cfg=cfg,
                               grow=grow)
         if sub is None:
+            if cfg.trim_pieces:
+                _trim(z[box], pieces[box], k, level)
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
         mse, mse_plane, counts = _fit_pieces(z, pieces, ids, backend, box)
@@ -1205,6 +1210,55 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
                       planar_tolerance=grow.planar_tolerance, min_error=grow.min_error,
                       creases=_crease_gain(noise, cfg, grow),
                       excess=cfg.min_excess * level * level if cfg.min_excess > 0 else None)
+
+
+#: A trimmed piece keeps at least this share of its pixels (else it is left whole).
+_TRIM_KEEP = 0.6
+
+
+def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
+    """Leave out the pixels of piece k that its dominant surface does not fit (in place).
+
+    Beyond the paper. For a piece that fails the fit test and that neither
+    the normals nor a straight crease divide: usually one face with a sliver
+    of its neighbour along the crease, too thin for a core of its own. The
+    sliver keeps the piece's error high, and :func:`merge_back` then glues
+    the piece to its neighbours across real creases. The dominant surface
+    starts from the consensus plane of the recovery
+    (:func:`~rangeseg_cli.recover.consensus_plane`: the local plane most
+    pixels fit within ``INLIER_FACTOR`` times the fit test's level), whose
+    inliers a quadric is fitted to twice, each time taking the piece's
+    pixels it fits within that tolerance. The rest are set to 0 (regrown
+    later, or recovered as a narrow face) when the inliers are at least
+    :data:`_TRIM_KEEP` of the piece and their quadric passes the fit test;
+    else the piece is left as it is. A piece of a curved surface can lose
+    its steepest margin, where the quadric misfits the circle's profile (up
+    to a fifth of a quarter sphere noise-free); region growing gives those
+    pixels back, and merge-back still glues the pieces of a cylinder or a
+    sphere (``tests/test_split.py``).
+    """
+    from .grow import evaluate_quadric
+    from .recover import INLIER_FACTOR, consensus_plane  # recover imports this module
+
+    mask = pieces == k
+    tol = INLIER_FACTOR * level
+    inliers = consensus_plane(z, mask, tol)
+    if inliers is None:
+        return
+    rows, cols = np.nonzero(mask)
+    for _ in range(2):
+        coef, _, _ = fit_quadrics(z, inliers.astype(np.int32), 1)
+        fitted = evaluate_quadric(coef[1], rows.astype(np.float64), cols.astype(np.float64))
+        keep = np.abs(z[rows, cols] - fitted) < tol
+        inliers = np.zeros_like(mask)
+        inliers[rows[keep], cols[keep]] = True
+    kept = int(np.count_nonzero(inliers))
+    if kept == rows.size or kept < _TRIM_KEEP * rows.size:
+        return
+    _, mse, _ = fit_quadrics(z, inliers.astype(np.int32), 1)
+    if mse[1] > level * level:
+        return
+    pieces[mask & ~inliers] = 0
 
 
 def _area(box: tuple[slice, slice]) -> int:
