@@ -1219,7 +1219,8 @@ _TRIM_KEEP = 0.6
 def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
     """Leave out the pixels of piece k that its dominant surface does not fit (in place).
 
-    Beyond the paper. For a piece that fails the fit test and that neither
+    Beyond the paper. For a piece whose quadric fails the fit test (not one
+    queued for its plane only, ``crease_pieces``) and that neither
     the normals nor a straight crease divide: usually one face with a sliver
     of its neighbour along the crease, too thin for a core of its own. The
     sliver keeps the piece's error high, and :func:`merge_back` then glues
@@ -1241,6 +1242,9 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
     from .recover import INLIER_FACTOR, consensus_plane  # recover imports this module
 
     mask = pieces == k
+    _, mse, _ = fit_quadrics(z, mask.astype(np.int32), 1)
+    if mse[1] <= level * level:  # queued for its plane only: a surface its quadric fits
+        return
     tol = INLIER_FACTOR * level
     inliers = consensus_plane(z, mask, tol)
     if inliers is None:
