@@ -1162,7 +1162,9 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     a quadric can pass the test across the crease of two faces, a
     frustum's top and side at noise sigma 2), and a piece the normals do
     not divide is cut along a straight crease when two planes fit it
-    (:func:`_crease_cut`).
+    (:func:`_crease_cut`). With ``split.trim_pieces`` (beyond the paper) a
+    piece whose quadric fails and that neither divides leaves out, to be
+    regrown, the pixels off its dominant surface (:func:`_trim`).
 
     Parameters
     ----------
