@@ -142,9 +142,10 @@ class SplitConfig:
                                "(a quadric can absorb the crease of two small faces), along a "
                                "straight crease when its normals do not divide it, and keep "
                                "two pieces apart that two planes fit better than one quadric")
-    trim_pieces: bool = _opt(True, "when a piece that fails the fit test cannot be split, "
-                             "leave out (to be regrown) its pixels off its dominant surface: a "
-                             "sliver of a neighbouring face too thin to be a piece of its own")
+    trim_pieces: bool = _opt(True, "when a piece whose quadric fails the fit test cannot be "
+                             "split, leave out (to be regrown) its pixels off its dominant "
+                             "surface: a sliver of a neighbouring face too thin to be a piece "
+                             "of its own")
     rounds: int = _opt(2, "rounds of testing and splitting; each round tests the regions "
                        "grown from the last one's pieces", min=1, max=5)
     recover: bool = _opt(True, "after growing, give a narrow face its own region: a band of "
