@@ -1189,6 +1189,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     level = cfg.fit_factor * max(noise, math.sqrt(grow.min_error))
     pieces = mask.astype(np.int32)
     queue = [1]
+    quadric_passes: set[int] = set()  # pieces queued because their plane alone fails
     while queue and (n := int(pieces.max())) < cfg.max_pieces:
         k = queue.pop(0)
         box = _crop(pieces == k, 0)
@@ -1197,12 +1198,13 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
             sub = _crease_cut(z[box], pieces[box] == k, noise=noise, level=level, cfg=cfg,
                               grow=grow)
         if sub is None:
-            if cfg.trim_pieces:
+            if cfg.trim_pieces and k not in quadric_passes:
                 _trim(z[box], pieces[box], k, level)
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
         mse, mse_plane, counts = _fit_pieces(z, pieces, ids, backend, box)
         fails = mse > level * level
+        quadric_passes.update(i for i in ids if not fails[i])
         if cfg.crease_pieces:
             fails |= mse_plane > level * level
         queue += [i for i in ids if fails[i] and counts[i] >= 2 * cfg.min_piece]
@@ -1221,8 +1223,9 @@ _TRIM_KEEP = 0.6
 def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
     """Leave out the pixels of piece k that its dominant surface does not fit (in place).
 
-    Beyond the paper. For a piece whose quadric fails the fit test (not one
-    queued for its plane only, ``crease_pieces``) and that neither
+    Beyond the paper. For a piece whose quadric fails the fit test (the
+    caller does not pass one queued for its plane only, ``crease_pieces``;
+    a component is split because its quadric fails) and that neither
     the normals nor a straight crease divide: usually one face with a sliver
     of its neighbour along the crease, too thin for a core of its own. The
     sliver keeps the piece's error high, and :func:`merge_back` then glues
@@ -1244,9 +1247,6 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
     from .recover import INLIER_FACTOR, consensus_plane  # recover imports this module
 
     mask = pieces == k
-    _, mse, _ = fit_quadrics(z, mask.astype(np.int32), 1)
-    if mse[1] <= level * level:  # queued for its plane only: a surface its quadric fits
-        return
     tol = INLIER_FACTOR * level
     inliers = consensus_plane(z, mask, tol)
     if inliers is None:
