@@ -72,6 +72,7 @@ from .config import Config, GrowConfig, SplitConfig
 from .edges import Backend, select_kernels
 from .grow import (
     Fits,
+    evaluate_quadric,
     fit_models,
     fit_quadrics,
     grow_regions,
@@ -850,11 +851,9 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     if cls.all() or not cls.any():
         return None
     frame = _Frame.of(mask, cfg, backend)
-    classes = np.zeros(mask.shape, np.int32)
-    classes[rows, cols] = np.where(cls, 2, 1)
-    first = _clean(classes, frame)
-    parts = first if first.max(initial=0) >= 2 else _split_mode_class(normals, cls, rows,
-                                                                         cols, frame)
+    parts = _wide_parts(np.where(cls, 2, 1), rows, cols, frame)
+    if parts is None:
+        parts = _split_mode_class(normals, cls, rows, cols, frame)
     if parts is None:
         return None
     for _ in range(_REFINE_ROUNDS):
@@ -886,6 +885,12 @@ def _split_mode_class(normals: np.ndarray, away: np.ndarray, rows: np.ndarray,
         return None
     labels = np.full(rows.size, 3, np.int32)
     labels[near] = np.where(sub, 2, 1)
+    return _wide_parts(labels, rows, cols, frame)
+
+
+def _wide_parts(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray, frame: _Frame
+                ) -> np.ndarray | None:
+    """:func:`_clean` of the class ``labels`` of the pixels (rows, cols); None below two parts."""
     classes = np.zeros(frame.mask.shape, np.int32)
     classes[rows, cols] = labels
     parts = _clean(classes, frame)
@@ -1243,7 +1248,6 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
     pixels back, and merge-back still glues the pieces of a cylinder or a
     sphere (``tests/test_split.py``).
     """
-    from .grow import evaluate_quadric
     from .recover import INLIER_FACTOR, consensus_plane  # recover imports this module
 
     mask = pieces == k
