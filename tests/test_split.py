@@ -430,6 +430,7 @@ def test_split_pieces_are_numbered_in_raster_order_and_never_cover_invalid_pixel
     ({"split": {"min_gain": 0.5}}, r"\[split\] min_gain = 0.5"),
     ({"split": {"enable": True}}, r"unknown key \[split\] enable"),
     ({"input": {"auto_thresholds": 1}}, r"\[input\] auto_thresholds = 1: expected true"),
+    ({"split": {"trim_pieces": "maybe"}}, r"\[split\] trim_pieces = 'maybe': expected true"),
 ])
 def test_split_and_auto_threshold_keys_are_validated(values: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
