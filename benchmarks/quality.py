@@ -4,14 +4,17 @@ Renders every scene of ``rangeseg_cli.synth.SCENES`` at noise 0, 1, 2 for
 seeds 0, 1, 2 (the same images ``rangeseg synth OUT --noise 0,1,2 --seed S``
 writes), runs ``run_pipeline`` with the given configuration and scores the
 labels with Hoover et al. (1996) at T = 0.8 on GT regions of >= 50 pixels.
-Prints one row per noise level (the table of ``docs/QUALITY.md``) and, with
-``--misses``, every GT region that is not correctly detected.
+Prints one row per noise level (the table of ``docs/QUALITY.md``), with
+``--widths`` the same counts by the width of the GT face (:func:`face_width`:
+where the narrow faces are lost) and, with ``--misses``, every GT region that
+is not correctly detected.
 
 Usage::
 
     .venv/bin/python benchmarks/quality.py                       # defaults
     .venv/bin/python benchmarks/quality.py --preset paper
     .venv/bin/python benchmarks/quality.py --set split.merge=false --misses
+    .venv/bin/python benchmarks/quality.py --seeds 0,1,2 --widths
     .venv/bin/python benchmarks/quality.py --json out/quality.json --labels out/labels.npz
 
 ``--labels`` saves every label image (key ``<scene>-n<noise>-s<seed>``) so two
@@ -28,6 +31,7 @@ from collections import defaultdict
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from rangeseg_cli.config import load_config
 from rangeseg_cli.evaluate import CURVE_TOLERANCES, correct_curve, hoover_compare
@@ -37,6 +41,32 @@ from rangeseg_cli.synth import SCENES, render_scene
 NOISES = (0.0, 1.0, 2.0)
 SEEDS = (0, 1, 2)
 KEYS = ("gt_regions", "correct", "over", "under", "missed", "noise")
+#: Upper ends of the face-width classes of ``--widths`` (pixels); the last is open.
+WIDTH_BINS = (3, 5, 9)
+
+
+def face_width(mask: np.ndarray) -> int:
+    """Width of a face in pixels: the widest square of its pixels is ``w x w``.
+
+    ``2 * d - 1`` for the largest chessboard distance ``d`` of a face pixel to
+    the nearest pixel outside the face (the image border counts as outside):
+    a band 3 pixels thick has width 3 whatever its length or direction
+    (rounded to odd widths: a band 2 pixels thick has width 1, 4 has 3).
+    """
+    padded = np.pad(np.asarray(mask, bool), 1)
+    if not padded.any():
+        return 0
+    return 2 * int(ndimage.distance_transform_cdt(padded, metric="chessboard").max()) - 1
+
+
+def width_class(width: int) -> str:
+    """The ``--widths`` class of a face width: ``"1-3"``, ``"4-5"``, ``"6-9"``, ``">=10"``."""
+    low = 1
+    for high in WIDTH_BINS:
+        if width <= high:
+            return f"{low}-{high}"
+        low = high + 1
+    return f">={low}"
 
 
 def _parse_set(items: list[str]) -> dict[str, dict[str, Any]]:
@@ -58,7 +88,8 @@ def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool
             ) -> tuple[dict[float, dict[str, Any]], dict[str, np.ndarray], list[str]]:
     """Per noise level: summed counts and curve; the label images; the misses."""
     rows: dict[float, dict[str, Any]] = defaultdict(
-        lambda: {**{k: 0 for k in KEYS}, "curve": [0] * len(CURVE_TOLERANCES)})
+        lambda: {**{k: 0 for k in KEYS}, "curve": [0] * len(CURVE_TOLERANCES),
+                 "widths": defaultdict(lambda: [0, 0])})
     labels: dict[str, np.ndarray] = {}
     missed: list[str] = []
     for seed in seeds:
@@ -75,9 +106,13 @@ def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool
                     row[k] += int(counts[k])
                 row["curve"] = [a + b for a, b in zip(row["curve"],
                                                       correct_curve(scene.gt, pred), strict=True)]
+                good = {g for i in result.instances if i.kind == "correct" for g in i.gt}
+                for g in result.gt_labels.tolist():
+                    tally = row["widths"][width_class(face_width(scene.gt == g))]
+                    tally[0] += 1
+                    tally[1] += g in good
                 if misses:
                     names = {s["id"]: s["name"] for s in scene.info["surfaces"]}
-                    good = {g for i in result.instances if i.kind == "correct" for g in i.gt}
                     for g in result.gt_labels.tolist():
                         if g not in good:
                             missed.append(f"{key}: {names.get(g, g)} "
@@ -101,6 +136,20 @@ def _print(rows: dict[float, dict[str, Any]]) -> None:
           f"{total['under']} | {total['missed']} | {total['noise']} | |")
 
 
+def _print_widths(rows: dict[float, dict[str, Any]]) -> None:
+    noises = sorted(rows)
+    classes = sorted({c for r in rows.values() for c in r["widths"]},
+                     key=lambda c: int(c.split("-")[0].lstrip(">=")))
+    print()
+    print("| face width (px) | GT | " + " | ".join(f"correct σ = {n:g}" for n in noises) + " |")
+    print("|---|---|" + "---|" * len(noises))
+    for c in classes:
+        gt = rows[noises[0]]["widths"][c][0]
+        hits = [rows[n]["widths"][c][1] for n in noises]
+        cells = " | ".join(f"{h} ({100.0 * h / gt:.0f} %)" for h in hits)
+        print(f"| {c} | {gt} | {cells} |")
+
+
 def compare(a: str, b: str) -> int:
     """Print how many label images differ between two ``--labels`` files."""
     la, lb = np.load(a), np.load(b)
@@ -121,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--size", default="128x128", help="ROWSxCOLS of the rendered scenes")
     p.add_argument("--misses", action="store_true", help="list GT regions not correctly detected")
+    p.add_argument("--widths", action="store_true",
+                   help="also count correct detections by the width of the GT face")
     p.add_argument("--json", default=None, help="write the rows as JSON here")
     p.add_argument("--labels", default=None, help="save all label images to this .npz")
     p.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two --labels files")
@@ -133,11 +184,14 @@ def main(argv: list[str] | None = None) -> int:
     rows, labels, missed = measure(config, args.scenes.split(","), seeds, args.misses,
                                    (size[0], size[1]))
     _print(rows)
+    if args.widths:
+        _print_widths(rows)
     for line in missed:
         print(line)
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump({f"{k:g}": v for k, v in rows.items()}, fh, indent=1)
+            json.dump({f"{k:g}": {**v, "widths": dict(v["widths"])} for k, v in rows.items()},
+                      fh, indent=1)
     if args.labels:
         np.savez_compressed(args.labels, **labels)
     return 0
