@@ -2219,6 +2219,30 @@ def knot_sse(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, knots:
     return projected_sse(gram, rhs, zz, tol)
 
 
+# --------------------------------------------------------------------------- recovery
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def plane_votes(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: np.ndarray,
+                gx: np.ndarray, gy: np.ndarray, hr: np.ndarray, hc: np.ndarray, tol: float
+                ) -> np.ndarray:  # pragma: no cover - compiled
+    """Pixels each hypothesis plane fits within ``tol`` (``recover.consensus_plane``).
+
+    Hypothesis i predicts ``height[i] + gx[i] (col - hc[i]) + gy[i] (row - hr[i])``
+    at every pixel (the same operations in the same order as the numpy
+    reference, so the same votes), without the hypotheses x pixels temporaries.
+    """
+    out = np.zeros(hr.shape[0], np.int64)
+    for i in range(hr.shape[0]):
+        count = 0
+        for j in range(zs.shape[0]):
+            pred = height[i] + gx[i] * float(cols[j] - hc[i]) + gy[i] * float(rows[j] - hr[i])
+            if abs(zs[j] - pred) < tol:
+                count += 1
+        out[i] = count
+    return out
+
+
 # --------------------------------------------------------------------------- fill (edge pixels)
 
 

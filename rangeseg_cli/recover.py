@@ -220,7 +220,28 @@ def plane_pieces(z: np.ndarray, mask: np.ndarray, *, level: float, min_pixels: i
     return pieces
 
 
-def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float) -> np.ndarray | None:
+def _votes_of(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: np.ndarray,
+              gx: np.ndarray, gy: np.ndarray, hr: np.ndarray, hc: np.ndarray, tol: float
+              ) -> np.ndarray:
+    """The pixels each hypothesis plane fits within ``tol``: bool (..., pixels) (numpy)."""
+    pred = (np.asarray(height)[..., None]
+            + np.asarray(gx)[..., None] * (cols - np.asarray(hc)[..., None])
+            + np.asarray(gy)[..., None] * (rows - np.asarray(hr)[..., None]))
+    return np.abs(zs - pred) < tol
+
+
+def _votes(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: np.ndarray,
+           gx: np.ndarray, gy: np.ndarray, hr: np.ndarray, hc: np.ndarray, tol: float,
+           backend: Backend) -> np.ndarray:
+    """How many pixels each hypothesis plane fits within ``tol``: int (hypotheses,)."""
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        return np.asarray(kernels.plane_votes(zs, rows, cols, height, gx, gy, hr, hc, tol))
+    return _votes_of(zs, rows, cols, height, gx, gy, hr, hc, tol).sum(axis=1)
+
+
+def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Backend = "auto"
+                    ) -> np.ndarray | None:
     """The connected inliers of the local plane most pixels of ``left`` fit; None if none.
 
     Every pixel's local plane (:data:`HYPOTHESIS_SIGMA`) is a hypothesis (at most
@@ -235,11 +256,10 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float) -> np.ndarray |
         return None
     hyp = hyp[:: -(-hyp.size // MAX_HYPOTHESES)]
     hr, hc = rows[hyp], cols[hyp]
-    pred = (height[hr, hc][:, None] + gx[hr, hc][:, None] * (cols - hc[:, None])
-            + gy[hr, hc][:, None] * (rows - hr[:, None]))
-    votes = np.abs(z[rows, cols] - pred) < tol
-    best = int(np.argmax(votes.sum(axis=1)))
-    inliers = votes[best]
+    best = int(np.argmax(_votes(z[rows, cols], rows, cols, height[hr, hc], gx[hr, hc],
+                                gy[hr, hc], hr, hc, tol, backend)))
+    inliers = _votes_of(z[rows, cols], rows, cols, height[hr[best], hc[best]],
+                        gx[hr[best], hc[best]], gy[hr[best], hc[best]], hr[best], hc[best], tol)
     for _ in range(2):  # refit to the inliers
         if not inliers.any():  # no hypothesis won a single vote (e.g. NaN-ridden bands)
             return None

@@ -201,3 +201,23 @@ def test_compiled_explained_faces_equal_the_numpy_reference(seed):
     compiled = recover._drop_explained(z, faces, fits, backend="numba")
     np.testing.assert_array_equal(compiled, numpy)
     assert 0 < int(numpy.max()) < 9  # some faces explained, some kept
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_consensus_votes_equal_the_numpy_reference(seed: int) -> None:
+    from rangeseg_cli import recover
+
+    rng = np.random.default_rng(seed)
+    h, w = 30, 40
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    # two planes meeting at a crease, 8-bit rounded, and a few holes
+    z = np.round(np.where(x < 22, 40.0 + 0.7 * x, 55.4 - 1.3 * (x - 22)) + 0.4 * y
+                 + rng.normal(0.0, 0.6, (h, w)))
+    left = rng.random((h, w)) < 0.85
+    numpy = recover.consensus_plane(z, left, 1.2, backend="numpy")
+    compiled = recover.consensus_plane(z, left, 1.2, backend="numba")
+    assert numpy is not None and compiled is not None
+    np.testing.assert_array_equal(compiled, numpy)
+    # the winner is one of the two planes: most of its pixels on one side of the crease
+    side = x[numpy] < 22
+    assert max(side.mean(), 1.0 - side.mean()) > 0.9
