@@ -15,6 +15,7 @@ Usage::
     .venv/bin/python benchmarks/quality.py --preset paper
     .venv/bin/python benchmarks/quality.py --set split.merge=false --misses
     .venv/bin/python benchmarks/quality.py --seeds 0,1,2 --widths
+    .venv/bin/python benchmarks/quality.py --gt-parts   # each patch of a GT surface judged alone
     .venv/bin/python benchmarks/quality.py --json out/quality.json --labels out/labels.npz
 
 ``--labels`` saves every label image (key ``<scene>-n<noise>-s<seed>``) so two
@@ -34,7 +35,12 @@ import numpy as np
 from scipy import ndimage
 
 from rangeseg_cli.config import load_config
-from rangeseg_cli.evaluate import CURVE_TOLERANCES, correct_curve, hoover_compare
+from rangeseg_cli.evaluate import (
+    CURVE_TOLERANCES,
+    connected_parts,
+    correct_curve,
+    hoover_compare,
+)
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth import SCENES, render_scene
 
@@ -84,7 +90,7 @@ def _parse_set(items: list[str]) -> dict[str, dict[str, Any]]:
 
 
 def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool,
-            size: tuple[int, int] = (128, 128)
+            size: tuple[int, int] = (128, 128), gt_parts: bool = False
             ) -> tuple[dict[float, dict[str, Any]], dict[str, np.ndarray], list[str]]:
     """Per noise level: summed counts and curve; the label images; the misses."""
     rows: dict[float, dict[str, Any]] = defaultdict(
@@ -99,24 +105,26 @@ def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool
                 pred = run_pipeline(scene.image, config).labels
                 key = f"{name}-n{noise:g}-s{seed}"
                 labels[key] = pred
-                result = hoover_compare(scene.gt, pred)
+                gt = connected_parts(scene.gt) if gt_parts else scene.gt
+                result = hoover_compare(gt, pred)
                 counts = result.counts()
                 row = rows[noise]
                 for k in KEYS:
                     row[k] += int(counts[k])
                 row["curve"] = [a + b for a, b in zip(row["curve"],
-                                                      correct_curve(scene.gt, pred), strict=True)]
+                                                      correct_curve(gt, pred), strict=True)]
                 good = {g for i in result.instances if i.kind == "correct" for g in i.gt}
                 for g in result.gt_labels.tolist():
-                    tally = row["widths"][width_class(face_width(scene.gt == g))]
+                    tally = row["widths"][width_class(face_width(gt == g))]
                     tally[0] += 1
                     tally[1] += g in good
                 if misses:
                     names = {s["id"]: s["name"] for s in scene.info["surfaces"]}
                     for g in result.gt_labels.tolist():
                         if g not in good:
-                            missed.append(f"{key}: {names.get(g, g)} "
-                                          f"({int((scene.gt == g).sum())} px)")
+                            surface = int(scene.gt[gt == g][0])
+                            missed.append(f"{key}: {names.get(surface, surface)} "
+                                          f"({int((gt == g).sum())} px)")
     return dict(rows), labels, missed
 
 
@@ -170,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--size", default="128x128", help="ROWSxCOLS of the rendered scenes")
     p.add_argument("--misses", action="store_true", help="list GT regions not correctly detected")
+    p.add_argument("--gt-parts", action="store_true",
+                   help="judge each 8-connected patch of a GT surface as a region of its own")
     p.add_argument("--widths", action="store_true",
                    help="also count correct detections by the width of the GT face")
     p.add_argument("--json", default=None, help="write the rows as JSON here")
@@ -182,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     seeds = tuple(int(s) for s in args.seeds.split(","))
     size = tuple(int(v) for v in args.size.lower().split("x"))
     rows, labels, missed = measure(config, args.scenes.split(","), seeds, args.misses,
-                                   (size[0], size[1]))
+                                   (size[0], size[1]), args.gt_parts)
     _print(rows)
     if args.widths:
         _print_widths(rows)

@@ -420,14 +420,16 @@ def synth_cmd(out: str, scenes: list[str] | None, noise: list[float], seed: int,
               help="Overlap tolerance T of Hoover et al. (1996).")
 @click.option("--min-region", type=click.IntRange(min=0), default=50, show_default=True,
               help="Smaller GT regions are not judged.")
+@click.option("--gt-parts", is_flag=True,
+              help="Judge each 8-connected patch of a GT label as a region of its own.")
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write a PNG of correct detections vs tolerance (needs matplotlib).")
 @json_opt
 @verbosity_opts
 @click.pass_context
 def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
-             min_region: int, plot: str | None, as_json: bool, verbose: int, quiet: int
-             ) -> None:
+             min_region: int, gt_parts: bool, plot: str | None, as_json: bool, verbose: int,
+             quiet: int) -> None:
     """Score PRED_DIR/<stem>.labels.npy against GT_DIR/<stem>.gt.npy.
 
     Correct detections, over- and under-segmentations, missed and noise
@@ -438,7 +440,8 @@ def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
     from .evaluate import evaluate_folder, plot_curve
 
     try:
-        result = evaluate_folder(pred_dir, gt_dir, tolerance=tolerance, min_region=min_region)
+        result = evaluate_folder(pred_dir, gt_dir, tolerance=tolerance, min_region=min_region,
+                                 gt_parts=gt_parts)
     except InputError as exc:
         raise UsageProblem(str(exc)) from None
     for reason in result["errors"]:

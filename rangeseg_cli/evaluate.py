@@ -36,6 +36,14 @@ Rules chosen where the paper leaves room:
    any other; left over, they are counted as ``small``, not as ``noise``.
    A machine region lying wholly on GT label 0 is ``ignored``.
 
+4. A GT label is judged as one region however many separate patches of
+   the image it covers (a hole's wall seen at its mouth and again through a
+   crossing hole, a surface split by an object lying on it). With
+   ``gt_parts`` each 8-connected patch is judged as a region of its own
+   (:func:`connected_parts`): a segmentation into connected regions can
+   never give two separate patches one label, so otherwise such a surface
+   counts as correct only when its largest patch alone holds ``T`` of it.
+
 The holdsite check (Sec. VII of Al-Hujazi & Sood) asks whether a reported
 gripper window lies wholly inside one GT surface of an uncovered part that is
 not the background (the table).
@@ -49,6 +57,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 #: Tolerances of the correct-detection curve (Hoover et al. plot 0.5..0.95).
 CURVE_TOLERANCES: tuple[float, ...] = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
@@ -143,8 +152,36 @@ def _index(labels: np.ndarray, values: np.ndarray) -> np.ndarray:
     return np.where(labels[pos] == values, pos + 1, 0)
 
 
+def connected_parts(gt: np.ndarray) -> np.ndarray:
+    """Each 8-connected patch of each GT label as a label of its own (Notes, rule 4).
+
+    Parameters
+    ----------
+    gt
+        (H, W) non-negative integer labels, 0 = no surface.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 (H, W): 0 where ``gt`` is 0; else 1..k, numbered by GT label,
+        then by the raster order of each patch's first pixel. A label whose
+        pixels are all 8-connected becomes one part.
+    """
+    gt = np.asarray(gt)
+    out = np.zeros(gt.shape, np.int64)
+    count = 0
+    boxes = ndimage.find_objects(gt.astype(np.int64))
+    for label, box in enumerate(boxes, start=1):
+        if box is None:
+            continue
+        parts, n = ndimage.label(gt[box] == label, structure=np.ones((3, 3), bool))
+        out[box] = np.where(parts > 0, parts + count, out[box])
+        count += n
+    return out
+
+
 def overlap_table(gt: np.ndarray, pred: np.ndarray, *,
-                  min_region: int = DEFAULT_MIN_REGION) -> Overlap:
+                  min_region: int = DEFAULT_MIN_REGION, gt_parts: bool = False) -> Overlap:
     """Count the pixels each GT region shares with each machine region.
 
     Parameters
@@ -153,6 +190,9 @@ def overlap_table(gt: np.ndarray, pred: np.ndarray, *,
         (H, W) integer labels, 0 = no region.
     min_region
         GT regions with fewer pixels are not judged (set to 0).
+    gt_parts
+        Judge each 8-connected patch of a GT label as a region of its own
+        (:func:`connected_parts`; the table's GT labels are then the parts').
 
     Returns
     -------
@@ -168,6 +208,8 @@ def overlap_table(gt: np.ndarray, pred: np.ndarray, *,
     gt, pred = _check_labels(gt, pred)
     if isinstance(min_region, bool) or not isinstance(min_region, int) or min_region < 0:
         raise ValueError(f"`min_region` {min_region!r} must be an integer >= 0")
+    if gt_parts:
+        gt = connected_parts(gt)
     values, counts = np.unique(gt, return_counts=True)
     kept = values[(values > 0) & (counts >= max(min_region, 1))]
     machine_labels = np.unique(pred[pred > 0])
@@ -266,7 +308,8 @@ def classify(ov: Overlap, tolerance: float = DEFAULT_TOLERANCE) -> Classificatio
 
 
 def hoover_compare(gt: np.ndarray, pred: np.ndarray, *, tolerance: float = DEFAULT_TOLERANCE,
-                   min_region: int = DEFAULT_MIN_REGION) -> Classification:
+                   min_region: int = DEFAULT_MIN_REGION, gt_parts: bool = False
+                   ) -> Classification:
     """Compare a machine segmentation with ground truth (Hoover et al. 1996).
 
     Parameters
@@ -279,6 +322,8 @@ def hoover_compare(gt: np.ndarray, pred: np.ndarray, *, tolerance: float = DEFAU
         T, from 0.5 to 1 (0.8 as in Hoover et al.'s tables).
     min_region
         GT regions with fewer pixels are not judged.
+    gt_parts
+        Judge each 8-connected patch of a GT label on its own (Notes, rule 4).
 
     Returns
     -------
@@ -291,12 +336,13 @@ def hoover_compare(gt: np.ndarray, pred: np.ndarray, *, tolerance: float = DEFAU
     ValueError
         For label images of different shapes or types, or an option out of range.
     """
-    return classify(overlap_table(gt, pred, min_region=min_region), tolerance)
+    return classify(overlap_table(gt, pred, min_region=min_region, gt_parts=gt_parts),
+                    tolerance)
 
 
 def correct_curve(gt: np.ndarray, pred: np.ndarray, *,
                   tolerances: Sequence[float] = CURVE_TOLERANCES,
-                  min_region: int = DEFAULT_MIN_REGION) -> list[int]:
+                  min_region: int = DEFAULT_MIN_REGION, gt_parts: bool = False) -> list[int]:
     """Correct detections at each tolerance (Hoover et al.'s curves, 0.5..0.95).
 
     Returns
@@ -304,7 +350,7 @@ def correct_curve(gt: np.ndarray, pred: np.ndarray, *,
     list of int
         One count per tolerance.
     """
-    ov = overlap_table(gt, pred, min_region=min_region)
+    ov = overlap_table(gt, pred, min_region=min_region, gt_parts=gt_parts)
     return [classify(ov, t).counts()["correct"] for t in tolerances]
 
 
@@ -391,13 +437,14 @@ def _pairs(pred_dir: Path, gt_dir: Path) -> list[tuple[str, Path, Path]]:
 
 
 def _one_image(rel: str, gt_path: Path, pred_path: Path, pred_dir: Path, tolerance: float,
-               min_region: int, tolerances: Sequence[float]) -> dict[str, Any]:
+               min_region: int, tolerances: Sequence[float], gt_parts: bool
+               ) -> dict[str, Any]:
     from .errors import InputError
     from .io import read_npy
 
     gt, pred = read_npy(gt_path), read_npy(pred_path)
     try:
-        ov = overlap_table(gt, pred, min_region=min_region)
+        ov = overlap_table(gt, pred, min_region=min_region, gt_parts=gt_parts)
     except ValueError as exc:  # `pred` is the labels, `gt` the ground truth: name the files
         raise InputError(f"{pred_path} against {gt_path}: {exc}") from None
     res = classify(ov, tolerance)
@@ -452,7 +499,8 @@ def _read_gt_info(path: Path) -> dict[str, Any]:
 def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
                     tolerance: float = DEFAULT_TOLERANCE,
                     min_region: int = DEFAULT_MIN_REGION,
-                    tolerances: Sequence[float] = CURVE_TOLERANCES) -> dict[str, Any]:
+                    tolerances: Sequence[float] = CURVE_TOLERANCES,
+                    gt_parts: bool = False) -> dict[str, Any]:
     """Score every ``GT/<stem>.gt.npy`` against ``PRED/<stem>.labels.npy``.
 
     Parameters
@@ -467,6 +515,11 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
         As in :func:`hoover_compare`.
     tolerances
         Tolerances of the correct-detection curve.
+    gt_parts
+        Judge each 8-connected patch of a GT label on its own (Notes, rule
+        4); the instances' and ``missed_labels``' GT labels are then those of
+        :func:`connected_parts`. The holdsite check uses the GT labels as
+        they are.
 
     Returns
     -------
@@ -474,7 +527,7 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
         ``{"total": {gt_regions, correct, over, under, missed, noise, ...,
         "curve": {"tolerance": [...], "correct": [...]}, "holdsite":
         {"checked", "ok"}}, "images": {stem: {...} or {"error": ...}},
-        "errors": [...], "tolerance", "min_region"}``.
+        "errors": [...], "tolerance", "min_region", "gt_parts"}``.
 
     Raises
     ------
@@ -496,13 +549,13 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
     for rel, gt_path, pred_path in _pairs(pred_dir, gt_dir):
         try:
             images[rel] = _one_image(rel, gt_path, pred_path, pred_dir, tolerance,
-                                     min_region, tolerances)
+                                     min_region, tolerances, bool(gt_parts))
         except (RangesegError, ValueError, KeyError, TypeError) as exc:
             reason = f"{rel}: {exc}"
             images[rel] = {"error": reason}
             errors.append(reason)
     return {"total": _totals(images, tolerances), "images": images, "errors": errors,
-            "tolerance": tolerance, "min_region": min_region}
+            "tolerance": tolerance, "min_region": min_region, "gt_parts": bool(gt_parts)}
 
 
 def _totals(images: Mapping[str, Any], tolerances: Sequence[float]) -> dict[str, Any]:

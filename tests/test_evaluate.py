@@ -9,6 +9,7 @@ from click.testing import CliRunner
 from rangeseg_cli.evaluate import (
     CURVE_TOLERANCES,
     check_holdsite,
+    connected_parts,
     correct_curve,
     evaluate_folder,
     hoover_compare,
@@ -288,3 +289,60 @@ def test_labels_of_another_shape_name_both_files(tmp_path):
     assert res.exit_code == 1
     assert (f"{tmp_path / 'pred' / 's.labels.npy'} against {tmp_path / 'gt' / 's.gt.npy'}: "
             "`pred` (shape (32, 32)) must have the shape of `gt`") in res.output
+
+
+# --------------------------------------------------------------------------- GT patches
+
+
+def two_patches():
+    """GT label 1 in two separate patches (60 and 20 px) with label 2 between them."""
+    gt = np.full((10, 20), 2, np.int32)
+    gt[:, :6] = 1
+    gt[:, 18:] = 1
+    return gt
+
+
+def test_connected_parts_numbers_each_patch_of_a_label():
+    gt = two_patches()
+    gt[0, 7] = 3  # a one-pixel label touching nothing of its own
+    parts = connected_parts(gt)
+    assert parts.dtype == np.int64
+    assert set(np.unique(parts).tolist()) == {1, 2, 3, 4}
+    assert (parts[:, :6] == 1).all() and (parts[:, 18:] == 2).all()  # label 1: two parts
+    assert parts[0, 7] == 4 and (parts[gt == 2] == 3).all()
+    assert (connected_parts(np.zeros((4, 4), np.int32)) == 0).all()
+    diagonal = np.eye(5, dtype=np.int32)  # 8-connected: one part
+    assert set(np.unique(connected_parts(diagonal)).tolist()) == {0, 1}
+
+
+def test_a_surface_in_two_patches_is_correct_only_when_judged_by_patch():
+    gt = two_patches()
+    pred = np.where(gt == 1, 1, 2).astype(np.int32)
+    pred[:, 18:] = 3  # a segmentation of connected regions labels the patches apart
+    whole = counts(gt, pred)
+    by_patch = counts(gt, pred, gt_parts=True)
+    assert whole["gt_regions"] == 2 and whole["correct"] == 1  # 60 of 80 px < 0.8
+    assert by_patch["gt_regions"] == 3 and by_patch["correct"] == 3
+    assert correct_curve(gt, pred, min_region=0, gt_parts=True) == [3] * len(CURVE_TOLERANCES)
+    assert overlap_table(gt, pred, min_region=0, gt_parts=True).gt_labels.tolist() == [1, 2, 3]
+
+
+def test_eval_gt_parts_option_judges_patches_and_says_so(tmp_path):
+    from rangeseg_cli.cli import main
+
+    for d in ("pred", "gt"):
+        (tmp_path / d).mkdir()
+    gt = np.zeros((32, 32), np.int32)
+    gt[2:12, 2:30] = 1
+    gt[20:30, 2:30] = 1  # one surface seen in two places
+    pred = np.zeros_like(gt)
+    pred[2:12, 2:30] = 1
+    pred[20:30, 2:30] = 2
+    np.save(tmp_path / "gt" / "s.gt.npy", gt)
+    np.save(tmp_path / "pred" / "s.labels.npy", pred)
+    args = ["eval", str(tmp_path / "pred"), str(tmp_path / "gt"), "--json"]
+    whole = json.loads(CliRunner().invoke(main, args).output)
+    by_patch = json.loads(CliRunner().invoke(main, [*args, "--gt-parts"]).output)
+    assert whole["gt_parts"] is False and by_patch["gt_parts"] is True
+    assert whole["total"]["correct"] == 0 and whole["total"]["gt_regions"] == 1
+    assert by_patch["total"]["correct"] == by_patch["total"]["gt_regions"] == 2
