@@ -425,9 +425,15 @@ def _blas_controller() -> Any:
 
 
 @contextlib.contextmanager
-def blas_one_thread() -> Iterator[None]:
-    """BLAS on one thread inside the block when the kernels use more than one."""
-    if thread_count() == 1:
+def blas_one_thread(shared: bool = True) -> Iterator[None]:
+    """BLAS on one thread inside the block when the kernels use more than one.
+
+    ``shared=False`` says that the block's work runs in this thread alone
+    (one band, no pieces shared out): BLAS is then left as it is, which
+    saves threadpoolctl's cost (about 0.1 ms, most of a 128x128 frame's
+    overhead).
+    """
+    if not shared or thread_count() == 1:
         yield
         return
     with _blas_controller().limit(limits=1, user_api="blas"):

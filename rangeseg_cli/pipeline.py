@@ -27,7 +27,7 @@ from .config import Config, load_config
 from .edges import EdgeMaps, detect_edges
 from .models import Surface
 from .noise import estimate_noise
-from .parallel import blas_one_thread
+from .parallel import blas_one_thread, row_bands
 from .rangeimage import to_heights
 
 #: Stage names in order.
@@ -217,8 +217,23 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
     elif not isinstance(config, Config):
         raise TypeError(f"config must be a rangeseg_cli.config.Config (load_config() makes one "
                         f"from a TOML file, a preset or overrides), got {type(config).__name__}")
-    with blas_one_thread():
+    with blas_one_thread(shares_threads(getattr(image, "shape", None), config)):
         return _run(image, config, stages, name)
+
+
+def shares_threads(shape: tuple[int, ...] | None, config: Config) -> bool:
+    """Whether :func:`run_pipeline` may run work of one image on several threads at once.
+
+    The edge passes of an image of more than one row band
+    (:func:`~rangeseg_cli.parallel.row_bands`), and the split, recovery and
+    recut, which share their pieces out (:func:`~rangeseg_cli.parallel.map_tasks`);
+    ``shape`` None (not known yet) counts as yes. The paper's pipeline on a
+    128x128 frame runs in the calling thread alone.
+    """
+    s = config.split
+    if shape is None or len(shape) < 2 or s.enabled or s.recover or s.recut:
+        return True
+    return len(row_bands(int(shape[0]), int(shape[1]), 0)) > 1
 
 
 def _run(image: Any, config: Config, stages: int, name: str) -> PipelineResult:

@@ -264,12 +264,20 @@ def pair_medians(lo: np.ndarray, hi: np.ndarray, values: np.ndarray, *,
 
 
 def _unit_normals(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """(N, 3) unit normals (-fx, -fy, 1) of quadrics at points."""
+    """(N, 3) unit normals (-fx, -fy, 1) of quadrics at points.
+
+    The length is ``np.linalg.norm``'s, summed in its order (fx^2 + fy^2 + 1),
+    column by column: the same bits without a reduction over rows of three.
+    """
     _, a1, a2, a3, a4, a5 = coeffs.T
     fx = a1 + 2.0 * a3 * cols + a4 * rows
     fy = a2 + a4 * cols + 2.0 * a5 * rows
-    n = np.stack([-fx, -fy, np.ones_like(fx)], axis=1)
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
+    length = np.sqrt(fx * fx + fy * fy + 1.0)
+    n = np.empty((fx.shape[0], 3))
+    np.divide(-fx, length, out=n[:, 0])
+    np.divide(-fy, length, out=n[:, 1])
+    np.divide(1.0, length, out=n[:, 2])
+    return n
 
 
 def _pair_heights(li: np.ndarray, lj: np.ndarray, rp: np.ndarray, cp: np.ndarray,
@@ -318,7 +326,7 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
     li, lj, rp, cp, rq, cq = _boundary_pairs(labels, backend)
     if li.size == 0:
         return {}
-    ci, cj = coeffs[li], coeffs[lj]
+    ci, cj = coeffs.take(li, axis=0), coeffs.take(lj, axis=0)
     rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
     cos = np.einsum("ij,ij->i", _unit_normals(ci, rm, cm), _unit_normals(cj, rm, cm))
     angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
