@@ -828,79 +828,102 @@ def _half_offsets(reach: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no co
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _row_pair_count(a: np.ndarray, b: np.ndarray, c0: int, c1: int, dx: int
-                    ) -> int:  # pragma: no cover - compiled
-    """How many c in [c0, c1) have a[c] and b[c + dx] positive and different (vectorised)."""
+def _label_runs(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
+                                              ]:  # pragma: no cover - compiled
+    """Runs of equal positive labels along the rows: (row starts, first, stop, label).
+
+    The runs of row r are ``first[k]..stop[k]-1`` for k in ``starts[r]..starts[r+1]-1``,
+    left to right; label 0 makes no run. One sweep counts the runs, a second
+    records them (arrays grown inside a loop would cost more than both).
+    """
+    height, width = labels.shape
     count = 0
-    aa, bb = a[c0:c1], b[c0 + dx:c1 + dx]
-    for c in range(aa.shape[0]):
-        x, y = aa[c], bb[c]
-        count += ((x != y) & (x > 0) & (y > 0)) * 1
-    return count
+    for r in range(height):
+        row = labels[r]
+        count += row[0] > 0
+        for c in range(1, width):
+            count += (row[c] != row[c - 1]) & (row[c] > 0)
+    starts = np.zeros(height + 1, dtype=np.int64)
+    first = np.empty(count, dtype=np.int64)
+    stop = np.empty(count, dtype=np.int64)
+    lab = np.empty(count, dtype=np.int64)
+    k = 0
+    for r in range(height):
+        row = labels[r]
+        for c in range(width):
+            if c > 0 and row[c] == row[c - 1]:
+                continue
+            if c > 0 and row[c - 1] > 0:
+                stop[k - 1] = c
+            if row[c] > 0:
+                first[k], lab[k] = c, row[c]
+                k += 1
+        if width > 0 and row[width - 1] > 0:
+            stop[k - 1] = width
+        starts[r + 1] = k
+    return starts, first, stop, lab
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _run_pairs(labels: np.ndarray, reach: int, runs: tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                          np.ndarray],
+               out: np.ndarray) -> int:  # pragma: no cover - compiled
+    """The pairs of :func:`neighbour_pairs` into ``out`` (none: only counted); their number.
+
+    For each of half of the offsets (dy, dx) and each row r, the runs of
+    row r and those of row r + dy shifted by ``-dx`` are intersected left to
+    right; where the labels differ every column of the overlap is a pair,
+    in increasing column order.
+    """
+    height = labels.shape[0]
+    dys, dxs = _half_offsets(reach)
+    starts, first, stop, lab = runs
+    write = out.shape[0] > 0
+    j = 0
+    for k in range(dys.shape[0]):
+        dy, dx = dys[k], dxs[k]
+        for r in range(height - dy):
+            a, a_end = starts[r], starts[r + 1]
+            b, b_end = starts[r + dy], starts[r + dy + 1]
+            while a < a_end and b < b_end:  # branch-free but for the pairs written
+                lo = max(first[a], first[b] - dx)
+                hi = min(stop[a], stop[b] - dx)
+                found = max(hi - lo, 0) * (lab[a] != lab[b])
+                if write and found:
+                    for c in range(lo, hi):
+                        out[j, 0], out[j, 1], out[j, 2], out[j, 3] = r, c, r + dy, c + dx
+                        out[j, 4], out[j, 5] = lab[a], lab[b]
+                        j += 1
+                elif not write:
+                    j += found
+                step = stop[a] <= stop[b] - dx
+                a += step
+                b += 1 - step
+    return j
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no cover
     """Pixel pairs of different positive labels within ``reach`` (SPEC "Surfaces", Sec. VII).
 
-    For each of half of the offsets (dy, dx) and each row, the row is compared
-    with the row dy below shifted by dx, in a branch-free (vectorised) loop that
-    counts the pairs; a second pass writes the pairs of the rows that have
-    any. The order is the reference's (offset by offset, pixels in raster
-    order), so the rows equal :func:`rangeseg_cli.surfaces.neighbour_pairs`'
-    arrays exactly.
+    The runs of equal labels along the rows (:func:`_label_runs`) of each
+    row and of the row dy below, shifted by dx, are intersected for each of
+    half of the offsets (dy, dx) (:func:`_run_pairs`): the cost goes with
+    the runs and the pairs, not with the pixels of each offset. A first
+    sweep counts the pairs, a second writes them. The order is the
+    reference's (offset by offset, pixels in raster order), so the rows
+    equal :func:`rangeseg_cli.surfaces.neighbour_pairs`' arrays exactly.
 
     Returns
     -------
     numpy.ndarray
         int64 (P, 6): rows_p, cols_p, rows_q, cols_q, labels_p, labels_q.
     """
-    height, width = labels.shape
-    dys, dxs = _half_offsets(reach)
-    per_row = np.zeros((dys.shape[0], height), dtype=np.int64)
-    for k in range(dys.shape[0]):
-        dy, dx = dys[k], dxs[k]
-        c0 = max(0, -dx)
-        c1 = max(c0, min(width, width - dx))  # empty when |dx| >= width
-        for r in range(height - dy):
-            per_row[k, r] = _row_pair_count(labels[r], labels[r + dy], c0, c1, dx)
-    out = np.empty((per_row.sum(), 6), dtype=np.int64)
-    flags = np.zeros(8 * ((width + 7) // 8), dtype=np.uint8)
-    j = 0
-    for k in range(dys.shape[0]):
-        dy, dx = dys[k], dxs[k]
-        c0 = max(0, -dx)
-        c1 = max(c0, min(width, width - dx))  # empty when |dx| >= width
-        for r in range(height - dy):
-            if per_row[k, r] > 0:
-                j = _row_pairs(labels[r, c0:c1], labels[r + dy, c0 + dx:c1 + dx], r, c0, dy,
-                               dx, flags, out, j)
+    runs = _label_runs(labels)
+    out = np.empty((_run_pairs(labels, reach, runs, np.empty((0, 6), dtype=np.int64)), 6),
+                   dtype=np.int64)
+    _run_pairs(labels, reach, runs, out)
     return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _row_pairs(aa: np.ndarray, bb: np.ndarray, r: int, c0: int, dy: int, dx: int,
-               flags: np.ndarray, out: np.ndarray, j: int) -> int:  # pragma: no cover
-    """Write the pairs of one row and offset from row ``j`` of ``out``; the next free row.
-
-    The pairs are flagged in a vectorised loop into ``flags`` (a uint8 buffer
-    of at least the row length, rounded up to 8), then found eight at a time.
-    """
-    n = aa.shape[0]
-    for i in range(n):
-        x, y = aa[i], bb[i]
-        flags[i] = (x != y) & (x > 0) & (y > 0)
-    words = flags.view(np.uint64)
-    for w in range((n + 7) // 8):
-        if words[w] == 0:
-            continue
-        for i in range(8 * w, min(8 * w + 8, n)):
-            if flags[i]:
-                c = c0 + i
-                out[j, 0], out[j, 1], out[j, 2], out[j, 3] = r, c, r + dy, c + dx
-                out[j, 4], out[j, 5] = aa[i], bb[i]
-                j += 1
-    return j
 
 
 # --------------------------------------------------------------------------- local planes
@@ -2036,27 +2059,100 @@ def _quadric_at(a: np.ndarray, y: float, x: float) -> float:  # pragma: no cover
     return a[0] + a[1] * x + a[2] * y + a[3] * x * x + a[4] * x * y + a[5] * y * y
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def pair_heights(li: np.ndarray, lj: np.ndarray, rp: np.ndarray, cp: np.ndarray,
-                 rq: np.ndarray, cq: np.ndarray, coeffs: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Height gap at the midpoints and the "above" sums of boundary pairs (``surfaces.edge_types``).
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _coeff_at(coeffs: np.ndarray, lab: int, y: float, x: float) -> float:  # pragma: no cover
+    """:func:`_quadric_at` of row ``lab`` of ``coeffs``, without a view of the row."""
+    return (coeffs[lab, 0] + coeffs[lab, 1] * x + coeffs[lab, 2] * y + coeffs[lab, 3] * x * x
+            + coeffs[lab, 4] * x * y + coeffs[lab, 5] * y * y)
 
-    ``gap = |f_i(m) - f_j(m)|`` at the midpoint m of p and q, ``above = (f_j(p) -
-    f_i(p)) + (f_i(q) - f_j(q))``, each fit evaluated as ``grow.evaluate_quadric``
-    does (bitwise the same values).
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _unit_normal(coeffs: np.ndarray, lab: int, y: float, x: float, out: np.ndarray, k: int
+                 ) -> None:  # pragma: no cover - compiled
+    """``surfaces._unit_normals`` of one quadric at a point, into ``out[k]`` (same operations)."""
+    fx = coeffs[lab, 1] + 2.0 * coeffs[lab, 3] * x + coeffs[lab, 4] * y
+    fy = coeffs[lab, 2] + coeffs[lab, 4] * x + 2.0 * coeffs[lab, 5] * y
+    length = np.sqrt(fx * fx + fy * fy + 1.0)
+    out[k, 0], out[k, 1], out[k, 2] = -fx / length, -fy / length, 1.0 / length
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def boundary_measures(labels: np.ndarray, reach: int, coeffs: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                 np.ndarray]:  # pragma: no cover - compiled
+    """Boundary pairs and what ``surfaces.edge_types`` measures on them, in one call.
+
+    The pairs of :func:`neighbour_pairs`, each ordered so that ``li < lj``
+    (p on the side of li); per pair ``gap = |f_i(m) - f_j(m)|`` at the
+    midpoint m of p and q and ``above = (f_j(p) - f_i(p)) + (f_i(q) - f_j(q))``,
+    each fit evaluated as ``grow.evaluate_quadric`` does, and the unit
+    normals of both fits at m as ``surfaces._unit_normals`` gives them:
+    bitwise the reference's values.
+
+    Returns
+    -------
+    li, lj
+        int64 (P,) labels of the two sides.
+    values
+        float64 (3, P): gap, 0 (the angle's place: numpy's arccos is not
+        libm's), above.
+    ni, nj
+        float64 (P, 3) unit normals of the fits of li and lj at the midpoints.
     """
-    n = li.shape[0]
-    gap = np.empty(n)
-    above = np.empty(n)
+    pairs = neighbour_pairs(labels, reach)
+    n = pairs.shape[0]
+    li = np.empty(n, dtype=np.int64)
+    lj = np.empty(n, dtype=np.int64)
+    values = np.zeros((3, n))
+    ni = np.empty((n, 3))
+    nj = np.empty((n, 3))
     for k in range(n):
-        ci, cj = coeffs[li[k]], coeffs[lj[k]]
-        rm, cm = 0.5 * (rp[k] + rq[k]), 0.5 * (cp[k] + cq[k])
-        gap[k] = abs(_quadric_at(ci, rm, cm) - _quadric_at(cj, rm, cm))
-        yp, xp, yq, xq = float(rp[k]), float(cp[k]), float(rq[k]), float(cq[k])
-        above[k] = ((_quadric_at(cj, yp, xp) - _quadric_at(ci, yp, xp))
-                    + (_quadric_at(ci, yq, xq) - _quadric_at(cj, yq, xq)))
-    return gap, above
+        rp, cp, rq, cq, lp, lq = (pairs[k, 0], pairs[k, 1], pairs[k, 2], pairs[k, 3],
+                                  pairs[k, 4], pairs[k, 5])
+        if lp > lq:
+            rp, cp, rq, cq, lp, lq = rq, cq, rp, cp, lq, lp
+        li[k], lj[k] = lp, lq
+        rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+        values[0, k] = abs(_coeff_at(coeffs, lp, rm, cm) - _coeff_at(coeffs, lq, rm, cm))
+        yp, xp, yq, xq = float(rp), float(cp), float(rq), float(cq)
+        values[2, k] = ((_coeff_at(coeffs, lq, yp, xp) - _coeff_at(coeffs, lp, yp, xp))
+                        + (_coeff_at(coeffs, lp, yq, xq) - _coeff_at(coeffs, lq, yq, xq)))
+        _unit_normal(coeffs, lp, rm, cm, ni, k)
+        _unit_normal(coeffs, lq, rm, cm, nj, k)
+    return li, lj, values, ni, nj
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def step_gaps(labels: np.ndarray, reach: int, coeffs: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """``holdsite.step_gaps`` in one call: median signed gap of the fits per region pair.
+
+    The pairs of :func:`neighbour_pairs`; per pair ``f_p(m) - f_q(m)`` at the
+    midpoint m, each fit evaluated as ``grow.evaluate_quadric`` does, negated
+    where ``p``'s label is the larger; the medians by :func:`pair_medians`
+    (bitwise the reference's values).
+
+    Returns
+    -------
+    group_lo, group_hi
+        int64 (G,): the distinct region pairs lo < hi, ascending.
+    medians
+        float64 (G,): median of ``f_lo - f_hi`` over each pair's boundary.
+    """
+    pairs = neighbour_pairs(labels, reach)
+    n = pairs.shape[0]
+    lo = np.empty(n, dtype=np.int64)
+    hi = np.empty(n, dtype=np.int64)
+    gaps = np.empty((1, n))
+    top = 0
+    for k in range(n):
+        lp, lq = pairs[k, 4], pairs[k, 5]
+        rm, cm = 0.5 * (pairs[k, 0] + pairs[k, 2]), 0.5 * (pairs[k, 1] + pairs[k, 3])
+        gap = _coeff_at(coeffs, lp, rm, cm) - _coeff_at(coeffs, lq, rm, cm)
+        lo[k], hi[k], gaps[0, k] = (lq, lp, -gap) if lp > lq else (lp, lq, gap)
+        top = max(top, lp, lq)
+    group_lo, group_hi, medians = pair_medians(lo, hi, top, gaps)
+    return group_lo, group_hi, medians[0]
 
 
 # --------------------------------------------------------------------------- recut knot search

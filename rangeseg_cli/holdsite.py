@@ -88,7 +88,8 @@ a rectangular footprint's erosion as a separable running minimum. The
 choice of step 5 needs only each surface's best window; the full ranking is
 sorted only for runners-up taken from one surface. With numba installed the
 boundary pairs, their medians and the clearance (distance transform) are
-compiled (identical results; ``RANGESEG_PURE_NUMPY=1`` for the reference).
+compiled (the boundary pairs, gaps and medians of step 2 in one call;
+identical results; ``RANGESEG_PURE_NUMPY=1`` for the reference).
 """
 
 from __future__ import annotations
@@ -106,7 +107,7 @@ from .edges import Backend, ar_2d, select_kernels
 from .errors import InputError
 from .grow import evaluate_quadric
 from .models import Surface
-from .surfaces import neighbour_pairs, pair_medians
+from .surfaces import kernel_labels, neighbour_pairs, pair_medians
 
 #: Regions whose pixels lie within this chessboard distance are neighbours
 #: (across an edge band one or two pixels thick), as in ``Surface.neighbors``.
@@ -299,7 +300,17 @@ def step_gaps(labels: np.ndarray, coeffs: np.ndarray, known: np.ndarray, *,
 
 def _known_gaps(labels: np.ndarray, coeffs: np.ndarray, backend: Backend
                 ) -> dict[tuple[int, int], float]:
-    """:func:`step_gaps` of labels that all have a surface (0 elsewhere)."""
+    """:func:`step_gaps` of labels that all have a surface (0 elsewhere).
+
+    Compiled when ``backend`` selects the kernels: pairs, gaps and medians in
+    one call (:func:`rangeseg_cli._kernels.step_gaps`, the same values).
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        group_lo, group_hi, med = kernels.step_gaps(
+            kernel_labels(labels), ADJACENCY_RADIUS, np.require(coeffs, np.float64, ["C"]))
+        return dict(zip(zip(group_lo.tolist(), group_hi.tolist(), strict=True), med.tolist(),
+                        strict=True))
     rp, cp, rq, cq, lp, lq = neighbour_pairs(labels, ADJACENCY_RADIUS, backend=backend)
     if lp.size == 0:
         return {}

@@ -36,8 +36,10 @@ Notes
 * **Cost.** One pass of moment sums gives the fits of both orders and the
   pixel counts, centroids and mean heights (:func:`~rangeseg_cli.grow.region_fits`);
   the boundary pairs come from a band along the boundaries
-  (:func:`neighbour_pairs`), their medians per region pair from counting
-  sorts (:func:`pair_medians`) and the boxes from one sweep
+  (:func:`neighbour_pairs`; compiled, from the runs of equal labels along
+  the rows), with the heights and normals of the fits at them in the same
+  compiled call (:func:`pair_measures`), their medians per region pair from
+  counting sorts (:func:`pair_medians`) and the boxes from one sweep
   (:func:`label_boxes`), all compiled when numba is installed (identical
   results; ``backend="numpy"`` or ``RANGESEG_PURE_NUMPY=1`` for the reference).
 """
@@ -206,6 +208,12 @@ def neighbour_pairs(labels: np.ndarray, reach: int = NEIGHBOUR_REACH, *,
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(6))
 
 
+def kernel_labels(labels: np.ndarray) -> np.ndarray:
+    """``labels`` as the compiled kernels take them: C-ordered int32, int64 when it must be."""
+    return np.require(labels, np.int32 if np.can_cast(labels.dtype, np.int32) else np.int64,
+                      ["C"])
+
+
 def _boundary_pairs(labels: np.ndarray, backend: Backend = "auto") -> tuple[np.ndarray, ...]:
     """Pixel pairs (p, q) of different labels within NEIGHBOUR_REACH of each other.
 
@@ -281,24 +289,64 @@ def _unit_normals(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.
 
 
 def _pair_heights(li: np.ndarray, lj: np.ndarray, rp: np.ndarray, cp: np.ndarray,
-                  rq: np.ndarray, cq: np.ndarray, coeffs: np.ndarray, backend: Backend
+                  rq: np.ndarray, cq: np.ndarray, coeffs: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Height gap of the fits at each pair's midpoint, and how far each passes above the other.
 
     Convex: each fit's extension lies above the other region's boundary
-    pixels (``above > 0``). Compiled when ``backend`` selects the kernels
-    (:func:`rangeseg_cli._kernels.pair_heights`, the same values).
+    pixels (``above > 0``).
     """
-    kernels = select_kernels(backend)
-    if kernels is not None:
-        as_int = [np.ascontiguousarray(a, dtype=np.int64) for a in (li, lj, rp, cp, rq, cq)]
-        return kernels.pair_heights(*as_int, np.ascontiguousarray(coeffs, dtype=np.float64))
-    ci, cj = coeffs[li], coeffs[lj]
+    ci, cj = coeffs.take(li, axis=0), coeffs.take(lj, axis=0)
     rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
     gap = np.abs(evaluate_quadric(ci, rm, cm) - evaluate_quadric(cj, rm, cm))
     above = ((evaluate_quadric(cj, rp, cp) - evaluate_quadric(ci, rp, cp))
              + (evaluate_quadric(ci, rq, cq) - evaluate_quadric(cj, rq, cq)))
     return gap, above
+
+
+def pair_measures(labels: np.ndarray, coeffs: np.ndarray, *, backend: Backend = "auto"
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The boundary pairs of neighbouring regions and what :func:`edge_types` measures on them.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) final labels, 0 = none.
+    coeffs
+        (n+1, 6) image-coordinate quadrics of the labels.
+    backend
+        ``"numpy"``: :func:`neighbour_pairs` and array operations (the
+        reference); ``"numba"``: :func:`rangeseg_cli._kernels.boundary_measures`,
+        the pairs, heights and normals in one compiled call (bitwise the same
+        values; the angle's arccos is numpy's in both); ``"auto"``: as
+        :func:`~rangeseg_cli.edges.detect_edges`.
+
+    Returns
+    -------
+    li, lj : numpy.ndarray
+        int (P,) labels of the two sides of each pixel pair, ``li < lj``.
+    values : numpy.ndarray
+        float64 (3, P): the height gap of the two fits at the pair's midpoint,
+        the angle between their normals there (degrees), and how far each
+        fit passes above the other side's pixel (> 0: convex).
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        li, lj, values, ni, nj = kernels.boundary_measures(
+            kernel_labels(labels), NEIGHBOUR_REACH, np.require(coeffs, np.float64, ["C"]))
+        np.degrees(_normal_angles(ni, nj), out=values[1])
+        return li, lj, values
+    li, lj, rp, cp, rq, cq = _boundary_pairs(labels, backend)
+    ci, cj = coeffs.take(li, axis=0), coeffs.take(lj, axis=0)
+    rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+    angle = np.degrees(_normal_angles(_unit_normals(ci, rm, cm), _unit_normals(cj, rm, cm)))
+    gap, above = _pair_heights(li, lj, rp, cp, rq, cq, coeffs)
+    return li, lj, np.stack([gap, angle, above])
+
+
+def _normal_angles(ni: np.ndarray, nj: np.ndarray) -> np.ndarray:
+    """Angles (radians) between the unit normals of two (N, 3) arrays, row by row."""
+    return np.arccos(np.clip(np.einsum("ij,ij->i", ni, nj), -1.0, 1.0))
 
 
 def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
@@ -315,7 +363,7 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
         Median height difference of the fits along the boundary above which
         the edge is a step (``step.threshold``).
     backend
-        For :func:`neighbour_pairs` (identical results).
+        For :func:`pair_measures` and :func:`pair_medians` (identical results).
 
     Returns
     -------
@@ -323,16 +371,11 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
         ``{(i, j): edge}`` for i < j, edge one of ``"step"``, ``"smooth"``,
         ``"roof-convex"``, ``"roof-concave"``.
     """
-    li, lj, rp, cp, rq, cq = _boundary_pairs(labels, backend)
+    li, lj, values = pair_measures(labels, coeffs, backend=backend)
     if li.size == 0:
         return {}
-    ci, cj = coeffs.take(li, axis=0), coeffs.take(lj, axis=0)
-    rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
-    cos = np.einsum("ij,ij->i", _unit_normals(ci, rm, cm), _unit_normals(cj, rm, cm))
-    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    gap, above = _pair_heights(li, lj, rp, cp, rq, cq, coeffs, backend)
     group_i, group_j, (gap_med, angle_med, above_med) = pair_medians(
-        li, lj, np.stack([gap, angle, above]), backend=backend)
+        li, lj, values, backend=backend)
     out: dict[tuple[int, int], str] = {}
     for i, j, g, a, s in zip(group_i.tolist(), group_j.tolist(), gap_med.tolist(),
                              angle_med.tolist(), above_med.tolist(), strict=True):

@@ -482,17 +482,51 @@ def test_rectangle_erosion_is_the_reference(seed):
 
 @requires_numba
 @pytest.mark.parametrize("seed", range(3))
-def test_pair_heights_are_bitwise_the_reference(seed):
-    from rangeseg_cli.surfaces import _boundary_pairs, _pair_heights
+def test_pair_measures_are_bitwise_the_reference(seed):
+    from rangeseg_cli.surfaces import pair_measures
 
     rng = np.random.default_rng(seed)
     labels = rng.integers(0, 7, (40, 50)).astype(np.int32)
     labels[5:30, 8:40] = 2
     coeffs = rng.normal(0.0, 1.0, (7, 6)) * [50.0, 1.0, 1.0, 1e-2, 1e-2, 1e-2]
-    pairs = _boundary_pairs(labels, "numpy")
-    for ref, fast in zip(_pair_heights(*pairs, coeffs, "numpy"),
-                         _pair_heights(*pairs, coeffs, "numba"), strict=True):
-        np.testing.assert_array_equal(_bits(fast), _bits(ref))
+    ref = pair_measures(labels, coeffs, backend="numpy")
+    fast = pair_measures(labels, coeffs, backend="numba")
+    for a, b in zip(ref, fast, strict=True):
+        np.testing.assert_array_equal(_bits(b), _bits(a))
+    assert ref[0].size > 0
+
+
+@requires_numba
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_step_gaps_are_bitwise_the_reference(seed):
+    from rangeseg_cli.holdsite import step_gaps
+
+    rng = np.random.default_rng(10 + seed)
+    labels = rng.integers(0, 7, (40, 50)).astype(np.int32)
+    labels[5:30, 8:40] = 2
+    coeffs = rng.normal(0.0, 1.0, (7, 6)) * [50.0, 1.0, 1.0, 1e-2, 1e-2, 1e-2]
+    known = np.ones(7, dtype=bool)
+    known[[0, 4]] = False
+    ref = step_gaps(labels, coeffs, known, backend="numpy")
+    fast = step_gaps(labels, coeffs, known, backend="numba")
+    assert list(fast) == list(ref)
+    np.testing.assert_array_equal(_bits(np.array(list(fast.values()))),
+                                  _bits(np.array(list(ref.values()))))
+    assert ref
+
+
+@requires_numba
+@pytest.mark.parametrize("seed", range(4))
+def test_neighbour_pairs_of_long_runs_and_many_labels_are_identical(seed):
+    rng = np.random.default_rng(60 + seed)
+    blocks = rng.integers(0, 9, (12, 9))
+    labels = np.repeat(np.repeat(blocks, 5, axis=0), 7, axis=1)[:57, :61].astype(np.int32)
+    labels[rng.random(labels.shape) < 0.02] = rng.integers(0, 9)  # single-pixel runs
+    for reach in (1, 2, 4):
+        ref = neighbour_pairs(labels, reach, backend="numpy")
+        fast = neighbour_pairs(labels, reach, backend="numba")
+        for a, b in zip(ref, fast, strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 @requires_numba
