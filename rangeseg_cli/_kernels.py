@@ -2053,6 +2053,69 @@ def erode_rect(mask: np.ndarray, rows: int, cols: int) -> np.ndarray:  # pragma:
     return out
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def surface_clearance(labels: np.ndarray, valid: np.ndarray, sid: int, r0: int, r1: int,
+                      c0: int, c1: int) -> tuple[np.ndarray, np.ndarray, float]:  # pragma: no cover
+    """Mask and clearance of surface ``sid`` in the crop rows r0..r1-1, columns c0..c1-1.
+
+    The mask (``labels == sid`` at valid pixels) padded by one pixel of
+    False, its :func:`distance_transform` and the largest distance:
+    ``holdsite.surface_windows``' ``mask``, ``edt`` and ``max_clearance`` in one call.
+    """
+    mask = np.zeros((r1 - r0 + 2, c1 - c0 + 2), dtype=np.bool_)
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            mask[r - r0 + 1, c - c0 + 1] = labels[r, c] == sid and valid[r, c]
+    edt = distance_transform(mask)
+    return mask, edt, edt.max()
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def accept_windows(mask: np.ndarray, z: np.ndarray, r0: int, c0: int, w: np.ndarray,
+                   rows: int, cols: int, max_ar_std: float
+                   ) -> tuple[np.ndarray, np.ndarray, int, float]:  # pragma: no cover
+    """Step 4 of ``holdsite`` at one angle for a full odd ``rows`` x ``cols`` footprint.
+
+    ``holdsite._accept_angle`` in one call, the same values: the 2-D AR of
+    the crop whose padded ``mask`` starts at image (r0, c0) (:func:`ar_2d`
+    with the 1-D Gaussian ``w`` on the crop grown by ``w``'s half-width,
+    which equals the whole image's AR there), the centres where the
+    footprint lies wholly on ``mask`` (:func:`erode_rect`), the AR std over
+    it (:func:`window_std`), and those whose std is at most ``max_ar_std``.
+
+    Returns
+    -------
+    ok, std
+        bool and float64 of ``mask``'s shape: accepted centres, AR std (inf
+        everywhere when no window fits).
+    fitting, min_ar_std
+        Centres where the footprint fits, and their lowest AR std (inf: none).
+    """
+    height, width = mask.shape
+    inside = erode_rect(mask, rows, cols)
+    fitting = 0
+    for r in range(height):
+        for c in range(width):
+            fitting += inside[r, c]
+    if fitting == 0:
+        return inside, np.full((height, width), np.inf), 0, np.inf
+    m = w.shape[0] // 2
+    r1, c1 = r0 + height - 2, c0 + width - 2
+    g0, g1 = max(r0 - m, 0), min(r1 + m, z.shape[0])
+    h0, h1 = max(c0 - m, 0), min(c1 + m, z.shape[1])
+    ar = ar_2d(np.ascontiguousarray(z[g0:g1, h0:h1]), w)
+    arp = np.zeros((height, width))
+    arp[1:-1, 1:-1] = ar[r0 - g0: r1 - g0, c0 - h0: c1 - h0]
+    std = window_std(arp, rows, cols)
+    lowest = np.inf
+    for r in range(height):
+        for c in range(width):
+            if inside[r, c]:
+                lowest = min(lowest, std[r, c])
+                inside[r, c] = std[r, c] <= max_ar_std
+    return inside, std, fitting, lowest
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _quadric_at(a: np.ndarray, y: float, x: float) -> float:  # pragma: no cover - compiled
     """``grow.evaluate_quadric`` at one point: the same operations in the same order."""

@@ -99,10 +99,18 @@ def gaussian_taps(sigma: float, taps: int) -> np.ndarray:
     numpy.ndarray
         float64 weights w_k for k = -taps//2 .. taps//2.
     """
+    return _taps(float(sigma), int(taps)).copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _taps(sigma: float, taps: int) -> np.ndarray:
+    """:func:`gaussian_taps`, made once per (sigma, taps) and read-only."""
     half = taps // 2
     k = np.arange(-half, half + 1, dtype=np.float64)
     w = np.exp(-(k**2) / (2.0 * sigma**2))
-    return w / w.sum()
+    w = w / w.sum()
+    w.flags.writeable = False
+    return w
 
 
 def _view(padded: np.ndarray, pad: int, dy: int, dx: int, shape: tuple[int, int]

@@ -103,7 +103,7 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config, HoldsiteConfig, InputConfig
-from .edges import Backend, ar_2d, select_kernels
+from .edges import Backend, ar_2d, gaussian_taps, select_kernels
 from .errors import InputError
 from .grow import evaluate_quadric
 from .models import Surface
@@ -653,6 +653,11 @@ def clearance_map(mask: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
 AR_MARGIN = 2
 
 
+def _ar_taps() -> np.ndarray:
+    """The 1-D Gaussian of the 2-D AR of Sec. VII (:func:`~rangeseg_cli.edges.ar_2d`'s default)."""
+    return gaussian_taps(1.0, 2 * AR_MARGIN + 1)
+
+
 @dataclass
 class _Scene:
     """Per-image inputs of the search.
@@ -670,6 +675,20 @@ class _Scene:
     _footprints: dict[float, np.ndarray] = field(default_factory=dict)
     _ar_area: int = 0
     _ar_whole: np.ndarray | None = None
+
+    def compiled_windows(self) -> Any:
+        """The compiled kernels when step 4 can run them (else None).
+
+        One angle with a full footprint of odd sides (:func:`erode`'s
+        compiled case), and box means that are scipy's here
+        (:func:`_compiled_box_means`).
+        """
+        kernels = select_kernels(self.backend)
+        rows, cols = self.cfg.size
+        if (kernels is None or len(self.angles) != 1 or not self.footprint(self.angles[0]).all()
+                or not rows % 2 or not cols % 2 or not _compiled_box_means()):
+            return None
+        return kernels
 
     def footprint(self, angle: float) -> np.ndarray:
         if angle not in self._footprints:
@@ -775,6 +794,9 @@ def surface_windows(scene: _Scene, s: Surface) -> _Hits:
     """
     rows, cols = scene.cfg.size
     sl, offset = _crop(scene, s, max(rows, cols) // 2 + 2)
+    kernels = scene.compiled_windows()
+    if kernels is not None:
+        return _compiled_windows(kernels, scene, s, sl, offset)
     mask = _pad1((scene.labels[sl] == s.id) & scene.valid[sl])
     edt = clearance_map(mask, backend=scene.backend)
     none = np.zeros(0, dtype=np.int64)
@@ -788,6 +810,32 @@ def surface_windows(scene: _Scene, s: Surface) -> _Hits:
     hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
     hits.offset, hits.edt, hits.ok = offset, edt, ok
     hits.std = np.stack([std for _, std in accepted])
+    return hits
+
+
+def _compiled_windows(kernels: Any, scene: _Scene, s: Surface, sl: tuple[slice, slice],
+                      offset: tuple[int, int]) -> _Hits:
+    """:func:`surface_windows` of one full rectangle in two compiled calls (the same hits).
+
+    :func:`rangeseg_cli._kernels.surface_clearance` (mask and clearance) and,
+    when the footprint's short side fits,
+    :func:`rangeseg_cli._kernels.accept_windows` (AR of the crop, erosion,
+    AR std and the test).
+    """
+    rows, cols = scene.cfg.size
+    mask, edt, top = kernels.surface_clearance(scene.labels, scene.valid, s.id, sl[0].start,
+                                               sl[0].stop, sl[1].start, sl[1].stop)
+    none = np.zeros(0, dtype=np.int64)
+    hits = _Hits(s, none, none, none.astype(np.float64), max_clearance=float(top))
+    if hits.max_clearance < (min(rows, cols) + 1) / 2:
+        return hits  # not even the footprint's short side fits
+    ok, std, hits.fitting, lowest = kernels.accept_windows(
+        mask, scene.z, sl[0].start, sl[1].start, _ar_taps(), rows, cols,
+        float(scene.cfg.max_ar_std))
+    hits.min_ar_std = min(hits.min_ar_std, lowest)
+    r, c = np.nonzero(ok)
+    hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
+    hits.offset, hits.edt, hits.ok, hits.std = offset, edt, ok[None], std[None]
     return hits
 
 

@@ -326,6 +326,31 @@ def test_random_noisy_scenes_give_identical_labels_surfaces_and_holdsites(seed, 
 
 
 @requires_numba
+@pytest.mark.parametrize("size", [(7, 7), (5, 5), (3, 9)])
+def test_compiled_window_search_gives_the_hits_of_the_reference(size, monkeypatch):
+    from rangeseg_cli import holdsite
+
+    config = load_config(preset="paper", overrides={"holdsite": {"size": list(size),
+                                                                 "rotation_step": 90}})
+    result = run_pipeline(random_boxes(90, 110, seed=3, noise=1.5), config)
+    z, labels = holdsite._check(result.heights, result.labels)
+    angles = (0.0,)  # one angle of a full rectangle: the compiled case
+    found = 0
+    for s in result.surfaces:
+        hits = [holdsite.surface_windows(holdsite._Scene(labels, np.isfinite(z), z,
+                                                         config.holdsite, angles, backend), s)
+                for backend in ("numpy", "numba")]
+        ref, fast = (dataclasses.asdict(h) for h in hits)
+        for key, value in ref.items():
+            if isinstance(value, np.ndarray):
+                np.testing.assert_array_equal(_bits(fast[key]), _bits(value), err_msg=key)
+            else:
+                assert fast[key] == value, key
+        found += hits[0].rows.size
+    assert found > 0
+
+
+@requires_numba
 @pytest.mark.parametrize("seed", range(4))
 def test_region_fits_are_bitwise_equal_to_the_reference(seed):
     from rangeseg_cli import _kernels
