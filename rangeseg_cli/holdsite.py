@@ -325,14 +325,15 @@ def _known_gaps(labels: np.ndarray, coeffs: np.ndarray, backend: Backend
 
 def _present(labels: np.ndarray) -> set[int]:
     """The positive labels of an array (any shape)."""
-    return {int(i) for i in np.unique(labels) if i > 0}
+    found = np.unique(labels)
+    return set(found[found > 0].tolist())
 
 
 def _framed(labels: np.ndarray) -> set[int]:
     """Labels within :data:`ADJACENCY_RADIUS` of the image frame (the frame's strips)."""
     k = ADJACENCY_RADIUS + 1
-    return set().union(*(_present(strip) for strip in (
-        labels[:k], labels[-k:], labels[:, :k], labels[:, -k:])))
+    return _present(np.concatenate([strip.ravel() for strip in (
+        labels[:k], labels[-k:], labels[:, :k], labels[:, -k:])]))
 
 
 def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
@@ -675,20 +676,22 @@ class _Scene:
     _footprints: dict[float, np.ndarray] = field(default_factory=dict)
     _ar_area: int = 0
     _ar_whole: np.ndarray | None = None
+    _kernels: Any = False  # not chosen yet
 
     def compiled_windows(self) -> Any:
-        """The compiled kernels when step 4 can run them (else None).
+        """The compiled kernels when step 4 can run them (else None); chosen once.
 
         One angle with a full footprint of odd sides (:func:`erode`'s
         compiled case), and box means that are scipy's here
         (:func:`_compiled_box_means`).
         """
-        kernels = select_kernels(self.backend)
-        rows, cols = self.cfg.size
-        if (kernels is None or len(self.angles) != 1 or not self.footprint(self.angles[0]).all()
-                or not rows % 2 or not cols % 2 or not _compiled_box_means()):
-            return None
-        return kernels
+        if self._kernels is False:
+            kernels = select_kernels(self.backend)
+            rows, cols = self.cfg.size
+            usable = (kernels is not None and len(self.angles) == 1 and rows % 2 and cols % 2
+                      and self.footprint(self.angles[0]).all() and _compiled_box_means())
+            self._kernels = kernels if usable else None
+        return self._kernels
 
     def footprint(self, angle: float) -> np.ndarray:
         if angle not in self._footprints:
@@ -847,6 +850,8 @@ def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
     footprint) is largest; then the lowest AR std; then the smallest angle.
     """
     r, c = hits.rows[k] - hits.offset[0], hits.cols[k] - hits.offset[1]
+    if len(scene.angles) == 1 and hits.ok[0, r, c]:  # the one angle, accepted here
+        return scene.angles[0], float(hits.std[0, r, c])
     best = (-math.inf, math.inf, 0.0)
     for a, angle in enumerate(scene.angles):
         if not hits.ok[a, r, c]:
