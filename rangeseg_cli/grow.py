@@ -325,11 +325,13 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
     coef = np.stack([_solve_cascade(mat, rhs, moments.counts, order) for order in orders])
     if kernels is None:
         sse = _reference_sse(pixels, coef, n)
+        image = np.stack([_to_image_coefficients(c, moments.cx, moments.cy, moments.scale)
+                          for c in coef])
     else:
         sse = kernels.region_sse(zc, lc, moments.cx, moments.cy, moments.scale, coef, *origin)
+        image = kernels.image_coefficients(coef, moments.cx, moments.cy, moments.scale)
     safe = np.maximum(moments.counts, 1.0)
-    fits = [(_to_image_coefficients(c, moments.cx, moments.cy, moments.scale), e / safe)
-            for c, e in zip(coef, sse, strict=True)]
+    fits = [(a, e / safe) for a, e in zip(image, sse, strict=True)]
     return RegionFits(fits, moments.counts.astype(np.int64), moments.cy, moments.cx,
                       moments.rhs[:, 0] / safe, moments)
 
