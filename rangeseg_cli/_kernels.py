@@ -1869,31 +1869,67 @@ def _find(parent: np.ndarray, x: int) -> int:  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _provisional_labels(free: np.ndarray, prov: np.ndarray, parent: np.ndarray
-                        ) -> int:  # pragma: no cover - compiled
-    """First pass of two-pass 4-connected labelling; the number of provisional labels.
-
-    Labels are created in raster order; joined sets keep the smaller label as
-    root, so a component's root is the label of its first pixel.
-    """
+def _free_runs(free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Runs of ``free`` pixels along the rows: (row starts, first column, stop column)."""
     height, width = free.shape
-    n = 0
+    count = 0
     for r in range(height):
-        for c in range(width):
-            if not free[r, c]:
+        row = free[r]
+        count += width > 0 and row[0]
+        for c in range(1, width):
+            count += row[c] & (not row[c - 1])
+    starts = np.zeros(height + 1, dtype=np.int64)
+    first = np.empty(count, dtype=np.int64)
+    stop = np.empty(count, dtype=np.int64)
+    k = 0
+    for r in range(height):
+        row = free[r]
+        c = 0
+        while c < width:
+            if not row[c]:
+                c += 1
                 continue
-            up = prov[r - 1, c] if r > 0 else 0
-            left = prov[r, c - 1] if c > 0 else 0
-            if up == 0 and left == 0:
+            e = c + 1
+            while e < width and row[e]:
+                e += 1
+            first[k], stop[k] = c, e
+            k += 1
+            c = e
+        starts[r + 1] = k
+    return starts, first, stop
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _provisional_labels(starts: np.ndarray, first: np.ndarray, stop: np.ndarray,
+                        parent: np.ndarray, lab: np.ndarray) -> int:  # pragma: no cover
+    """First pass of two-pass 4-connected labelling of runs; the number of provisional labels.
+
+    A run touches the runs of the row above that share a column with it.
+    Labels are created in raster order; joined sets keep the smaller label
+    as root, so a component's root is the label of its first run, which
+    holds its first pixel.
+    """
+    n = 0
+    for r in range(starts.shape[0] - 1):
+        j, j_end = (starts[r - 1], starts[r]) if r > 0 else (0, 0)
+        for k in range(starts[r], starts[r + 1]):
+            while j < j_end and stop[j] <= first[k]:
+                j += 1
+            label = 0
+            jj = j
+            while jj < j_end and first[jj] < stop[k]:
+                root = _find(parent, lab[jj])
+                if label == 0:
+                    label = root
+                elif root != label:
+                    parent[max(root, label)] = min(root, label)
+                    label = min(root, label)
+                jj += 1
+            if label == 0:
                 n += 1
                 parent[n] = n
-                prov[r, c] = n
-            elif up == 0 or left == 0 or up == left:
-                prov[r, c] = max(up, left)
-            else:
-                a, b = _find(parent, up), _find(parent, left)
-                parent[max(a, b)] = min(a, b)
-                prov[r, c] = min(a, b)
+                label = n
+            lab[k] = label
     return n
 
 
@@ -1903,30 +1939,65 @@ def label_components(free: np.ndarray, min_size: int) -> np.ndarray:  # pragma: 
 
     As ``link.label_components``' reference: int32 labels 1..K in raster
     order of each component's first pixel, 0 elsewhere. Two passes over the
-    image with a union-find of provisional labels.
+    runs of free pixels along the rows (:func:`_free_runs`) with a
+    union-find of provisional labels: the work goes with the runs.
     """
     height, width = free.shape
-    prov = np.zeros((height, width), dtype=np.int32)
-    parent = np.empty(height * width + 1, dtype=np.int32)
+    starts, first, stop = _free_runs(free)
+    runs = first.shape[0]
+    parent = np.empty(runs + 1, dtype=np.int64)
     parent[0] = 0
-    n = _provisional_labels(free, prov, parent)
-    for k in range(1, n + 1):  # parent[k] <= k: roots are final in increasing order
-        parent[k] = parent[parent[k]]
+    lab = np.empty(runs, dtype=np.int64)
+    n = _provisional_labels(starts, first, stop, parent, lab)
     size = np.zeros(n + 1, dtype=np.int64)
-    for r in range(height):
-        for c in range(width):
-            size[parent[prov[r, c]]] += 1
+    for k in range(runs):
+        lab[k] = _find(parent, lab[k])
+        size[lab[k]] += stop[k] - first[k]
     lut = np.zeros(n + 1, dtype=np.int32)
     kept = 0
-    for k in range(1, n + 1):
+    for k in range(1, n + 1):  # roots in increasing order: raster order of first pixels
         if parent[k] == k and size[k] >= min_size:
             kept += 1
             lut[k] = kept
-    out = np.empty((height, width), dtype=np.int32)
+    out = np.zeros((height, width), dtype=np.int32)
     for r in range(height):
-        for c in range(width):
-            out[r, c] = lut[parent[prov[r, c]]]
+        for k in range(starts[r], starts[r + 1]):
+            value = lut[lab[k]]
+            if value:
+                out[r, first[k]:stop[k]] = value
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def link_edges(codes: np.ndarray, valid: np.ndarray, min_size: int
+               ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Step 3 (Sec. V-3) as ``link.link_edges`` does it, in one call: the same arrays.
+
+    Edges are the valid pixels coded 1 (step) or 2 (roof); a valid non-edge
+    pixel with edges on both sides along one of the four directions of
+    Fig. 8 (outside the image: no edge) is a closed gap (code 3); the other
+    valid non-edge pixels form the components (:func:`label_components`).
+    """
+    height, width = codes.shape
+    out = np.zeros((height, width), dtype=np.uint8)
+    edge = np.zeros((height + 2, width + 2), dtype=np.uint8)  # padded: no edge outside
+    for r in range(height):
+        code, ok, e, o = codes[r], valid[r], edge[r + 1, 1:width + 1], out[r]
+        for c in range(width):
+            is_edge = ok[c] & ((code[c] == 1) | (code[c] == 2))
+            e[c] = is_edge
+            o[c] = code[c] if is_edge else 0
+    free = np.zeros((height, width), dtype=np.bool_)
+    for r in range(height):  # row by row, branch-free: the loops vectorise
+        up, mid, down = edge[r], edge[r + 1], edge[r + 2]
+        code, ok, f, o = codes[r], valid[r], free[r], out[r]
+        for c in range(width):
+            gap = ((mid[c] & mid[c + 2]) | (up[c + 1] & down[c + 1]) | (up[c] & down[c + 2])
+                   | (up[c + 2] & down[c]))
+            usable = ok[c] & (mid[c + 1] == 0)
+            o[c] = 3 if usable & (gap != 0) else o[c]
+            f[c] = usable & (gap == 0)
+    return out, label_components(free, min_size)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -475,6 +475,25 @@ def test_label_components_gives_the_reference_labels(seed):
 
 @requires_numba
 @pytest.mark.parametrize("seed", range(3))
+def test_compiled_linking_gives_the_reference_codes_and_components(seed):
+    from rangeseg_cli.config import LinkConfig
+    from rangeseg_cli.link import link_edges
+
+    rng = np.random.default_rng(20 + seed)
+    for _ in range(12):
+        shape = tuple(rng.integers(1, 50, 2))
+        codes = rng.choice(np.array([0, 0, 0, 0, 1, 2, 3], dtype=np.uint8), shape)
+        valid = rng.random(shape) > 0.1
+        for min_size in (1, 5):
+            cfg = LinkConfig(min_component=min_size)
+            for ref, fast in zip(link_edges(codes, valid, cfg, backend="numpy"),
+                                 link_edges(codes, valid, cfg, backend="numba"), strict=True):
+                assert ref.dtype == fast.dtype
+                np.testing.assert_array_equal(ref, fast)
+
+
+@requires_numba
+@pytest.mark.parametrize("seed", range(3))
 def test_ar_2d_and_window_std_are_bitwise_the_references(seed):
     from rangeseg_cli.holdsite import _compiled_box_means, window_ar_std
 
