@@ -25,9 +25,9 @@ Edge stage. One pass of Sec. V (step 1, 2a or 2b) is one sweep down the image ro
    count as maxima, as in :func:`rangeseg_cli.edges.local_maximum`).
 
 Passes 2a and 2b share one sweep (:func:`roof_passes`): 2b follows a few rows
-behind 2a and takes over its AR rows, recomputing them only in blocks of
-columns within the mask's reach of a 2a roof edge (elsewhere the masks, and so
-the AR, are the same in both passes).
+behind 2a and takes over its AR rows, recomputing each direction's AR only in
+the span of columns whose masks along that direction reach a 2a roof edge
+(elsewhere the masks, and so the AR, are the same in both passes).
 
 Memory beyond the inputs: one padded copy of the heights and two of the usable
 mask, and a few row buffers; no per-direction image temporaries.
@@ -256,10 +256,6 @@ def absolute_residuals(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray,
     return out
 
 
-#: Columns per block of pass 2b: a block is recomputed only near a roof edge of 2a.
-_BLOCK = 32
-
-
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def _ar_rows(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
              den_table: np.ndarray, symmetric: bool, c0: int, c1: int, work: np.ndarray,
@@ -282,52 +278,54 @@ def _max_rows(ring: np.ndarray, q: int, radius: int, height: int, threshold: flo
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
-def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, half: int, near_row: np.ndarray
-                 ) -> bool:  # pragma: no cover - compiled
-    """Make a row's edges unusable; flag the column blocks within ``half`` of one.
+def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, q: int, half: int,
+                 lo: np.ndarray, hi: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Make the edges of row ``q`` unusable; widen the spans whose AR they change.
 
-    Returns whether the row has an edge. ``near_row`` (one flag per block of
-    :data:`_BLOCK` columns) is left untouched when it has none.
+    An edge at (q, c) changes the AR along direction d (Fig. 8) of the pixels
+    (q, c) - k d, k = -``half``..``half`` (its own, now excluded, and those
+    whose mask reaches it, Fig. 9): columns ``lo[d, r]..hi[d, r]`` of row r
+    hold every such pixel of that row.
     """
-    width = found_row.shape[0]
+    height, width = lo.shape[1], found_row.shape[0]
     flags = found_row.view(np.uint8)
     count = 0
     for c in range(width):
         count += flags[c]
     if count == 0:
-        return False
+        return
     for c in range(width):
-        if found_row[c]:
-            ok_row[c] = False
-            for b in range(max(c - half, 0) // _BLOCK, min(c + half, width - 1) // _BLOCK + 1):
-                near_row[b] = True
-    return True
+        if not found_row[c]:
+            continue
+        ok_row[c] = False
+        for d in range(4):
+            dy, dx = _DY[d], _DX[d]
+            for k in range(-half, half + 1):
+                r, cc = q - k * dy, c - k * dx
+                if 0 <= r < height and 0 <= cc < width:
+                    lo[d, r] = min(lo[d, r], cc)
+                    hi[d, r] = max(hi[d, r], cc)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def _second_pass_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
-                     den_table: np.ndarray, symmetric: bool, near: np.ndarray,
-                     rows_with: np.ndarray, work: np.ndarray, num: np.ndarray, ring: np.ndarray
+                     den_table: np.ndarray, symmetric: bool, lo: np.ndarray, hi: np.ndarray,
+                     work: np.ndarray, num: np.ndarray, ring: np.ndarray
                      ) -> None:  # pragma: no cover - compiled
     """Turn pass 2a's AR of ``row`` in ``ring`` into pass 2b's, in place.
 
     The mask of a pixel (Fig. 9) reaches ``half`` pixels along each direction,
-    so its AR changes only where an edge newly excluded by 2a lies within
-    ``half`` rows and columns: only such blocks of :data:`_BLOCK` columns
-    (``near``, by row) are recomputed. ``rows_with[r]`` counts the rows
-    before r that have an edge.
+    so its AR along a direction changes only where an edge newly excluded by
+    2a lies on that line within ``half`` pixels: only the columns
+    ``lo[d, row]..hi[d, row]`` of direction d (:func:`_exclude_row`) are
+    recomputed, each pixel's AR being independent of the columns computed
+    with it.
     """
-    half = w.shape[0] // 2
-    height, width = near.shape[0], ring.shape[2]
-    r0, r1 = max(row - half, 0), min(row + half + 1, height)
-    if rows_with[r1] == rows_with[r0]:
-        return
-    for b in range(near.shape[1]):
-        for r in range(r0, r1):
-            if near[r, b]:
-                _ar_rows(zp, okp, row, pad, w, den_table, symmetric, b * _BLOCK,
-                         min((b + 1) * _BLOCK, width), work, num, ring)
-                break
+    depth = ring.shape[1]
+    for d in range(4):
+        if lo[d, row] <= hi[d, row]:
+            _ar_row(zp, okp, row, pad, _DY[d], _DX[d], w, den_table, symmetric, lo[d, row],
+                    hi[d, row] + 1, work, num, ring[d, row % depth])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -356,8 +354,8 @@ def roof_passes(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray, thresh
     cand = np.zeros(8 * ((width + 7) // 8), dtype=np.uint8)
     den_table = _den_table(w)
     okp_b = okp.copy()
-    near = np.zeros((height, (width + _BLOCK - 1) // _BLOCK), dtype=np.bool_)
-    rows_with = np.zeros(height + 1, dtype=np.int64)
+    lo = np.full((4, height), width, dtype=np.int64)  # columns of 2b's AR to recompute
+    hi = np.full((4, height), -1, dtype=np.int64)
     roof_a = np.zeros((height, width), dtype=np.bool_)
     roof_b = np.zeros((height, width), dtype=np.bool_)
     for r in range(height + 2 * radius + lag):
@@ -367,12 +365,12 @@ def roof_passes(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray, thresh
         if 0 <= qa < height:  # Step 2a: roof edges, high threshold (Sec. V-2a)
             _max_rows(ring, qa, radius, height, threshold_a, okp[qa + pad, pad: pad + width],
                       cand, roof_a[qa])
-            rows_with[qa + 1] = rows_with[qa] + _exclude_row(
-                roof_a[qa], okp_b[qa + pad, pad: pad + width], w.shape[0] // 2, near[qa])
+            _exclude_row(roof_a[qa], okp_b[qa + pad, pad: pad + width], qa, w.shape[0] // 2,
+                         lo, hi)
         sb = qa - lag
         if 0 <= sb < height:  # Step 2b: 2a's roof edges excluded too (Sec. V-2b)
-            _second_pass_row(zp, okp_b, sb, pad, w, den_table, symmetric, near, rows_with, work,
-                             num, ring)
+            _second_pass_row(zp, okp_b, sb, pad, w, den_table, symmetric, lo, hi, work, num,
+                             ring)
         qb = sb - radius
         if 0 <= qb < height:
             _max_rows(ring, qb, radius, height, threshold_b, okp_b[qb + pad, pad: pad + width],

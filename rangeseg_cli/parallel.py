@@ -433,7 +433,7 @@ def blas_one_thread(shared: bool = True) -> Iterator[None]:
     saves threadpoolctl's cost (about 0.1 ms, most of a 128x128 frame's
     overhead).
     """
-    if not shared or thread_count() == 1:
+    if thread_count() == 1 or not shared:  # thread_count first: it checks RANGESEG_THREADS
         yield
         return
     with _blas_controller().limit(limits=1, user_api="blas"):
