@@ -33,7 +33,7 @@ Memory beyond the inputs: one padded copy of the heights and two of the usable
 mask, and a few row buffers; no per-direction image temporaries.
 
 The per-row helpers of the passes (``_reach_row``, ``_ar_row``, ``_max_row`` and
-the others marked ``_nrt=False``) only read and write arrays they are given,
+the others compiled with :data:`_NO_REFCOUNTS`) only read and write arrays they are given,
 through views, and allocate nothing, so they are compiled without numba's
 reference counts (its ``_nrt`` target option): the atomic increments and
 decrements of their row views took about 8 % of the edge stage at 128x128.
@@ -53,17 +53,23 @@ imports it lazily and only when numba is installed.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
 
 from .parallel import map_bands, row_bands
+
+#: Options of the helpers that allocate nothing and only use views of the arrays they
+#: are given: no reference counts (numba's ``_nrt`` target option; see the Notes).
+_NO_REFCOUNTS: dict[str, Any] = {"_nrt": False}
 
 #: Row and column steps of the four directions of Fig. 8 (as ``edges.DIRECTIONS``).
 _DY = np.array([0, 1, 1, 1], dtype=np.int64)
 _DX = np.array([1, 0, 1, -1], dtype=np.int64)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _reach_row(okp: np.ndarray, row: int, pad: int, dy: int, dx: int, half: int, c0: int,
                c1: int, run: np.ndarray, reach: np.ndarray) -> None:  # pragma: no cover
     """Consecutive usable pixels from each pixel (row, c0..c1-1) along (dy, dx), at most ``half``.
@@ -103,7 +109,7 @@ def _den_table(w: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     return table
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _ar_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, dy: int, dx: int,
             w: np.ndarray, den_table: np.ndarray, symmetric: bool, c0: int, c1: int,
             work: np.ndarray, num: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
@@ -146,7 +152,7 @@ def _ar_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, dy: int, dx: in
         res[c] = ar if ok0[c] else 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _is_local_max(ring: np.ndarray, q: int, c: int, dy: int, dx: int, radius: int,
                   height: int, level: float) -> bool:  # pragma: no cover - compiled
     """Whether ``level`` is >= every AR within +-``radius`` of (q, c) along (dy, dx)."""
@@ -160,7 +166,7 @@ def _is_local_max(ring: np.ndarray, q: int, c: int, dy: int, dx: int, radius: in
     return True
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _max_row(ring: np.ndarray, q: int, dy: int, dx: int, radius: int, height: int,
              threshold: float, ok_row: np.ndarray, cand: np.ndarray, found_row: np.ndarray
              ) -> None:  # pragma: no cover - compiled
@@ -256,7 +262,7 @@ def absolute_residuals(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray,
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _ar_rows(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
              den_table: np.ndarray, symmetric: bool, c0: int, c1: int, work: np.ndarray,
              num: np.ndarray, ring: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -267,7 +273,7 @@ def _ar_rows(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
                 ring[d, row % depth])
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _max_rows(ring: np.ndarray, q: int, radius: int, height: int, threshold: float,
               ok_row: np.ndarray, cand: np.ndarray, found_row: np.ndarray
               ) -> None:  # pragma: no cover - compiled
@@ -277,7 +283,7 @@ def _max_rows(ring: np.ndarray, q: int, radius: int, height: int, threshold: flo
                  found_row)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, q: int, half: int,
                  lo: np.ndarray, hi: np.ndarray) -> None:  # pragma: no cover - compiled
     """Make the edges of row ``q`` unusable; widen the spans whose AR they change.
@@ -307,7 +313,7 @@ def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, q: int, half: int,
                     hi[d, r] = max(hi[d, r], cc)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _second_pass_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
                      den_table: np.ndarray, symmetric: bool, lo: np.ndarray, hi: np.ndarray,
                      work: np.ndarray, num: np.ndarray, ring: np.ndarray
@@ -2257,8 +2263,10 @@ def boundary_measures(labels: np.ndarray, reach: int, coeffs: np.ndarray
     li, lj
         int64 (P,) labels of the two sides.
     values
-        float64 (3, P): gap, 0 (the angle's place: numpy's arccos is not
-        libm's), above.
+        float64 (4, P): gap, 0 (the angle's place: numpy's arccos is not
+        libm's), above, and the signed gap ``f_i(m) - f_j(m)`` as
+        :func:`step_gaps` computes it (``f_p - f_q``, negated where p is on
+        the side of j).
     ni, nj
         float64 (P, 3) unit normals of the fits of li and lj at the midpoints.
     """
@@ -2266,16 +2274,19 @@ def boundary_measures(labels: np.ndarray, reach: int, coeffs: np.ndarray
     n = pairs.shape[0]
     li = np.empty(n, dtype=np.int64)
     lj = np.empty(n, dtype=np.int64)
-    values = np.zeros((3, n))
+    values = np.zeros((4, n))
     ni = np.empty((n, 3))
     nj = np.empty((n, 3))
     for k in range(n):
         rp, cp, rq, cq, lp, lq = (pairs[k, 0], pairs[k, 1], pairs[k, 2], pairs[k, 3],
                                   pairs[k, 4], pairs[k, 5])
+        rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+        signed = _coeff_at(coeffs, lp, rm, cm) - _coeff_at(coeffs, lq, rm, cm)
         if lp > lq:
             rp, cp, rq, cq, lp, lq = rq, cq, rp, cp, lq, lp
+            signed = -signed
         li[k], lj[k] = lp, lq
-        rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+        values[3, k] = signed
         values[0, k] = abs(_coeff_at(coeffs, lp, rm, cm) - _coeff_at(coeffs, lq, rm, cm))
         yp, xp, yq, xq = float(rp), float(cp), float(rq), float(cq)
         values[2, k] = ((_coeff_at(coeffs, lq, yp, xp) - _coeff_at(coeffs, lp, yp, xp))

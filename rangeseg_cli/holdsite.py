@@ -1074,7 +1074,8 @@ def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: Holdsite
 
 
 def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
-                  config: Config, *, backend: Backend = "auto") -> HoldsiteResult:
+                  config: Config, *, backend: Backend = "auto",
+                  gaps: dict[tuple[int, int], float] | None = None) -> HoldsiteResult:
     """Find the vacuum-gripper holdsite of a segmented range image (Sec. VII).
 
     Parameters
@@ -1093,6 +1094,11 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         ``"auto"``, ``"numba"`` or ``"numpy"`` for the boundary pairs of
         :func:`step_gaps` and the clearance (:func:`clearance_map`); identical
         results.
+    gaps
+        :func:`step_gaps` of ``labels`` and the surfaces' fits when the
+        caller has them
+        (:func:`~rangeseg_cli.surfaces.describe_surfaces_and_gaps`, which
+        gives them with the surfaces); computed here otherwise.
 
     Returns
     -------
@@ -1119,7 +1125,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     background = find_background(by_id, framed | _near_outer_invalid(labels, valid),
                                  config.holdsite.background, tol)
     # Step 2: objects, and which are covered by another
-    gaps = _known_gaps(labels, _coefficient_table(surfaces, n), backend)  # labels: known only
+    if gaps is None:
+        gaps = _known_gaps(labels, _coefficient_table(surfaces, n), backend)  # known labels
     object_of, objects = find_objects(by_id, background, gaps, tol, framed)
     obj_by_id = {o.id: o for o in objects}
     # Step 3: objects wholly in view first, then uncovered ones; each group highest first

@@ -214,18 +214,6 @@ def kernel_labels(labels: np.ndarray) -> np.ndarray:
                       ["C"])
 
 
-def _boundary_pairs(labels: np.ndarray, backend: Backend = "auto") -> tuple[np.ndarray, ...]:
-    """Pixel pairs (p, q) of different labels within NEIGHBOUR_REACH of each other.
-
-    Returns ``(li, lj, rows_p, cols_p, rows_q, cols_q)`` with ``li < lj``.
-    """
-    rp, cp, rq, cq, lp, lq = neighbour_pairs(labels, backend=backend)
-    swap = lp > lq
-    return (np.where(swap, lq, lp), np.where(swap, lp, lq),
-            np.where(swap, rq, rp), np.where(swap, cq, cp),
-            np.where(swap, rp, rq), np.where(swap, cp, cq))
-
-
 def _group_median(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unique keys and the median of ``values`` within each key."""
     order = np.lexsort((values, keys))
@@ -326,9 +314,11 @@ def pair_measures(labels: np.ndarray, coeffs: np.ndarray, *, backend: Backend = 
     li, lj : numpy.ndarray
         int (P,) labels of the two sides of each pixel pair, ``li < lj``.
     values : numpy.ndarray
-        float64 (3, P): the height gap of the two fits at the pair's midpoint,
-        the angle between their normals there (degrees), and how far each
-        fit passes above the other side's pixel (> 0: convex).
+        float64 (4, P): the height gap of the two fits at the pair's midpoint,
+        the angle between their normals there (degrees), how far each fit
+        passes above the other side's pixel (> 0: convex), and the signed gap
+        ``f_i - f_j`` at the midpoint as :func:`rangeseg_cli.holdsite.step_gaps`
+        computes it (the same bits).
     """
     kernels = select_kernels(backend)
     if kernels is not None:
@@ -336,17 +326,67 @@ def pair_measures(labels: np.ndarray, coeffs: np.ndarray, *, backend: Backend = 
             kernel_labels(labels), NEIGHBOUR_REACH, np.require(coeffs, np.float64, ["C"]))
         np.degrees(_normal_angles(ni, nj), out=values[1])
         return li, lj, values
-    li, lj, rp, cp, rq, cq = _boundary_pairs(labels, backend)
-    ci, cj = coeffs.take(li, axis=0), coeffs.take(lj, axis=0)
+    rp, cp, rq, cq, lp, lq = neighbour_pairs(labels, backend=backend)
     rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+    signed = evaluate_quadric(coeffs[lp], rm, cm) - evaluate_quadric(coeffs[lq], rm, cm)
+    swap = lp > lq
+    signed = np.where(swap, -signed, signed)  # as holdsite.step_gaps
+    li, lj, rp, cp, rq, cq = (np.where(swap, lq, lp), np.where(swap, lp, lq),
+                              np.where(swap, rq, rp), np.where(swap, cq, cp),
+                              np.where(swap, rp, rq), np.where(swap, cp, cq))
+    ci, cj = coeffs.take(li, axis=0), coeffs.take(lj, axis=0)
     angle = np.degrees(_normal_angles(_unit_normals(ci, rm, cm), _unit_normals(cj, rm, cm)))
     gap, above = _pair_heights(li, lj, rp, cp, rq, cq, coeffs)
-    return li, lj, np.stack([gap, angle, above])
+    return li, lj, np.stack([gap, angle, above, signed])
 
 
 def _normal_angles(ni: np.ndarray, nj: np.ndarray) -> np.ndarray:
     """Angles (radians) between the unit normals of two (N, 3) arrays, row by row."""
     return np.arccos(np.clip(np.einsum("ij,ij->i", ni, nj), -1.0, 1.0))
+
+
+def boundary_medians(labels: np.ndarray, coeffs: np.ndarray, *, backend: Backend = "auto"
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Medians of :func:`pair_measures` over the boundary of each pair of neighbouring regions.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) final labels, 0 = none.
+    coeffs
+        (n+1, 6) image-coordinate quadrics of the labels.
+    backend
+        For :func:`pair_measures` and :func:`pair_medians` (identical results).
+
+    Returns
+    -------
+    group_i, group_j : numpy.ndarray
+        int64 (G,) the neighbouring pairs i < j, ascending.
+    medians : numpy.ndarray
+        float64 (4, G): medians of the height gap, the angle between the
+        normals, the "above" sums and the signed gap ``f_i - f_j``.
+    """
+    li, lj, values = pair_measures(labels, coeffs, backend=backend)
+    if li.size == 0:
+        none = np.zeros(0, dtype=np.int64)
+        return none, none, np.zeros((4, 0))
+    return pair_medians(li, lj, values, backend=backend)
+
+
+def _edge_kinds(group_i: np.ndarray, group_j: np.ndarray, medians: np.ndarray,
+                step_threshold: float) -> dict[tuple[int, int], str]:
+    """The edge types of :func:`edge_types` from :func:`boundary_medians`."""
+    out: dict[tuple[int, int], str] = {}
+    gap_med, angle_med, above_med = medians[0], medians[1], medians[2]
+    for i, j, g, a, s in zip(group_i.tolist(), group_j.tolist(), gap_med.tolist(),
+                             angle_med.tolist(), above_med.tolist(), strict=True):
+        if g > step_threshold:
+            out[(i, j)] = "step"
+        elif a < SMOOTH_ANGLE_DEG:
+            out[(i, j)] = "smooth"
+        else:
+            out[(i, j)] = "roof-convex" if s > 0 else "roof-concave"
+    return out
 
 
 def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
@@ -363,7 +403,7 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
         Median height difference of the fits along the boundary above which
         the edge is a step (``step.threshold``).
     backend
-        For :func:`pair_measures` and :func:`pair_medians` (identical results).
+        For :func:`boundary_medians` (identical results).
 
     Returns
     -------
@@ -371,21 +411,7 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
         ``{(i, j): edge}`` for i < j, edge one of ``"step"``, ``"smooth"``,
         ``"roof-convex"``, ``"roof-concave"``.
     """
-    li, lj, values = pair_measures(labels, coeffs, backend=backend)
-    if li.size == 0:
-        return {}
-    group_i, group_j, (gap_med, angle_med, above_med) = pair_medians(
-        li, lj, values, backend=backend)
-    out: dict[tuple[int, int], str] = {}
-    for i, j, g, a, s in zip(group_i.tolist(), group_j.tolist(), gap_med.tolist(),
-                             angle_med.tolist(), above_med.tolist(), strict=True):
-        if g > step_threshold:
-            out[(i, j)] = "step"
-        elif a < SMOOTH_ANGLE_DEG:
-            out[(i, j)] = "smooth"
-        else:
-            out[(i, j)] = "roof-convex" if s > 0 else "roof-concave"
-    return out
+    return _edge_kinds(*boundary_medians(labels, coeffs, backend=backend), step_threshold)
 
 
 def label_boxes(labels: np.ndarray, n: int, *, backend: Backend = "auto") -> np.ndarray:
@@ -445,18 +471,42 @@ def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config, *,
         (planar/curved), HK shape and neighbours sorted by id (see the module
         Notes for the rules).
     """
+    return describe_surfaces_and_gaps(z, labels, config, backend=backend)[0]
+
+
+def describe_surfaces_and_gaps(z: np.ndarray, labels: np.ndarray, config: Config, *,
+                               backend: Backend = "auto"
+                               ) -> tuple[list[Surface], dict[tuple[int, int], float]]:
+    """:func:`describe_surfaces`, and the step gaps of the holdsite search (Sec. VII) with them.
+
+    The gaps come from the same boundary pairs as the edge types (one more
+    median per region pair): exactly
+    :func:`rangeseg_cli.holdsite.step_gaps` of these labels and surfaces,
+    which :func:`~rangeseg_cli.holdsite.find_holdsite` then need not
+    compute again.
+
+    Returns
+    -------
+    surfaces : list of Surface
+        As :func:`describe_surfaces`.
+    gaps : dict
+        ``{(i, j): median(f_i - f_j)}`` for neighbouring regions i < j.
+    """
     z = np.asarray(z, dtype=np.float64)
     labels = np.where(np.isfinite(z), labels, 0).astype(np.int32)
     n = int(labels.max(initial=0))
     if n == 0:
-        return []
+        return [], {}
     # Final surface parameters: the quadric fit repeated on the grown regions (Sec. V-4)
     stats = region_fits(z, labels, n, (2, 1), backend=backend)
     (quad, mse_quad), (plane, mse_plane) = stats.fits
     flat = planar(mse_quad, mse_plane, config.grow.planar_tolerance, config.grow.min_error)
     coeffs = np.where(flat[:, None], plane, quad)
     mse = np.where(flat, mse_plane, mse_quad)
-    edges = edge_types(labels, coeffs, config.step.threshold, backend=backend)
+    group_i, group_j, medians = boundary_medians(labels, coeffs, backend=backend)
+    edges = _edge_kinds(group_i, group_j, medians, config.step.threshold)
+    gaps = dict(zip(zip(group_i.tolist(), group_j.tolist(), strict=True), medians[3].tolist(),
+                    strict=True))
     neighbours: dict[int, list[Neighbor]] = {}
     for (i, j), edge in sorted(edges.items()):
         neighbours.setdefault(i, []).append(Neighbor(id=j, edge=edge))
@@ -478,7 +528,7 @@ def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config, *,
             type="planar" if flat[sid] else "curved", shape=shape,
             neighbors=tuple(sorted(neighbours.get(sid, []), key=lambda nb: nb.id)),
         ))
-    return surfaces
+    return surfaces, gaps
 
 
 def _plain(value: Any) -> Any:
