@@ -807,6 +807,20 @@ def _single_neighbour(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def valid_labels(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, int]:  # pragma: no cover
+    """``np.where(np.isfinite(z), labels, 0).astype(np.int32)`` and its largest value (>= 0)."""
+    height, width = z.shape
+    out = np.empty((height, width), dtype=np.int32)
+    top = np.int32(0)
+    for r in range(height):
+        for c in range(width):
+            value = np.int32(labels[r, c]) if np.isfinite(z[r, c]) else np.int32(0)
+            out[r, c] = value
+            top = max(top, value)
+    return out, int(top)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.ndarray,
               limit: np.ndarray) -> int:  # pragma: no cover - compiled
     """One simultaneous growing pass (Sec. V-4), in place; the number of pixels labelled.

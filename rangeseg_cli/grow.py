@@ -624,8 +624,41 @@ def component_fits(z: np.ndarray, components: np.ndarray, *, backend: Backend = 
         n = the largest label at a valid pixel.
     """
     z = np.asarray(z, dtype=np.float64)
-    labels = np.where(np.isfinite(z), components, 0).astype(np.int32)
-    return fit_quadrics(z, labels, int(labels.max(initial=0)), backend=backend)
+    labels, n = valid_labels(z, components, backend=backend)
+    return fit_quadrics(z, labels, n, backend=backend)
+
+
+def valid_labels(z: np.ndarray, labels: np.ndarray, *, backend: Backend = "auto"
+                 ) -> tuple[np.ndarray, int]:
+    """``labels`` as int32, 0 where the heights ``z`` are not finite, and the largest label.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights.
+    labels
+        int (H, W) labels (cast to int32 as ``astype`` does).
+    backend
+        ``"numpy"``: ``np.where`` and ``max`` (the reference); ``"numba"``:
+        :func:`rangeseg_cli._kernels.valid_labels`, one pass (the same
+        values); ``"auto"``: as :func:`rangeseg_cli.edges.detect_edges`.
+
+    Returns
+    -------
+    labels : numpy.ndarray
+        int32 (H, W).
+    n : int
+        Its largest value, 0 when it has none above 0.
+    """
+    kernels = select_kernels(backend)
+    labels = np.asarray(labels)
+    if (kernels is not None and labels.shape == z.shape and z.ndim == 2
+            and labels.dtype.kind in "iub"):
+        out, n = kernels.valid_labels(np.require(z, np.float64, ["C"]),
+                                      np.ascontiguousarray(labels))
+        return out, int(n)
+    out = np.where(np.isfinite(z), labels, 0).astype(np.int32)
+    return out, int(out.max(initial=0))
 
 
 def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: GrowConfig,
@@ -674,8 +707,7 @@ def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: 
     z = np.asarray(z, dtype=np.float64)
     require_shape_of_z(z, codes=codes, components=components)
     valid = np.isfinite(z)
-    labels = np.where(valid, components, 0).astype(np.int32)
-    n = int(labels.max(initial=0))
+    labels, n = valid_labels(z, components, backend=backend)
     if n == 0:
         return labels
     # Quadric fit of each component and its average error e_A, floored (Sec. V-4)

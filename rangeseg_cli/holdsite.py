@@ -105,7 +105,7 @@ from scipy import ndimage
 from .config import Config, HoldsiteConfig, InputConfig
 from .edges import Backend, ar_2d, gaussian_taps, select_kernels
 from .errors import InputError
-from .grow import evaluate_quadric
+from .grow import evaluate_quadric, valid_labels
 from .models import Surface
 from .surfaces import kernel_labels, neighbour_pairs, pair_medians
 
@@ -986,7 +986,8 @@ def _preference(obj: ObjectInfo, s: Surface) -> tuple[bool, bool, float, int]:
     return obj.touches_border, obj.covered, -s.mean_height, s.id
 
 
-def _check(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto"
+           ) -> tuple[np.ndarray, np.ndarray]:
     z = np.asarray(z, dtype=np.float64)
     labels = np.asarray(labels)
     if z.ndim != 2:
@@ -997,8 +998,9 @@ def _check(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if labels.dtype.kind not in "iu":
         raise InputError(f"`labels` (dtype {labels.dtype}) must be integer")
     # int32 where it holds every label: the compiled boundary pairs run twice as wide
-    dtype = np.int32 if np.can_cast(labels.dtype, np.int32) else np.int64
-    return z, np.where(np.isfinite(z), labels, 0).astype(dtype)
+    if np.can_cast(labels.dtype, np.int32):
+        return z, valid_labels(z, labels, backend=backend)[0]
+    return z, np.where(np.isfinite(z), labels, 0).astype(np.int64)
 
 
 def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
@@ -1112,7 +1114,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     InputError
         When ``labels`` is not an integer array of the shape of ``z``.
     """
-    z, labels = _check(z, labels)
+    z, labels = _check(z, labels, backend)
     valid = np.isfinite(z)
     by_id = {s.id: s for s in surfaces if s.id > 0}
     n = max(int(labels.max(initial=0)), max(by_id, default=0))

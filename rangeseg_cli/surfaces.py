@@ -54,7 +54,7 @@ from scipy import ndimage
 
 from .config import Config
 from .edges import Backend, select_kernels
-from .grow import evaluate_quadric, planar, region_fits
+from .grow import evaluate_quadric, planar, region_fits, valid_labels
 from .models import Neighbor, Surface
 
 #: Two regions are neighbours when pixels of both lie within this chessboard distance.
@@ -493,8 +493,7 @@ def describe_surfaces_and_gaps(z: np.ndarray, labels: np.ndarray, config: Config
         ``{(i, j): median(f_i - f_j)}`` for neighbouring regions i < j.
     """
     z = np.asarray(z, dtype=np.float64)
-    labels = np.where(np.isfinite(z), labels, 0).astype(np.int32)
-    n = int(labels.max(initial=0))
+    labels, n = valid_labels(z, labels, backend=backend)
     if n == 0:
         return [], {}
     # Final surface parameters: the quadric fit repeated on the grown regions (Sec. V-4)

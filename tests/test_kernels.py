@@ -474,6 +474,22 @@ def test_label_components_gives_the_reference_labels(seed):
 
 
 @requires_numba
+@pytest.mark.parametrize("dtype", [np.int32, np.int64, np.uint16, np.bool_])
+def test_valid_labels_are_those_of_the_reference(dtype):
+    from rangeseg_cli.grow import valid_labels
+
+    rng = np.random.default_rng(5)
+    z = rng.normal(size=(23, 31))
+    z[rng.random(z.shape) < 0.2] = np.nan
+    z[0, 0] = np.inf
+    labels = rng.integers(0, 2**33 if dtype is np.int64 else 2, z.shape).astype(dtype)
+    ref = valid_labels(z, labels, backend="numpy")
+    fast = valid_labels(z, labels, backend="numba")
+    assert fast[0].dtype == ref[0].dtype == np.int32 and fast[1] == ref[1]
+    np.testing.assert_array_equal(fast[0], ref[0])
+
+
+@requires_numba
 @pytest.mark.parametrize("seed", range(3))
 def test_compiled_linking_gives_the_reference_codes_and_components(seed):
     from rangeseg_cli.config import LinkConfig
