@@ -828,18 +828,15 @@ def _compiled_windows(kernels: Any, scene: _Scene, s: Surface, sl: tuple[slice, 
     rows, cols = scene.cfg.size
     mask, edt, top = kernels.surface_clearance(scene.labels, scene.valid, s.id, sl[0].start,
                                                sl[0].stop, sl[1].start, sl[1].stop)
-    none = np.zeros(0, dtype=np.int64)
-    hits = _Hits(s, none, none, none.astype(np.float64), max_clearance=float(top))
-    if hits.max_clearance < (min(rows, cols) + 1) / 2:
-        return hits  # not even the footprint's short side fits
-    ok, std, hits.fitting, lowest = kernels.accept_windows(
+    if top < (min(rows, cols) + 1) / 2:  # not even the footprint's short side fits
+        none = np.zeros(0, dtype=np.int64)
+        return _Hits(s, none, none, none.astype(np.float64), max_clearance=float(top))
+    ok, std, fitting, lowest = kernels.accept_windows(
         mask, scene.z, sl[0].start, sl[1].start, _ar_taps(), rows, cols,
         float(scene.cfg.max_ar_std))
-    hits.min_ar_std = min(hits.min_ar_std, lowest)
     r, c = np.nonzero(ok)
-    hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
-    hits.offset, hits.edt, hits.ok, hits.std = offset, edt, ok[None], std[None]
-    return hits
+    return _Hits(s, r + offset[0], c + offset[1], edt[r, c], offset, edt, ok[None], std[None],
+                 float(top), fitting, min(math.inf, lowest))
 
 
 def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
@@ -881,13 +878,21 @@ def _rank(hits: _Hits, centre: tuple[float, float]) -> np.ndarray:
 
 
 def _best(hits: _Hits, centre: tuple[float, float]) -> int:
-    """``_rank(hits, centre)[0]`` without sorting: narrow down key by key (Sec. VII)."""
-    keep = np.arange(hits.rows.size)
-    for key in reversed(_rank_keys(hits, centre)):
-        values = key[keep]
-        keep = keep[values == values.min()]
+    """``_rank(hits, centre)[0]`` without sorting: narrow down key by key (Sec. VII).
+
+    The keys of :func:`_rank_keys`, each computed for the hits still in the
+    running only (the same values).
+    """
+    whole = np.floor(hits.clearance + 1e-9)  # clearance in whole pixels, largest first
+    keep = np.flatnonzero(whole == whole.max())
+    if keep.size > 1:
+        dist = np.hypot(hits.rows[keep] - centre[0], hits.cols[keep] - centre[1])
+        keep = keep[dist == dist.min()]
+    for key in (hits.rows, hits.cols):
         if keep.size == 1:
             break
+        values = key[keep]
+        keep = keep[values == values.min()]
     return int(keep[0])
 
 
@@ -915,8 +920,9 @@ def score(clearance: float, distance: float, size: tuple[int, int], area: float)
 
 
 def _unit(v: np.ndarray) -> Vector:
-    v = v / np.linalg.norm(v)
-    return float(v[0]), float(v[1]), float(v[2])
+    """``v / np.linalg.norm(v)`` of a 3-vector (the norm as numpy takes it: ``sqrt(v.dot(v))``)."""
+    x, y, z = (v / np.sqrt(v.dot(v))).tolist()
+    return x, y, z
 
 
 def camera_pose(row: float, col: float, height: float, grad: tuple[float, float],
