@@ -807,6 +807,34 @@ def _single_neighbour(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def heights(raw: np.ndarray, factor: float, invalid: float, check_invalid: bool
+            ) -> tuple[np.ndarray, int, float]:  # pragma: no cover - compiled
+    """``rangeimage.to_heights`` of a plain numeric array in one pass: the same heights.
+
+    Each raw value as float64, times ``factor`` (the scale, negated for
+    depth); NaN where the value or the product is not finite or the value
+    equals ``invalid`` (when ``check_invalid``). Returns the heights, the
+    number of valid pixels and the largest |height| among them (0 if none).
+    """
+    height, width = raw.shape
+    out = np.empty((height, width))
+    valid = 0
+    peak = 0.0
+    for r in range(height):
+        for c in range(width):
+            v = np.float64(raw[r, c])
+            bad = not np.isfinite(v) or (check_invalid and v == invalid)
+            v = v * factor
+            if bad or not np.isfinite(v):
+                out[r, c] = np.nan
+            else:
+                out[r, c] = v
+                valid += 1
+                peak = max(peak, abs(v))
+    return out, valid, peak
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def valid_labels(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, int]:  # pragma: no cover
     """``np.where(np.isfinite(z), labels, 0).astype(np.int32)`` and its largest value (>= 0)."""
     height, width = z.shape

@@ -474,6 +474,24 @@ def test_label_components_gives_the_reference_labels(seed):
 
 
 @requires_numba
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.float32, np.float64])
+@pytest.mark.parametrize("larger_is_closer", [True, False])
+def test_compiled_heights_are_bitwise_the_reference(dtype, larger_is_closer):
+    from rangeseg_cli.config import InputConfig
+    from rangeseg_cli.rangeimage import to_heights
+
+    rng = np.random.default_rng(3)
+    raw = (rng.random((20, 24)) * 250).astype(dtype)
+    if raw.dtype.kind == "f":
+        raw[2, 3], raw[4, 5] = np.nan, np.inf
+    for invalid in (np.nan, 0.0):
+        cfg = InputConfig(scale=0.1, larger_is_closer=larger_is_closer, invalid=invalid)
+        ref = to_heights(raw, cfg, backend="numpy")
+        fast = to_heights(raw, cfg, backend="numba")
+        np.testing.assert_array_equal(_bits(fast), _bits(ref))
+
+
+@requires_numba
 @pytest.mark.parametrize("dtype", [np.int32, np.int64, np.uint16, np.bool_])
 def test_valid_labels_are_those_of_the_reference(dtype):
     from rangeseg_cli.grow import valid_labels
