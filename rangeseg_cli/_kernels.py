@@ -541,9 +541,21 @@ def region_moments(z: np.ndarray, labels: np.ndarray, n: int, r0: int = 0, c0: i
     rhs
         float64 (n+1, 6): ``sum phi_i z`` for phi = (1, u, v, u^2, u v, v^2).
     """
-    counts, cx, cy = _region_centres(z, labels, n, r0, c0)
-    scale = _region_scale(z, labels, cx, cy, np.maximum(counts, 1.0), r0, c0)
-    sums, rhs = _region_sums(z, labels, cx, cy, scale, r0, c0)
+    return run_moments(z, fitted_runs(z, labels), n, r0, c0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def run_moments(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                n: int, r0: int, c0: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                           np.ndarray]:  # pragma: no cover - compiled
+    """:func:`region_moments` from the :func:`fitted_runs` of the labels.
+
+    ``grow.region_fits`` makes the runs once for this and :func:`run_sse`.
+    """
+    counts, cx, cy = _region_centres(runs, n, r0, c0)
+    scale = _region_scale(runs, cx, cy, np.maximum(counts, 1.0), r0, c0)
+    sums, rhs = _region_sums(z, runs, cx, cy, scale, r0, c0)
     return counts, cx, cy, scale, sums, rhs
 
 
@@ -559,97 +571,153 @@ def _run_end(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no cover - c
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _region_centres(z: np.ndarray, labels: np.ndarray, n: int, r0: int, c0: int
+def fitted_runs(z: np.ndarray, labels: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Runs of one positive label at finite heights along the rows, in raster order.
+
+    (row, first column, stop column, label) of each; a run ends where the
+    label changes or a height is not finite. The sweeps of
+    :func:`region_moments` and :func:`region_sse` visit the fitted pixels
+    run by run, in raster order, as the reference does pixel by pixel. Per
+    row, the starts and ends are flagged in vectorised loops and found
+    eight at a time; one sweep counts the runs, a second records them.
+    """
+    height, width = labels.shape
+    fit = np.zeros(width + 1, dtype=np.uint8)  # fit[width] = 0: every run ends
+    starts = np.zeros(8 * ((width + 8) // 8), dtype=np.uint8)
+    ends = np.zeros(8 * ((width + 8) // 8), dtype=np.uint8)
+    count = 0
+    for r in range(height):
+        count += _run_flags(z[r], labels[r], fit, starts, ends)
+    rows = np.empty(count, dtype=np.int64)
+    first = np.empty(count, dtype=np.int64)
+    stop = np.empty(count, dtype=np.int64)
+    labs = np.empty(count, dtype=np.int64)
+    k = 0
+    for r in range(height):
+        if _run_flags(z[r], labels[r], fit, starts, ends) == 0:
+            continue
+        _put_flagged(ends, stop, k)
+        j = _put_flagged(starts, first, k)
+        for i in range(k, j):
+            rows[i], labs[i] = r, labels[r, first[i]]
+        k = j
+    return rows, first, stop, labs
+
+
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+def _run_flags(zr: np.ndarray, lab: np.ndarray, fit: np.ndarray, starts: np.ndarray,
+               ends: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Flag where the runs of :func:`fitted_runs` of one row start and end; their number.
+
+    ``starts[c]``: a run begins at column c; ``ends[c]``: one ends just
+    before column c (c up to the row's width).
+    """
+    width = lab.shape[0]
+    for c in range(width):
+        fit[c] = (lab[c] > 0) & np.isfinite(zr[c])
+    count = 0
+    starts[0] = fit[0]
+    ends[0] = 0
+    for c in range(1, width):
+        change = lab[c] != lab[c - 1]
+        starts[c] = fit[c] & ((fit[c - 1] == 0) | change)
+        ends[c] = fit[c - 1] & ((fit[c] == 0) | change)
+        count += starts[c]
+    ends[width] = fit[width - 1] if width > 0 else 0
+    return count + starts[0]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+def _put_flagged(flags: np.ndarray, out: np.ndarray, k: int) -> int:  # pragma: no cover
+    """Write the indices of the set bytes of ``flags`` (length a multiple of 8) from ``out[k]``.
+
+    Found eight at a time, ascending; returns the index after the last written.
+    """
+    words = flags.view(np.uint64)
+    for i in range(words.shape[0]):
+        if words[i] != 0:
+            for c in range(8 * i, 8 * i + 8):
+                if flags[c]:
+                    out[k] = c
+                    k += 1
+    return k
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _region_centres(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], n: int,
+                    r0: int, c0: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """Sweep 1 of :func:`region_moments`: pixel count, centre column and row per label.
 
     The sums are of integers, exact in any order (below 2^53), so they are
-    kept as integers.
+    kept as integers (a run's columns summed in closed form).
     """
-    height, width = labels.shape
+    rows, first, stop, labs = runs
     counts = np.zeros(n + 1, dtype=np.int64)
     sx = np.zeros(n + 1, dtype=np.int64)
     sy = np.zeros(n + 1, dtype=np.int64)
-    for r in range(height):
-        c = 0
-        while c < width:
-            lab = labels[r, c]
-            end = _run_end(labels, r, c)
-            if lab > 0:
-                k = s = 0
-                for cc in range(c, end):
-                    if np.isfinite(z[r, cc]):
-                        k += 1
-                        s += cc + c0
-                counts[lab] += k
-                sx[lab] += s
-                sy[lab] += k * (r + r0)
-            c = end
+    for k in range(rows.shape[0]):
+        lab, a, b = labs[k], first[k], stop[k]
+        length = b - a
+        counts[lab] += length
+        sx[lab] += length * (a + b - 1) // 2 + length * c0
+        sy[lab] += length * (rows[k] + r0)
     safe = np.maximum(counts, 1).astype(np.float64)
     return counts.astype(np.float64), sx / safe, sy / safe
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _region_scale(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                  safe: np.ndarray, r0: int, c0: int) -> np.ndarray:  # pragma: no cover - compiled
+def _region_scale(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                  cx: np.ndarray, cy: np.ndarray, safe: np.ndarray, r0: int, c0: int
+                  ) -> np.ndarray:  # pragma: no cover - compiled
     """Sweep 2 of :func:`region_moments`: RMS spread about the centre, at least 1.
 
-    A run of one label along a row is summed in registers, continuing the
-    label's running sums in the same order as adding pixel by pixel.
+    A run is summed in registers, continuing the label's running sums in the
+    same order as adding pixel by pixel.
     """
-    height, width = labels.shape
+    rows, first, stop, labs = runs
     vx = np.zeros(cx.shape[0])
     vy = np.zeros(cx.shape[0])
-    for r in range(height):
-        c = 0
-        while c < width:
-            lab = labels[r, c]
-            end = _run_end(labels, r, c)
-            if lab > 0:
-                ax, ay, x0 = vx[lab], vy[lab], cx[lab]
-                dy = (r + r0) - cy[lab]
-                dy2 = dy * dy
-                for cc in range(c, end):
-                    if np.isfinite(z[r, cc]):
-                        dx = (cc + c0) - x0
-                        ax += dx * dx
-                        ay += dy2
-                vx[lab], vy[lab] = ax, ay
-            c = end
+    for k in range(rows.shape[0]):
+        lab = labs[k]
+        ax, ay, x0 = vx[lab], vy[lab], cx[lab]
+        dy = (rows[k] + r0) - cy[lab]
+        dy2 = dy * dy
+        for cc in range(first[k], stop[k]):
+            dx = (cc + c0) - x0
+            ax += dx * dx
+            ay += dy2
+        vx[lab], vy[lab] = ax, ay
     return np.maximum(np.sqrt((vx + vy) / (2.0 * safe)), 1.0)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _region_sums(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                 scale: np.ndarray, r0: int, c0: int
+def _region_sums(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                 cx: np.ndarray, cy: np.ndarray, scale: np.ndarray, r0: int, c0: int
                  ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """Sweep 3 of :func:`region_moments`: the monomial sums and right-hand sides.
 
-    Runs of one label along a row are summed in registers (as in
-    :func:`_region_scale`); v and its powers are constant along a row.
+    Run by run, summed in registers (as in :func:`_region_scale`); v and its
+    powers are constant along a row.
     """
-    height, width = labels.shape
+    rows, first, stop, labs = runs
     sums = np.zeros((cx.shape[0], 5, 5))
     rhs = np.zeros((cx.shape[0], 6))
-    ubuf = np.empty(width)
-    for r in range(height):
-        c = 0
-        while c < width:
-            lab = labels[r, c]
-            end = _run_end(labels, r, c)
-            if lab > 0:
-                x0, s = cx[lab], scale[lab]
-                for cc in range(end - c):  # the run's u, divided in a vectorised loop
-                    ubuf[cc] = ((c + cc + c0) - x0) / s
-                _sum_run(z, r, c, end, ubuf, ((r + r0) - cy[lab]) / s, sums[lab], rhs[lab])
-            c = end
+    ubuf = np.empty(z.shape[1])
+    for k in range(rows.shape[0]):
+        lab, r, c, end = labs[k], rows[k], first[k], stop[k]
+        x0, s = cx[lab], scale[lab]
+        for cc in range(end - c):  # the run's u, divided in a vectorised loop
+            ubuf[cc] = ((c + cc + c0) - x0) / s
+        _sum_run(z, r, c, end, ubuf, ((r + r0) - cy[lab]) / s, sums[lab], rhs[lab])
     return sums, rhs
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _sum_run(z: np.ndarray, r: int, c0: int, c1: int, us: np.ndarray, v: float,
              m: np.ndarray, q: np.ndarray) -> None:  # pragma: no cover - compiled
-    """Add the pixels (r, c0..c1-1) to one label's monomial sums ``m`` and ``rhs`` ``q``."""
+    """Add the pixels (r, c0..c1-1), all finite, to one label's sums ``m`` and ``rhs`` ``q``."""
     v2 = v * v
     v3, v4 = v2 * v, v2 * v2
     m00, m01, m02, m03, m04 = m[0, 0], m[0, 1], m[0, 2], m[0, 3], m[0, 4]
@@ -659,8 +727,6 @@ def _sum_run(z: np.ndarray, r: int, c0: int, c1: int, us: np.ndarray, v: float,
     q0, q1, q2, q3, q4, q5 = q[0], q[1], q[2], q[3], q[4], q[5]
     for c in range(c0, c1):
         zz = z[r, c]
-        if not np.isfinite(zz):
-            continue
         u = us[c - c0]
         u2 = u * u
         u3, u4 = u2 * u, u2 * u2
@@ -740,22 +806,28 @@ def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray
         float64 (F, n+1): ``sum (z - sum_i c_i phi_i)^2``, the fit summed
         term by term in the order of phi, as the reference does.
     """
-    height, width = labels.shape
+    return run_sse(z, fitted_runs(z, labels), cx, cy, scale, coef, r0, c0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def run_sse(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+            cx: np.ndarray, cy: np.ndarray, scale: np.ndarray, coef: np.ndarray, r0: int,
+            c0: int) -> np.ndarray:  # pragma: no cover - compiled
+    """:func:`region_sse` from the :func:`fitted_runs` of the labels."""
+    rows, first, stop, labs = runs
     nfit = coef.shape[0]
     out = np.zeros((nfit, coef.shape[1]))
-    squares = np.empty(width)
-    for r in range(height):
-        c = 0
-        while c < width:
-            lab = labels[r, c]
-            end = _run_end(labels, r, c)
-            if lab > 0:
-                x0, s = cx[lab], scale[lab]
-                v = ((r + r0) - cy[lab]) / s
-                for f in range(nfit):
-                    _squares_run(z[r, c:end], c + c0, x0, v, s, coef[f, lab], squares)
-                    out[f, lab] = _add_finite(z[r, c:end], squares, out[f, lab])
-            c = end
+    squares = np.empty(z.shape[1])
+    for k in range(rows.shape[0]):
+        lab, r, c, end = labs[k], rows[k], first[k], stop[k]
+        x0, s = cx[lab], scale[lab]
+        v = ((r + r0) - cy[lab]) / s
+        for f in range(nfit):
+            _squares_run(z[r, c:end], c + c0, x0, v, s, coef[f, lab], squares)
+            total = out[f, lab]
+            for i in range(end - c):  # added in order
+                total += squares[i]
+            out[f, lab] = total
     return out
 
 
@@ -778,16 +850,6 @@ def _squares_run(zrun: np.ndarray, c0: int, x0: float, v: float, s: float, a: np
         fit = fit + a5 * v2
         res = zrun[i] - fit
         out[i] = res * res
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _add_finite(zrun: np.ndarray, squares: np.ndarray, total: float
-                ) -> float:  # pragma: no cover - compiled
-    """``total`` plus ``squares`` where the heights are finite, added in order."""
-    for i in range(zrun.shape[0]):
-        if np.isfinite(zrun[i]):
-            total += squares[i]
-    return total
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

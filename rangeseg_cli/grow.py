@@ -319,8 +319,8 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
         moments, pixels = _reference_moments(z, labels, n, origin)
     else:
         zc = np.require(z, np.float64, ["C", "W"])
-        lc = np.require(labels, np.int32, ["C", "W"])
-        moments = RegionMoments(*kernels.region_moments(zc, lc, n, *origin))
+        runs = kernels.fitted_runs(zc, np.require(labels, np.int32, ["C", "W"]))
+        moments = RegionMoments(*kernels.run_moments(zc, runs, n, *origin))
     mat, rhs = _normal_equations(moments)
     coef = np.stack([_solve_cascade(mat, rhs, moments.counts, order) for order in orders])
     if kernels is None:
@@ -328,7 +328,7 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
         image = np.stack([_to_image_coefficients(c, moments.cx, moments.cy, moments.scale)
                           for c in coef])
     else:
-        sse = kernels.region_sse(zc, lc, moments.cx, moments.cy, moments.scale, coef, *origin)
+        sse = kernels.run_sse(zc, runs, moments.cx, moments.cy, moments.scale, coef, *origin)
         image = kernels.image_coefficients(coef, moments.cx, moments.cy, moments.scale)
     safe = np.maximum(moments.counts, 1.0)
     fits = [(a, e / safe) for a, e in zip(image, sse, strict=True)]
