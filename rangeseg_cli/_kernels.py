@@ -432,6 +432,18 @@ def edge_maps(z: np.ndarray, w_step: np.ndarray, step_threshold: float, w_roof: 
     return step, roof_a, roof_b
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def edge_codes(step: np.ndarray, roof_a: np.ndarray, roof_b: np.ndarray
+               ) -> np.ndarray:  # pragma: no cover - compiled
+    """uint8 codes of ``edges.EdgeMaps``: 1 step, else 2 roof (either pass), else 0."""
+    height, width = step.shape
+    codes = np.empty((height, width), dtype=np.uint8)
+    for r in range(height):
+        for c in range(width):
+            codes[r, c] = 1 if step[r, c] else (2 if roof_a[r, c] or roof_b[r, c] else 0)
+    return codes
+
+
 def detect_edges_numba(z: np.ndarray, w_step: np.ndarray, step_threshold: float,
                        w_roof: np.ndarray, threshold_a: float, threshold_b: float,
                        radius: int, truncation: str
@@ -1801,8 +1813,12 @@ def pair_medians(lo: np.ndarray, hi: np.ndarray, n: int, values: np.ndarray
         ``0.5 (v[(c - 1) // 2] + v[c // 2])`` of the sorted values of each
         group of c pairs (as ``np.unique`` and ``np.lexsort`` give them).
     """
-    order = _counting_order(hi, n, np.arange(lo.shape[0]))
-    order = _counting_order(lo, n, order)
+    if (n + 1) * (n + 1) <= 4 * lo.shape[0] + 4096:  # few labels: one pass on (lo, hi)
+        order = _counting_order(lo * (n + 1) + hi, (n + 1) * (n + 1) - 1,
+                                np.arange(lo.shape[0]))
+    else:
+        order = _counting_order(hi, n, np.arange(lo.shape[0]))
+        order = _counting_order(lo, n, order)
     starts = np.empty(order.shape[0] + 1, dtype=np.int64)
     groups = 0
     for k in range(order.shape[0]):
@@ -1813,11 +1829,14 @@ def pair_medians(lo: np.ndarray, hi: np.ndarray, n: int, values: np.ndarray
     group_lo = np.empty(groups, dtype=np.int64)
     group_hi = np.empty(groups, dtype=np.int64)
     medians = np.empty((values.shape[0], groups))
+    buf = np.empty(order.shape[0])
     for g in range(groups):
-        members = order[starts[g]: starts[g + 1]]
-        group_lo[g], group_hi[g] = lo[members[0]], hi[members[0]]
+        a, b = starts[g], starts[g + 1]
+        group_lo[g], group_hi[g] = lo[order[a]], hi[order[a]]
         for m in range(values.shape[0]):
-            medians[m, g] = _median(values[m][members])
+            for i in range(a, b):  # the group's values in the order of their pairs
+                buf[i - a] = values[m, order[i]]
+            medians[m, g] = _median(buf[: b - a])
     return group_lo, group_hi, medians
 
 
