@@ -202,16 +202,16 @@ def _solve_cascade(mat: np.ndarray, rhs: np.ndarray, counts: np.ndarray, order: 
     batched call over the stacked systems.
     """
     coef = np.zeros(rhs.shape)
-    todo = counts > 0
-    if order == 2 and todo.any():
+    todo = np.flatnonzero(counts > 0)  # indices: each system as a boolean mask would take it
+    if order == 2 and todo.size:
         eig = np.linalg.eigvalsh(mat[todo])
-        ok = np.zeros_like(todo)
-        ok[todo] = (counts[todo] >= 6) & (eig[:, 0] > RCOND * eig[:, -1])
-        if ok.any():
+        good = (counts[todo] >= 6) & (eig[:, 0] > RCOND * eig[:, -1])
+        ok = todo[good]
+        if ok.size:
             coef[ok] = np.linalg.solve(mat[ok], rhs[ok, :, None])[..., 0]
-        todo &= ~ok
+        todo = todo[~good]
     k = ORDER_TERMS[min(order, 1)]
-    if todo.any():
+    if todo.size:
         pinv = np.linalg.pinv(mat[todo, :k, :k], rcond=RCOND, hermitian=True)
         coef[todo, :k] = (pinv @ rhs[todo, :k, None])[..., 0]
     return coef
