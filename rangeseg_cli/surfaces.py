@@ -511,20 +511,25 @@ def describe_surfaces_and_gaps(z: np.ndarray, labels: np.ndarray, config: Config
         neighbours.setdefault(i, []).append(Neighbor(id=j, edge=edge))
         neighbours.setdefault(j, []).append(Neighbor(id=i, edge=edge))
     boxes = label_boxes(labels, n, backend=backend).tolist()
+    # Python numbers of every region at once (the same values as item by item)
+    counts, rows, cols = (stats.counts.tolist(), stats.centroid_row.tolist(),
+                          stats.centroid_col.tolist())
+    heights, fits, errors, planes = (stats.mean_height.tolist(), coeffs.tolist(), mse.tolist(),
+                                     flat.tolist())
     surfaces = []
     for sid in range(1, n + 1):
-        if boxes[sid][0] < 0 or stats.counts[sid] == 0:
+        if boxes[sid][0] < 0 or counts[sid] == 0:
             continue
-        row, col = float(stats.centroid_row[sid]), float(stats.centroid_col[sid])
-        a = coeffs[sid]
-        shape = "flat" if flat[sid] else hk_shape(*curvatures(a, row, col))
+        row, col = rows[sid], cols[sid]
+        a = fits[sid]
+        shape = "flat" if planes[sid] else hk_shape(*curvatures(np.asarray(a), row, col))
         surfaces.append(Surface(
-            id=sid, pixels=int(stats.counts[sid]),
+            id=sid, pixels=counts[sid],
             bbox=tuple(boxes[sid]),  # type: ignore[arg-type]
-            centroid=(row, col), mean_height=float(stats.mean_height[sid]),
-            coefficients=tuple(float(c) for c in a),  # type: ignore[arg-type]
-            rms_error=float(math.sqrt(max(mse[sid], 0.0))),
-            type="planar" if flat[sid] else "curved", shape=shape,
+            centroid=(row, col), mean_height=heights[sid],
+            coefficients=tuple(a),  # type: ignore[arg-type]
+            rms_error=math.sqrt(max(errors[sid], 0.0)),
+            type="planar" if planes[sid] else "curved", shape=shape,
             neighbors=tuple(sorted(neighbours.get(sid, []), key=lambda nb: nb.id)),
         ))
     return surfaces, gaps
