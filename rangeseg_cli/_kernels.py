@@ -25,12 +25,18 @@ Edge stage. One pass of Sec. V (step 1, 2a or 2b) is one sweep down the image ro
    count as maxima, as in :func:`rangeseg_cli.edges.local_maximum`).
 
 Passes 2a and 2b share one sweep (:func:`roof_passes`): 2b follows a few rows
-behind 2a and takes over its AR rows, recomputing them only in blocks of
-columns within the mask's reach of a 2a roof edge (elsewhere the masks, and so
-the AR, are the same in both passes).
+behind 2a and takes over its AR rows, recomputing each direction's AR only in
+the span of columns whose masks along that direction reach a 2a roof edge
+(elsewhere the masks, and so the AR, are the same in both passes).
 
 Memory beyond the inputs: one padded copy of the heights and two of the usable
 mask, and a few row buffers; no per-direction image temporaries.
+
+The per-row helpers of the passes (``_reach_row``, ``_ar_row``, ``_max_row`` and
+the others compiled with :data:`_NO_REFCOUNTS`) only read and write arrays they are given,
+through views, and allocate nothing, so they are compiled without numba's
+reference counts (its ``_nrt`` target option): the atomic increments and
+decrements of their row views took about 8 % of the edge stage at 128x128.
 
 Region growing (Sec. V-4). :func:`region_moments` gathers, per label, the
 pixel count, the centre and scale of the conditioning frame and the 15
@@ -47,17 +53,23 @@ imports it lazily and only when numba is installed.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
 
 from .parallel import map_bands, row_bands
+
+#: Options of the helpers that allocate nothing and only use views of the arrays they
+#: are given: no reference counts (numba's ``_nrt`` target option; see the Notes).
+_NO_REFCOUNTS: dict[str, Any] = {"_nrt": False}
 
 #: Row and column steps of the four directions of Fig. 8 (as ``edges.DIRECTIONS``).
 _DY = np.array([0, 1, 1, 1], dtype=np.int64)
 _DX = np.array([1, 0, 1, -1], dtype=np.int64)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _reach_row(okp: np.ndarray, row: int, pad: int, dy: int, dx: int, half: int, c0: int,
                c1: int, run: np.ndarray, reach: np.ndarray) -> None:  # pragma: no cover
     """Consecutive usable pixels from each pixel (row, c0..c1-1) along (dy, dx), at most ``half``.
@@ -97,7 +109,7 @@ def _den_table(w: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     return table
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _ar_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, dy: int, dx: int,
             w: np.ndarray, den_table: np.ndarray, symmetric: bool, c0: int, c1: int,
             work: np.ndarray, num: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
@@ -140,7 +152,7 @@ def _ar_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, dy: int, dx: in
         res[c] = ar if ok0[c] else 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _is_local_max(ring: np.ndarray, q: int, c: int, dy: int, dx: int, radius: int,
                   height: int, level: float) -> bool:  # pragma: no cover - compiled
     """Whether ``level`` is >= every AR within +-``radius`` of (q, c) along (dy, dx)."""
@@ -154,7 +166,7 @@ def _is_local_max(ring: np.ndarray, q: int, c: int, dy: int, dx: int, radius: in
     return True
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _max_row(ring: np.ndarray, q: int, dy: int, dx: int, radius: int, height: int,
              threshold: float, ok_row: np.ndarray, cand: np.ndarray, found_row: np.ndarray
              ) -> None:  # pragma: no cover - compiled
@@ -250,11 +262,7 @@ def absolute_residuals(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray,
     return out
 
 
-#: Columns per block of pass 2b: a block is recomputed only near a roof edge of 2a.
-_BLOCK = 32
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _ar_rows(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
              den_table: np.ndarray, symmetric: bool, c0: int, c1: int, work: np.ndarray,
              num: np.ndarray, ring: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -265,7 +273,7 @@ def _ar_rows(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
                 ring[d, row % depth])
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _max_rows(ring: np.ndarray, q: int, radius: int, height: int, threshold: float,
               ok_row: np.ndarray, cand: np.ndarray, found_row: np.ndarray
               ) -> None:  # pragma: no cover - compiled
@@ -275,53 +283,55 @@ def _max_rows(ring: np.ndarray, q: int, radius: int, height: int, threshold: flo
                  found_row)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, half: int, near_row: np.ndarray
-                 ) -> bool:  # pragma: no cover - compiled
-    """Make a row's edges unusable; flag the column blocks within ``half`` of one.
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, q: int, half: int,
+                 lo: np.ndarray, hi: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Make the edges of row ``q`` unusable; widen the spans whose AR they change.
 
-    Returns whether the row has an edge. ``near_row`` (one flag per block of
-    :data:`_BLOCK` columns) is left untouched when it has none.
+    An edge at (q, c) changes the AR along direction d (Fig. 8) of the pixels
+    (q, c) - k d, k = -``half``..``half`` (its own, now excluded, and those
+    whose mask reaches it, Fig. 9): columns ``lo[d, r]..hi[d, r]`` of row r
+    hold every such pixel of that row.
     """
-    width = found_row.shape[0]
+    height, width = lo.shape[1], found_row.shape[0]
     flags = found_row.view(np.uint8)
     count = 0
     for c in range(width):
         count += flags[c]
     if count == 0:
-        return False
+        return
     for c in range(width):
-        if found_row[c]:
-            ok_row[c] = False
-            for b in range(max(c - half, 0) // _BLOCK, min(c + half, width - 1) // _BLOCK + 1):
-                near_row[b] = True
-    return True
+        if not found_row[c]:
+            continue
+        ok_row[c] = False
+        for d in range(4):
+            dy, dx = _DY[d], _DX[d]
+            for k in range(-half, half + 1):
+                r, cc = q - k * dy, c - k * dx
+                if 0 <= r < height and 0 <= cc < width:
+                    lo[d, r] = min(lo[d, r], cc)
+                    hi[d, r] = max(hi[d, r], cc)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
 def _second_pass_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
-                     den_table: np.ndarray, symmetric: bool, near: np.ndarray,
-                     rows_with: np.ndarray, work: np.ndarray, num: np.ndarray, ring: np.ndarray
+                     den_table: np.ndarray, symmetric: bool, lo: np.ndarray, hi: np.ndarray,
+                     work: np.ndarray, num: np.ndarray, ring: np.ndarray
                      ) -> None:  # pragma: no cover - compiled
     """Turn pass 2a's AR of ``row`` in ``ring`` into pass 2b's, in place.
 
     The mask of a pixel (Fig. 9) reaches ``half`` pixels along each direction,
-    so its AR changes only where an edge newly excluded by 2a lies within
-    ``half`` rows and columns: only such blocks of :data:`_BLOCK` columns
-    (``near``, by row) are recomputed. ``rows_with[r]`` counts the rows
-    before r that have an edge.
+    so its AR along a direction changes only where an edge newly excluded by
+    2a lies on that line within ``half`` pixels: only the columns
+    ``lo[d, row]..hi[d, row]`` of direction d (:func:`_exclude_row`) are
+    recomputed, each pixel's AR being independent of the columns computed
+    with it.
     """
-    half = w.shape[0] // 2
-    height, width = near.shape[0], ring.shape[2]
-    r0, r1 = max(row - half, 0), min(row + half + 1, height)
-    if rows_with[r1] == rows_with[r0]:
-        return
-    for b in range(near.shape[1]):
-        for r in range(r0, r1):
-            if near[r, b]:
-                _ar_rows(zp, okp, row, pad, w, den_table, symmetric, b * _BLOCK,
-                         min((b + 1) * _BLOCK, width), work, num, ring)
-                break
+    depth = ring.shape[1]
+    for d in range(4):
+        if lo[d, row] <= hi[d, row]:
+            _ar_row(zp, okp, row, pad, _DY[d], _DX[d], w, den_table, symmetric, lo[d, row],
+                    hi[d, row] + 1, work, num, ring[d, row % depth])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -350,8 +360,8 @@ def roof_passes(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray, thresh
     cand = np.zeros(8 * ((width + 7) // 8), dtype=np.uint8)
     den_table = _den_table(w)
     okp_b = okp.copy()
-    near = np.zeros((height, (width + _BLOCK - 1) // _BLOCK), dtype=np.bool_)
-    rows_with = np.zeros(height + 1, dtype=np.int64)
+    lo = np.full((4, height), width, dtype=np.int64)  # columns of 2b's AR to recompute
+    hi = np.full((4, height), -1, dtype=np.int64)
     roof_a = np.zeros((height, width), dtype=np.bool_)
     roof_b = np.zeros((height, width), dtype=np.bool_)
     for r in range(height + 2 * radius + lag):
@@ -361,12 +371,12 @@ def roof_passes(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray, thresh
         if 0 <= qa < height:  # Step 2a: roof edges, high threshold (Sec. V-2a)
             _max_rows(ring, qa, radius, height, threshold_a, okp[qa + pad, pad: pad + width],
                       cand, roof_a[qa])
-            rows_with[qa + 1] = rows_with[qa] + _exclude_row(
-                roof_a[qa], okp_b[qa + pad, pad: pad + width], w.shape[0] // 2, near[qa])
+            _exclude_row(roof_a[qa], okp_b[qa + pad, pad: pad + width], qa, w.shape[0] // 2,
+                         lo, hi)
         sb = qa - lag
         if 0 <= sb < height:  # Step 2b: 2a's roof edges excluded too (Sec. V-2b)
-            _second_pass_row(zp, okp_b, sb, pad, w, den_table, symmetric, near, rows_with, work,
-                             num, ring)
+            _second_pass_row(zp, okp_b, sb, pad, w, den_table, symmetric, lo, hi, work, num,
+                             ring)
         qb = sb - radius
         if 0 <= qb < height:
             _max_rows(ring, qb, radius, height, threshold_b, okp_b[qb + pad, pad: pad + width],
@@ -420,6 +430,18 @@ def edge_maps(z: np.ndarray, w_step: np.ndarray, step_threshold: float, w_roof: 
     roof_a, roof_b = roof_passes(zp, okp, pad, w_roof, threshold_a, threshold_b, radius,
                                  roof_symmetric)
     return step, roof_a, roof_b
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def edge_codes(step: np.ndarray, roof_a: np.ndarray, roof_b: np.ndarray
+               ) -> np.ndarray:  # pragma: no cover - compiled
+    """uint8 codes of ``edges.EdgeMaps``: 1 step, else 2 roof (either pass), else 0."""
+    height, width = step.shape
+    codes = np.empty((height, width), dtype=np.uint8)
+    for r in range(height):
+        for c in range(width):
+            codes[r, c] = 1 if step[r, c] else (2 if roof_a[r, c] or roof_b[r, c] else 0)
+    return codes
 
 
 def detect_edges_numba(z: np.ndarray, w_step: np.ndarray, step_threshold: float,
@@ -531,9 +553,21 @@ def region_moments(z: np.ndarray, labels: np.ndarray, n: int, r0: int = 0, c0: i
     rhs
         float64 (n+1, 6): ``sum phi_i z`` for phi = (1, u, v, u^2, u v, v^2).
     """
-    counts, cx, cy = _region_centres(z, labels, n, r0, c0)
-    scale = _region_scale(z, labels, cx, cy, np.maximum(counts, 1.0), r0, c0)
-    sums, rhs = _region_sums(z, labels, cx, cy, scale, r0, c0)
+    return run_moments(z, fitted_runs(z, labels), n, r0, c0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def run_moments(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                n: int, r0: int, c0: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                           np.ndarray]:  # pragma: no cover - compiled
+    """:func:`region_moments` from the :func:`fitted_runs` of the labels.
+
+    ``grow.region_fits`` makes the runs once for this and :func:`run_sse`.
+    """
+    counts, cx, cy = _region_centres(runs, n, r0, c0)
+    scale = _region_scale(runs, cx, cy, np.maximum(counts, 1.0), r0, c0)
+    sums, rhs = _region_sums(z, runs, cx, cy, scale, r0, c0)
     return counts, cx, cy, scale, sums, rhs
 
 
@@ -549,97 +583,153 @@ def _run_end(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no cover - c
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _region_centres(z: np.ndarray, labels: np.ndarray, n: int, r0: int, c0: int
+def fitted_runs(z: np.ndarray, labels: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Runs of one positive label at finite heights along the rows, in raster order.
+
+    (row, first column, stop column, label) of each; a run ends where the
+    label changes or a height is not finite. The sweeps of
+    :func:`region_moments` and :func:`region_sse` visit the fitted pixels
+    run by run, in raster order, as the reference does pixel by pixel. Per
+    row, the starts and ends are flagged in vectorised loops and found
+    eight at a time; one sweep counts the runs, a second records them.
+    """
+    height, width = labels.shape
+    fit = np.zeros(width + 1, dtype=np.uint8)  # fit[width] = 0: every run ends
+    starts = np.zeros(8 * ((width + 8) // 8), dtype=np.uint8)
+    ends = np.zeros(8 * ((width + 8) // 8), dtype=np.uint8)
+    count = 0
+    for r in range(height):
+        count += _run_flags(z[r], labels[r], fit, starts, ends)
+    rows = np.empty(count, dtype=np.int64)
+    first = np.empty(count, dtype=np.int64)
+    stop = np.empty(count, dtype=np.int64)
+    labs = np.empty(count, dtype=np.int64)
+    k = 0
+    for r in range(height):
+        if _run_flags(z[r], labels[r], fit, starts, ends) == 0:
+            continue
+        _put_flagged(ends, stop, k)
+        j = _put_flagged(starts, first, k)
+        for i in range(k, j):
+            rows[i], labs[i] = r, labels[r, first[i]]
+        k = j
+    return rows, first, stop, labs
+
+
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+def _run_flags(zr: np.ndarray, lab: np.ndarray, fit: np.ndarray, starts: np.ndarray,
+               ends: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Flag where the runs of :func:`fitted_runs` of one row start and end; their number.
+
+    ``starts[c]``: a run begins at column c; ``ends[c]``: one ends just
+    before column c (c up to the row's width).
+    """
+    width = lab.shape[0]
+    for c in range(width):
+        fit[c] = (lab[c] > 0) & np.isfinite(zr[c])
+    count = 0
+    starts[0] = fit[0]
+    ends[0] = 0
+    for c in range(1, width):
+        change = lab[c] != lab[c - 1]
+        starts[c] = fit[c] & ((fit[c - 1] == 0) | change)
+        ends[c] = fit[c - 1] & ((fit[c] == 0) | change)
+        count += starts[c]
+    ends[width] = fit[width - 1] if width > 0 else 0
+    return count + starts[0]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+def _put_flagged(flags: np.ndarray, out: np.ndarray, k: int) -> int:  # pragma: no cover
+    """Write the indices of the set bytes of ``flags`` (length a multiple of 8) from ``out[k]``.
+
+    Found eight at a time, ascending; returns the index after the last written.
+    """
+    words = flags.view(np.uint64)
+    for i in range(words.shape[0]):
+        if words[i] != 0:
+            for c in range(8 * i, 8 * i + 8):
+                if flags[c]:
+                    out[k] = c
+                    k += 1
+    return k
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _region_centres(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], n: int,
+                    r0: int, c0: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """Sweep 1 of :func:`region_moments`: pixel count, centre column and row per label.
 
     The sums are of integers, exact in any order (below 2^53), so they are
-    kept as integers.
+    kept as integers (a run's columns summed in closed form).
     """
-    height, width = labels.shape
+    rows, first, stop, labs = runs
     counts = np.zeros(n + 1, dtype=np.int64)
     sx = np.zeros(n + 1, dtype=np.int64)
     sy = np.zeros(n + 1, dtype=np.int64)
-    for r in range(height):
-        c = 0
-        while c < width:
-            lab = labels[r, c]
-            end = _run_end(labels, r, c)
-            if lab > 0:
-                k = s = 0
-                for cc in range(c, end):
-                    if np.isfinite(z[r, cc]):
-                        k += 1
-                        s += cc + c0
-                counts[lab] += k
-                sx[lab] += s
-                sy[lab] += k * (r + r0)
-            c = end
+    for k in range(rows.shape[0]):
+        lab, a, b = labs[k], first[k], stop[k]
+        length = b - a
+        counts[lab] += length
+        sx[lab] += length * (a + b - 1) // 2 + length * c0
+        sy[lab] += length * (rows[k] + r0)
     safe = np.maximum(counts, 1).astype(np.float64)
     return counts.astype(np.float64), sx / safe, sy / safe
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _region_scale(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                  safe: np.ndarray, r0: int, c0: int) -> np.ndarray:  # pragma: no cover - compiled
+def _region_scale(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                  cx: np.ndarray, cy: np.ndarray, safe: np.ndarray, r0: int, c0: int
+                  ) -> np.ndarray:  # pragma: no cover - compiled
     """Sweep 2 of :func:`region_moments`: RMS spread about the centre, at least 1.
 
-    A run of one label along a row is summed in registers, continuing the
-    label's running sums in the same order as adding pixel by pixel.
+    A run is summed in registers, continuing the label's running sums in the
+    same order as adding pixel by pixel.
     """
-    height, width = labels.shape
+    rows, first, stop, labs = runs
     vx = np.zeros(cx.shape[0])
     vy = np.zeros(cx.shape[0])
-    for r in range(height):
-        c = 0
-        while c < width:
-            lab = labels[r, c]
-            end = _run_end(labels, r, c)
-            if lab > 0:
-                ax, ay, x0 = vx[lab], vy[lab], cx[lab]
-                dy = (r + r0) - cy[lab]
-                dy2 = dy * dy
-                for cc in range(c, end):
-                    if np.isfinite(z[r, cc]):
-                        dx = (cc + c0) - x0
-                        ax += dx * dx
-                        ay += dy2
-                vx[lab], vy[lab] = ax, ay
-            c = end
+    for k in range(rows.shape[0]):
+        lab = labs[k]
+        ax, ay, x0 = vx[lab], vy[lab], cx[lab]
+        dy = (rows[k] + r0) - cy[lab]
+        dy2 = dy * dy
+        for cc in range(first[k], stop[k]):
+            dx = (cc + c0) - x0
+            ax += dx * dx
+            ay += dy2
+        vx[lab], vy[lab] = ax, ay
     return np.maximum(np.sqrt((vx + vy) / (2.0 * safe)), 1.0)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _region_sums(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                 scale: np.ndarray, r0: int, c0: int
+def _region_sums(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                 cx: np.ndarray, cy: np.ndarray, scale: np.ndarray, r0: int, c0: int
                  ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """Sweep 3 of :func:`region_moments`: the monomial sums and right-hand sides.
 
-    Runs of one label along a row are summed in registers (as in
-    :func:`_region_scale`); v and its powers are constant along a row.
+    Run by run, summed in registers (as in :func:`_region_scale`); v and its
+    powers are constant along a row.
     """
-    height, width = labels.shape
+    rows, first, stop, labs = runs
     sums = np.zeros((cx.shape[0], 5, 5))
     rhs = np.zeros((cx.shape[0], 6))
-    ubuf = np.empty(width)
-    for r in range(height):
-        c = 0
-        while c < width:
-            lab = labels[r, c]
-            end = _run_end(labels, r, c)
-            if lab > 0:
-                x0, s = cx[lab], scale[lab]
-                for cc in range(end - c):  # the run's u, divided in a vectorised loop
-                    ubuf[cc] = ((c + cc + c0) - x0) / s
-                _sum_run(z, r, c, end, ubuf, ((r + r0) - cy[lab]) / s, sums[lab], rhs[lab])
-            c = end
+    ubuf = np.empty(z.shape[1])
+    for k in range(rows.shape[0]):
+        lab, r, c, end = labs[k], rows[k], first[k], stop[k]
+        x0, s = cx[lab], scale[lab]
+        for cc in range(end - c):  # the run's u, divided in a vectorised loop
+            ubuf[cc] = ((c + cc + c0) - x0) / s
+        _sum_run(z, r, c, end, ubuf, ((r + r0) - cy[lab]) / s, sums[lab], rhs[lab])
     return sums, rhs
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _sum_run(z: np.ndarray, r: int, c0: int, c1: int, us: np.ndarray, v: float,
              m: np.ndarray, q: np.ndarray) -> None:  # pragma: no cover - compiled
-    """Add the pixels (r, c0..c1-1) to one label's monomial sums ``m`` and ``rhs`` ``q``."""
+    """Add the pixels (r, c0..c1-1), all finite, to one label's sums ``m`` and ``rhs`` ``q``."""
     v2 = v * v
     v3, v4 = v2 * v, v2 * v2
     m00, m01, m02, m03, m04 = m[0, 0], m[0, 1], m[0, 2], m[0, 3], m[0, 4]
@@ -649,8 +739,6 @@ def _sum_run(z: np.ndarray, r: int, c0: int, c1: int, us: np.ndarray, v: float,
     q0, q1, q2, q3, q4, q5 = q[0], q[1], q[2], q[3], q[4], q[5]
     for c in range(c0, c1):
         zz = z[r, c]
-        if not np.isfinite(zz):
-            continue
         u = us[c - c0]
         u2 = u * u
         u3, u4 = u2 * u, u2 * u2
@@ -683,6 +771,31 @@ def _sum_run(z: np.ndarray, r: int, c0: int, c1: int, us: np.ndarray, v: float,
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def image_coefficients(coef: np.ndarray, cx: np.ndarray, cy: np.ndarray, scale: np.ndarray
+                       ) -> np.ndarray:  # pragma: no cover - compiled
+    """``grow._to_image_coefficients`` of F fits at once: the same operations, in one call.
+
+    ``coef`` float64 (F, n+1, 6) in the frames (u, v) of :func:`region_moments`;
+    returns the (F, n+1, 6) coefficients in image coordinates (x = col, y = row).
+    """
+    out = np.empty_like(coef)
+    for f in range(coef.shape[0]):
+        for i in range(coef.shape[1]):
+            c0, c1, c2 = coef[f, i, 0], coef[f, i, 1], coef[f, i, 2]
+            c3, c4, c5 = coef[f, i, 3], coef[f, i, 4], coef[f, i, 5]
+            p = 1.0 / scale[i]
+            u0, v0 = -cx[i] * p, -cy[i] * p  # u = p x + u0, v = p y + v0
+            out[f, i, 0] = (c0 + c1 * u0 + c2 * v0 + c3 * u0 * u0 + c4 * u0 * v0
+                            + c5 * v0 * v0)
+            out[f, i, 1] = c1 * p + 2.0 * c3 * p * u0 + c4 * p * v0
+            out[f, i, 2] = c2 * p + c4 * p * u0 + 2.0 * c5 * p * v0
+            out[f, i, 3] = c3 * p * p
+            out[f, i, 4] = c4 * p * p
+            out[f, i, 5] = c5 * p * p
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
                scale: np.ndarray, coef: np.ndarray, r0: int = 0, c0: int = 0
                ) -> np.ndarray:  # pragma: no cover
@@ -705,22 +818,28 @@ def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray
         float64 (F, n+1): ``sum (z - sum_i c_i phi_i)^2``, the fit summed
         term by term in the order of phi, as the reference does.
     """
-    height, width = labels.shape
+    return run_sse(z, fitted_runs(z, labels), cx, cy, scale, coef, r0, c0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def run_sse(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+            cx: np.ndarray, cy: np.ndarray, scale: np.ndarray, coef: np.ndarray, r0: int,
+            c0: int) -> np.ndarray:  # pragma: no cover - compiled
+    """:func:`region_sse` from the :func:`fitted_runs` of the labels."""
+    rows, first, stop, labs = runs
     nfit = coef.shape[0]
     out = np.zeros((nfit, coef.shape[1]))
-    squares = np.empty(width)
-    for r in range(height):
-        c = 0
-        while c < width:
-            lab = labels[r, c]
-            end = _run_end(labels, r, c)
-            if lab > 0:
-                x0, s = cx[lab], scale[lab]
-                v = ((r + r0) - cy[lab]) / s
-                for f in range(nfit):
-                    _squares_run(z[r, c:end], c + c0, x0, v, s, coef[f, lab], squares)
-                    out[f, lab] = _add_finite(z[r, c:end], squares, out[f, lab])
-            c = end
+    squares = np.empty(z.shape[1])
+    for k in range(rows.shape[0]):
+        lab, r, c, end = labs[k], rows[k], first[k], stop[k]
+        x0, s = cx[lab], scale[lab]
+        v = ((r + r0) - cy[lab]) / s
+        for f in range(nfit):
+            _squares_run(z[r, c:end], c + c0, x0, v, s, coef[f, lab], squares)
+            total = out[f, lab]
+            for i in range(end - c):  # added in order
+                total += squares[i]
+            out[f, lab] = total
     return out
 
 
@@ -745,16 +864,6 @@ def _squares_run(zrun: np.ndarray, c0: int, x0: float, v: float, s: float, a: np
         out[i] = res * res
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _add_finite(zrun: np.ndarray, squares: np.ndarray, total: float
-                ) -> float:  # pragma: no cover - compiled
-    """``total`` plus ``squares`` where the heights are finite, added in order."""
-    for i in range(zrun.shape[0]):
-        if np.isfinite(zrun[i]):
-            total += squares[i]
-    return total
-
-
 @njit(cache=True, nogil=True, error_model="numpy")
 def _single_neighbour(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no cover
     """The one label in the 3x3 neighbourhood of (r, c); 0 for none or two and more."""
@@ -769,6 +878,48 @@ def _single_neighbour(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no 
                 elif lab != found:
                     return 0
     return found
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def heights(raw: np.ndarray, factor: float, invalid: float, check_invalid: bool
+            ) -> tuple[np.ndarray, int, float]:  # pragma: no cover - compiled
+    """``rangeimage.to_heights`` of a plain numeric array in one pass: the same heights.
+
+    Each raw value as float64, times ``factor`` (the scale, negated for
+    depth); NaN where the value or the product is not finite or the value
+    equals ``invalid`` (when ``check_invalid``). Returns the heights, the
+    number of valid pixels and the largest |height| among them (0 if none).
+    """
+    height, width = raw.shape
+    out = np.empty((height, width))
+    valid = 0
+    peak = 0.0
+    for r in range(height):
+        for c in range(width):
+            v = np.float64(raw[r, c])
+            bad = not np.isfinite(v) or (check_invalid and v == invalid)
+            v = v * factor
+            if bad or not np.isfinite(v):
+                out[r, c] = np.nan
+            else:
+                out[r, c] = v
+                valid += 1
+                peak = max(peak, abs(v))
+    return out, valid, peak
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def valid_labels(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, int]:  # pragma: no cover
+    """``np.where(np.isfinite(z), labels, 0).astype(np.int32)`` and its largest value (>= 0)."""
+    height, width = z.shape
+    out = np.empty((height, width), dtype=np.int32)
+    top = np.int32(0)
+    for r in range(height):
+        for c in range(width):
+            value = np.int32(labels[r, c]) if np.isfinite(z[r, c]) else np.int32(0)
+            out[r, c] = value
+            top = max(top, value)
+    return out, int(top)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -828,79 +979,102 @@ def _half_offsets(reach: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no co
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _row_pair_count(a: np.ndarray, b: np.ndarray, c0: int, c1: int, dx: int
-                    ) -> int:  # pragma: no cover - compiled
-    """How many c in [c0, c1) have a[c] and b[c + dx] positive and different (vectorised)."""
+def _label_runs(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
+                                              ]:  # pragma: no cover - compiled
+    """Runs of equal positive labels along the rows: (row starts, first, stop, label).
+
+    The runs of row r are ``first[k]..stop[k]-1`` for k in ``starts[r]..starts[r+1]-1``,
+    left to right; label 0 makes no run. One sweep counts the runs, a second
+    records them (arrays grown inside a loop would cost more than both).
+    """
+    height, width = labels.shape
     count = 0
-    aa, bb = a[c0:c1], b[c0 + dx:c1 + dx]
-    for c in range(aa.shape[0]):
-        x, y = aa[c], bb[c]
-        count += ((x != y) & (x > 0) & (y > 0)) * 1
-    return count
+    for r in range(height):
+        row = labels[r]
+        count += row[0] > 0
+        for c in range(1, width):
+            count += (row[c] != row[c - 1]) & (row[c] > 0)
+    starts = np.zeros(height + 1, dtype=np.int64)
+    first = np.empty(count, dtype=np.int64)
+    stop = np.empty(count, dtype=np.int64)
+    lab = np.empty(count, dtype=np.int64)
+    k = 0
+    for r in range(height):
+        row = labels[r]
+        for c in range(width):
+            if c > 0 and row[c] == row[c - 1]:
+                continue
+            if c > 0 and row[c - 1] > 0:
+                stop[k - 1] = c
+            if row[c] > 0:
+                first[k], lab[k] = c, row[c]
+                k += 1
+        if width > 0 and row[width - 1] > 0:
+            stop[k - 1] = width
+        starts[r + 1] = k
+    return starts, first, stop, lab
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _run_pairs(labels: np.ndarray, reach: int, runs: tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                          np.ndarray],
+               out: np.ndarray) -> int:  # pragma: no cover - compiled
+    """The pairs of :func:`neighbour_pairs` into ``out`` (none: only counted); their number.
+
+    For each of half of the offsets (dy, dx) and each row r, the runs of
+    row r and those of row r + dy shifted by ``-dx`` are intersected left to
+    right; where the labels differ every column of the overlap is a pair,
+    in increasing column order.
+    """
+    height = labels.shape[0]
+    dys, dxs = _half_offsets(reach)
+    starts, first, stop, lab = runs
+    write = out.shape[0] > 0
+    j = 0
+    for k in range(dys.shape[0]):
+        dy, dx = dys[k], dxs[k]
+        for r in range(height - dy):
+            a, a_end = starts[r], starts[r + 1]
+            b, b_end = starts[r + dy], starts[r + dy + 1]
+            while a < a_end and b < b_end:  # branch-free but for the pairs written
+                lo = max(first[a], first[b] - dx)
+                hi = min(stop[a], stop[b] - dx)
+                found = max(hi - lo, 0) * (lab[a] != lab[b])
+                if write and found:
+                    for c in range(lo, hi):
+                        out[j, 0], out[j, 1], out[j, 2], out[j, 3] = r, c, r + dy, c + dx
+                        out[j, 4], out[j, 5] = lab[a], lab[b]
+                        j += 1
+                elif not write:
+                    j += found
+                step = stop[a] <= stop[b] - dx
+                a += step
+                b += 1 - step
+    return j
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no cover
     """Pixel pairs of different positive labels within ``reach`` (SPEC "Surfaces", Sec. VII).
 
-    For each of half of the offsets (dy, dx) and each row, the row is compared
-    with the row dy below shifted by dx, in a branch-free (vectorised) loop that
-    counts the pairs; a second pass writes the pairs of the rows that have
-    any. The order is the reference's (offset by offset, pixels in raster
-    order), so the rows equal :func:`rangeseg_cli.surfaces.neighbour_pairs`'
-    arrays exactly.
+    The runs of equal labels along the rows (:func:`_label_runs`) of each
+    row and of the row dy below, shifted by dx, are intersected for each of
+    half of the offsets (dy, dx) (:func:`_run_pairs`): the cost goes with
+    the runs and the pairs, not with the pixels of each offset. A first
+    sweep counts the pairs, a second writes them. The order is the
+    reference's (offset by offset, pixels in raster order), so the rows
+    equal :func:`rangeseg_cli.surfaces.neighbour_pairs`' arrays exactly.
 
     Returns
     -------
     numpy.ndarray
         int64 (P, 6): rows_p, cols_p, rows_q, cols_q, labels_p, labels_q.
     """
-    height, width = labels.shape
-    dys, dxs = _half_offsets(reach)
-    per_row = np.zeros((dys.shape[0], height), dtype=np.int64)
-    for k in range(dys.shape[0]):
-        dy, dx = dys[k], dxs[k]
-        c0 = max(0, -dx)
-        c1 = max(c0, min(width, width - dx))  # empty when |dx| >= width
-        for r in range(height - dy):
-            per_row[k, r] = _row_pair_count(labels[r], labels[r + dy], c0, c1, dx)
-    out = np.empty((per_row.sum(), 6), dtype=np.int64)
-    flags = np.zeros(8 * ((width + 7) // 8), dtype=np.uint8)
-    j = 0
-    for k in range(dys.shape[0]):
-        dy, dx = dys[k], dxs[k]
-        c0 = max(0, -dx)
-        c1 = max(c0, min(width, width - dx))  # empty when |dx| >= width
-        for r in range(height - dy):
-            if per_row[k, r] > 0:
-                j = _row_pairs(labels[r, c0:c1], labels[r + dy, c0 + dx:c1 + dx], r, c0, dy,
-                               dx, flags, out, j)
+    runs = _label_runs(labels)
+    out = np.empty((_run_pairs(labels, reach, runs, np.empty((0, 6), dtype=np.int64)), 6),
+                   dtype=np.int64)
+    _run_pairs(labels, reach, runs, out)
     return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _row_pairs(aa: np.ndarray, bb: np.ndarray, r: int, c0: int, dy: int, dx: int,
-               flags: np.ndarray, out: np.ndarray, j: int) -> int:  # pragma: no cover
-    """Write the pairs of one row and offset from row ``j`` of ``out``; the next free row.
-
-    The pairs are flagged in a vectorised loop into ``flags`` (a uint8 buffer
-    of at least the row length, rounded up to 8), then found eight at a time.
-    """
-    n = aa.shape[0]
-    for i in range(n):
-        x, y = aa[i], bb[i]
-        flags[i] = (x != y) & (x > 0) & (y > 0)
-    words = flags.view(np.uint64)
-    for w in range((n + 7) // 8):
-        if words[w] == 0:
-            continue
-        for i in range(8 * w, min(8 * w + 8, n)):
-            if flags[i]:
-                c = c0 + i
-                out[j, 0], out[j, 1], out[j, 2], out[j, 3] = r, c, r + dy, c + dx
-                out[j, 4], out[j, 5] = aa[i], bb[i]
-                j += 1
-    return j
 
 
 # --------------------------------------------------------------------------- local planes
@@ -1639,8 +1813,12 @@ def pair_medians(lo: np.ndarray, hi: np.ndarray, n: int, values: np.ndarray
         ``0.5 (v[(c - 1) // 2] + v[c // 2])`` of the sorted values of each
         group of c pairs (as ``np.unique`` and ``np.lexsort`` give them).
     """
-    order = _counting_order(hi, n, np.arange(lo.shape[0]))
-    order = _counting_order(lo, n, order)
+    if (n + 1) * (n + 1) <= 4 * lo.shape[0] + 4096:  # few labels: one pass on (lo, hi)
+        order = _counting_order(lo * (n + 1) + hi, (n + 1) * (n + 1) - 1,
+                                np.arange(lo.shape[0]))
+    else:
+        order = _counting_order(hi, n, np.arange(lo.shape[0]))
+        order = _counting_order(lo, n, order)
     starts = np.empty(order.shape[0] + 1, dtype=np.int64)
     groups = 0
     for k in range(order.shape[0]):
@@ -1651,11 +1829,14 @@ def pair_medians(lo: np.ndarray, hi: np.ndarray, n: int, values: np.ndarray
     group_lo = np.empty(groups, dtype=np.int64)
     group_hi = np.empty(groups, dtype=np.int64)
     medians = np.empty((values.shape[0], groups))
+    buf = np.empty(order.shape[0])
     for g in range(groups):
-        members = order[starts[g]: starts[g + 1]]
-        group_lo[g], group_hi[g] = lo[members[0]], hi[members[0]]
+        a, b = starts[g], starts[g + 1]
+        group_lo[g], group_hi[g] = lo[order[a]], hi[order[a]]
         for m in range(values.shape[0]):
-            medians[m, g] = _median(values[m][members])
+            for i in range(a, b):  # the group's values in the order of their pairs
+                buf[i - a] = values[m, order[i]]
+            medians[m, g] = _median(buf[: b - a])
     return group_lo, group_hi, medians
 
 
@@ -1815,31 +1996,67 @@ def _find(parent: np.ndarray, x: int) -> int:  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _provisional_labels(free: np.ndarray, prov: np.ndarray, parent: np.ndarray
-                        ) -> int:  # pragma: no cover - compiled
-    """First pass of two-pass 4-connected labelling; the number of provisional labels.
-
-    Labels are created in raster order; joined sets keep the smaller label as
-    root, so a component's root is the label of its first pixel.
-    """
+def _free_runs(free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Runs of ``free`` pixels along the rows: (row starts, first column, stop column)."""
     height, width = free.shape
-    n = 0
+    count = 0
     for r in range(height):
-        for c in range(width):
-            if not free[r, c]:
+        row = free[r]
+        count += width > 0 and row[0]
+        for c in range(1, width):
+            count += row[c] & (not row[c - 1])
+    starts = np.zeros(height + 1, dtype=np.int64)
+    first = np.empty(count, dtype=np.int64)
+    stop = np.empty(count, dtype=np.int64)
+    k = 0
+    for r in range(height):
+        row = free[r]
+        c = 0
+        while c < width:
+            if not row[c]:
+                c += 1
                 continue
-            up = prov[r - 1, c] if r > 0 else 0
-            left = prov[r, c - 1] if c > 0 else 0
-            if up == 0 and left == 0:
+            e = c + 1
+            while e < width and row[e]:
+                e += 1
+            first[k], stop[k] = c, e
+            k += 1
+            c = e
+        starts[r + 1] = k
+    return starts, first, stop
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _provisional_labels(starts: np.ndarray, first: np.ndarray, stop: np.ndarray,
+                        parent: np.ndarray, lab: np.ndarray) -> int:  # pragma: no cover
+    """First pass of two-pass 4-connected labelling of runs; the number of provisional labels.
+
+    A run touches the runs of the row above that share a column with it.
+    Labels are created in raster order; joined sets keep the smaller label
+    as root, so a component's root is the label of its first run, which
+    holds its first pixel.
+    """
+    n = 0
+    for r in range(starts.shape[0] - 1):
+        j, j_end = (starts[r - 1], starts[r]) if r > 0 else (0, 0)
+        for k in range(starts[r], starts[r + 1]):
+            while j < j_end and stop[j] <= first[k]:
+                j += 1
+            label = 0
+            jj = j
+            while jj < j_end and first[jj] < stop[k]:
+                root = _find(parent, lab[jj])
+                if label == 0:
+                    label = root
+                elif root != label:
+                    parent[max(root, label)] = min(root, label)
+                    label = min(root, label)
+                jj += 1
+            if label == 0:
                 n += 1
                 parent[n] = n
-                prov[r, c] = n
-            elif up == 0 or left == 0 or up == left:
-                prov[r, c] = max(up, left)
-            else:
-                a, b = _find(parent, up), _find(parent, left)
-                parent[max(a, b)] = min(a, b)
-                prov[r, c] = min(a, b)
+                label = n
+            lab[k] = label
     return n
 
 
@@ -1849,30 +2066,65 @@ def label_components(free: np.ndarray, min_size: int) -> np.ndarray:  # pragma: 
 
     As ``link.label_components``' reference: int32 labels 1..K in raster
     order of each component's first pixel, 0 elsewhere. Two passes over the
-    image with a union-find of provisional labels.
+    runs of free pixels along the rows (:func:`_free_runs`) with a
+    union-find of provisional labels: the work goes with the runs.
     """
     height, width = free.shape
-    prov = np.zeros((height, width), dtype=np.int32)
-    parent = np.empty(height * width + 1, dtype=np.int32)
+    starts, first, stop = _free_runs(free)
+    runs = first.shape[0]
+    parent = np.empty(runs + 1, dtype=np.int64)
     parent[0] = 0
-    n = _provisional_labels(free, prov, parent)
-    for k in range(1, n + 1):  # parent[k] <= k: roots are final in increasing order
-        parent[k] = parent[parent[k]]
+    lab = np.empty(runs, dtype=np.int64)
+    n = _provisional_labels(starts, first, stop, parent, lab)
     size = np.zeros(n + 1, dtype=np.int64)
-    for r in range(height):
-        for c in range(width):
-            size[parent[prov[r, c]]] += 1
+    for k in range(runs):
+        lab[k] = _find(parent, lab[k])
+        size[lab[k]] += stop[k] - first[k]
     lut = np.zeros(n + 1, dtype=np.int32)
     kept = 0
-    for k in range(1, n + 1):
+    for k in range(1, n + 1):  # roots in increasing order: raster order of first pixels
         if parent[k] == k and size[k] >= min_size:
             kept += 1
             lut[k] = kept
-    out = np.empty((height, width), dtype=np.int32)
+    out = np.zeros((height, width), dtype=np.int32)
     for r in range(height):
-        for c in range(width):
-            out[r, c] = lut[parent[prov[r, c]]]
+        for k in range(starts[r], starts[r + 1]):
+            value = lut[lab[k]]
+            if value:
+                out[r, first[k]:stop[k]] = value
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def link_edges(codes: np.ndarray, valid: np.ndarray, min_size: int
+               ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Step 3 (Sec. V-3) as ``link.link_edges`` does it, in one call: the same arrays.
+
+    Edges are the valid pixels coded 1 (step) or 2 (roof); a valid non-edge
+    pixel with edges on both sides along one of the four directions of
+    Fig. 8 (outside the image: no edge) is a closed gap (code 3); the other
+    valid non-edge pixels form the components (:func:`label_components`).
+    """
+    height, width = codes.shape
+    out = np.zeros((height, width), dtype=np.uint8)
+    edge = np.zeros((height + 2, width + 2), dtype=np.uint8)  # padded: no edge outside
+    for r in range(height):
+        code, ok, e, o = codes[r], valid[r], edge[r + 1, 1:width + 1], out[r]
+        for c in range(width):
+            is_edge = ok[c] & ((code[c] == 1) | (code[c] == 2))
+            e[c] = is_edge
+            o[c] = code[c] if is_edge else 0
+    free = np.zeros((height, width), dtype=np.bool_)
+    for r in range(height):  # row by row, branch-free: the loops vectorise
+        up, mid, down = edge[r], edge[r + 1], edge[r + 2]
+        code, ok, f, o = codes[r], valid[r], free[r], out[r]
+        for c in range(width):
+            gap = ((mid[c] & mid[c + 2]) | (up[c + 1] & down[c + 1]) | (up[c] & down[c + 2])
+                   | (up[c + 2] & down[c]))
+            usable = ok[c] & (mid[c + 1] == 0)
+            o[c] = 3 if usable & (gap != 0) else o[c]
+            f[c] = usable & (gap == 0)
+    return out, label_components(free, min_size)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -2030,33 +2282,174 @@ def erode_rect(mask: np.ndarray, rows: int, cols: int) -> np.ndarray:  # pragma:
     return out
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def surface_clearance(labels: np.ndarray, valid: np.ndarray, sid: int, r0: int, r1: int,
+                      c0: int, c1: int) -> tuple[np.ndarray, np.ndarray, float]:  # pragma: no cover
+    """Mask and clearance of surface ``sid`` in the crop rows r0..r1-1, columns c0..c1-1.
+
+    The mask (``labels == sid`` at valid pixels) padded by one pixel of
+    False, its :func:`distance_transform` and the largest distance:
+    ``holdsite.surface_windows``' ``mask``, ``edt`` and ``max_clearance`` in one call.
+    """
+    mask = np.zeros((r1 - r0 + 2, c1 - c0 + 2), dtype=np.bool_)
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            mask[r - r0 + 1, c - c0 + 1] = labels[r, c] == sid and valid[r, c]
+    edt = distance_transform(mask)
+    return mask, edt, edt.max()
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def accept_windows(mask: np.ndarray, z: np.ndarray, r0: int, c0: int, w: np.ndarray,
+                   rows: int, cols: int, max_ar_std: float
+                   ) -> tuple[np.ndarray, np.ndarray, int, float]:  # pragma: no cover
+    """Step 4 of ``holdsite`` at one angle for a full odd ``rows`` x ``cols`` footprint.
+
+    ``holdsite._accept_angle`` in one call, the same values: the 2-D AR of
+    the crop whose padded ``mask`` starts at image (r0, c0) (:func:`ar_2d`
+    with the 1-D Gaussian ``w`` on the crop grown by ``w``'s half-width,
+    which equals the whole image's AR there), the centres where the
+    footprint lies wholly on ``mask`` (:func:`erode_rect`), the AR std over
+    it (:func:`window_std`), and those whose std is at most ``max_ar_std``.
+
+    Returns
+    -------
+    ok, std
+        bool and float64 of ``mask``'s shape: accepted centres, AR std (inf
+        everywhere when no window fits).
+    fitting, min_ar_std
+        Centres where the footprint fits, and their lowest AR std (inf: none).
+    """
+    height, width = mask.shape
+    inside = erode_rect(mask, rows, cols)
+    fitting = 0
+    for r in range(height):
+        for c in range(width):
+            fitting += inside[r, c]
+    if fitting == 0:
+        return inside, np.full((height, width), np.inf), 0, np.inf
+    m = w.shape[0] // 2
+    r1, c1 = r0 + height - 2, c0 + width - 2
+    g0, g1 = max(r0 - m, 0), min(r1 + m, z.shape[0])
+    h0, h1 = max(c0 - m, 0), min(c1 + m, z.shape[1])
+    ar = ar_2d(np.ascontiguousarray(z[g0:g1, h0:h1]), w)
+    arp = np.zeros((height, width))
+    arp[1:-1, 1:-1] = ar[r0 - g0: r1 - g0, c0 - h0: c1 - h0]
+    std = window_std(arp, rows, cols)
+    lowest = np.inf
+    for r in range(height):
+        for c in range(width):
+            if inside[r, c]:
+                lowest = min(lowest, std[r, c])
+                inside[r, c] = std[r, c] <= max_ar_std
+    return inside, std, fitting, lowest
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _quadric_at(a: np.ndarray, y: float, x: float) -> float:  # pragma: no cover - compiled
     """``grow.evaluate_quadric`` at one point: the same operations in the same order."""
     return a[0] + a[1] * x + a[2] * y + a[3] * x * x + a[4] * x * y + a[5] * y * y
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def pair_heights(li: np.ndarray, lj: np.ndarray, rp: np.ndarray, cp: np.ndarray,
-                 rq: np.ndarray, cq: np.ndarray, coeffs: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Height gap at the midpoints and the "above" sums of boundary pairs (``surfaces.edge_types``).
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _coeff_at(coeffs: np.ndarray, lab: int, y: float, x: float) -> float:  # pragma: no cover
+    """:func:`_quadric_at` of row ``lab`` of ``coeffs``, without a view of the row."""
+    return (coeffs[lab, 0] + coeffs[lab, 1] * x + coeffs[lab, 2] * y + coeffs[lab, 3] * x * x
+            + coeffs[lab, 4] * x * y + coeffs[lab, 5] * y * y)
 
-    ``gap = |f_i(m) - f_j(m)|`` at the midpoint m of p and q, ``above = (f_j(p) -
-    f_i(p)) + (f_i(q) - f_j(q))``, each fit evaluated as ``grow.evaluate_quadric``
-    does (bitwise the same values).
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _unit_normal(coeffs: np.ndarray, lab: int, y: float, x: float, out: np.ndarray, k: int
+                 ) -> None:  # pragma: no cover - compiled
+    """``surfaces._unit_normals`` of one quadric at a point, into ``out[k]`` (same operations)."""
+    fx = coeffs[lab, 1] + 2.0 * coeffs[lab, 3] * x + coeffs[lab, 4] * y
+    fy = coeffs[lab, 2] + coeffs[lab, 4] * x + 2.0 * coeffs[lab, 5] * y
+    length = np.sqrt(fx * fx + fy * fy + 1.0)
+    out[k, 0], out[k, 1], out[k, 2] = -fx / length, -fy / length, 1.0 / length
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def boundary_measures(labels: np.ndarray, reach: int, coeffs: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                 np.ndarray]:  # pragma: no cover - compiled
+    """Boundary pairs and what ``surfaces.edge_types`` measures on them, in one call.
+
+    The pairs of :func:`neighbour_pairs`, each ordered so that ``li < lj``
+    (p on the side of li); per pair ``gap = |f_i(m) - f_j(m)|`` at the
+    midpoint m of p and q and ``above = (f_j(p) - f_i(p)) + (f_i(q) - f_j(q))``,
+    each fit evaluated as ``grow.evaluate_quadric`` does, and the unit
+    normals of both fits at m as ``surfaces._unit_normals`` gives them:
+    bitwise the reference's values.
+
+    Returns
+    -------
+    li, lj
+        int64 (P,) labels of the two sides.
+    values
+        float64 (4, P): gap, 0 (the angle's place: numpy's arccos is not
+        libm's), above, and the signed gap ``f_i(m) - f_j(m)`` as
+        :func:`step_gaps` computes it (``f_p - f_q``, negated where p is on
+        the side of j).
+    ni, nj
+        float64 (P, 3) unit normals of the fits of li and lj at the midpoints.
     """
-    n = li.shape[0]
-    gap = np.empty(n)
-    above = np.empty(n)
+    pairs = neighbour_pairs(labels, reach)
+    n = pairs.shape[0]
+    li = np.empty(n, dtype=np.int64)
+    lj = np.empty(n, dtype=np.int64)
+    values = np.zeros((4, n))
+    ni = np.empty((n, 3))
+    nj = np.empty((n, 3))
     for k in range(n):
-        ci, cj = coeffs[li[k]], coeffs[lj[k]]
-        rm, cm = 0.5 * (rp[k] + rq[k]), 0.5 * (cp[k] + cq[k])
-        gap[k] = abs(_quadric_at(ci, rm, cm) - _quadric_at(cj, rm, cm))
-        yp, xp, yq, xq = float(rp[k]), float(cp[k]), float(rq[k]), float(cq[k])
-        above[k] = ((_quadric_at(cj, yp, xp) - _quadric_at(ci, yp, xp))
-                    + (_quadric_at(ci, yq, xq) - _quadric_at(cj, yq, xq)))
-    return gap, above
+        rp, cp, rq, cq, lp, lq = (pairs[k, 0], pairs[k, 1], pairs[k, 2], pairs[k, 3],
+                                  pairs[k, 4], pairs[k, 5])
+        rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+        signed = _coeff_at(coeffs, lp, rm, cm) - _coeff_at(coeffs, lq, rm, cm)
+        if lp > lq:
+            rp, cp, rq, cq, lp, lq = rq, cq, rp, cp, lq, lp
+            signed = -signed
+        li[k], lj[k] = lp, lq
+        values[3, k] = signed
+        values[0, k] = abs(_coeff_at(coeffs, lp, rm, cm) - _coeff_at(coeffs, lq, rm, cm))
+        yp, xp, yq, xq = float(rp), float(cp), float(rq), float(cq)
+        values[2, k] = ((_coeff_at(coeffs, lq, yp, xp) - _coeff_at(coeffs, lp, yp, xp))
+                        + (_coeff_at(coeffs, lp, yq, xq) - _coeff_at(coeffs, lq, yq, xq)))
+        _unit_normal(coeffs, lp, rm, cm, ni, k)
+        _unit_normal(coeffs, lq, rm, cm, nj, k)
+    return li, lj, values, ni, nj
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def step_gaps(labels: np.ndarray, reach: int, coeffs: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """``holdsite.step_gaps`` in one call: median signed gap of the fits per region pair.
+
+    The pairs of :func:`neighbour_pairs`; per pair ``f_p(m) - f_q(m)`` at the
+    midpoint m, each fit evaluated as ``grow.evaluate_quadric`` does, negated
+    where ``p``'s label is the larger; the medians by :func:`pair_medians`
+    (bitwise the reference's values).
+
+    Returns
+    -------
+    group_lo, group_hi
+        int64 (G,): the distinct region pairs lo < hi, ascending.
+    medians
+        float64 (G,): median of ``f_lo - f_hi`` over each pair's boundary.
+    """
+    pairs = neighbour_pairs(labels, reach)
+    n = pairs.shape[0]
+    lo = np.empty(n, dtype=np.int64)
+    hi = np.empty(n, dtype=np.int64)
+    gaps = np.empty((1, n))
+    top = 0
+    for k in range(n):
+        lp, lq = pairs[k, 4], pairs[k, 5]
+        rm, cm = 0.5 * (pairs[k, 0] + pairs[k, 2]), 0.5 * (pairs[k, 1] + pairs[k, 3])
+        gap = _coeff_at(coeffs, lp, rm, cm) - _coeff_at(coeffs, lq, rm, cm)
+        lo[k], hi[k], gaps[0, k] = (lq, lp, -gap) if lp > lq else (lp, lq, gap)
+        top = max(top, lp, lq)
+    group_lo, group_hi, medians = pair_medians(lo, hi, top, gaps)
+    return group_lo, group_hi, medians[0]
 
 
 # --------------------------------------------------------------------------- recut knot search

@@ -48,7 +48,7 @@ from . import __version__, io, parallel, render
 from .config import Config, InputConfig, build_config
 from .errors import ClusterLost, InputError, OutputError, RangesegError
 from .io import Location
-from .pipeline import STAGES, stage_edges, stage_grow, stage_holdsite, stage_link
+from .pipeline import STAGES, stage_edges, stage_grow_and_gaps, stage_holdsite, stage_link
 from .rangeimage import to_heights
 
 MANIFEST = "rangeseg-run.json"
@@ -215,10 +215,11 @@ def _initial_state(job: Job, out: Location, first: str, config: Config) -> dict[
     if first == "grow":
         state["components"] = _read_map(base, "components.npy", "i", z)
     if first == "holdsite":
-        from .surfaces import describe_surfaces
+        from .surfaces import describe_surfaces_and_gaps
 
         state["labels"] = _read_map(base, "labels.npy", "i", z)
-        state["surfaces"] = describe_surfaces(state["z"], state["labels"], config)
+        state["surfaces"], state["gaps"] = describe_surfaces_and_gaps(state["z"],
+                                                                      state["labels"], config)
     return state
 
 
@@ -277,9 +278,10 @@ def _run_link(state: dict[str, Any], base: Location, config: Config) -> None:
 def _run_grow(state: dict[str, Any], base: Location, config: Config) -> None:
     from .surfaces import surfaces_to_json
 
-    labels, surfaces = stage_grow(state["z"], state["edges"], state["components"], config,
-                                  noise=state.get("noise_sigma"))
-    state["labels"], state["surfaces"] = labels, surfaces
+    labels, surfaces, gaps = stage_grow_and_gaps(state["z"], state["edges"],
+                                                 state["components"], config,
+                                                 noise=state.get("noise_sigma"))
+    state["labels"], state["surfaces"], state["gaps"] = labels, surfaces, gaps
     io.write_npy(_p(base, "labels.npy"), labels)
     io.write_json(_p(base, "surfaces.json"), surfaces_to_json(surfaces),
                   config.output.float_digits)
@@ -288,7 +290,8 @@ def _run_grow(state: dict[str, Any], base: Location, config: Config) -> None:
 
 
 def _run_holdsite(state: dict[str, Any], base: Location, config: Config) -> None:
-    result = stage_holdsite(state["z"], state["labels"], state["surfaces"], config)
+    result = stage_holdsite(state["z"], state["labels"], state["surfaces"], config,
+                            gaps=state.get("gaps"))
     io.write_json(_p(base, "holdsite.json"), result.to_dict(), config.output.float_digits)
     if config.output.png:
         io.write_png(_p(base, "overlay.png"),

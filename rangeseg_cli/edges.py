@@ -99,10 +99,18 @@ def gaussian_taps(sigma: float, taps: int) -> np.ndarray:
     numpy.ndarray
         float64 weights w_k for k = -taps//2 .. taps//2.
     """
+    return _taps(float(sigma), int(taps)).copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _taps(sigma: float, taps: int) -> np.ndarray:
+    """:func:`gaussian_taps`, made once per (sigma, taps) and read-only."""
     half = taps // 2
     k = np.arange(-half, half + 1, dtype=np.float64)
     w = np.exp(-(k**2) / (2.0 * sigma**2))
-    return w / w.sum()
+    w = w / w.sum()
+    w.flags.writeable = False
+    return w
 
 
 def _view(padded: np.ndarray, pad: int, dy: int, dx: int, shape: tuple[int, int]
@@ -321,9 +329,10 @@ def detect_edges(z: np.ndarray, config: Config, *, backend: Backend = "auto") ->
             z, gaussian_taps(config.step.sigma, config.step.taps), config.step.threshold,
             gaussian_taps(config.roof.sigma, config.roof.taps), config.roof.threshold_a,
             config.roof.threshold_b, config.roof.search_radius, config.roof.truncation)
-    else:
-        step = step_edges(z, config.step, truncation=config.roof.truncation)
-        roof_a, roof_b = roof_edges(z, step, config.roof)
+        return EdgeMaps(step=step, roof_a=roof_a, roof_b=roof_b,
+                        codes=kernels.edge_codes(step, roof_a, roof_b))  # as below
+    step = step_edges(z, config.step, truncation=config.roof.truncation)
+    roof_a, roof_b = roof_edges(z, step, config.roof)
     codes = np.zeros(z.shape, dtype=np.uint8)
     codes[roof_a | roof_b] = ROOF_EDGE
     codes[step] = STEP_EDGE

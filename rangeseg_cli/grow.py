@@ -202,16 +202,16 @@ def _solve_cascade(mat: np.ndarray, rhs: np.ndarray, counts: np.ndarray, order: 
     batched call over the stacked systems.
     """
     coef = np.zeros(rhs.shape)
-    todo = counts > 0
-    if order == 2 and todo.any():
+    todo = np.flatnonzero(counts > 0)  # indices: each system as a boolean mask would take it
+    if order == 2 and todo.size:
         eig = np.linalg.eigvalsh(mat[todo])
-        ok = np.zeros_like(todo)
-        ok[todo] = (counts[todo] >= 6) & (eig[:, 0] > RCOND * eig[:, -1])
-        if ok.any():
+        good = (counts[todo] >= 6) & (eig[:, 0] > RCOND * eig[:, -1])
+        ok = todo[good]
+        if ok.size:
             coef[ok] = np.linalg.solve(mat[ok], rhs[ok, :, None])[..., 0]
-        todo &= ~ok
+        todo = todo[~good]
     k = ORDER_TERMS[min(order, 1)]
-    if todo.any():
+    if todo.size:
         pinv = np.linalg.pinv(mat[todo, :k, :k], rcond=RCOND, hermitian=True)
         coef[todo, :k] = (pinv @ rhs[todo, :k, None])[..., 0]
     return coef
@@ -319,17 +319,19 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
         moments, pixels = _reference_moments(z, labels, n, origin)
     else:
         zc = np.require(z, np.float64, ["C", "W"])
-        lc = np.require(labels, np.int32, ["C", "W"])
-        moments = RegionMoments(*kernels.region_moments(zc, lc, n, *origin))
+        runs = kernels.fitted_runs(zc, np.require(labels, np.int32, ["C", "W"]))
+        moments = RegionMoments(*kernels.run_moments(zc, runs, n, *origin))
     mat, rhs = _normal_equations(moments)
     coef = np.stack([_solve_cascade(mat, rhs, moments.counts, order) for order in orders])
     if kernels is None:
         sse = _reference_sse(pixels, coef, n)
+        image = np.stack([_to_image_coefficients(c, moments.cx, moments.cy, moments.scale)
+                          for c in coef])
     else:
-        sse = kernels.region_sse(zc, lc, moments.cx, moments.cy, moments.scale, coef, *origin)
+        sse = kernels.run_sse(zc, runs, moments.cx, moments.cy, moments.scale, coef, *origin)
+        image = kernels.image_coefficients(coef, moments.cx, moments.cy, moments.scale)
     safe = np.maximum(moments.counts, 1.0)
-    fits = [(_to_image_coefficients(c, moments.cx, moments.cy, moments.scale), e / safe)
-            for c, e in zip(coef, sse, strict=True)]
+    fits = [(a, e / safe) for a, e in zip(image, sse, strict=True)]
     return RegionFits(fits, moments.counts.astype(np.int64), moments.cy, moments.cx,
                       moments.rhs[:, 0] / safe, moments)
 
@@ -622,8 +624,41 @@ def component_fits(z: np.ndarray, components: np.ndarray, *, backend: Backend = 
         n = the largest label at a valid pixel.
     """
     z = np.asarray(z, dtype=np.float64)
-    labels = np.where(np.isfinite(z), components, 0).astype(np.int32)
-    return fit_quadrics(z, labels, int(labels.max(initial=0)), backend=backend)
+    labels, n = valid_labels(z, components, backend=backend)
+    return fit_quadrics(z, labels, n, backend=backend)
+
+
+def valid_labels(z: np.ndarray, labels: np.ndarray, *, backend: Backend = "auto"
+                 ) -> tuple[np.ndarray, int]:
+    """``labels`` as int32, 0 where the heights ``z`` are not finite, and the largest label.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights.
+    labels
+        int (H, W) labels (cast to int32 as ``astype`` does).
+    backend
+        ``"numpy"``: ``np.where`` and ``max`` (the reference); ``"numba"``:
+        :func:`rangeseg_cli._kernels.valid_labels`, one pass (the same
+        values); ``"auto"``: as :func:`rangeseg_cli.edges.detect_edges`.
+
+    Returns
+    -------
+    labels : numpy.ndarray
+        int32 (H, W).
+    n : int
+        Its largest value, 0 when it has none above 0.
+    """
+    kernels = select_kernels(backend)
+    labels = np.asarray(labels)
+    if (kernels is not None and labels.shape == z.shape and z.ndim == 2
+            and labels.dtype.kind in "iub"):
+        out, n = kernels.valid_labels(np.require(z, np.float64, ["C"]),
+                                      np.ascontiguousarray(labels))
+        return out, int(n)
+    out = np.where(np.isfinite(z), labels, 0).astype(np.int32)
+    return out, int(out.max(initial=0))
 
 
 def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: GrowConfig,
@@ -672,8 +707,7 @@ def grow_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray, cfg: 
     z = np.asarray(z, dtype=np.float64)
     require_shape_of_z(z, codes=codes, components=components)
     valid = np.isfinite(z)
-    labels = np.where(valid, components, 0).astype(np.int32)
-    n = int(labels.max(initial=0))
+    labels, n = valid_labels(z, components, backend=backend)
     if n == 0:
         return labels
     # Quadric fit of each component and its average error e_A, floored (Sec. V-4)

@@ -88,7 +88,8 @@ a rectangular footprint's erosion as a separable running minimum. The
 choice of step 5 needs only each surface's best window; the full ranking is
 sorted only for runners-up taken from one surface. With numba installed the
 boundary pairs, their medians and the clearance (distance transform) are
-compiled (identical results; ``RANGESEG_PURE_NUMPY=1`` for the reference).
+compiled (the boundary pairs, gaps and medians of step 2 in one call;
+identical results; ``RANGESEG_PURE_NUMPY=1`` for the reference).
 """
 
 from __future__ import annotations
@@ -102,11 +103,11 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config, HoldsiteConfig, InputConfig
-from .edges import Backend, ar_2d, select_kernels
+from .edges import Backend, ar_2d, gaussian_taps, select_kernels
 from .errors import InputError
-from .grow import evaluate_quadric
+from .grow import evaluate_quadric, valid_labels
 from .models import Surface
-from .surfaces import neighbour_pairs, pair_medians
+from .surfaces import kernel_labels, neighbour_pairs, pair_medians
 
 #: Regions whose pixels lie within this chessboard distance are neighbours
 #: (across an edge band one or two pixels thick), as in ``Surface.neighbors``.
@@ -299,7 +300,17 @@ def step_gaps(labels: np.ndarray, coeffs: np.ndarray, known: np.ndarray, *,
 
 def _known_gaps(labels: np.ndarray, coeffs: np.ndarray, backend: Backend
                 ) -> dict[tuple[int, int], float]:
-    """:func:`step_gaps` of labels that all have a surface (0 elsewhere)."""
+    """:func:`step_gaps` of labels that all have a surface (0 elsewhere).
+
+    Compiled when ``backend`` selects the kernels: pairs, gaps and medians in
+    one call (:func:`rangeseg_cli._kernels.step_gaps`, the same values).
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        group_lo, group_hi, med = kernels.step_gaps(
+            kernel_labels(labels), ADJACENCY_RADIUS, np.require(coeffs, np.float64, ["C"]))
+        return dict(zip(zip(group_lo.tolist(), group_hi.tolist(), strict=True), med.tolist(),
+                        strict=True))
     rp, cp, rq, cq, lp, lq = neighbour_pairs(labels, ADJACENCY_RADIUS, backend=backend)
     if lp.size == 0:
         return {}
@@ -314,14 +325,19 @@ def _known_gaps(labels: np.ndarray, coeffs: np.ndarray, backend: Backend
 
 def _present(labels: np.ndarray) -> set[int]:
     """The positive labels of an array (any shape)."""
-    return {int(i) for i in np.unique(labels) if i > 0}
+    flat = labels.ravel()
+    if (flat.size and np.can_cast(flat.dtype, np.intp) and flat.min() >= 0
+            and flat.max() <= 4 * flat.size + 65536):  # counted, not sorted
+        return set((np.flatnonzero(np.bincount(flat)[1:]) + 1).tolist())
+    found = np.unique(labels)
+    return set(found[found > 0].tolist())
 
 
 def _framed(labels: np.ndarray) -> set[int]:
     """Labels within :data:`ADJACENCY_RADIUS` of the image frame (the frame's strips)."""
     k = ADJACENCY_RADIUS + 1
-    return set().union(*(_present(strip) for strip in (
-        labels[:k], labels[-k:], labels[:, :k], labels[:, -k:])))
+    return _present(np.concatenate([strip.ravel() for strip in (
+        labels[:k], labels[-k:], labels[:, :k], labels[:, -k:])]))
 
 
 def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
@@ -642,6 +658,11 @@ def clearance_map(mask: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
 AR_MARGIN = 2
 
 
+def _ar_taps() -> np.ndarray:
+    """The 1-D Gaussian of the 2-D AR of Sec. VII (:func:`~rangeseg_cli.edges.ar_2d`'s default)."""
+    return gaussian_taps(1.0, 2 * AR_MARGIN + 1)
+
+
 @dataclass
 class _Scene:
     """Per-image inputs of the search.
@@ -659,6 +680,22 @@ class _Scene:
     _footprints: dict[float, np.ndarray] = field(default_factory=dict)
     _ar_area: int = 0
     _ar_whole: np.ndarray | None = None
+    _kernels: Any = False  # not chosen yet
+
+    def compiled_windows(self) -> Any:
+        """The compiled kernels when step 4 can run them (else None); chosen once.
+
+        One angle with a full footprint of odd sides (:func:`erode`'s
+        compiled case), and box means that are scipy's here
+        (:func:`_compiled_box_means`).
+        """
+        if self._kernels is False:
+            kernels = select_kernels(self.backend)
+            rows, cols = self.cfg.size
+            usable = (kernels is not None and len(self.angles) == 1 and rows % 2 and cols % 2
+                      and self.footprint(self.angles[0]).all() and _compiled_box_means())
+            self._kernels = kernels if usable else None
+        return self._kernels
 
     def footprint(self, angle: float) -> np.ndarray:
         if angle not in self._footprints:
@@ -764,6 +801,9 @@ def surface_windows(scene: _Scene, s: Surface) -> _Hits:
     """
     rows, cols = scene.cfg.size
     sl, offset = _crop(scene, s, max(rows, cols) // 2 + 2)
+    kernels = scene.compiled_windows()
+    if kernels is not None:
+        return _compiled_windows(kernels, scene, s, sl, offset)
     mask = _pad1((scene.labels[sl] == s.id) & scene.valid[sl])
     edt = clearance_map(mask, backend=scene.backend)
     none = np.zeros(0, dtype=np.int64)
@@ -780,6 +820,29 @@ def surface_windows(scene: _Scene, s: Surface) -> _Hits:
     return hits
 
 
+def _compiled_windows(kernels: Any, scene: _Scene, s: Surface, sl: tuple[slice, slice],
+                      offset: tuple[int, int]) -> _Hits:
+    """:func:`surface_windows` of one full rectangle in two compiled calls (the same hits).
+
+    :func:`rangeseg_cli._kernels.surface_clearance` (mask and clearance) and,
+    when the footprint's short side fits,
+    :func:`rangeseg_cli._kernels.accept_windows` (AR of the crop, erosion,
+    AR std and the test).
+    """
+    rows, cols = scene.cfg.size
+    mask, edt, top = kernels.surface_clearance(scene.labels, scene.valid, s.id, sl[0].start,
+                                               sl[0].stop, sl[1].start, sl[1].stop)
+    if top < (min(rows, cols) + 1) / 2:  # not even the footprint's short side fits
+        none = np.zeros(0, dtype=np.int64)
+        return _Hits(s, none, none, none.astype(np.float64), max_clearance=float(top))
+    ok, std, fitting, lowest = kernels.accept_windows(
+        mask, scene.z, sl[0].start, sl[1].start, _ar_taps(), rows, cols,
+        float(scene.cfg.max_ar_std))
+    r, c = np.nonzero(ok)
+    return _Hits(s, r + offset[0], c + offset[1], edt[r, c], offset, edt, ok[None], std[None],
+                 float(top), fitting, min(math.inf, lowest))
+
+
 def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
     """(angle, AR std) at accepted centre ``k``: the footprint farthest from the border.
 
@@ -788,6 +851,8 @@ def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
     footprint) is largest; then the lowest AR std; then the smallest angle.
     """
     r, c = hits.rows[k] - hits.offset[0], hits.cols[k] - hits.offset[1]
+    if len(scene.angles) == 1 and hits.ok[0, r, c]:  # the one angle, accepted here
+        return scene.angles[0], float(hits.std[0, r, c])
     best = (-math.inf, math.inf, 0.0)
     for a, angle in enumerate(scene.angles):
         if not hits.ok[a, r, c]:
@@ -817,13 +882,21 @@ def _rank(hits: _Hits, centre: tuple[float, float]) -> np.ndarray:
 
 
 def _best(hits: _Hits, centre: tuple[float, float]) -> int:
-    """``_rank(hits, centre)[0]`` without sorting: narrow down key by key (Sec. VII)."""
-    keep = np.arange(hits.rows.size)
-    for key in reversed(_rank_keys(hits, centre)):
-        values = key[keep]
-        keep = keep[values == values.min()]
+    """``_rank(hits, centre)[0]`` without sorting: narrow down key by key (Sec. VII).
+
+    The keys of :func:`_rank_keys`, each computed for the hits still in the
+    running only (the same values).
+    """
+    whole = np.floor(hits.clearance + 1e-9)  # clearance in whole pixels, largest first
+    keep = np.flatnonzero(whole == whole.max())
+    if keep.size > 1:
+        dist = np.hypot(hits.rows[keep] - centre[0], hits.cols[keep] - centre[1])
+        keep = keep[dist == dist.min()]
+    for key in (hits.rows, hits.cols):
         if keep.size == 1:
             break
+        values = key[keep]
+        keep = keep[values == values.min()]
     return int(keep[0])
 
 
@@ -851,8 +924,9 @@ def score(clearance: float, distance: float, size: tuple[int, int], area: float)
 
 
 def _unit(v: np.ndarray) -> Vector:
-    v = v / np.linalg.norm(v)
-    return float(v[0]), float(v[1]), float(v[2])
+    """``v / np.linalg.norm(v)`` of a 3-vector (the norm as numpy takes it: ``sqrt(v.dot(v))``)."""
+    x, y, z = (v / np.sqrt(v.dot(v))).tolist()
+    return x, y, z
 
 
 def camera_pose(row: float, col: float, height: float, grad: tuple[float, float],
@@ -922,7 +996,8 @@ def _preference(obj: ObjectInfo, s: Surface) -> tuple[bool, bool, float, int]:
     return obj.touches_border, obj.covered, -s.mean_height, s.id
 
 
-def _check(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto"
+           ) -> tuple[np.ndarray, np.ndarray]:
     z = np.asarray(z, dtype=np.float64)
     labels = np.asarray(labels)
     if z.ndim != 2:
@@ -933,8 +1008,9 @@ def _check(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if labels.dtype.kind not in "iu":
         raise InputError(f"`labels` (dtype {labels.dtype}) must be integer")
     # int32 where it holds every label: the compiled boundary pairs run twice as wide
-    dtype = np.int32 if np.can_cast(labels.dtype, np.int32) else np.int64
-    return z, np.where(np.isfinite(z), labels, 0).astype(dtype)
+    if np.can_cast(labels.dtype, np.int32):
+        return z, valid_labels(z, labels, backend=backend)[0]
+    return z, np.where(np.isfinite(z), labels, 0).astype(np.int64)
 
 
 def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
@@ -1010,7 +1086,8 @@ def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: Holdsite
 
 
 def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
-                  config: Config, *, backend: Backend = "auto") -> HoldsiteResult:
+                  config: Config, *, backend: Backend = "auto",
+                  gaps: dict[tuple[int, int], float] | None = None) -> HoldsiteResult:
     """Find the vacuum-gripper holdsite of a segmented range image (Sec. VII).
 
     Parameters
@@ -1029,6 +1106,11 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         ``"auto"``, ``"numba"`` or ``"numpy"`` for the boundary pairs of
         :func:`step_gaps` and the clearance (:func:`clearance_map`); identical
         results.
+    gaps
+        :func:`step_gaps` of ``labels`` and the surfaces' fits when the
+        caller has them
+        (:func:`~rangeseg_cli.surfaces.describe_surfaces_and_gaps`, which
+        gives them with the surfaces); computed here otherwise.
 
     Returns
     -------
@@ -1042,7 +1124,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     InputError
         When ``labels`` is not an integer array of the shape of ``z``.
     """
-    z, labels = _check(z, labels)
+    z, labels = _check(z, labels, backend)
     valid = np.isfinite(z)
     by_id = {s.id: s for s in surfaces if s.id > 0}
     n = max(int(labels.max(initial=0)), max(by_id, default=0))
@@ -1055,7 +1137,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     background = find_background(by_id, framed | _near_outer_invalid(labels, valid),
                                  config.holdsite.background, tol)
     # Step 2: objects, and which are covered by another
-    gaps = _known_gaps(labels, _coefficient_table(surfaces, n), backend)  # labels: known only
+    if gaps is None:
+        gaps = _known_gaps(labels, _coefficient_table(surfaces, n), backend)  # known labels
     object_of, objects = find_objects(by_id, background, gaps, tol, framed)
     obj_by_id = {o.id: o for o in objects}
     # Step 3: objects wholly in view first, then uncovered ones; each group highest first

@@ -316,7 +316,8 @@ def _decode(source: Path | BytesIO, suffix: str, path: Location) -> np.ndarray:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             if isinstance(source, Path):
-                return iio.imread(source)
+                with source.open("rb") as fh:  # closed even when the decoder fails
+                    return iio.imread(fh, extension=suffix)
             return iio.imread(source, extension=suffix)
     raise InputError(f"{path}: unsupported extension {suffix!r}; allowed: "
                      + ", ".join(IMAGE_EXTENSIONS))

@@ -96,7 +96,7 @@ def label_components(free: np.ndarray, min_size: int, *, backend: Backend = "aut
     backend
         ``"numpy"``: :func:`scipy.ndimage.label` and a renumbering (the
         reference); ``"numba"``: :func:`rangeseg_cli._kernels.label_components`,
-        two passes with a union-find (the same labels); ``"auto"``: as
+        two passes over the runs of free pixels with a union-find (the same labels); ``"auto"``: as
         :func:`~rangeseg_cli.edges.detect_edges`.
 
     Returns
@@ -123,8 +123,8 @@ def label_components(free: np.ndarray, min_size: int, *, backend: Backend = "aut
     return lut[raw]
 
 
-def link_edges(codes: np.ndarray, valid: np.ndarray, cfg: LinkConfig
-               ) -> tuple[np.ndarray, np.ndarray]:
+def link_edges(codes: np.ndarray, valid: np.ndarray, cfg: LinkConfig, *,
+               backend: Backend = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Step 3: close one-pixel gaps once, then form the connected components (Sec. V-3).
 
     Parameters
@@ -136,6 +136,11 @@ def link_edges(codes: np.ndarray, valid: np.ndarray, cfg: LinkConfig
         bool (H, W): False at invalid pixels (never edges, never labelled).
     cfg
         ``[link]``: ``min_component`` (20 in the paper, Sec. VI).
+    backend
+        ``"numpy"``: array operations and :func:`label_components`' reference;
+        ``"numba"``: :func:`rangeseg_cli._kernels.link_edges`, the same steps
+        in one compiled call (the same arrays); ``"auto"``: as
+        :func:`~rangeseg_cli.edges.detect_edges`.
 
     Returns
     -------
@@ -152,6 +157,12 @@ def link_edges(codes: np.ndarray, valid: np.ndarray, cfg: LinkConfig
         When the shapes differ or ``codes`` holds values outside 0..3.
     """
     codes, valid = _check_inputs(codes, valid)
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        out, components = kernels.link_edges(np.require(codes, np.uint8, ["C"]),
+                                             np.require(valid, np.bool_, ["C"]),
+                                             int(cfg.min_component))
+        return out, components
     is_step = (codes == STEP_EDGE) & valid
     is_roof = (codes == ROOF_EDGE) & valid
     edge = is_step | is_roof

@@ -164,9 +164,10 @@ def row_bands(height: int, width: int, margin: int, count: int | None = None
     image). At most ``count`` bands (default :func:`thread_count`), none
     below :data:`MIN_BAND_ROWS` rows or :data:`MIN_BAND_PIXELS` pixels.
     """
-    count = thread_count() if count is None else count
     fit = min(height // MIN_BAND_ROWS, (height * width) // MIN_BAND_PIXELS)
-    k = max(1, min(count, fit))
+    if fit > 1 and count is None:  # else one band whatever the threads
+        count = thread_count()
+    k = max(1, min(count or 1, fit))
     edges = [round(i * height / k) for i in range(k + 1)]
     return [(a, b, max(a - margin, 0), min(b + margin, height))
             for a, b in zip(edges[:-1], edges[1:], strict=True)]
@@ -425,9 +426,15 @@ def _blas_controller() -> Any:
 
 
 @contextlib.contextmanager
-def blas_one_thread() -> Iterator[None]:
-    """BLAS on one thread inside the block when the kernels use more than one."""
-    if thread_count() == 1:
+def blas_one_thread(shared: bool = True) -> Iterator[None]:
+    """BLAS on one thread inside the block when the kernels use more than one.
+
+    ``shared=False`` says that the block's work runs in this thread alone
+    (one band, no pieces shared out): BLAS is then left as it is, which
+    saves threadpoolctl's cost (about 0.1 ms, most of a 128x128 frame's
+    overhead).
+    """
+    if thread_count() == 1 or not shared:  # thread_count first: it checks RANGESEG_THREADS
         yield
         return
     with _blas_controller().limit(limits=1, user_api="blas"):

@@ -27,7 +27,7 @@ from .config import Config, load_config
 from .edges import EdgeMaps, detect_edges
 from .models import Surface
 from .noise import estimate_noise
-from .parallel import blas_one_thread
+from .parallel import blas_one_thread, row_bands
 from .rangeimage import to_heights
 
 #: Stage names in order.
@@ -118,6 +118,21 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
                *, noise: float | None = None) -> tuple[np.ndarray, list[Surface]]:
     """Step 4 (Sec. V-4): final labels and their surface descriptions.
 
+    :func:`stage_grow_and_gaps` without the step gaps.
+    """
+    labels, surfaces, _ = stage_grow_and_gaps(z, edges, components, config, noise=noise)
+    return labels, surfaces
+
+
+def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray,
+                        config: Config, *, noise: float | None = None
+                        ) -> tuple[np.ndarray, list[Surface], dict[tuple[int, int], float]]:
+    """Step 4 (Sec. V-4): final labels, their surface descriptions and step gaps.
+
+    The step gaps (:func:`~rangeseg_cli.surfaces.describe_surfaces_and_gaps`)
+    are what :func:`stage_holdsite` would compute again from the labels and
+    surfaces: pass them on (``gaps=``).
+
     With ``[split] enabled``, components that fail the fit test are split
     and regrown (Sec. VIII; :mod:`rangeseg_cli.split`); with ``[split]
     recover``, narrow faces left unlabelled get regions of their own
@@ -131,13 +146,13 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     caller has it already (it is computed here otherwise).
     """
     from .grow import component_fits, grow_regions
-    from .surfaces import describe_surfaces
+    from .surfaces import describe_surfaces_and_gaps
 
     fits = component_fits(z, components)  # seeds the growth; the split tests them
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
     cfg = config.split
     if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut):
-        return labels, describe_surfaces(z, labels, config)  # the paper's step 4 alone
+        return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise
     sigma = math.nan if noise is None else noise
@@ -161,27 +176,33 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
         from .recut import recut_regions
 
         labels = recut_regions(z, labels, config, noise=sigma)
-    return labels, describe_surfaces(z, labels, config)
+    return labels, *describe_surfaces_and_gaps(z, labels, config)
 
 
 def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
-                   config: Config) -> Any:
-    """Sec. VII: the holdsite on the highest usable surface."""
+                   config: Config, *, gaps: dict[tuple[int, int], float] | None = None
+                   ) -> Any:
+    """Sec. VII: the holdsite on the highest usable surface.
+
+    ``gaps``: the step gaps of :func:`stage_grow_and_gaps` when the caller
+    has them (computed here otherwise).
+    """
     from .holdsite import find_holdsite
 
-    return find_holdsite(z, labels, surfaces, config)
+    return find_holdsite(z, labels, surfaces, config, gaps=gaps)
 
 
 def _finish(result: PipelineResult, z: np.ndarray, edges: np.ndarray, components: np.ndarray,
             config: Config, stages: int) -> None:
     """Stages 3 and 4 of :func:`run_pipeline`, into ``result``."""
     t0 = time.perf_counter()
-    labels, surfaces = stage_grow(z, edges, components, config, noise=result._noise)
+    labels, surfaces, gaps = stage_grow_and_gaps(z, edges, components, config,
+                                                 noise=result._noise)
     result.labels, result.surfaces = labels, surfaces
     result.timings["grow"] = time.perf_counter() - t0
     if stages >= 4:
         t0 = time.perf_counter()
-        result.holdsite = stage_holdsite(z, labels, surfaces, config)
+        result.holdsite = stage_holdsite(z, labels, surfaces, config, gaps=gaps)
         result.timings["holdsite"] = time.perf_counter() - t0
 
 
@@ -217,8 +238,23 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
     elif not isinstance(config, Config):
         raise TypeError(f"config must be a rangeseg_cli.config.Config (load_config() makes one "
                         f"from a TOML file, a preset or overrides), got {type(config).__name__}")
-    with blas_one_thread():
+    with blas_one_thread(shares_threads(getattr(image, "shape", None), config)):
         return _run(image, config, stages, name)
+
+
+def shares_threads(shape: tuple[int, ...] | None, config: Config) -> bool:
+    """Whether :func:`run_pipeline` may run work of one image on several threads at once.
+
+    The edge passes of an image of more than one row band
+    (:func:`~rangeseg_cli.parallel.row_bands`), and the split, recovery and
+    recut, which share their pieces out (:func:`~rangeseg_cli.parallel.map_tasks`);
+    ``shape`` None (not known yet) counts as yes. The paper's pipeline on a
+    128x128 frame runs in the calling thread alone.
+    """
+    s = config.split
+    if shape is None or len(shape) < 2 or s.enabled or s.recover or s.recut:
+        return True
+    return len(row_bands(int(shape[0]), int(shape[1]), 0)) > 1
 
 
 def _run(image: Any, config: Config, stages: int, name: str) -> PipelineResult:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from .config import InputConfig
+from .edges import Backend, select_kernels
 from .errors import InputError
 
 MIN_SIZE = 16
@@ -63,7 +64,8 @@ def check_array(raw: Any, *, name: str = "image") -> np.ndarray:
     return arr
 
 
-def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image") -> np.ndarray:
+def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Backend = "auto"
+               ) -> np.ndarray:
     """Convert raw values to heights in depth units, NaN where invalid.
 
     Parameters
@@ -75,6 +77,12 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image") -> np.ndarray
         ``[input]``: ``scale``, ``larger_is_closer`` and the ``invalid`` value.
     name
         Named in error messages.
+    backend
+        ``"numpy"``: array operations (the reference); ``"numba"``:
+        :func:`rangeseg_cli._kernels.heights`, one pass over a plain array of
+        8- to 64-bit numbers (the same heights; masked arrays and other
+        types take the reference); ``"auto"``: as
+        :func:`~rangeseg_cli.edges.detect_edges`.
 
     Returns
     -------
@@ -89,6 +97,13 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image") -> np.ndarray
     """
     masked = np.ma.getmaskarray(raw) if isinstance(raw, np.ma.MaskedArray) else None
     arr = check_array(raw if masked is None else np.ma.getdata(raw), name=name)
+    factor = cfg.scale if cfg.larger_is_closer else -cfg.scale
+    kernels = select_kernels(backend)
+    if kernels is not None and masked is None and arr.dtype in _COMPILED_TYPES:
+        z, valid, peak = kernels.heights(np.ascontiguousarray(arr), float(factor),
+                                         float(cfg.invalid), not math.isnan(cfg.invalid))
+        _check_heights(valid == 0, peak, cfg, name)
+        return z
     z = arr.astype(np.float64)
     invalid = ~np.isfinite(z)
     if masked is not None:  # a masked array's masked pixels are invalid
@@ -96,18 +111,29 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image") -> np.ndarray
     if not math.isnan(cfg.invalid):
         invalid |= z == cfg.invalid
     with np.errstate(over="ignore", invalid="ignore"):
-        z *= cfg.scale if cfg.larger_is_closer else -cfg.scale
+        z *= factor
     invalid |= ~np.isfinite(z)
     z[invalid] = np.nan
-    if invalid.all():
+    none_valid = bool(invalid.all())
+    _check_heights(none_valid, 0.0 if none_valid else float(np.nanmax(np.abs(z))), cfg, name)
+    return z
+
+
+#: Raw pixel types :func:`to_heights` converts with the compiled kernel.
+_COMPILED_TYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.uint32, np.int8,
+                                               np.int16, np.int32, np.int64, np.float32,
+                                               np.float64))
+
+
+def _check_heights(none_valid: bool, peak: float, cfg: InputConfig, name: str) -> None:
+    """The checks of :func:`to_heights` on its result: a valid pixel, heights in range."""
+    if none_valid:
         raise InputError(f"{name}: no valid pixel (all NaN, infinite or equal to the "
                          f"no-data value {cfg.invalid})")
-    peak = float(np.nanmax(np.abs(z)))
     if peak > MAX_ABS_HEIGHT:
         raise InputError(f"{name}: height {peak:.3g} is outside the supported range "
                          f"(|height| <= {MAX_ABS_HEIGHT:.0e} depth units); set [input] "
                          "invalid to the sensor's no-data value or adjust [input] scale")
-    return z
 
 
 def require_shape_of_z(z: np.ndarray, **arrays: Any) -> None:

@@ -36,8 +36,10 @@ Notes
 * **Cost.** One pass of moment sums gives the fits of both orders and the
   pixel counts, centroids and mean heights (:func:`~rangeseg_cli.grow.region_fits`);
   the boundary pairs come from a band along the boundaries
-  (:func:`neighbour_pairs`), their medians per region pair from counting
-  sorts (:func:`pair_medians`) and the boxes from one sweep
+  (:func:`neighbour_pairs`; compiled, from the runs of equal labels along
+  the rows), with the heights and normals of the fits at them in the same
+  compiled call (:func:`pair_measures`), their medians per region pair from
+  counting sorts (:func:`pair_medians`) and the boxes from one sweep
   (:func:`label_boxes`), all compiled when numba is installed (identical
   results; ``backend="numpy"`` or ``RANGESEG_PURE_NUMPY=1`` for the reference).
 """
@@ -52,7 +54,7 @@ from scipy import ndimage
 
 from .config import Config
 from .edges import Backend, select_kernels
-from .grow import evaluate_quadric, planar, region_fits
+from .grow import evaluate_quadric, planar, region_fits, valid_labels
 from .models import Neighbor, Surface
 
 #: Two regions are neighbours when pixels of both lie within this chessboard distance.
@@ -206,16 +208,10 @@ def neighbour_pairs(labels: np.ndarray, reach: int = NEIGHBOUR_REACH, *,
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(6))
 
 
-def _boundary_pairs(labels: np.ndarray, backend: Backend = "auto") -> tuple[np.ndarray, ...]:
-    """Pixel pairs (p, q) of different labels within NEIGHBOUR_REACH of each other.
-
-    Returns ``(li, lj, rows_p, cols_p, rows_q, cols_q)`` with ``li < lj``.
-    """
-    rp, cp, rq, cq, lp, lq = neighbour_pairs(labels, backend=backend)
-    swap = lp > lq
-    return (np.where(swap, lq, lp), np.where(swap, lp, lq),
-            np.where(swap, rq, rp), np.where(swap, cq, cp),
-            np.where(swap, rp, rq), np.where(swap, cp, cq))
+def kernel_labels(labels: np.ndarray) -> np.ndarray:
+    """``labels`` as the compiled kernels take them: C-ordered int32, int64 when it must be."""
+    return np.require(labels, np.int32 if np.can_cast(labels.dtype, np.int32) else np.int64,
+                      ["C"])
 
 
 def _group_median(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -264,33 +260,133 @@ def pair_medians(lo: np.ndarray, hi: np.ndarray, values: np.ndarray, *,
 
 
 def _unit_normals(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """(N, 3) unit normals (-fx, -fy, 1) of quadrics at points."""
+    """(N, 3) unit normals (-fx, -fy, 1) of quadrics at points.
+
+    The length is ``np.linalg.norm``'s, summed in its order (fx^2 + fy^2 + 1),
+    column by column: the same bits without a reduction over rows of three.
+    """
     _, a1, a2, a3, a4, a5 = coeffs.T
     fx = a1 + 2.0 * a3 * cols + a4 * rows
     fy = a2 + a4 * cols + 2.0 * a5 * rows
-    n = np.stack([-fx, -fy, np.ones_like(fx)], axis=1)
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
+    length = np.sqrt(fx * fx + fy * fy + 1.0)
+    n = np.empty((fx.shape[0], 3))
+    np.divide(-fx, length, out=n[:, 0])
+    np.divide(-fy, length, out=n[:, 1])
+    np.divide(1.0, length, out=n[:, 2])
+    return n
 
 
 def _pair_heights(li: np.ndarray, lj: np.ndarray, rp: np.ndarray, cp: np.ndarray,
-                  rq: np.ndarray, cq: np.ndarray, coeffs: np.ndarray, backend: Backend
+                  rq: np.ndarray, cq: np.ndarray, coeffs: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Height gap of the fits at each pair's midpoint, and how far each passes above the other.
 
     Convex: each fit's extension lies above the other region's boundary
-    pixels (``above > 0``). Compiled when ``backend`` selects the kernels
-    (:func:`rangeseg_cli._kernels.pair_heights`, the same values).
+    pixels (``above > 0``).
     """
-    kernels = select_kernels(backend)
-    if kernels is not None:
-        as_int = [np.ascontiguousarray(a, dtype=np.int64) for a in (li, lj, rp, cp, rq, cq)]
-        return kernels.pair_heights(*as_int, np.ascontiguousarray(coeffs, dtype=np.float64))
-    ci, cj = coeffs[li], coeffs[lj]
+    ci, cj = coeffs.take(li, axis=0), coeffs.take(lj, axis=0)
     rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
     gap = np.abs(evaluate_quadric(ci, rm, cm) - evaluate_quadric(cj, rm, cm))
     above = ((evaluate_quadric(cj, rp, cp) - evaluate_quadric(ci, rp, cp))
              + (evaluate_quadric(ci, rq, cq) - evaluate_quadric(cj, rq, cq)))
     return gap, above
+
+
+def pair_measures(labels: np.ndarray, coeffs: np.ndarray, *, backend: Backend = "auto"
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The boundary pairs of neighbouring regions and what :func:`edge_types` measures on them.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) final labels, 0 = none.
+    coeffs
+        (n+1, 6) image-coordinate quadrics of the labels.
+    backend
+        ``"numpy"``: :func:`neighbour_pairs` and array operations (the
+        reference); ``"numba"``: :func:`rangeseg_cli._kernels.boundary_measures`,
+        the pairs, heights and normals in one compiled call (bitwise the same
+        values; the angle's arccos is numpy's in both); ``"auto"``: as
+        :func:`~rangeseg_cli.edges.detect_edges`.
+
+    Returns
+    -------
+    li, lj : numpy.ndarray
+        int (P,) labels of the two sides of each pixel pair, ``li < lj``.
+    values : numpy.ndarray
+        float64 (4, P): the height gap of the two fits at the pair's midpoint,
+        the angle between their normals there (degrees), how far each fit
+        passes above the other side's pixel (> 0: convex), and the signed gap
+        ``f_i - f_j`` at the midpoint as :func:`rangeseg_cli.holdsite.step_gaps`
+        computes it (the same bits).
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        li, lj, values, ni, nj = kernels.boundary_measures(
+            kernel_labels(labels), NEIGHBOUR_REACH, np.require(coeffs, np.float64, ["C"]))
+        np.degrees(_normal_angles(ni, nj), out=values[1])
+        return li, lj, values
+    rp, cp, rq, cq, lp, lq = neighbour_pairs(labels, backend=backend)
+    rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+    signed = evaluate_quadric(coeffs[lp], rm, cm) - evaluate_quadric(coeffs[lq], rm, cm)
+    swap = lp > lq
+    signed = np.where(swap, -signed, signed)  # as holdsite.step_gaps
+    li, lj, rp, cp, rq, cq = (np.where(swap, lq, lp), np.where(swap, lp, lq),
+                              np.where(swap, rq, rp), np.where(swap, cq, cp),
+                              np.where(swap, rp, rq), np.where(swap, cp, cq))
+    ci, cj = coeffs.take(li, axis=0), coeffs.take(lj, axis=0)
+    angle = np.degrees(_normal_angles(_unit_normals(ci, rm, cm), _unit_normals(cj, rm, cm)))
+    gap, above = _pair_heights(li, lj, rp, cp, rq, cq, coeffs)
+    return li, lj, np.stack([gap, angle, above, signed])
+
+
+def _normal_angles(ni: np.ndarray, nj: np.ndarray) -> np.ndarray:
+    """Angles (radians) between the unit normals of two (N, 3) arrays, row by row."""
+    return np.arccos(np.clip(np.einsum("ij,ij->i", ni, nj), -1.0, 1.0))
+
+
+def boundary_medians(labels: np.ndarray, coeffs: np.ndarray, *, backend: Backend = "auto"
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Medians of :func:`pair_measures` over the boundary of each pair of neighbouring regions.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) final labels, 0 = none.
+    coeffs
+        (n+1, 6) image-coordinate quadrics of the labels.
+    backend
+        For :func:`pair_measures` and :func:`pair_medians` (identical results).
+
+    Returns
+    -------
+    group_i, group_j : numpy.ndarray
+        int64 (G,) the neighbouring pairs i < j, ascending.
+    medians : numpy.ndarray
+        float64 (4, G): medians of the height gap, the angle between the
+        normals, the "above" sums and the signed gap ``f_i - f_j``.
+    """
+    li, lj, values = pair_measures(labels, coeffs, backend=backend)
+    if li.size == 0:
+        none = np.zeros(0, dtype=np.int64)
+        return none, none, np.zeros((4, 0))
+    return pair_medians(li, lj, values, backend=backend)
+
+
+def _edge_kinds(group_i: np.ndarray, group_j: np.ndarray, medians: np.ndarray,
+                step_threshold: float) -> dict[tuple[int, int], str]:
+    """The edge types of :func:`edge_types` from :func:`boundary_medians`."""
+    out: dict[tuple[int, int], str] = {}
+    gap_med, angle_med, above_med = medians[0], medians[1], medians[2]
+    for i, j, g, a, s in zip(group_i.tolist(), group_j.tolist(), gap_med.tolist(),
+                             angle_med.tolist(), above_med.tolist(), strict=True):
+        if g > step_threshold:
+            out[(i, j)] = "step"
+        elif a < SMOOTH_ANGLE_DEG:
+            out[(i, j)] = "smooth"
+        else:
+            out[(i, j)] = "roof-convex" if s > 0 else "roof-concave"
+    return out
 
 
 def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
@@ -307,7 +403,7 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
         Median height difference of the fits along the boundary above which
         the edge is a step (``step.threshold``).
     backend
-        For :func:`neighbour_pairs` (identical results).
+        For :func:`boundary_medians` (identical results).
 
     Returns
     -------
@@ -315,26 +411,7 @@ def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
         ``{(i, j): edge}`` for i < j, edge one of ``"step"``, ``"smooth"``,
         ``"roof-convex"``, ``"roof-concave"``.
     """
-    li, lj, rp, cp, rq, cq = _boundary_pairs(labels, backend)
-    if li.size == 0:
-        return {}
-    ci, cj = coeffs[li], coeffs[lj]
-    rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
-    cos = np.einsum("ij,ij->i", _unit_normals(ci, rm, cm), _unit_normals(cj, rm, cm))
-    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    gap, above = _pair_heights(li, lj, rp, cp, rq, cq, coeffs, backend)
-    group_i, group_j, (gap_med, angle_med, above_med) = pair_medians(
-        li, lj, np.stack([gap, angle, above]), backend=backend)
-    out: dict[tuple[int, int], str] = {}
-    for i, j, g, a, s in zip(group_i.tolist(), group_j.tolist(), gap_med.tolist(),
-                             angle_med.tolist(), above_med.tolist(), strict=True):
-        if g > step_threshold:
-            out[(i, j)] = "step"
-        elif a < SMOOTH_ANGLE_DEG:
-            out[(i, j)] = "smooth"
-        else:
-            out[(i, j)] = "roof-convex" if s > 0 else "roof-concave"
-    return out
+    return _edge_kinds(*boundary_medians(labels, coeffs, backend=backend), step_threshold)
 
 
 def label_boxes(labels: np.ndarray, n: int, *, backend: Backend = "auto") -> np.ndarray:
@@ -394,40 +471,68 @@ def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config, *,
         (planar/curved), HK shape and neighbours sorted by id (see the module
         Notes for the rules).
     """
+    return describe_surfaces_and_gaps(z, labels, config, backend=backend)[0]
+
+
+def describe_surfaces_and_gaps(z: np.ndarray, labels: np.ndarray, config: Config, *,
+                               backend: Backend = "auto"
+                               ) -> tuple[list[Surface], dict[tuple[int, int], float]]:
+    """:func:`describe_surfaces`, and the step gaps of the holdsite search (Sec. VII) with them.
+
+    The gaps come from the same boundary pairs as the edge types (one more
+    median per region pair): exactly
+    :func:`rangeseg_cli.holdsite.step_gaps` of these labels and surfaces,
+    which :func:`~rangeseg_cli.holdsite.find_holdsite` then need not
+    compute again.
+
+    Returns
+    -------
+    surfaces : list of Surface
+        As :func:`describe_surfaces`.
+    gaps : dict
+        ``{(i, j): median(f_i - f_j)}`` for neighbouring regions i < j.
+    """
     z = np.asarray(z, dtype=np.float64)
-    labels = np.where(np.isfinite(z), labels, 0).astype(np.int32)
-    n = int(labels.max(initial=0))
+    labels, n = valid_labels(z, labels, backend=backend)
     if n == 0:
-        return []
+        return [], {}
     # Final surface parameters: the quadric fit repeated on the grown regions (Sec. V-4)
     stats = region_fits(z, labels, n, (2, 1), backend=backend)
     (quad, mse_quad), (plane, mse_plane) = stats.fits
     flat = planar(mse_quad, mse_plane, config.grow.planar_tolerance, config.grow.min_error)
     coeffs = np.where(flat[:, None], plane, quad)
     mse = np.where(flat, mse_plane, mse_quad)
-    edges = edge_types(labels, coeffs, config.step.threshold, backend=backend)
+    group_i, group_j, medians = boundary_medians(labels, coeffs, backend=backend)
+    edges = _edge_kinds(group_i, group_j, medians, config.step.threshold)
+    gaps = dict(zip(zip(group_i.tolist(), group_j.tolist(), strict=True), medians[3].tolist(),
+                    strict=True))
     neighbours: dict[int, list[Neighbor]] = {}
     for (i, j), edge in sorted(edges.items()):
         neighbours.setdefault(i, []).append(Neighbor(id=j, edge=edge))
         neighbours.setdefault(j, []).append(Neighbor(id=i, edge=edge))
     boxes = label_boxes(labels, n, backend=backend).tolist()
+    # Python numbers of every region at once (the same values as item by item)
+    counts, rows, cols = (stats.counts.tolist(), stats.centroid_row.tolist(),
+                          stats.centroid_col.tolist())
+    heights, fits, errors, planes = (stats.mean_height.tolist(), coeffs.tolist(), mse.tolist(),
+                                     flat.tolist())
     surfaces = []
     for sid in range(1, n + 1):
-        if boxes[sid][0] < 0 or stats.counts[sid] == 0:
+        if boxes[sid][0] < 0 or counts[sid] == 0:
             continue
-        row, col = float(stats.centroid_row[sid]), float(stats.centroid_col[sid])
-        a = coeffs[sid]
-        shape = "flat" if flat[sid] else hk_shape(*curvatures(a, row, col))
+        row, col = rows[sid], cols[sid]
+        a = fits[sid]
+        shape = "flat" if planes[sid] else hk_shape(*curvatures(np.asarray(a), row, col))
         surfaces.append(Surface(
-            id=sid, pixels=int(stats.counts[sid]),
+            id=sid, pixels=counts[sid],
             bbox=tuple(boxes[sid]),  # type: ignore[arg-type]
-            centroid=(row, col), mean_height=float(stats.mean_height[sid]),
-            coefficients=tuple(float(c) for c in a),  # type: ignore[arg-type]
-            rms_error=float(math.sqrt(max(mse[sid], 0.0))),
-            type="planar" if flat[sid] else "curved", shape=shape,
+            centroid=(row, col), mean_height=heights[sid],
+            coefficients=tuple(a),  # type: ignore[arg-type]
+            rms_error=math.sqrt(max(errors[sid], 0.0)),
+            type="planar" if planes[sid] else "curved", shape=shape,
             neighbors=tuple(sorted(neighbours.get(sid, []), key=lambda nb: nb.id)),
         ))
-    return surfaces
+    return surfaces, gaps
 
 
 def _plain(value: Any) -> Any:

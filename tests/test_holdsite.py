@@ -315,3 +315,28 @@ def test_window_mean_of_large_rotated_footprint_matches_shift_sum():
     kr, kc = fp.shape[0] // 2, fp.shape[1] // 2
     mean = window_mean(a, fp)
     assert mean[20, 25] == pytest.approx(a[20 - kr: 20 + kr + 1, 25 - kc: 25 + kc + 1][fp].mean())
+
+
+@pytest.mark.parametrize("backend", ["numpy", "auto"])
+@pytest.mark.parametrize("seed", range(3))
+def test_step_gaps_given_with_the_surfaces_are_those_the_search_computes(backend, seed):
+    from rangeseg_cli.holdsite import _coefficient_table, step_gaps
+    from rangeseg_cli.surfaces import describe_surfaces, describe_surfaces_and_gaps
+    from rangeseg_cli.synth import render_scene
+
+    config = load_config(preset="paper")
+    result = run_pipeline(render_scene("pile", noise=1.0, seed=seed).image, config)
+    surfaces, gaps = describe_surfaces_and_gaps(result.heights, result.labels, config,
+                                                backend=backend)
+    assert surfaces == describe_surfaces(result.heights, result.labels, config,
+                                         backend=backend)
+    n = int(result.labels.max())
+    known = np.zeros(n + 1, dtype=bool)
+    known[[s.id for s in surfaces]] = True
+    labels = np.where(np.isfinite(result.heights), result.labels, 0)
+    ref = step_gaps(labels, _coefficient_table(surfaces, n), known, backend=backend)
+    assert list(gaps) == list(ref) and len(gaps) >= 3
+    assert all(math.copysign(1.0, gaps[k]) == math.copysign(1.0, ref[k]) and gaps[k] == ref[k]
+               for k in ref)
+    with_gaps = find_holdsite(result.heights, result.labels, surfaces, config, gaps=gaps)
+    assert with_gaps == find_holdsite(result.heights, result.labels, surfaces, config)

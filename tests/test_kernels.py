@@ -326,6 +326,31 @@ def test_random_noisy_scenes_give_identical_labels_surfaces_and_holdsites(seed, 
 
 
 @requires_numba
+@pytest.mark.parametrize("size", [(7, 7), (5, 5), (3, 9)])
+def test_compiled_window_search_gives_the_hits_of_the_reference(size, monkeypatch):
+    from rangeseg_cli import holdsite
+
+    config = load_config(preset="paper", overrides={"holdsite": {"size": list(size),
+                                                                 "rotation_step": 90}})
+    result = run_pipeline(random_boxes(90, 110, seed=3, noise=1.5), config)
+    z, labels = holdsite._check(result.heights, result.labels)
+    angles = (0.0,)  # one angle of a full rectangle: the compiled case
+    found = 0
+    for s in result.surfaces:
+        hits = [holdsite.surface_windows(holdsite._Scene(labels, np.isfinite(z), z,
+                                                         config.holdsite, angles, backend), s)
+                for backend in ("numpy", "numba")]
+        ref, fast = (dataclasses.asdict(h) for h in hits)
+        for key, value in ref.items():
+            if isinstance(value, np.ndarray):
+                np.testing.assert_array_equal(_bits(fast[key]), _bits(value), err_msg=key)
+            else:
+                assert fast[key] == value, key
+        found += hits[0].rows.size
+    assert found > 0
+
+
+@requires_numba
 @pytest.mark.parametrize("seed", range(4))
 def test_region_fits_are_bitwise_equal_to_the_reference(seed):
     from rangeseg_cli import _kernels
@@ -449,6 +474,59 @@ def test_label_components_gives_the_reference_labels(seed):
 
 
 @requires_numba
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.float32, np.float64])
+@pytest.mark.parametrize("larger_is_closer", [True, False])
+def test_compiled_heights_are_bitwise_the_reference(dtype, larger_is_closer):
+    from rangeseg_cli.config import InputConfig
+    from rangeseg_cli.rangeimage import to_heights
+
+    rng = np.random.default_rng(3)
+    raw = (rng.random((20, 24)) * 250).astype(dtype)
+    if raw.dtype.kind == "f":
+        raw[2, 3], raw[4, 5] = np.nan, np.inf
+    for invalid in (np.nan, 0.0):
+        cfg = InputConfig(scale=0.1, larger_is_closer=larger_is_closer, invalid=invalid)
+        ref = to_heights(raw, cfg, backend="numpy")
+        fast = to_heights(raw, cfg, backend="numba")
+        np.testing.assert_array_equal(_bits(fast), _bits(ref))
+
+
+@requires_numba
+@pytest.mark.parametrize("dtype", [np.int32, np.int64, np.uint16, np.bool_])
+def test_valid_labels_are_those_of_the_reference(dtype):
+    from rangeseg_cli.grow import valid_labels
+
+    rng = np.random.default_rng(5)
+    z = rng.normal(size=(23, 31))
+    z[rng.random(z.shape) < 0.2] = np.nan
+    z[0, 0] = np.inf
+    labels = rng.integers(0, 2**33 if dtype is np.int64 else 2, z.shape).astype(dtype)
+    ref = valid_labels(z, labels, backend="numpy")
+    fast = valid_labels(z, labels, backend="numba")
+    assert fast[0].dtype == ref[0].dtype == np.int32 and fast[1] == ref[1]
+    np.testing.assert_array_equal(fast[0], ref[0])
+
+
+@requires_numba
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_linking_gives_the_reference_codes_and_components(seed):
+    from rangeseg_cli.config import LinkConfig
+    from rangeseg_cli.link import link_edges
+
+    rng = np.random.default_rng(20 + seed)
+    for _ in range(12):
+        shape = tuple(rng.integers(1, 50, 2))
+        codes = rng.choice(np.array([0, 0, 0, 0, 1, 2, 3], dtype=np.uint8), shape)
+        valid = rng.random(shape) > 0.1
+        for min_size in (1, 5):
+            cfg = LinkConfig(min_component=min_size)
+            for ref, fast in zip(link_edges(codes, valid, cfg, backend="numpy"),
+                                 link_edges(codes, valid, cfg, backend="numba"), strict=True):
+                assert ref.dtype == fast.dtype
+                np.testing.assert_array_equal(ref, fast)
+
+
+@requires_numba
 @pytest.mark.parametrize("seed", range(3))
 def test_ar_2d_and_window_std_are_bitwise_the_references(seed):
     from rangeseg_cli.holdsite import _compiled_box_means, window_ar_std
@@ -482,17 +560,51 @@ def test_rectangle_erosion_is_the_reference(seed):
 
 @requires_numba
 @pytest.mark.parametrize("seed", range(3))
-def test_pair_heights_are_bitwise_the_reference(seed):
-    from rangeseg_cli.surfaces import _boundary_pairs, _pair_heights
+def test_pair_measures_are_bitwise_the_reference(seed):
+    from rangeseg_cli.surfaces import pair_measures
 
     rng = np.random.default_rng(seed)
     labels = rng.integers(0, 7, (40, 50)).astype(np.int32)
     labels[5:30, 8:40] = 2
     coeffs = rng.normal(0.0, 1.0, (7, 6)) * [50.0, 1.0, 1.0, 1e-2, 1e-2, 1e-2]
-    pairs = _boundary_pairs(labels, "numpy")
-    for ref, fast in zip(_pair_heights(*pairs, coeffs, "numpy"),
-                         _pair_heights(*pairs, coeffs, "numba"), strict=True):
-        np.testing.assert_array_equal(_bits(fast), _bits(ref))
+    ref = pair_measures(labels, coeffs, backend="numpy")
+    fast = pair_measures(labels, coeffs, backend="numba")
+    for a, b in zip(ref, fast, strict=True):
+        np.testing.assert_array_equal(_bits(b), _bits(a))
+    assert ref[0].size > 0
+
+
+@requires_numba
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_step_gaps_are_bitwise_the_reference(seed):
+    from rangeseg_cli.holdsite import step_gaps
+
+    rng = np.random.default_rng(10 + seed)
+    labels = rng.integers(0, 7, (40, 50)).astype(np.int32)
+    labels[5:30, 8:40] = 2
+    coeffs = rng.normal(0.0, 1.0, (7, 6)) * [50.0, 1.0, 1.0, 1e-2, 1e-2, 1e-2]
+    known = np.ones(7, dtype=bool)
+    known[[0, 4]] = False
+    ref = step_gaps(labels, coeffs, known, backend="numpy")
+    fast = step_gaps(labels, coeffs, known, backend="numba")
+    assert list(fast) == list(ref)
+    np.testing.assert_array_equal(_bits(np.array(list(fast.values()))),
+                                  _bits(np.array(list(ref.values()))))
+    assert ref
+
+
+@requires_numba
+@pytest.mark.parametrize("seed", range(4))
+def test_neighbour_pairs_of_long_runs_and_many_labels_are_identical(seed):
+    rng = np.random.default_rng(60 + seed)
+    blocks = rng.integers(0, 9, (12, 9))
+    labels = np.repeat(np.repeat(blocks, 5, axis=0), 7, axis=1)[:57, :61].astype(np.int32)
+    labels[rng.random(labels.shape) < 0.02] = rng.integers(0, 9)  # single-pixel runs
+    for reach in (1, 2, 4):
+        ref = neighbour_pairs(labels, reach, backend="numpy")
+        fast = neighbour_pairs(labels, reach, backend="numba")
+        for a, b in zip(ref, fast, strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 @requires_numba
