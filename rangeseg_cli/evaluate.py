@@ -168,13 +168,14 @@ def connected_parts(gt: np.ndarray) -> np.ndarray:
         pixels are all 8-connected becomes one part.
     """
     gt = np.asarray(gt)
+    values, inverse = np.unique(gt, return_inverse=True)  # any label values, dense 0..m
+    dense = inverse.reshape(gt.shape) + (1 if values.size and values[0] != 0 else 0)
     out = np.zeros(gt.shape, np.int64)
     count = 0
-    boxes = ndimage.find_objects(gt.astype(np.int64))
-    for label, box in enumerate(boxes, start=1):
+    for label, box in enumerate(ndimage.find_objects(dense), start=1):
         if box is None:
             continue
-        parts, n = ndimage.label(gt[box] == label, structure=np.ones((3, 3), bool))
+        parts, n = ndimage.label(dense[box] == label, structure=np.ones((3, 3), bool))
         out[box] = np.where(parts > 0, parts + count, out[box])
         count += n
     return out

@@ -313,6 +313,11 @@ def test_connected_parts_numbers_each_patch_of_a_label():
     assert (connected_parts(np.zeros((4, 4), np.int32)) == 0).all()
     diagonal = np.eye(5, dtype=np.int32)  # 8-connected: one part
     assert set(np.unique(connected_parts(diagonal)).tolist()) == {0, 1}
+    huge = gt.astype(np.int64)
+    huge[gt == 1] = 2**40  # any label values, no table of them
+    np.testing.assert_array_equal(connected_parts(huge) > 0, huge > 0)
+    assert sorted(np.unique(connected_parts(huge)).tolist()) == [1, 2, 3, 4]
+    assert (connected_parts(np.full((3, 3), 7)) == 1).all()  # no 0 in the image
 
 
 def test_a_surface_in_two_patches_is_correct_only_when_judged_by_patch():
