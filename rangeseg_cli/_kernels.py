@@ -2410,7 +2410,7 @@ def boundary_measures(labels: np.ndarray, reach: int, coeffs: np.ndarray
             signed = -signed
         li[k], lj[k] = lp, lq
         values[3, k] = signed
-        values[0, k] = abs(_coeff_at(coeffs, lp, rm, cm) - _coeff_at(coeffs, lq, rm, cm))
+        values[0, k] = abs(signed)  # |f_i(m) - f_j(m)|: a - b is exactly -(b - a)
         yp, xp, yq, xq = float(rp), float(cp), float(rq), float(cq)
         values[2, k] = ((_coeff_at(coeffs, lq, yp, xp) - _coeff_at(coeffs, lp, yp, xp))
                         + (_coeff_at(coeffs, lp, yq, xq) - _coeff_at(coeffs, lq, yq, xq)))
