@@ -146,6 +146,10 @@ class SplitConfig:
                              "split, leave out (to be regrown) its pixels off its dominant "
                              "surface: a sliver of a neighbouring face too thin to be a piece "
                              "of its own")
+    trim_faces: bool = _opt(True, "with trim_pieces, the left-out pixels that one plane fits "
+                            "(a face too narrow for the normals to divide: a chamfer, a "
+                            "grazing side) become pieces of their own instead of being "
+                            "regrown into their neighbours")
     rounds: int = _opt(2, "rounds of testing and splitting; each round tests the regions "
                        "grown from the last one's pieces", min=1, max=5)
     recover: bool = _opt(True, "after growing, give a narrow face its own region: a band of "

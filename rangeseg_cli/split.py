@@ -29,7 +29,10 @@ Notes
    cut along a straight crease (:func:`~rangeseg_cli.recut.crease_side`).
    With ``split.trim_pieces`` (beyond the paper) a failing piece that
    neither divides leaves out the pixels off its dominant surface (a sliver
-   of a neighbouring face, :func:`_trim`); they are regrown later.
+   of a neighbouring face, :func:`_trim`); they are regrown later, except,
+   with ``split.trim_faces``, those that one plane fits: a narrow face (a
+   chamfer, a grazing side) becomes a piece of its own
+   (:func:`_trimmed_faces`).
 4. Merging back (:func:`merge_back`). Neighbouring pieces stay apart only
    when one quadric fits their union ``split.min_gain`` times worse than
    their own quadrics (and worse than region growing's noise-free
@@ -1169,7 +1172,9 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     not divide is cut along a straight crease when two planes fit it
     (:func:`_crease_cut`). With ``split.trim_pieces`` (beyond the paper) a
     piece whose quadric fails and that neither divides leaves out, to be
-    regrown, the pixels off its dominant surface (:func:`_trim`).
+    regrown, the pixels off its dominant surface (:func:`_trim`); with
+    ``split.trim_faces`` the planes among them become pieces
+    (:func:`_trimmed_faces`).
 
     Parameters
     ----------
@@ -1204,7 +1209,9 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
                               grow=grow)
         if sub is None:
             if cfg.trim_pieces and k not in quadric_passes:
-                _trim(z[box], pieces[box], k, level)
+                trimmed = _trim(z[box], pieces[box], k, level)
+                if cfg.trim_faces and trimmed is not None:
+                    _trimmed_faces(z[box], pieces[box], trimmed, n, level, cfg)
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
         mse, mse_plane, counts = _fit_pieces(z, pieces, ids, backend, box)
@@ -1225,7 +1232,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
 _TRIM_KEEP = 0.6
 
 
-def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
+def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> np.ndarray | None:
     """Leave out the pixels of piece k that its dominant surface does not fit (in place).
 
     Beyond the paper. For a piece whose quadric fails the fit test (the
@@ -1247,6 +1254,9 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
     to a fifth of a quarter sphere noise-free); region growing gives those
     pixels back, and merge-back still glues the pieces of a cylinder or a
     sphere (``tests/test_split.py``).
+
+    Returns the pixels left out (bool, ``pieces``' shape), None when the
+    piece is left as it is.
     """
     from .recover import INLIER_FACTOR, consensus_plane  # recover imports this module
 
@@ -1254,7 +1264,7 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
     tol = INLIER_FACTOR * level
     inliers = consensus_plane(z, mask, tol)
     if inliers is None:
-        return
+        return None
     rows, cols = np.nonzero(mask)
     for _ in range(2):
         coef, _, _ = fit_quadrics(z, inliers.astype(np.int32), 1)
@@ -1264,11 +1274,42 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> None:
         inliers[rows[keep], cols[keep]] = True
     kept = int(np.count_nonzero(inliers))
     if kept == rows.size or kept < _TRIM_KEEP * rows.size:
-        return
+        return None
     _, mse, _ = fit_quadrics(z, inliers.astype(np.int32), 1)
     if mse[1] > level * level:
-        return
-    pieces[mask & ~inliers] = 0
+        return None
+    trimmed = mask & ~inliers
+    pieces[trimmed] = 0
+    return trimmed
+
+
+def _trimmed_faces(z: np.ndarray, pieces: np.ndarray, trimmed: np.ndarray, n: int,
+                   level: float, cfg: SplitConfig) -> None:
+    """Give the planes among a trim's pixels pieces of their own, ids n+1... (in place).
+
+    Beyond the paper (``split.trim_faces``). What :func:`_trim` leaves out
+    is often a whole narrow face along the piece's border -- a chamfer 2-3
+    pixels wide around a nut's top, a side seen at a grazing angle -- whose
+    normals are too few and too blended for :func:`mode_split` to give it a
+    core. Each 8-connected group of the trimmed pixels of at least
+    ``split.min_piece`` pixels is cut into planes by consensus
+    (:func:`~rangeseg_cli.recover.plane_pieces`: the pixels within
+    ``INLIER_FACTOR`` times the fit test's level of a consensus plane, as
+    the recovery cuts a band); each plane of at least
+    ``min_piece`` pixels becomes a piece, up to ``split.max_pieces`` in
+    all. :func:`merge_back` then judges them as any other piece; the rest
+    of the trim is regrown.
+    """
+    from .recover import plane_pieces  # recover imports this module
+
+    groups, count = ndimage.label(trimmed, structure=np.ones((3, 3), bool))
+    sizes = np.bincount(groups.ravel(), minlength=count + 1)
+    for g in np.flatnonzero(sizes[1:] >= cfg.min_piece) + 1:
+        for face in plane_pieces(z, groups == g, level=level, min_pixels=cfg.min_piece):
+            if n >= cfg.max_pieces:
+                return
+            n += 1
+            pieces[face] = n
 
 
 def _area(box: tuple[slice, slice]) -> int:

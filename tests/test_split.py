@@ -431,6 +431,7 @@ def test_split_pieces_are_numbered_in_raster_order_and_never_cover_invalid_pixel
     ({"split": {"enable": True}}, r"unknown key \[split\] enable"),
     ({"input": {"auto_thresholds": 1}}, r"\[input\] auto_thresholds = 1: expected true"),
     ({"split": {"trim_pieces": "maybe"}}, r"\[split\] trim_pieces = 'maybe': expected true"),
+    ({"split": {"trim_faces": 2}}, r"\[split\] trim_faces = 2: expected true"),
 ])
 def test_split_and_auto_threshold_keys_are_validated(values: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -917,3 +918,48 @@ def test_the_paper_pipeline_estimates_the_noise_only_when_asked(monkeypatch) -> 
     assert result.noise_sigma == result.noise_sigma and len(calls) == 1  # then kept
     run_pipeline(z)
     assert len(calls) == 2  # the defaults: once, shared by every stage that uses it
+
+
+def chamfered_block_scene(width: int = 3, slope: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """A block 48 pixels square and 90 up whose top has a chamfer ``width`` pixels wide.
+
+    The chamfers fall ``slope`` units per pixel from the top's edge (a nut's
+    45-degree chamfers: 2 per pixel at 128x128); noise-free, 8-bit. Returns
+    the image and the true faces: 1 table, 2 top, 3..6 chamfers.
+    """
+    y, x = np.mgrid[0:96, 0:96].astype(np.float64)
+    lo, hi = 24, 72
+    inside = (y >= lo) & (y < hi) & (x >= lo) & (x < hi)
+    top = 120.0 + 0.3 * (x - 48.0) + 0.1 * (y - 48.0)
+    into = np.stack([x - (hi - 1 - width + 0.5), (lo + width - 0.5) - x,
+                     y - (hi - 1 - width + 0.5), (lo + width - 0.5) - y])
+    drop = np.maximum(into, 0.0).max(axis=0)
+    z = np.where(inside, top - slope * drop, 30.0)
+    truth = np.where(inside, np.where(drop > 0, np.argmax(into, axis=0) + 3, 2), 1)
+    return np.clip(np.round(z), 0.0, 255.0), truth.astype(np.int32)
+
+
+def test_trimmed_chamfers_become_faces_of_their_own() -> None:
+    # The top's component holds its chamfers (too narrow for the normals to divide, no
+    # straight crease around four sides); the trim leaves them out, and with
+    # split.trim_faces the planes among them become regions instead of being regrown
+    # into the top.
+    image, truth = chamfered_block_scene()
+    regions = {}
+    for faces in (True, False):
+        config = replace(SPLIT, split=replace(SPLIT.split, trim_faces=faces))
+        regions[faces] = run_pipeline(image, config, stages=3).labels
+    on, off = regions[True], regions[False]
+    top = {g for i in hoover_compare(truth, on).instances if i.kind == "correct" for g in i.gt}
+    assert 2 in top  # the top alone, at T = 0.8
+    chamfer_regions = 0
+    for k in np.unique(on[on > 0]).tolist():
+        values, counts = np.unique(truth[on == k], return_counts=True)
+        g, share = int(values[np.argmax(counts)]), counts.max() / counts.sum()
+        if g >= 3 and share >= 0.9 and counts.max() >= 0.6 * np.count_nonzero(truth == g):
+            chamfer_regions += 1  # mostly one chamfer, and most of it
+    assert chamfer_regions >= 3
+    # Without them the top's region swallows every chamfer (an under-segmentation).
+    top_region = np.bincount(off[truth == 2]).argmax()
+    for g in range(3, 7):
+        assert np.mean(off[truth == g] == top_region) > 0.8
