@@ -1304,12 +1304,15 @@ def _trimmed_faces(z: np.ndarray, pieces: np.ndarray, trimmed: np.ndarray, n: in
 
     groups, count = ndimage.label(trimmed, structure=np.ones((3, 3), bool))
     sizes = np.bincount(groups.ravel(), minlength=count + 1)
+    boxes = ndimage.find_objects(groups)
     for g in np.flatnonzero(sizes[1:] >= cfg.min_piece) + 1:
-        for face in plane_pieces(z, groups == g, level=level, min_pixels=cfg.min_piece):
+        box = boxes[g - 1]  # the group's own box: its planes see its pixels only
+        for face in plane_pieces(z[box], groups[box] == g, level=level,
+                                 min_pixels=cfg.min_piece):
             if n >= cfg.max_pieces:
                 return
             n += 1
-            pieces[face] = n
+            pieces[box][face] = n
 
 
 def _area(box: tuple[slice, slice]) -> int:
