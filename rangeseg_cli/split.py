@@ -1300,9 +1300,9 @@ def _trimmed_faces(z: np.ndarray, pieces: np.ndarray, trimmed: np.ndarray, n: in
     all. :func:`merge_back` then judges them as any other piece; the rest
     of the trim is regrown.
     """
-    from .recover import plane_pieces  # recover imports this module
+    from .recover import _EIGHT, plane_pieces  # recover imports this module
 
-    groups, count = ndimage.label(trimmed, structure=np.ones((3, 3), bool))
+    groups, count = ndimage.label(trimmed, structure=_EIGHT)
     sizes = np.bincount(groups.ravel(), minlength=count + 1)
     boxes = ndimage.find_objects(groups)
     for g in np.flatnonzero(sizes[1:] >= cfg.min_piece) + 1:
