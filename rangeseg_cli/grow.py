@@ -196,25 +196,43 @@ def _solve_cascade(mat: np.ndarray, rhs: np.ndarray, counts: np.ndarray, order: 
 
     A region gets the quadric (6 terms) when it has at least 6 pixels and a
     well-conditioned moment matrix (smallest / largest eigenvalue > RCOND);
-    every other region gets the plane through the pseudo-inverse, which
-    drops exactly the degenerate directions: pixels on a line give a line fit
-    along it, a single pixel (or ``order=0``) the constant. Each order is one
-    batched call over the stacked systems.
+    every other region gets the plane: solved directly when its 3x3 matrix
+    is well-conditioned by the same test (and it has 3 pixels or more), else
+    through the pseudo-inverse, which drops exactly the degenerate
+    directions: pixels on a line give a line fit along it, a single pixel (or
+    ``order=0``) the constant. Each order is one batched call per case over
+    the stacked systems (the pseudo-inverse's eigendecomposition costs ~8
+    times a direct solve; the split, merge and recut fit planes thousands
+    of times per frame).
     """
     coef = np.zeros(rhs.shape)
     todo = np.flatnonzero(counts > 0)  # indices: each system as a boolean mask would take it
-    if order == 2 and todo.size:
-        eig = np.linalg.eigvalsh(mat[todo])
-        good = (counts[todo] >= 6) & (eig[:, 0] > RCOND * eig[:, -1])
-        ok = todo[good]
-        if ok.size:
-            coef[ok] = np.linalg.solve(mat[ok], rhs[ok, :, None])[..., 0]
-        todo = todo[~good]
+    if order == 2:
+        todo = _solve_conditioned(mat, rhs, counts, todo, 6, coef)
     k = ORDER_TERMS[min(order, 1)]
+    if k == 3:
+        todo = _solve_conditioned(mat, rhs, counts, todo, 3, coef)
     if todo.size:
         pinv = np.linalg.pinv(mat[todo, :k, :k], rcond=RCOND, hermitian=True)
         coef[todo, :k] = (pinv @ rhs[todo, :k, None])[..., 0]
     return coef
+
+
+def _solve_conditioned(mat: np.ndarray, rhs: np.ndarray, counts: np.ndarray, todo: np.ndarray,
+                       k: int, coef: np.ndarray) -> np.ndarray:
+    """Solve the leading k x k systems of ``todo`` that are well-conditioned, into ``coef``.
+
+    Well-conditioned: at least k pixels and smallest / largest eigenvalue >
+    RCOND. Returns the indices left (for a lower order or the pseudo-inverse).
+    """
+    if not todo.size:
+        return todo
+    eig = np.linalg.eigvalsh(mat[todo, :k, :k])
+    good = (counts[todo] >= k) & (eig[:, 0] > RCOND * eig[:, -1])
+    ok = todo[good]
+    if ok.size:
+        coef[ok, :k] = np.linalg.solve(mat[ok, :k, :k], rhs[ok, :k, None])[..., 0]
+    return todo[~good]
 
 
 def _to_image_coefficients(coef: np.ndarray, cx: np.ndarray, cy: np.ndarray,

@@ -125,6 +125,32 @@ def test_fit_quadrics_falls_back_to_plane_and_constant() -> None:
     np.testing.assert_allclose(coeffs[3], [plane[100, 100], 0, 0, 0, 0, 0], atol=1e-9)
 
 
+def test_plane_fits_are_the_least_squares_planes_direct_or_degenerate() -> None:
+    # Order 1: well-conditioned regions are solved directly, degenerate ones (a line,
+    # a pixel) by the pseudo-inverse; every fit is the least-squares one.
+    rng = np.random.default_rng(5)
+    y, x = _grid()
+    z = 40.0 + 0.3 * x - 0.2 * y + 0.01 * (x - 60.0) ** 2 + rng.normal(0.0, 1.5, (N, N))
+    labels = np.zeros((N, N), dtype=np.int32)
+    for k in range(1, 9):
+        r, c = (int(v) for v in rng.integers(0, N - 20, 2))
+        h, w = (int(v) for v in rng.integers(2, 20, 2))
+        labels[r:r + h, c:c + w] = k
+    labels[5, 10:40] = 9  # a one-pixel line: the plane is singular across it
+    labels[120, 120] = 10  # one pixel: the constant
+    coeffs, mse, counts = fit_quadrics(z, labels, 10, order=1)
+    for k in range(1, 11):
+        rows, cols = np.nonzero(labels == k)
+        if rows.size == 0:
+            continue
+        a = np.column_stack([np.ones(rows.size), cols, rows]).astype(np.float64)
+        best, *_ = np.linalg.lstsq(a, z[rows, cols], rcond=None)
+        fitted = coeffs[k, 0] + coeffs[k, 1] * cols + coeffs[k, 2] * rows
+        np.testing.assert_allclose(fitted, a @ best, rtol=0, atol=1e-8)
+        assert mse[k] == pytest.approx(np.mean((z[rows, cols] - a @ best) ** 2), abs=1e-9)
+        assert np.all(coeffs[k, 3:] == 0.0) and counts[k] == rows.size
+
+
 def test_the_union_fit_from_moments_is_the_fit_of_the_union_pixels() -> None:
     # Two regions side by side (a step, a crease, curvature, noise, holes, NaNs):
     # one quadric of both from their moment sums equals the direct fit to 1e-8.
