@@ -176,10 +176,21 @@ def _fits_a_neighbour(z: np.ndarray, labels: np.ndarray, fits: _Fits, rows: np.n
 
 
 def _plane(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Least-squares plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row`` through pixels."""
+    """Least-squares plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row`` through pixels.
+
+    From the 3x3 normal equations in centred coordinates when they are
+    well-conditioned (the consensus refits planes thousands of times per
+    frame); pixels on a line get the minimum-norm solution (``lstsq``).
+    """
     cr, cc = rows.mean(), cols.mean()
     a = np.column_stack([np.ones(rows.size), cols - cc, rows - cr])
-    coef = np.linalg.lstsq(a, z[rows, cols], rcond=None)[0]
+    zs = z[rows, cols]
+    gram = a.T @ a
+    eig = np.linalg.eigvalsh(gram)
+    if eig[0] > 1e-10 * eig[-1]:  # well-conditioned: the normal equations (~6x faster)
+        coef = np.linalg.solve(gram, a.T @ zs)
+    else:  # pixels on a line: the minimum-norm solution
+        coef = np.linalg.lstsq(a, zs, rcond=None)[0]
     return np.array([coef[0] - coef[1] * cc - coef[2] * cr, coef[1], coef[2]])
 
 

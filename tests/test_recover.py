@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rangeseg_cli import recover
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
@@ -221,3 +222,20 @@ def test_compiled_consensus_votes_equal_the_numpy_reference(seed: int) -> None:
     # the winner is one of the two planes: most of its pixels on one side of the crease
     side = x[numpy] < 22
     assert max(side.mean(), 1.0 - side.mean()) > 0.9
+
+
+def test_plane_through_pixels_is_the_least_squares_plane_even_on_a_line() -> None:
+    rng = np.random.default_rng(11)
+    yy, xx = np.mgrid[0:60, 0:80].astype(np.float64)
+    z = 30.0 + 0.4 * xx - 0.7 * yy + rng.normal(0.0, 1.0, xx.shape)
+    for size in (3, 10, 400):  # well-conditioned: the normal equations
+        rows, cols = rng.integers(0, 60, size), rng.integers(0, 80, size)
+        a = np.column_stack([np.ones(size), cols, rows]).astype(np.float64)
+        best = np.linalg.lstsq(a, z[rows, cols], rcond=None)[0]
+        np.testing.assert_allclose(a @ recover._plane(z, rows, cols), a @ best, atol=1e-9)
+    rows, cols = np.full(20, 7), np.arange(20, 40)  # one row: singular across it
+    coef = recover._plane(z, rows, cols)
+    assert np.all(np.isfinite(coef))
+    a = np.column_stack([np.ones(20), cols, rows]).astype(np.float64)
+    best = np.linalg.lstsq(a, z[rows, cols], rcond=None)[0]
+    np.testing.assert_allclose(a @ coef, a @ best, atol=1e-9)
