@@ -66,7 +66,7 @@ from scipy import ndimage
 
 from .config import Config
 from .edges import Backend, select_kernels
-from .grow import evaluate_quadric, fit_quadrics
+from .grow import RCOND, evaluate_quadric, fit_quadrics
 from .noise import estimate_noise
 from .parallel import map_tasks
 from .rangeimage import require_shape_of_z
@@ -187,7 +187,7 @@ def _plane(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     zs = z[rows, cols]
     gram = a.T @ a
     eig = np.linalg.eigvalsh(gram)
-    if eig[0] > 1e-10 * eig[-1]:  # well-conditioned: the normal equations (~6x faster)
+    if eig[0] > RCOND * eig[-1]:  # well-conditioned (as the region fits): ~6x faster
         coef = np.linalg.solve(gram, a.T @ zs)
     else:  # pixels on a line: the minimum-norm solution
         coef = np.linalg.lstsq(a, zs, rcond=None)[0]
