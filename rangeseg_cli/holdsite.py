@@ -107,11 +107,13 @@ from .edges import Backend, ar_2d, gaussian_taps, select_kernels
 from .errors import InputError
 from .grow import evaluate_quadric, valid_labels
 from .models import Surface
-from .surfaces import kernel_labels, neighbour_pairs, pair_medians
+from .surfaces import NEIGHBOUR_REACH, kernel_labels, neighbour_pairs, pair_medians
 
 #: Regions whose pixels lie within this chessboard distance are neighbours
-#: (across an edge band one or two pixels thick), as in ``Surface.neighbors``.
-ADJACENCY_RADIUS = 2
+#: (across an edge band one or two pixels thick), as in ``Surface.neighbors``:
+#: the same reach, so the step gaps that ``describe_surfaces_and_gaps`` gives
+#: with the surfaces are those :func:`step_gaps` would compute.
+ADJACENCY_RADIUS = NEIGHBOUR_REACH
 
 #: A border region is a candidate for the background only when it holds at
 #: least this fraction of all segmented pixels (unless none does): a sliver
