@@ -1,0 +1,146 @@
+"""Speed against quality of the steps beyond the paper (issues 7 and 9), one step at a time.
+
+The defaults add to the paper's pipeline (``--preset paper``) the fit-test
+split and its second round, the recovery of narrow faces, the fill of edge
+pixels, the merge and the recut (``[split]``). Each costs time and gains
+correct detections. For every variant of :data:`VARIANTS` -- the defaults,
+each step turned off alone (as ``--set`` would), and ``--preset paper`` --
+this script measures, in one process:
+
+* the median time of ``run_pipeline`` (automatic threads) on the bench's
+  frames: the 128x128 and 640x480 bin piles of ``bench_pipeline.py`` and the
+  real SR300 frame of ``sample_data/arc`` with ``suction.toml``; the variants
+  run interleaved in every repeat, so that load on the machine hits them
+  alike;
+* the correct detections (Hoover et al. at T = 0.8, GT regions of >= 50
+  pixels) over every synthetic scene at noise 0, 1 and 2, as
+  ``quality.py`` counts them.
+
+It prints one markdown table (times in ms, and per noise level the correct
+detections with their change against the defaults) and writes
+``benchmarks/results/tradeoffs.{json,md}``. The README's "Speed or quality"
+table comes from it.
+
+Usage::
+
+    .venv/bin/python benchmarks/tradeoffs.py                 # seeds 0-8, 5 repeats (~5 min)
+    .venv/bin/python benchmarks/tradeoffs.py --seeds 0,1,2 --repeats 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_pipeline import REAL_CONFIG, REAL_FRAME, RESULTS, bin_scene, interleaved  # noqa: E402
+from quality import NOISES, measure  # noqa: E402
+
+from rangeseg_cli.config import Config, load_config  # noqa: E402
+from rangeseg_cli.io import read_image  # noqa: E402
+from rangeseg_cli.pipeline import run_pipeline  # noqa: E402
+from rangeseg_cli.synth import SCENES  # noqa: E402
+
+#: Name (as on the command line) and the ``[split]`` values of each variant.
+VARIANTS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("defaults", {}),
+    ("--set split.rounds=1", {"rounds": 1}),
+    ("--set split.enabled=false", {"enabled": False}),
+    ("--set split.trim_pieces=false", {"trim_pieces": False}),
+    ("--set split.trim_faces=false", {"trim_faces": False}),
+    ("--set split.crease_pieces=false", {"crease_pieces": False}),
+    ("--set split.recover=false", {"recover": False}),
+    ("--set split.fill_edges=false", {"fill_edges": False}),
+    ("--set split.merge=false", {"merge": False}),
+    ("--set split.recut=false", {"recut": False}),
+    ("--preset paper", {"enabled": False, "recover": False, "fill_edges": False,
+                        "merge": False, "recut": False}),
+)
+
+
+def variant_config(base: str | Path | None, split: dict[str, Any]) -> Config:
+    """The configuration of ``base`` (a TOML file or the defaults) with ``split`` on top."""
+    return load_config(base, overrides={"split": split} if split else None)
+
+
+def frames() -> dict[str, tuple[np.ndarray, str | Path | None]]:
+    """The timed frames and the configuration file each is read with (None: the defaults)."""
+    return {"128x128 pile": (bin_scene(128, 128, seed=256), None),
+            "640x480 pile": (bin_scene(480, 640, seed=1120), None),
+            "SR300 frame": (read_image(str(REAL_FRAME)), REAL_CONFIG)}
+
+
+def time_variants(repeats: int) -> dict[str, dict[str, float]]:
+    """Median ms of ``run_pipeline`` per variant and frame, the variants interleaved."""
+    tasks: dict[str, Callable[[], Any]] = {}
+    for frame, (image, base) in frames().items():
+        for name, split in VARIANTS:
+            config = variant_config(base, split)
+            tasks[f"{name}|{frame}"] = (lambda im=image, c=config: run_pipeline(im, c))
+    times = interleaved(tasks, repeats)
+    out: dict[str, dict[str, float]] = {name: {} for name, _ in VARIANTS}
+    for key, seconds in times.items():
+        name, frame = key.split("|")
+        out[name][frame] = float(np.median(seconds)) * 1e3
+    return out
+
+
+def quality_variants(seeds: tuple[int, ...], scenes: list[str]) -> dict[str, dict[str, int]]:
+    """Correct detections per variant and noise level (``quality.measure``)."""
+    out: dict[str, dict[str, int]] = {}
+    for name, split in VARIANTS:
+        rows, _, _ = measure(variant_config(None, split), scenes, seeds, False)
+        out[name] = {f"{noise:g}": int(rows[noise]["correct"]) for noise in NOISES}
+        out[name]["gt_regions"] = int(rows[NOISES[0]]["gt_regions"])
+    return out
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The table: ms per frame, correct detections per noise level (change vs the defaults)."""
+    ms, correct = report["median_ms"], report["correct"]
+    frame_names = list(next(iter(ms.values())))
+    base = correct["defaults"]
+    head = ([f"{f} ms" for f in frame_names]
+            + [f"correct σ = {n:g} (of {base['gt_regions']})" for n in NOISES])
+    lines = [f"{report['date']}, seeds {','.join(map(str, report['seeds']))}, medians of "
+             f"{report['repeats']} interleaved runs (automatic threads).", "",
+             "| variant | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+    for name, _ in VARIANTS:
+        cells = [f"{ms[name][f]:.0f}" for f in frame_names]
+        for n in NOISES:
+            value, delta = correct[name][f"{n:g}"], correct[name][f"{n:g}"] - base[f"{n:g}"]
+            cells.append(f"{value}" if name == "defaults" else f"{value} ({delta:+d})")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seeds", default="0,1,2,3,4,5,6,7,8")
+    parser.add_argument("--scenes", default=",".join(SCENES), help="comma-separated scene names")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per variant and frame")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="output folder")
+    args = parser.parse_args(argv)
+    seeds = tuple(int(s) for s in args.seeds.split(","))
+    report: dict[str, Any] = {"date": time.strftime("%Y-%m-%d %H:%M"), "seeds": list(seeds),
+                              "repeats": max(1, args.repeats),
+                              "median_ms": time_variants(max(1, args.repeats)),
+                              "correct": quality_variants(seeds, args.scenes.split(","))}
+    text = markdown(report)
+    print(text)
+    args.results.mkdir(parents=True, exist_ok=True)
+    (args.results / "tradeoffs.json").write_text(json.dumps(report, indent=2) + "\n")
+    (args.results / "tradeoffs.md").write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,53 @@
+"""Tests of benchmarks/tradeoffs.py: its variants are what their names say; its table."""
+
+from __future__ import annotations
+
+import sys
+import tomllib
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+import tradeoffs  # noqa: E402
+
+from rangeseg_cli.config import load_config  # noqa: E402
+
+
+def test_each_set_variant_changes_the_one_split_key_its_name_gives() -> None:
+    defaults = load_config()
+    for name, split in tradeoffs.VARIANTS:
+        if not name.startswith("--set "):
+            continue
+        key, value = name.removeprefix("--set split.").split("=")
+        assert split == {key: tomllib.loads(f"v = {value}")["v"]}
+        config = tradeoffs.variant_config(None, split)
+        assert getattr(config.split, key) == split[key] != getattr(defaults.split, key)
+        assert config.grow == defaults.grow and config.step == defaults.step
+
+
+def test_the_paper_variant_is_the_paper_preset_and_the_defaults_are_the_defaults() -> None:
+    variants = dict(tradeoffs.VARIANTS)
+    assert tradeoffs.variant_config(None, variants["--preset paper"]) == load_config(
+        preset="paper")
+    assert tradeoffs.variant_config(None, variants["defaults"]) == load_config()
+    real = tradeoffs.variant_config(tradeoffs.REAL_CONFIG, variants["--set split.rounds=1"])
+    assert real.step == load_config(tradeoffs.REAL_CONFIG).step and real.split.rounds == 1
+
+
+def test_the_table_gives_each_variant_its_change_against_the_defaults() -> None:
+    names = [name for name, _ in tradeoffs.VARIANTS]
+    frames = ("a", "b")
+    report = {
+        "date": "today", "seeds": [0, 1], "repeats": 3,
+        "median_ms": {n: {f: 10.0 + i for f in frames} for i, n in enumerate(names)},
+        "correct": {n: {"0": 50 - i, "1": 40 + i, "2": 30, "gt_regions": 60}
+                    for i, n in enumerate(names)},
+    }
+    lines = tradeoffs.markdown(report).splitlines()
+    rows = {line.split(" | ")[0].removeprefix("| "): line for line in lines
+            if line.startswith("| ") and not line.startswith("| variant")}
+    assert list(rows) == names
+    assert rows["defaults"].endswith("| 50 | 40 | 30 |")
+    assert rows["--set split.rounds=1"].endswith("| 49 (-1) | 41 (+1) | 30 (+0) |")
+    assert "| 11 | 11 |" in rows["--set split.rounds=1"]
+    assert "correct σ = 0 (of 60)" in lines[2]
