@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint bench reproduce sample-data clean
+.PHONY: run test lint bench tradeoffs reproduce sample-data clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -26,6 +26,10 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_pipeline.py
+
+# Time and correct detections of each step beyond the paper turned off alone (~5 min).
+tradeoffs: $(STAMP)
+	$(BIN)/python benchmarks/tradeoffs.py
 
 reproduce: $(STAMP)
 	$(BIN)/python benchmarks/reproduce_paper.py
