@@ -41,10 +41,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_pipeline import REAL_CONFIG, REAL_FRAME, RESULTS, bin_scene, interleaved  # noqa: E402
+from bench_pipeline import (  # noqa: E402
+    QUICK_SIZES,
+    REAL_CONFIG,
+    REAL_FRAME,
+    RESULTS,
+    bin_scene,
+    interleaved,
+)
 from quality import NOISES, measure  # noqa: E402
 
-from rangeseg_cli.config import Config, load_config  # noqa: E402
+from rangeseg_cli.config import PRESETS, Config, load_config  # noqa: E402
 from rangeseg_cli.io import read_image  # noqa: E402
 from rangeseg_cli.pipeline import run_pipeline  # noqa: E402
 from rangeseg_cli.synth import SCENES  # noqa: E402
@@ -61,8 +68,7 @@ VARIANTS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("--set split.fill_edges=false", {"fill_edges": False}),
     ("--set split.merge=false", {"merge": False}),
     ("--set split.recut=false", {"recut": False}),
-    ("--preset paper", {"enabled": False, "recover": False, "fill_edges": False,
-                        "merge": False, "recut": False}),
+    ("--preset paper", PRESETS["paper"]["split"]),
 )
 
 
@@ -72,10 +78,14 @@ def variant_config(base: str | Path | None, split: dict[str, Any]) -> Config:
 
 
 def frames() -> dict[str, tuple[np.ndarray, str | Path | None]]:
-    """The timed frames and the configuration file each is read with (None: the defaults)."""
-    return {"128x128 pile": (bin_scene(128, 128, seed=256), None),
-            "640x480 pile": (bin_scene(480, 640, seed=1120), None),
-            "SR300 frame": (read_image(str(REAL_FRAME)), REAL_CONFIG)}
+    """The timed frames and the configuration file each is read with (None: the defaults).
+
+    The bench's piles (``bench_pipeline.bench_frame``: seed rows + cols) and its real frame.
+    """
+    piles: dict[str, tuple[np.ndarray, str | Path | None]] = {
+        f"{cols}x{rows} pile": (bin_scene(rows, cols, seed=rows + cols), None)
+        for rows, cols in QUICK_SIZES}
+    return {**piles, "SR300 frame": (read_image(str(REAL_FRAME)), REAL_CONFIG)}
 
 
 def time_variants(repeats: int) -> dict[str, dict[str, float]]:
