@@ -49,32 +49,30 @@ from bench_pipeline import (  # noqa: E402
     bin_scene,
     interleaved,
 )
-from quality import NOISES, measure  # noqa: E402
+from quality import NOISES, _parse_set, measure  # noqa: E402
 
 from rangeseg_cli.config import PRESETS, Config, load_config  # noqa: E402
 from rangeseg_cli.io import read_image  # noqa: E402
 from rangeseg_cli.pipeline import run_pipeline  # noqa: E402
 from rangeseg_cli.synth import SCENES  # noqa: E402
 
-#: Name (as on the command line) and the ``[split]`` values of each variant.
-VARIANTS: tuple[tuple[str, dict[str, Any]], ...] = (
+#: The steps turned off alone, as ``--set`` items.
+SETS: tuple[str, ...] = (
+    "split.rounds=1", "split.enabled=false", "split.trim_pieces=false",
+    "split.trim_faces=false", "split.crease_pieces=false", "split.recover=false",
+    "split.fill_edges=false", "split.merge=false", "split.recut=false")
+
+#: Name (as on the command line) and the overrides of each variant.
+VARIANTS: tuple[tuple[str, dict[str, dict[str, Any]]], ...] = (
     ("defaults", {}),
-    ("--set split.rounds=1", {"rounds": 1}),
-    ("--set split.enabled=false", {"enabled": False}),
-    ("--set split.trim_pieces=false", {"trim_pieces": False}),
-    ("--set split.trim_faces=false", {"trim_faces": False}),
-    ("--set split.crease_pieces=false", {"crease_pieces": False}),
-    ("--set split.recover=false", {"recover": False}),
-    ("--set split.fill_edges=false", {"fill_edges": False}),
-    ("--set split.merge=false", {"merge": False}),
-    ("--set split.recut=false", {"recut": False}),
-    ("--preset paper", PRESETS["paper"]["split"]),
+    *((f"--set {item}", _parse_set([item])) for item in SETS),
+    ("--preset paper", PRESETS["paper"]),
 )
 
 
-def variant_config(base: str | Path | None, split: dict[str, Any]) -> Config:
-    """The configuration of ``base`` (a TOML file or the defaults) with ``split`` on top."""
-    return load_config(base, overrides={"split": split} if split else None)
+def variant_config(base: str | Path | None, overrides: dict[str, dict[str, Any]]) -> Config:
+    """The configuration of ``base`` (a TOML file or the defaults) with ``overrides`` on top."""
+    return load_config(base, overrides=overrides or None)
 
 
 def frames() -> dict[str, tuple[np.ndarray, str | Path | None]]:
@@ -92,8 +90,8 @@ def time_variants(repeats: int) -> dict[str, dict[str, float]]:
     """Median ms of ``run_pipeline`` per variant and frame, the variants interleaved."""
     tasks: dict[str, Callable[[], Any]] = {}
     for frame, (image, base) in frames().items():
-        for name, split in VARIANTS:
-            config = variant_config(base, split)
+        for name, overrides in VARIANTS:
+            config = variant_config(base, overrides)
             tasks[f"{name}|{frame}"] = (lambda im=image, c=config: run_pipeline(im, c))
     times = interleaved(tasks, repeats)
     out: dict[str, dict[str, float]] = {name: {} for name, _ in VARIANTS}
@@ -106,8 +104,8 @@ def time_variants(repeats: int) -> dict[str, dict[str, float]]:
 def quality_variants(seeds: tuple[int, ...], scenes: list[str]) -> dict[str, dict[str, int]]:
     """Correct detections per variant and noise level (``quality.measure``)."""
     out: dict[str, dict[str, int]] = {}
-    for name, split in VARIANTS:
-        rows, _, _ = measure(variant_config(None, split), scenes, seeds, False)
+    for name, overrides in VARIANTS:
+        rows, _, _ = measure(variant_config(None, overrides), scenes, seeds, False)
         out[name] = {f"{noise:g}": int(rows[noise]["correct"]) for noise in NOISES}
         out[name]["gt_regions"] = int(rows[NOISES[0]]["gt_regions"])
     return out

@@ -15,13 +15,14 @@ from rangeseg_cli.config import load_config  # noqa: E402
 
 def test_each_set_variant_changes_the_one_split_key_its_name_gives() -> None:
     defaults = load_config()
-    for name, split in tradeoffs.VARIANTS:
+    for name, overrides in tradeoffs.VARIANTS:
         if not name.startswith("--set "):
             continue
         key, value = name.removeprefix("--set split.").split("=")
-        assert split == {key: tomllib.loads(f"v = {value}")["v"]}
-        config = tradeoffs.variant_config(None, split)
-        assert getattr(config.split, key) == split[key] != getattr(defaults.split, key)
+        assert overrides == {"split": {key: tomllib.loads(f"v = {value}")["v"]}}
+        config = tradeoffs.variant_config(None, overrides)
+        assert (getattr(config.split, key) == overrides["split"][key]
+                != getattr(defaults.split, key))
         assert config.grow == defaults.grow and config.step == defaults.step
 
 
