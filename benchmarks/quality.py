@@ -35,6 +35,7 @@ import numpy as np
 from scipy import ndimage
 
 from rangeseg_cli.config import load_config
+from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import (
     CURVE_TOLERANCES,
     connected_parts,
@@ -73,6 +74,49 @@ def width_class(width: int) -> str:
             return f"{low}-{high}"
         low = high + 1
     return f">={low}"
+
+
+def seed_list(text: str) -> tuple[int, ...]:
+    """``--seeds``: comma-separated integers >= 0 (an argparse ``type``)."""
+    try:
+        seeds = tuple(int(s) for s in text.split(","))
+    except ValueError:
+        seeds = ()
+    if not seeds or min(seeds) < 0:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: allowed comma-separated integers >= 0, e.g. 0,1,2")
+    return seeds
+
+
+def scene_list(text: str) -> list[str]:
+    """``--scenes``: comma-separated names of ``synth.SCENES`` (an argparse ``type``)."""
+    names = text.split(",")
+    unknown = [n for n in names if n not in SCENES]
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown scene {unknown[0]!r}; allowed: " + ", ".join(SCENES))
+    return names
+
+
+def frame_size(text: str) -> tuple[int, int]:
+    """``--size``: ``ROWSxCOLS``, each 16..8192 (an argparse ``type``)."""
+    try:
+        rows, cols = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        rows = cols = 0
+    if not (16 <= rows <= 8192 and 16 <= cols <= 8192):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: allowed ROWSxCOLS with each 16..8192, e.g. 128x128")
+    return rows, cols
+
+
+def set_item(text: str) -> str:
+    """``--set``: ``TABLE.KEY=VALUE`` (an argparse ``type``; checked by ``load_config``)."""
+    key, eq, _ = text.partition("=")
+    if not eq or "." not in key.strip(" ."):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: allowed TABLE.KEY=VALUE, e.g. split.rounds=1")
+    return text
 
 
 def _parse_set(items: list[str]) -> dict[str, dict[str, Any]]:
@@ -173,10 +217,12 @@ def compare(a: str, b: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--preset", default=None)
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    p.add_argument("--scenes", default=",".join(SCENES), help="comma-separated scene names")
-    p.add_argument("--seeds", default="0,1,2")
-    p.add_argument("--size", default="128x128", help="ROWSxCOLS of the rendered scenes")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", type=set_item)
+    p.add_argument("--scenes", default=list(SCENES), type=scene_list,
+                   help="comma-separated scene names")
+    p.add_argument("--seeds", default=SEEDS, type=seed_list)
+    p.add_argument("--size", default=(128, 128), type=frame_size,
+                   help="ROWSxCOLS of the rendered scenes")
     p.add_argument("--misses", action="store_true", help="list GT regions not correctly detected")
     p.add_argument("--gt-parts", action="store_true",
                    help="judge each 8-connected patch of a GT surface as a region of its own")
@@ -188,11 +234,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.compare:
         return compare(*args.compare)
-    config = load_config(preset=args.preset, overrides=_parse_set(args.set))
-    seeds = tuple(int(s) for s in args.seeds.split(","))
-    size = tuple(int(v) for v in args.size.lower().split("x"))
-    rows, labels, missed = measure(config, args.scenes.split(","), seeds, args.misses,
-                                   (size[0], size[1]), args.gt_parts)
+    try:
+        config = load_config(preset=args.preset, overrides=_parse_set(args.set))
+    except ConfigError as exc:
+        p.error(str(exc))  # one line and exit code 2, as for a bad option
+    rows, labels, missed = measure(config, args.scenes, args.seeds, args.misses, args.size,
+                                   args.gt_parts)
     _print(rows)
     if args.widths:
         _print_widths(rows)

@@ -49,7 +49,7 @@ from bench_pipeline import (  # noqa: E402
     bin_scene,
     interleaved,
 )
-from quality import NOISES, _parse_set, measure  # noqa: E402
+from quality import NOISES, _parse_set, measure, scene_list, seed_list  # noqa: E402
 
 from rangeseg_cli.config import PRESETS, Config, load_config  # noqa: E402
 from rangeseg_cli.io import read_image  # noqa: E402
@@ -132,16 +132,18 @@ def markdown(report: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--seeds", default="0,1,2,3,4,5,6,7,8")
-    parser.add_argument("--scenes", default=",".join(SCENES), help="comma-separated scene names")
+    parser.add_argument("--seeds", default=tuple(range(9)), type=seed_list)
+    parser.add_argument("--scenes", default=list(SCENES), type=scene_list,
+                        help="comma-separated scene names")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per variant and frame")
     parser.add_argument("--results", type=Path, default=RESULTS, help="output folder")
     args = parser.parse_args(argv)
-    seeds = tuple(int(s) for s in args.seeds.split(","))
-    report: dict[str, Any] = {"date": time.strftime("%Y-%m-%d %H:%M"), "seeds": list(seeds),
-                              "repeats": max(1, args.repeats),
-                              "median_ms": time_variants(max(1, args.repeats)),
-                              "correct": quality_variants(seeds, args.scenes.split(","))}
+    if args.repeats < 1:
+        parser.error(f"--repeats {args.repeats}: allowed an integer >= 1")
+    report: dict[str, Any] = {"date": time.strftime("%Y-%m-%d %H:%M"), "seeds": list(args.seeds),
+                              "repeats": args.repeats,
+                              "median_ms": time_variants(args.repeats),
+                              "correct": quality_variants(args.seeds, args.scenes)}
     text = markdown(report)
     print(text)
     args.results.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""Tests of benchmarks/quality.py's face widths (the ``--widths`` table of docs/QUALITY.md)."""
+"""Tests of benchmarks/quality.py: face widths (the ``--widths`` table of docs/QUALITY.md), options."""
 
 from __future__ import annotations
 
@@ -42,3 +42,31 @@ def test_width_classes_cover_every_width_once() -> None:
     assert classes[3:5] == ["4-5"] * 2
     assert classes[5:9] == ["6-9"] * 4
     assert set(classes[9:]) == {">=10"}
+
+
+@pytest.mark.parametrize(("args", "named"), [
+    (["--seeds", "0,x"], "'0,x'"),
+    (["--seeds", "-1"], "'-1'"),
+    (["--scenes", "nut,teapot"], "'teapot'"),
+    (["--size", "8x128"], "'8x128'"),
+    (["--set", "rounds=1"], "'rounds=1'"),
+    (["--set", "split.nope=1"], "nope"),
+    (["--set", "split.rounds=0"], "rounds = 0"),
+    (["--preset", "fast"], "'fast'"),
+])
+def test_a_bad_option_gets_one_line_naming_it_and_exit_code_2(
+        args: list[str], named: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stop:
+        quality.main(args)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert named in err[-1]
+    assert "allowed" in err[-1] or "expected" in err[-1]
+    assert not any("Traceback" in line for line in err)
+
+
+def test_the_options_are_parsed_into_seeds_scenes_and_size() -> None:
+    assert quality.seed_list("3,0,12") == (3, 0, 12)
+    assert quality.scene_list("nut,cup") == ["nut", "cup"]
+    assert quality.frame_size("480X640") == (480, 640)
+    assert quality.set_item("split.rounds=1") == "split.rounds=1"

@@ -6,6 +6,8 @@ import sys
 import tomllib
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import tradeoffs  # noqa: E402
@@ -52,3 +54,22 @@ def test_the_table_gives_each_variant_its_change_against_the_defaults() -> None:
     assert rows["--set split.rounds=1"].endswith("| 49 (-1) | 41 (+1) | 30 (+0) |")
     assert "| 11 | 11 |" in rows["--set split.rounds=1"]
     assert "correct σ = 0 (of 60)" in lines[2]
+
+
+@pytest.mark.parametrize(("args", "named"), [
+    (["--seeds", "1,x"], "'1,x'"), (["--scenes", "teapot"], "'teapot'"),
+    (["--repeats", "0"], "--repeats 0"),
+])
+def test_a_bad_option_stops_before_any_run_with_one_line(
+        args: list[str], named: str, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    def never(*_: object) -> None:
+        raise AssertionError("ran before checking its options")
+
+    monkeypatch.setattr(tradeoffs, "time_variants", never)
+    monkeypatch.setattr(tradeoffs, "quality_variants", never)
+    with pytest.raises(SystemExit) as stop:
+        tradeoffs.main(args)
+    assert stop.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert named in last and "allowed" in last
