@@ -43,7 +43,7 @@ from rangeseg_cli.evaluate import (
     hoover_compare,
 )
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth import SCENES, render_scene
+from rangeseg_cli.synth import SCENES, parse_size, render_scene
 
 NOISES = (0.0, 1.0, 2.0)
 SEEDS = (0, 1, 2)
@@ -99,15 +99,11 @@ def scene_list(text: str) -> list[str]:
 
 
 def frame_size(text: str) -> tuple[int, int]:
-    """``--size``: ``ROWSxCOLS``, each 16..8192 (an argparse ``type``)."""
+    """``--size``: ``ROWSxCOLS`` as ``rangeseg synth --size`` takes it (an argparse ``type``)."""
     try:
-        rows, cols = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        rows = cols = 0
-    if not (16 <= rows <= 8192 and 16 <= cols <= 8192):
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: allowed ROWSxCOLS with each 16..8192, e.g. 128x128")
-    return rows, cols
+        return parse_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def set_item(text: str) -> str:

@@ -372,15 +372,12 @@ def _parse_noise(ctx: click.Context, param: click.Parameter, value: str) -> list
 
 
 def _parse_size(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
-    rows, sep, cols = value.lower().partition("x")
+    from .synth import parse_size
+
     try:
-        size = (int(rows), int(cols if sep else rows))
-    except ValueError:
-        size = (0, 0)
-    if not all(16 <= s <= 8192 for s in size):
-        raise click.BadParameter(f"{value!r}: expected ROWSxCOLS, each 16..8192, e.g. 128x128",
-                                 param_hint="--size")
-    return size
+        return parse_size(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--size") from None
 
 
 @main.command(name="synth")

@@ -908,6 +908,24 @@ def _check_name(name: str) -> None:
         raise ValueError(f"scene {name!r} is unknown; allowed: " + ", ".join(SCENES))
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    """``"ROWSxCOLS"`` (or one number for a square) as (rows, cols), each 16..8192.
+
+    Raises
+    ------
+    ValueError
+        One line naming ``text`` and what is allowed.
+    """
+    rows, sep, cols = text.lower().partition("x")
+    try:
+        size = (int(rows), int(cols if sep else rows))
+    except ValueError:
+        size = (0, 0)
+    if not all(16 <= s <= 8192 for s in size):
+        raise ValueError(f"{text!r}: expected ROWSxCOLS, each 16..8192, e.g. 128x128")
+    return size
+
+
 def _check_options(size: Sequence[int], noise: float, bits: int,
                    units_per_pixel: float | None) -> tuple[int, int]:
     if len(size) != 2 or not all(isinstance(s, int | np.integer) and 16 <= s <= 8192

@@ -69,4 +69,5 @@ def test_the_options_are_parsed_into_seeds_scenes_and_size() -> None:
     assert quality.seed_list("3,0,12") == (3, 0, 12)
     assert quality.scene_list("nut,cup") == ["nut", "cup"]
     assert quality.frame_size("480X640") == (480, 640)
+    assert quality.frame_size("64") == (64, 64)
     assert quality.set_item("split.rounds=1") == "split.rounds=1"

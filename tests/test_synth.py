@@ -13,6 +13,7 @@ from rangeseg_cli.synth import (
     PAPER_SCENES,
     SCENES,
     coplanar_groups,
+    parse_size,
     read_ply,
     render_scene,
     write_scenes,
@@ -208,6 +209,15 @@ def test_cli_synth_writes_scenes_and_rejects_bad_options(tmp_path):
         res = runner.invoke(main, ["synth", str(tmp_path / "bad"), *bad])
         assert res.exit_code == 2 and hint in res.output, bad
     assert not (tmp_path / "bad").exists()
+
+
+def test_parse_size_takes_rows_x_cols_or_one_number_each_16_to_8192():
+    assert parse_size("480x640") == (480, 640)
+    assert parse_size("64X32") == (32 * 2, 32)
+    assert parse_size("128") == (128, 128)
+    for bad in ("8x8", "16x9000", "x", "1.5x20", "", "20x20x20"):
+        with pytest.raises(ValueError, match=f"{bad!r}: expected ROWSxCOLS, each 16..8192"):
+            parse_size(bad)
 
 
 def test_cli_eval_table_json_plot_and_exit_codes(tmp_path):
