@@ -43,7 +43,7 @@ from rangeseg_cli.evaluate import (
     hoover_compare,
 )
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth import SCENES, parse_size, render_scene
+from rangeseg_cli.synth import SCENES, parse_scenes, parse_size, render_scene
 
 NOISES = (0.0, 1.0, 2.0)
 SEEDS = (0, 1, 2)
@@ -89,13 +89,11 @@ def seed_list(text: str) -> tuple[int, ...]:
 
 
 def scene_list(text: str) -> list[str]:
-    """``--scenes``: comma-separated names of ``synth.SCENES`` (an argparse ``type``)."""
-    names = text.split(",")
-    unknown = [n for n in names if n not in SCENES]
-    if unknown:
-        raise argparse.ArgumentTypeError(
-            f"unknown scene {unknown[0]!r}; allowed: " + ", ".join(SCENES))
-    return names
+    """``--scenes`` as ``rangeseg synth --scenes`` takes it (an argparse ``type``)."""
+    try:
+        return parse_scenes(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def frame_size(text: str) -> tuple[int, int]:

@@ -345,16 +345,14 @@ def _split_csv(value: str, param: str) -> list[str]:
 
 def _parse_scenes(ctx: click.Context, param: click.Parameter, value: str | None
                   ) -> list[str] | None:
-    from .synth import SCENES
+    from .synth import parse_scenes
 
     if value is None:
         return None
-    names = _split_csv(value, "--scenes")
-    unknown = [n for n in names if n not in SCENES]
-    if unknown:
-        raise click.BadParameter(f"unknown scene {', '.join(unknown)}; allowed: "
-                                 + ", ".join(SCENES), param_hint="--scenes")
-    return names
+    try:
+        return parse_scenes(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--scenes") from None
 
 
 def _parse_noise(ctx: click.Context, param: click.Parameter, value: str) -> list[float]:

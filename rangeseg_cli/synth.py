@@ -908,6 +908,23 @@ def _check_name(name: str) -> None:
         raise ValueError(f"scene {name!r} is unknown; allowed: " + ", ".join(SCENES))
 
 
+def parse_scenes(text: str) -> list[str]:
+    """Comma-separated names of :data:`SCENES` (spaces around them ignored).
+
+    Raises
+    ------
+    ValueError
+        One line naming the unknown scenes and what is allowed.
+    """
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    if not names:
+        raise ValueError(f"{text!r}: expected a comma-separated list")
+    unknown = [n for n in names if n not in SCENES]
+    if unknown:
+        raise ValueError(f"unknown scene {', '.join(unknown)}; allowed: " + ", ".join(SCENES))
+    return names
+
+
 def parse_size(text: str) -> tuple[int, int]:
     """``"ROWSxCOLS"`` (or one number for a square) as (rows, cols), each 16..8192.
 

@@ -13,6 +13,7 @@ from rangeseg_cli.synth import (
     PAPER_SCENES,
     SCENES,
     coplanar_groups,
+    parse_scenes,
     parse_size,
     read_ply,
     render_scene,
@@ -209,6 +210,14 @@ def test_cli_synth_writes_scenes_and_rejects_bad_options(tmp_path):
         res = runner.invoke(main, ["synth", str(tmp_path / "bad"), *bad])
         assert res.exit_code == 2 and hint in res.output, bad
     assert not (tmp_path / "bad").exists()
+
+
+def test_parse_scenes_takes_known_names_and_names_every_unknown_one():
+    assert parse_scenes(" nut, cup ,") == ["nut", "cup"]
+    with pytest.raises(ValueError, match="unknown scene teapot, kettle; allowed: part1, "):
+        parse_scenes("nut,teapot,kettle")
+    with pytest.raises(ValueError, match="expected a comma-separated list"):
+        parse_scenes(" , ")
 
 
 def test_parse_size_takes_rows_x_cols_or_one_number_each_16_to_8192():

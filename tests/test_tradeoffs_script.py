@@ -57,7 +57,7 @@ def test_the_table_gives_each_variant_its_change_against_the_defaults() -> None:
 
 
 @pytest.mark.parametrize(("args", "named"), [
-    (["--seeds", "1,x"], "'1,x'"), (["--scenes", "teapot"], "'teapot'"),
+    (["--seeds", "1,x"], "'1,x'"), (["--scenes", "teapot"], "teapot"),
     (["--repeats", "0"], "--repeats 0"),
 ])
 def test_a_bad_option_stops_before_any_run_with_one_line(
