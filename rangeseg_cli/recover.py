@@ -66,7 +66,7 @@ from scipy import ndimage
 
 from .config import Config
 from .edges import Backend, select_kernels
-from .grow import RCOND, evaluate_quadric, fit_quadrics
+from .grow import EIGHT_NEIGHBOURS, RCOND, evaluate_quadric, fit_quadrics
 from .noise import estimate_noise
 from .parallel import map_tasks
 from .rangeimage import require_shape_of_z
@@ -97,7 +97,6 @@ MAX_HYPOTHESES, MAX_PIECES = 128, 3
 #: Groups with more pixels that fail the plane test are not cut (a bound on the work).
 MAX_GROUP = 4000
 
-_EIGHT = np.ones((3, 3), bool)
 
 
 @dataclass(frozen=True)
@@ -280,7 +279,7 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Bac
         return None
     found = np.zeros(left.shape, bool)
     found[rows[inliers], cols[inliers]] = True
-    parts, _ = ndimage.label(found, structure=_EIGHT)
+    parts, _ = ndimage.label(found, structure=EIGHT_NEIGHBOURS)
     seed = parts[hr[best], hc[best]]
     if seed == 0:
         seed = int(np.argmax(np.bincount(parts.ravel())[1:])) + 1
@@ -293,7 +292,7 @@ def _seed_faces(z: np.ndarray, labels: np.ndarray, fits: _Fits, config: Config, 
     rows, cols = np.nonzero(np.isfinite(z) & (labels == 0))
     free = np.zeros(labels.shape, bool)
     free[rows, cols] = ~_fits_a_neighbour(z, labels, fits, rows, cols)
-    groups, k = ndimage.label(free, structure=_EIGHT)
+    groups, k = ndimage.label(free, structure=EIGHT_NEIGHBOURS)
     faces = np.zeros(labels.shape, np.int32)
     if k == 0:
         return faces
@@ -362,9 +361,10 @@ def _extend(z: np.ndarray, band: np.ndarray, labels: np.ndarray, faces: np.ndarr
     big = np.iinfo(np.int32).max
     for _ in range(passes):
         planes = _Fits.of(z, faces, k, config, order=1)
-        high = ndimage.maximum_filter(faces, footprint=_EIGHT, mode="constant", cval=0)
-        low = ndimage.minimum_filter(np.where(faces > 0, faces, big), footprint=_EIGHT,
-                                     mode="constant", cval=big)
+        high = ndimage.maximum_filter(faces, footprint=EIGHT_NEIGHBOURS, mode="constant",
+                                      cval=0)
+        low = ndimage.minimum_filter(np.where(faces > 0, faces, big),
+                                     footprint=EIGHT_NEIGHBOURS, mode="constant", cval=big)
         rows, cols = np.nonzero(band & (faces == 0) & (high > 0) & (high == low))
         if rows.size == 0:
             break
@@ -403,7 +403,7 @@ def _swallowed(z: np.ndarray, face: np.ndarray, others: np.ndarray, plane: np.nd
                limit: float, fits: _Fits) -> int:
     """Pixels of other regions near ``face`` that its plane predicts better than their own."""
     box = _box(face, PARTIAL_REACH)
-    near = ndimage.binary_dilation(face[box], _EIGHT, iterations=PARTIAL_REACH)
+    near = ndimage.binary_dilation(face[box], EIGHT_NEIGHBOURS, iterations=PARTIAL_REACH)
     rows, cols = np.nonzero(near & (others[box] > 0))
     rows, cols = rows + box[0].start, cols + box[1].start
     ids = others[rows, cols]

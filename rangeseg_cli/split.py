@@ -74,6 +74,7 @@ from scipy import ndimage
 from .config import Config, GrowConfig, SplitConfig
 from .edges import Backend, select_kernels
 from .grow import (
+    EIGHT_NEIGHBOURS,
     Fits,
     evaluate_quadric,
     fit_models,
@@ -1300,9 +1301,9 @@ def _trimmed_faces(z: np.ndarray, pieces: np.ndarray, trimmed: np.ndarray, n: in
     all. :func:`merge_back` then judges them as any other piece; the rest
     of the trim is regrown.
     """
-    from .recover import _EIGHT, plane_pieces  # recover imports this module
+    from .recover import plane_pieces  # recover imports this module
 
-    groups, count = ndimage.label(trimmed, structure=_EIGHT)
+    groups, count = ndimage.label(trimmed, structure=EIGHT_NEIGHBOURS)
     sizes = np.bincount(groups.ravel(), minlength=count + 1)
     boxes = ndimage.find_objects(groups)
     for g in np.flatnonzero(sizes[1:] >= cfg.min_piece) + 1:
