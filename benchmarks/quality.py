@@ -27,14 +27,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tomllib
 from collections import defaultdict
 from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
-from rangeseg_cli.config import load_config
+from rangeseg_cli.config import load_config, parse_settings
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import (
     CURVE_TOLERANCES,
@@ -105,26 +104,12 @@ def frame_size(text: str) -> tuple[int, int]:
 
 
 def set_item(text: str) -> str:
-    """``--set``: ``TABLE.KEY=VALUE`` (an argparse ``type``; checked by ``load_config``)."""
-    key, eq, _ = text.partition("=")
-    if not eq or "." not in key.strip(" ."):
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: allowed TABLE.KEY=VALUE, e.g. split.rounds=1")
+    """``--set``: ``TABLE.KEY=VALUE`` as ``rangeseg run --set`` takes it (an argparse ``type``)."""
+    try:
+        parse_settings([text])
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
     return text
-
-
-def _parse_set(items: list[str]) -> dict[str, dict[str, Any]]:
-    """``TABLE.KEY=VALUE`` items as nested overrides (values parsed as TOML)."""
-    out: dict[str, dict[str, Any]] = {}
-    for item in items:
-        key, _, raw = item.partition("=")
-        table, _, name = key.strip().partition(".")
-        try:
-            value = tomllib.loads(f"v = {raw.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = raw.strip()
-        out.setdefault(table, {})[name] = value
-    return out
 
 
 def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool,
@@ -229,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare:
         return compare(*args.compare)
     try:
-        config = load_config(preset=args.preset, overrides=_parse_set(args.set))
+        config = load_config(preset=args.preset, overrides=parse_settings(args.set))
     except ConfigError as exc:
         p.error(str(exc))  # one line and exit code 2, as for a bad option
     rows, labels, missed = measure(config, args.scenes, args.seeds, args.misses, args.size,

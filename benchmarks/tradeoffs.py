@@ -49,9 +49,9 @@ from bench_pipeline import (  # noqa: E402
     bin_scene,
     interleaved,
 )
-from quality import NOISES, _parse_set, measure, scene_list, seed_list  # noqa: E402
+from quality import NOISES, measure, scene_list, seed_list  # noqa: E402
 
-from rangeseg_cli.config import PRESETS, Config, load_config  # noqa: E402
+from rangeseg_cli.config import PRESETS, Config, load_config, parse_settings  # noqa: E402
 from rangeseg_cli.io import read_image  # noqa: E402
 from rangeseg_cli.pipeline import run_pipeline  # noqa: E402
 from rangeseg_cli.synth import SCENES  # noqa: E402
@@ -65,7 +65,7 @@ SETS: tuple[str, ...] = (
 #: Name (as on the command line) and the overrides of each variant.
 VARIANTS: tuple[tuple[str, dict[str, dict[str, Any]]], ...] = (
     ("defaults", {}),
-    *((f"--set {item}", _parse_set([item])) for item in SETS),
+    *((f"--set {item}", parse_settings([item])) for item in SETS),
     ("--preset paper", PRESETS["paper"]),
 )
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import logging
 import sys
-import tomllib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -90,19 +89,13 @@ class UsageProblem(click.ClickException):
 
 
 def _parse_settings(settings: tuple[str, ...]) -> dict[str, dict[str, Any]]:
-    out: dict[str, dict[str, Any]] = {}
-    for item in settings:
-        key, sep, raw = item.partition("=")
-        table, dot, name = key.strip().partition(".")
-        if not sep or not dot or not table or not name:
-            raise click.BadParameter(f"{item!r}: expected TABLE.KEY=VALUE, e.g. "
-                                     "step.threshold=8", param_hint="--set")
-        try:
-            value = tomllib.loads(f"v = {raw.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = raw.strip()  # a bare word: a string choice such as one-sided
-        out.setdefault(table, {})[name] = value
-    return out
+    from .config import parse_settings
+    from .errors import ConfigError
+
+    try:
+        return parse_settings(settings)
+    except ConfigError as exc:
+        raise click.BadParameter(str(exc), param_hint="--set") from None
 
 
 def _load_config(config_path: str | None, preset: str | None, settings: tuple[str, ...],

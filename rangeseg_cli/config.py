@@ -20,6 +20,7 @@ import hashlib
 import json
 import math
 import tomllib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args
@@ -439,6 +440,32 @@ def load_config(
     if overrides:
         values = merge(values, overrides)
     return build_config(values, source)
+
+
+def parse_settings(items: Iterable[str]) -> dict[str, dict[str, Any]]:
+    """``TABLE.KEY=VALUE`` items (``--set``) as nested overrides for :func:`load_config`.
+
+    A value is read as TOML (``8``, ``true``, ``"x"``, ``[21, 21]``); a bare
+    word that is not TOML is taken as a string (a choice such as
+    ``one-sided``). The keys and values are checked by :func:`load_config`.
+
+    Raises
+    ------
+    ConfigError
+        For an item without ``=`` or without a table and a key.
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        table, dot, name = key.strip().partition(".")
+        if not sep or not dot or not table or not name:
+            raise ConfigError(f"{item!r}: expected TABLE.KEY=VALUE, e.g. step.threshold=8")
+        try:
+            value = tomllib.loads(f"v = {raw.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw.strip()  # a bare word: a string choice such as one-sided
+        out.setdefault(table, {})[name] = value
+    return out
 
 
 def read_toml(path: Path) -> dict[str, Any]:

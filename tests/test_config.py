@@ -3,7 +3,7 @@ import tomllib
 
 import pytest
 
-from rangeseg_cli.config import PRESETS, Config, default_toml, load_config
+from rangeseg_cli.config import PRESETS, Config, default_toml, load_config, parse_settings
 from rangeseg_cli.errors import ConfigError
 
 
@@ -130,3 +130,14 @@ def test_intrinsics_on_a_height_map_are_refused() -> None:
         load_config(overrides={"input": {"fx": 500.0, "fy": 500.0}})
     assert load_config(preset="mm-depth",
                        overrides={"input": {"fx": 500.0, "fy": 500.0}}).input.has_intrinsics
+
+
+def test_parse_settings_reads_values_as_toml_and_bare_words_as_strings():
+    got = parse_settings(["step.threshold=8", " roof.truncation = one-sided",
+                          "holdsite.size=[21, 21]", "split.recut=false"])
+    assert got == {"step": {"threshold": 8}, "roof": {"truncation": "one-sided"},
+                   "holdsite": {"size": [21, 21]}, "split": {"recut": False}}
+    assert load_config(overrides=got).roof.truncation == "one-sided"
+    for bad in ("step.threshold", "threshold=8", ".threshold=8", "step.=8"):
+        with pytest.raises(ConfigError, match=f"{bad!r}: expected TABLE.KEY=VALUE"):
+            parse_settings([bad])

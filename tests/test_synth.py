@@ -222,7 +222,7 @@ def test_parse_scenes_takes_known_names_and_names_every_unknown_one():
 
 def test_parse_size_takes_rows_x_cols_or_one_number_each_16_to_8192():
     assert parse_size("480x640") == (480, 640)
-    assert parse_size("64X32") == (32 * 2, 32)
+    assert parse_size("64X32") == (64, 32)
     assert parse_size("128") == (128, 128)
     for bad in ("8x8", "16x9000", "x", "1.5x20", "", "20x20x20"):
         with pytest.raises(ValueError, match=f"{bad!r}: expected ROWSxCOLS, each 16..8192"):
