@@ -39,6 +39,9 @@ Notes
 5. Ground truth. Every visible surface -- a face of a solid, the wall or
    bottom of a hole, a group of adjacent coplanar mesh triangles, the table
    -- gets an int32 label 1..K in the order of declaration (0 = no surface).
+   Planar faces of one object that touch in the image and lie in one plane
+   (two solids flush, as part1's base and block on their +y side) are one
+   surface (:func:`join_flush_faces`): no segmenter can see where they meet.
    An object is *uncovered* when no other part lies above any of its pixels.
 """
 
@@ -55,6 +58,8 @@ import numpy as np
 
 #: Height of the table in depth units, as in the paper's ERIM images (Sec. VI).
 TABLE_HEIGHT = 30.0
+#: Largest height off one plane (design units) of faces joined by :func:`join_flush_faces`.
+FLUSH_TOLERANCE = 1e-6
 #: Depth units per design unit (a pixel at 128x128); see the module notes on roof edges.
 UNITS_PER_DESIGN_UNIT = 2.0
 #: Side of the design frame in design units (the paper's images are 128x128).
@@ -887,6 +892,81 @@ def _labels(parts: Sequence[Part], stack: _Stack
     return winner, z, gt, surfaces
 
 
+def _touching_pairs(gt: np.ndarray) -> set[tuple[int, int]]:
+    """Pairs ``(a, b)``, ``0 < a < b``, of labels that are 8-neighbours somewhere."""
+    pairs: set[tuple[int, int]] = set()
+    for a, b in ((gt[:, :-1], gt[:, 1:]), (gt[:-1, :], gt[1:, :]),
+                 (gt[:-1, :-1], gt[1:, 1:]), (gt[:-1, 1:], gt[1:, :-1])):
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        keep = (lo > 0) & (lo != hi)
+        pairs.update(zip(lo[keep].tolist(), hi[keep].tolist(), strict=True))
+    return pairs
+
+
+def _one_plane(z: np.ndarray, mask: np.ndarray) -> bool:
+    """Whether ``mask`` spans a plane that holds all its exact heights (design units)."""
+    rows, cols = np.nonzero(mask)
+    design = np.column_stack([np.ones(rows.size), rows, cols])
+    coef, _, rank, _ = np.linalg.lstsq(design, z[mask], rcond=None)
+    return bool(rank == 3 and np.max(np.abs(design @ coef - z[mask])) <= FLUSH_TOLERANCE)
+
+
+def join_flush_faces(gt: np.ndarray, z: np.ndarray, surfaces: list[dict[str, Any]]
+                     ) -> tuple[np.ndarray, list[dict[str, Any]]]:
+    """One ground-truth surface for touching coplanar faces of one object (Notes, 5).
+
+    A part built of solids can have faces of two solids flush in one plane
+    (part1's base, block and fillet end on one side, Fig. 10): in the image
+    they are one planar surface, with no edge for any segmenter to find.
+    Planar faces of the same object that are 8-neighbours and lie in one
+    plane (every exact height of both within :data:`FLUSH_TOLERANCE` of the
+    plane fitted to them) become one surface, named by their names joined
+    with ``" & "``. A face too small to span a plane on its own (fewer than
+    three pixels, or all in a line) is never joined: any plane holds it.
+
+    Parameters
+    ----------
+    gt
+        int32 (H, W) labels 1..K, 0 = no surface.
+    z
+        float (H, W) exact heights in design units (non-finite where ``gt`` is 0).
+    surfaces
+        ``{id, object, kind, name, pixels}`` per label, ids 1..K in order.
+
+    Returns
+    -------
+    tuple
+        The labels renumbered 1..K' in the order of each surface's first
+        member, and their descriptions.
+    """
+    parent = list(range(len(surfaces) + 1))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            k = parent[k]
+        return k
+
+    by_id = {s["id"]: s for s in surfaces}
+    spans = {k: by_id[k]["kind"] == _PLANE and _one_plane(z, gt == k) for k in by_id}
+    for a, b in sorted(_touching_pairs(gt)):
+        ra, rb = root(a), root(b)
+        if ra == rb or by_id[a]["object"] != by_id[b]["object"] or not (spans[a] and spans[b]):
+            continue
+        group = np.isin(gt, [k for k in by_id if root(k) in (ra, rb)])
+        if _one_plane(z, group):
+            parent[max(ra, rb)] = min(ra, rb)
+    roots = sorted({root(s["id"]) for s in surfaces})
+    new_id = {r: i for i, r in enumerate(roots, start=1)}
+    lookup = np.array([0] + [new_id[root(k)] for k in range(1, len(surfaces) + 1)], np.int32)
+    joined = []
+    for r in roots:
+        members = [s for s in surfaces if root(s["id"]) == r]
+        joined.append({**members[0], "id": new_id[r],
+                       "name": " & ".join(s["name"] for s in members),
+                       "pixels": sum(s["pixels"] for s in members)})
+    return lookup[gt], joined
+
+
 def _uncovered(parts: Sequence[Part], stack: _Stack, winner: np.ndarray, z: np.ndarray
                ) -> list[int]:
     background = np.array([p.background for p in parts])
@@ -1007,6 +1087,7 @@ def render_scene(name: str, *, size: Sequence[int] = (128, 128), noise: float = 
     parts = [_table(), *spec.build(grid, layout_rng)]
     stack = _drop(parts, grid)
     winner, z, gt, surfaces = _labels(parts, stack)
+    gt, surfaces = join_flush_faces(gt.reshape(shape), z.reshape(shape), surfaces)
     heights = (table_height + per_design * z).reshape(shape)
     noisy = heights + noise * np.random.default_rng([seed, 1]).standard_normal(shape)
     raw_per_unit = 1.0 if bits == 8 else RAW_PER_UNIT_16

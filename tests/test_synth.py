@@ -13,6 +13,7 @@ from rangeseg_cli.synth import (
     PAPER_SCENES,
     SCENES,
     coplanar_groups,
+    join_flush_faces,
     parse_scenes,
     parse_size,
     read_ply,
@@ -78,6 +79,41 @@ def test_noise_free_planar_faces_have_exact_planar_heights():
             if s["kind"] == "planar" and s["pixels"] >= 3:
                 assert plane_residual(scene, s["id"]) < tol, (name, s["name"])
         assert np.array_equal(scene.image, np.rint(scene.heights).astype(np.uint8))
+
+
+def _surface(k, obj=1, kind="planar"):
+    return {"id": k, "object": obj, "kind": kind, "name": f"f{k}", "pixels": 0}
+
+
+def test_flush_faces_of_one_object_become_one_surface_and_others_stay_apart():
+    rows, cols = np.mgrid[0:8, 0:12].astype(float)
+    z = 3.0 + 0.5 * rows - 0.25 * cols  # one plane under all four faces
+    z[:, 9:] += 1.0  # face 4: parallel, one unit higher (a step)
+    gt = np.ones((8, 12), np.int32)
+    gt[:, 3:6], gt[:, 6:9], gt[:, 9:] = 2, 3, 4
+    gt[0, 0] = 5  # one pixel: any plane holds it
+    surfaces = [_surface(1), _surface(2), _surface(3, obj=2), _surface(4), _surface(5)]
+    for s in surfaces:
+        s["pixels"] = int((gt == s["id"]).sum())
+    joined, out = join_flush_faces(gt, z, surfaces)
+    assert [s["name"] for s in out] == ["f1 & f2", "f3", "f4", "f5"]  # 3: another object
+    assert [s["id"] for s in out] == [1, 2, 3, 4]
+    assert [s["pixels"] for s in out] == [int((joined == k).sum()) for k in (1, 2, 3, 4)]
+    assert np.array_equal(joined == 1, (gt == 1) | (gt == 2))
+    curved = [dict(s, kind="cylindrical") if s["id"] == 2 else s for s in surfaces]
+    assert len(join_flush_faces(gt, z, curved)[1]) == 5
+    assert np.array_equal(join_flush_faces(gt, z + 0.1 * (gt == 2), surfaces)[0] == 1, gt == 1)
+
+
+def test_no_two_touching_planar_faces_of_one_object_lie_in_one_plane():
+    # part1's base, block and fillet end are flush on their +y side: one GT surface.
+    part1 = render_scene("part1", seed=0)
+    names = [s["name"] for s in part1.info["surfaces"]]
+    assert "base +y & block +y & fillet top" in names and "block +y" not in names
+    for name in sorted(set(SCENES) - MESH_SCENES):
+        scene = render_scene(name, seed=0)
+        again, surfaces = join_flush_faces(scene.gt, scene.heights, scene.info["surfaces"])
+        assert np.array_equal(again, scene.gt) and surfaces == scene.info["surfaces"], name
 
 
 def test_roof_edges_change_slope_enough_for_the_paper_thresholds():
