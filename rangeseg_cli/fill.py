@@ -12,7 +12,11 @@ This last step runs the growing test once more, on the final regions, with
 one change: a pixel that touches several regions joins the one whose surface
 predicts it best relative to its bound, instead of staying an edge. Regions
 then abut; their boundary is where the labels change, and
-:mod:`rangeseg_cli.surfaces` finds neighbours across it as before.
+:mod:`rangeseg_cli.surfaces` finds neighbours across it as before. The
+pipeline fills twice: before the merge and the recut, which judge the
+filled regions, and after them, since a merged region's surface or a recut
+piece's plane can explain edge pixels that no surface explained before (the
+walls of the cube's holes at noise 0, ``docs/QUALITY.md``).
 
 Notes
 -----

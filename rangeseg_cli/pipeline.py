@@ -141,7 +141,9 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     with ``[split] merge`` touching regions that one surface fits are merged
     (:mod:`rangeseg_cli.merge`); with ``[split] recut`` regions are cut along
     the straight line where a plane meets a tangent surface or another
-    plane (:mod:`rangeseg_cli.recut`).
+    plane (:mod:`rangeseg_cli.recut`), and then, with ``[split]
+    fill_edges``, the edge pixels that the merged and recut regions'
+    surfaces explain are filled once more.
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
     """
@@ -164,9 +166,9 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
         from .recover import recover_faces
 
         labels = recover_faces(z, components, labels, config, noise=sigma)
-    if config.split.fill_edges:
-        from .fill import fill_edges
+    from .fill import fill_edges
 
+    if config.split.fill_edges:
         labels = fill_edges(z, labels, config.grow)
     if config.split.merge:
         from .merge import merge_regions
@@ -176,6 +178,8 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
         from .recut import recut_regions
 
         labels = recut_regions(z, labels, config, noise=sigma)
+    if cfg.fill_edges and (cfg.merge or cfg.recut):  # what the new surfaces explain
+        labels = fill_edges(z, labels, config.grow)
     return labels, *describe_surfaces_and_gaps(z, labels, config)
 
 

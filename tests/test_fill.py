@@ -112,6 +112,15 @@ def test_filling_raises_correct_detections_on_a_noisy_cup():
     assert correct_on > correct_off
 
 
+@pytest.mark.parametrize("scene", ["cube-holes", "part1"])
+def test_the_pipelines_labels_leave_nothing_to_fill(scene):
+    # The fill runs again after the merge and the recut: edge pixels that a merged or
+    # recut region's surface explains (the cube's hole walls at sigma 0) join it.
+    image = render_scene(scene, size=(128, 128), noise=0.0, seed=0).image
+    result = run_pipeline(image, load_config())
+    assert np.array_equal(fill_edges(result.heights, result.labels, GROW), result.labels)
+
+
 def test_paper_preset_leaves_the_edges():
     assert load_config(preset="paper").split.fill_edges is False
     assert load_config().split.fill_edges is True
