@@ -168,6 +168,13 @@ class SplitConfig:
     recut: bool = _opt(True, "after the merge, cut a region (or re-cut two touching "
                        "regions) along the straight line where a plane ends: a curved surface "
                        "tangent to it (a smooth edge) or another plane (a crease)")
+    refine: bool = _opt(True, "last, move each boundary pixel to the neighbouring surface "
+                        "that predicts it best, counting the neighbours it would disagree with")
+    refine_passes: int = _opt(3, "passes of the boundary refinement, each with the surfaces "
+                              "fitted again", min=1, max=100)
+    refine_smoothness: float = _opt(1.0, "cost of each 8-neighbour a pixel would disagree "
+                                    "with, against its squared residual in units of the "
+                                    "noise (at least grow.min_error)", min=0.0)
 
 
 @dataclass(frozen=True)
@@ -232,9 +239,9 @@ _TABLE_CLASSES: dict[str, type] = {
 
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge or recut)
+    # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut or refine)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
-                        "merge": False, "recut": False}},
+                        "merge": False, "recut": False, "refine": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,

@@ -86,11 +86,12 @@ def uses_noise(config: Config) -> bool:
     """Whether a stage of ``config`` uses the image's noise estimate.
 
     The noise-scaled thresholds (``[input] auto_thresholds``, Sec. V-1, V-2)
-    and the split, recovery, merge and recut of ``[split]`` (beyond the
-    paper; the fill does not).
+    and the split, recovery, merge, recut and boundary refinement of
+    ``[split]`` (beyond the paper; the fill does not).
     """
     s = config.split
-    return config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
+    return (config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
+            or s.refine)
 
 
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
@@ -143,7 +144,9 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     the straight line where a plane meets a tangent surface or another
     plane (:mod:`rangeseg_cli.recut`), and then, with ``[split]
     fill_edges``, the edge pixels that the merged and recut regions'
-    surfaces explain are filled once more.
+    surfaces explain are filled once more; with ``[split] refine`` boundary
+    pixels move to the neighbouring surface that predicts them best
+    (:mod:`rangeseg_cli.refine`).
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
     """
@@ -153,7 +156,8 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     fits = component_fits(z, components)  # seeds the growth; the split tests them
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
     cfg = config.split
-    if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut):
+    if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut
+            or cfg.refine):
         return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise
@@ -180,6 +184,10 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
         labels = recut_regions(z, labels, config, noise=sigma)
     if cfg.fill_edges and (cfg.merge or cfg.recut):  # what the new surfaces explain
         labels = fill_edges(z, labels, config.grow)
+    if cfg.refine:
+        from .refine import refine_boundaries
+
+        labels = refine_boundaries(z, labels, config, noise=sigma)
     return labels, *describe_surfaces_and_gaps(z, labels, config)
 
 

@@ -1,0 +1,102 @@
+"""Boundary pixels settle on the surface that predicts them best (rangeseg_cli.refine)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rangeseg_cli.config import load_config
+from rangeseg_cli.evaluate import hoover_compare
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.refine import refine_boundaries
+from rangeseg_cli.synth import render_scene
+
+CONFIG = load_config()
+
+
+def roof(noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Two planes meeting at a crease along column 31.5, with truth 1 | 2."""
+    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
+    z = 100.0 + 3.0 * np.abs(x - 31.5) + 0.5 * y
+    z += np.random.default_rng(seed).normal(0.0, noise, z.shape) if noise else 0.0
+    return z, np.where(x < 31.5, 1, 2).astype(np.int32)
+
+
+def strip(lost: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A face 3 pixels wide rising 12 per pixel between two flat planes.
+
+    As a box's side seen at a grazing angle (part1's sides rise 14-18 per
+    pixel). The labels give the face's ``lost`` ("left" or "right") column
+    to the neighbouring plane.
+    """
+    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
+    z = 100.0 + 12.0 * np.clip(x - 29.5, 0.0, 3.0) + 0.25 * y
+    truth = np.select([x < 30, x < 33], [1, 2], 3).astype(np.int32)
+    left, right = (31, 33) if lost == "left" else (30, 32)
+    labels = np.select([x < left, x < right], [1, 2], 3).astype(np.int32)
+    return z, truth, labels
+
+
+def test_a_boundary_two_pixels_off_moves_back_to_the_crease():
+    z, truth = roof()
+    off = np.where(np.arange(64) < 34, 1, 2)[None, :].repeat(48, axis=0).astype(np.int32)
+    out = refine_boundaries(z, off, CONFIG, noise=0.0)
+    np.testing.assert_array_equal(out, truth)
+
+
+@pytest.mark.parametrize("lost", ["left", "right"])
+def test_a_narrow_face_gets_back_the_column_its_neighbour_took(lost):
+    z, truth, labels = strip(lost)
+    assert hoover_compare(truth, labels).counts()["correct"] == 2  # the strip is lost
+    out = refine_boundaries(z, labels, CONFIG, noise=0.0)
+    np.testing.assert_array_equal(out, truth)
+
+
+def test_smoothness_keeps_noisy_pixels_from_crossing_the_crease():
+    z, truth = roof(noise=2.0, seed=4)
+    smooth = refine_boundaries(z, truth, CONFIG, noise=2.0)
+    rough = refine_boundaries(z, truth, load_config(overrides={"split": {
+        "refine_smoothness": 0.0}}), noise=2.0)
+    assert np.count_nonzero(smooth != truth) < np.count_nonzero(rough != truth)
+
+
+def test_labelled_pixels_stay_labelled_and_the_input_is_kept():
+    z, truth = roof(noise=1.0, seed=1)
+    z[5:9, 10:20] = np.nan
+    labels = np.where(np.arange(64) < 33, 1, 2)[None, :].repeat(48, axis=0).astype(np.int32)
+    labels[:, 40:42] = 0  # an edge band
+    before = labels.copy()
+    out = refine_boundaries(z, labels, CONFIG, noise=1.0)
+    np.testing.assert_array_equal(labels, before)
+    np.testing.assert_array_equal(out > 0, (before > 0) & np.isfinite(z))
+    assert set(np.unique(out).tolist()) == {0, 1, 2}
+
+
+def test_a_region_that_loses_every_pixel_leaves_consecutive_labels():
+    z, truth = roof()
+    labels = truth.copy()
+    labels[20, 10] = 3  # one pixel of plane 1 labelled as a region of its own
+    labels[30, 50] = 4  # and one of plane 2
+    out = refine_boundaries(z, labels, CONFIG, noise=0.0)
+    np.testing.assert_array_equal(out, truth)
+
+
+def test_shapes_must_agree():
+    with pytest.raises(ValueError):
+        refine_boundaries(np.zeros((4, 4)), np.zeros((4, 5), np.int32), CONFIG, noise=0.0)
+
+
+def test_part2s_chamfer_is_found_at_sigma_2_by_the_refinement_alone():
+    scene = render_scene("part2", noise=2.0, seed=1)
+    chamfer = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "base chamfer")
+    found = {}
+    for refine in (True, False):
+        config = load_config(overrides={"split": {"recut": False, "refine": refine}})
+        result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
+        found[refine] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
+    assert chamfer in found[True] and chamfer not in found[False]
+
+
+def test_paper_preset_turns_it_off():
+    assert load_config(preset="paper").split.refine is False
+    assert CONFIG.split.refine is True
