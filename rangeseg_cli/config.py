@@ -158,7 +158,7 @@ class SplitConfig:
                          "surface fits")
     recover_passes: int = _opt(2, "passes extending a recovered face into edge pixels it fits "
                                "better than their region", min=0, max=100)
-    recover_max_noise: float = _opt(1.5, "recover no face when the estimated image noise is "
+    recover_max_noise: float = _opt(2.5, "recover no face when the estimated image noise is "
                                     "above this, depth units", min=0.0)
     fill_edges: bool = _opt(True, "last, give each edge pixel still unlabelled to the "
                             "neighbouring surface that fits it best within the growing bound "

@@ -132,7 +132,7 @@ def test_nothing_is_recovered_above_the_noise_limit() -> None:
     assert recover_faces(result.heights, result.components, result.labels, ON,
                          noise=1.0).max() > result.labels.max()
     assert recover_faces(result.heights, result.components, result.labels, ON,
-                         noise=1.6) is result.labels
+                         noise=2.6) is result.labels
 
 
 # ------------------------------------------------------------------ stage contract
@@ -241,3 +241,17 @@ def test_plane_through_pixels_is_the_least_squares_plane_even_on_a_line() -> Non
     a = np.column_stack([np.ones(20), cols, rows]).astype(np.float64)
     best = np.linalg.lstsq(a, z[rows, cols], rcond=None)[0]
     np.testing.assert_allclose(a @ coef, a @ best, atol=1e-9)
+
+
+def test_at_sigma_2_a_recovered_grazing_side_is_found_once_the_refinement_settles_it() -> None:
+    # part1's block +x, a side 2 pixels wide, seed 0: recovered, then its boundary moved
+    # back by the refinement (docs/QUALITY.md); neither alone finds it.
+    scene = render_scene("part1", noise=2.0, seed=0)
+    side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "block +x")
+    found = {}
+    for on, refine in ((True, True), (False, True), (True, False)):
+        config = load_config(overrides={"split": {"recover": on, "refine": refine}})
+        result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
+        found[on, refine] = any(i.kind == "correct" and side in i.gt
+                                     for i in result.instances)
+    assert found == {(True, True): True, (False, True): False, (True, False): False}

@@ -91,7 +91,8 @@ def test_part2s_chamfer_is_found_at_sigma_2_by_the_refinement_alone():
     chamfer = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "base chamfer")
     found = {}
     for refine in (True, False):
-        config = load_config(overrides={"split": {"recut": False, "refine": refine}})
+        config = load_config(overrides={"split": {"recut": False, "recover": False,
+                                                  "refine": refine}})
         result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
         found[refine] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
     assert chamfer in found[True] and chamfer not in found[False]
