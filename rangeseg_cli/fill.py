@@ -43,7 +43,7 @@ from .grow import evaluate_quadric, fit_models, planar
 from .rangeimage import labels_on_valid
 
 #: The eight neighbour offsets (drow, dcol) in raster order of the 3x3 window.
-_OFFSETS: tuple[tuple[int, int], ...] = tuple(
+NEIGHBOUR_OFFSETS: tuple[tuple[int, int], ...] = tuple(
     (dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0))
 
 
@@ -62,7 +62,7 @@ def _best_neighbour(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound
     best = np.zeros(rows.size, np.int32)
     ratio = np.full(rows.size, np.inf)
     heights = z[rows, cols]
-    for dr, dc in _OFFSETS:
+    for dr, dc in NEIGHBOUR_OFFSETS:
         r, c = rows + dr, cols + dc
         at = np.flatnonzero((r >= 0) & (r < h) & (c >= 0) & (c < w))
         ids = labels[r[at], c[at]]
@@ -165,8 +165,8 @@ def _frontier(open_: np.ndarray, rows: np.ndarray, cols: np.ndarray
     passes run a hundred times over a shrinking band).
     """
     h, w = open_.shape
-    r = (rows[:, None] + np.array([dr for dr, _ in _OFFSETS])).ravel()
-    c = (cols[:, None] + np.array([dc for _, dc in _OFFSETS])).ravel()
+    r = (rows[:, None] + np.array([dr for dr, _ in NEIGHBOUR_OFFSETS])).ravel()
+    c = (cols[:, None] + np.array([dc for _, dc in NEIGHBOUR_OFFSETS])).ravel()
     inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
     flat = np.unique(r[inside] * w + c[inside])
     flat = flat[open_.ravel()[flat]]

@@ -161,3 +161,21 @@ def labels_on_valid(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.n
     z = np.asarray(z, dtype=np.float64)
     require_shape_of_z(z, labels=labels)
     return z, np.where(np.isfinite(z), labels, 0).astype(np.int32)
+
+
+def consecutive_labels(labels: np.ndarray) -> np.ndarray:
+    """Labels renumbered 1..k in the order of their ids, 0 kept (ids no pixel has dropped).
+
+    Parameters
+    ----------
+    labels
+        Non-negative int (H, W) labels.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W).
+    """
+    present = np.bincount(labels.ravel()) > 0
+    present[0] = True
+    return (np.cumsum(present, dtype=np.int32) - 1)[labels]

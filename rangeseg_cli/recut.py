@@ -81,7 +81,7 @@ from .edges import Backend, select_kernels
 from .grow import fit_models, planar
 from .merge import _join_box, touching_pairs
 from .parallel import map_tasks
-from .rangeimage import labels_on_valid
+from .rangeimage import consecutive_labels, labels_on_valid
 from .split import _area
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
@@ -663,6 +663,4 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
         out[box][side] = j if j else next_id
         next_id += 0 if j else 1
         used.update((i, j))
-    present = np.bincount(out.ravel()) > 0
-    present[0] = True
-    return (np.cumsum(present, dtype=np.int32) - 1)[out]  # ids made consecutive
+    return consecutive_labels(out)

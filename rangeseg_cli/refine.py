@@ -39,20 +39,17 @@ import math
 import numpy as np
 
 from .config import Config
-from .fill import surface_models
+from .fill import NEIGHBOUR_OFFSETS, surface_models
 from .grow import evaluate_quadric
-from .rangeimage import labels_on_valid
-
-#: The eight neighbour offsets (drow, dcol) in raster order of the 3x3 window.
-_OFFSETS: tuple[tuple[int, int], ...] = tuple(
-    (dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0))
+from .rangeimage import consecutive_labels, labels_on_valid
 
 
 def _neighbour_labels(labels: np.ndarray) -> np.ndarray:
     """Each pixel's 8-neighbours' labels, int (8, H, W), 0 beyond the image."""
     h, w = labels.shape
     pad = np.pad(labels, 1)
-    return np.stack([pad[1 + dr:1 + dr + h, 1 + dc:1 + dc + w] for dr, dc in _OFFSETS])
+    return np.stack([pad[1 + dr:1 + dr + h, 1 + dc:1 + dc + w]
+                     for dr, dc in NEIGHBOUR_OFFSETS])
 
 
 def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: float,
@@ -71,7 +68,7 @@ def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: floa
 
     own = labels[rows, cols]
     best, lowest = own.copy(), cost(own)
-    for k in range(len(_OFFSETS)):
+    for k in range(len(NEIGHBOUR_OFFSETS)):
         ids = near[:, k]
         usable = (ids > 0) & (ids != best)
         trial = np.where(usable, cost(np.where(usable, ids, own)), np.inf)
@@ -122,6 +119,4 @@ def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, nois
         if np.array_equal(moved, out):
             break
         out = moved
-    present = np.bincount(out.ravel()) > 0
-    present[0] = True
-    return (np.cumsum(present, dtype=np.int32) - 1)[out]
+    return consecutive_labels(out)
