@@ -44,21 +44,40 @@ from .grow import evaluate_quadric
 from .rangeimage import consecutive_labels, labels_on_valid
 
 
-def _neighbour_labels(labels: np.ndarray) -> np.ndarray:
-    """Each pixel's 8-neighbours' labels, int (8, H, W), 0 beyond the image."""
-    h, w = labels.shape
-    pad = np.pad(labels, 1)
-    return np.stack([pad[1 + dr:1 + dr + h, 1 + dc:1 + dc + w]
-                     for dr, dc in NEIGHBOUR_OFFSETS])
+#: Slices of the pixel pairs that are 8-neighbours, each pair once: right, down, and
+#: the two diagonals below.
+_PAIRS: tuple[tuple[tuple[slice, slice], tuple[slice, slice]], ...] = (
+    ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+    ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+    ((slice(None, -1), slice(None, -1)), (slice(1, None), slice(1, None))),
+    ((slice(None, -1), slice(1, None)), (slice(1, None), slice(None, -1))),
+)
+
+
+def _boundary(labels: np.ndarray) -> np.ndarray:
+    """Labelled pixels with an 8-neighbour of another label (not 0)."""
+    out = np.zeros(labels.shape, dtype=bool)
+    for one, other in _PAIRS:
+        a, b = labels[one], labels[other]
+        differ = (a != b) & (a > 0) & (b > 0)
+        out[one] |= differ
+        out[other] |= differ
+    return out
+
+
+def _neighbour_labels(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """int (N, 8): the 8-neighbours' labels of the pixels ``rows, cols``, 0 beyond the image."""
+    width = labels.shape[1] + 2
+    steps = np.array([dr * width + dc for dr, dc in NEIGHBOUR_OFFSETS])
+    flat = (rows + 1) * width + (cols + 1)
+    return np.pad(labels, 1).ravel()[flat[:, None] + steps]
 
 
 def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: float,
               smoothness: float) -> np.ndarray:
     """Each boundary pixel's cheapest label (Notes 2); ``labels`` elsewhere."""
-    around = _neighbour_labels(labels)
-    boundary = (labels > 0) & ((around > 0) & (around != labels)).any(axis=0)
-    rows, cols = np.nonzero(boundary)
-    near = around[:, rows, cols].T  # (N, 8)
+    rows, cols = np.nonzero(_boundary(labels))
+    near = _neighbour_labels(labels, rows, cols)
     heights = z[rows, cols]
 
     def cost(ids: np.ndarray) -> np.ndarray:
