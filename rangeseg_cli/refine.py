@@ -43,7 +43,6 @@ from .fill import NEIGHBOUR_OFFSETS, surface_models
 from .grow import evaluate_quadric
 from .rangeimage import consecutive_labels, labels_on_valid
 
-
 #: Slices of the pixel pairs that are 8-neighbours, each pair once: right, down, and
 #: the two diagonals below.
 _PAIRS: tuple[tuple[tuple[slice, slice], tuple[slice, slice]], ...] = (
@@ -66,7 +65,7 @@ def _boundary(labels: np.ndarray) -> np.ndarray:
 
 
 def _neighbour_labels(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """int (N, 8): the 8-neighbours' labels of the pixels ``rows, cols``, 0 beyond the image."""
+    """The 8-neighbours' labels of the pixels ``rows, cols``, int (N, 8), 0 beyond the image."""
     width = labels.shape[1] + 2
     steps = np.array([dr * width + dc for dr, dc in NEIGHBOUR_OFFSETS])
     flat = (rows + 1) * width + (cols + 1)
