@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from rangeseg_cli.cli import main
 from rangeseg_cli.config import load_config
+from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.refine import refine_boundaries
@@ -101,3 +105,23 @@ def test_part2s_chamfer_is_found_at_sigma_2_by_the_refinement_alone():
 def test_paper_preset_turns_it_off():
     assert load_config(preset="paper").split.refine is False
     assert CONFIG.split.refine is True
+
+
+@pytest.mark.parametrize(("values", "match"), [
+    ({"split": {"refine": "yes"}}, r"\[split\] refine = 'yes': expected true or false"),
+    ({"split": {"refine_passes": 0}}, r"\[split\] refine_passes = 0"),
+    ({"split": {"refine_smoothness": -1.0}}, r"\[split\] refine_smoothness = -1.0"),
+])
+def test_refine_keys_are_validated(values, match):
+    with pytest.raises(ConfigError, match=match):
+        load_config(overrides=values)
+
+
+def test_a_bad_refine_key_on_the_command_line_is_one_line(tmp_path):
+    image = tmp_path / "in.png"
+    iio.imwrite(image, render_scene("box", size=(32, 32)).image)
+    result = CliRunner().invoke(main, ["run", str(image), "-o", str(tmp_path / "out"),
+                                       "--set", "split.refine_passes=0"])
+    assert result.exit_code != 0 and "Traceback" not in result.output
+    assert "refine_passes = 0" in result.output.strip().splitlines()[-1]
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
