@@ -39,11 +39,8 @@ from scipy import ndimage
 
 from .config import Config
 from .grow import evaluate_quadric, fit_models, fit_quadrics, planar
-from .rangeimage import labels_on_valid
+from .rangeimage import HALF_NEIGHBOUR_PAIRS, labels_on_valid
 from .split import _crease_angle
-
-#: Offsets (drow, dcol) that visit each pair of 8-neighbouring pixels once.
-_HALF_OFFSETS: tuple[tuple[int, int], ...] = ((0, 1), (1, -1), (1, 0), (1, 1))
 
 
 def touching_pairs(labels: np.ndarray, coeffs: np.ndarray, max_gap: float
@@ -65,15 +62,13 @@ def touching_pairs(labels: np.ndarray, coeffs: np.ndarray, max_gap: float
     list of tuple
         Sorted unique pairs.
     """
-    h, w = labels.shape
     big = int(labels.max(initial=0)) + 1
     keys, gaps = [], []
-    for dr, dc in _HALF_OFFSETS:
-        c0, c1 = max(0, -dc), w - max(0, dc)
-        a, b = labels[: h - dr, c0:c1], labels[dr:, c0 + dc: c1 + dc]
+    for first, second in HALF_NEIGHBOUR_PAIRS:
+        a, b = labels[first], labels[second]
         rows, cols = np.nonzero((a > 0) & (b > 0) & (a != b))
         la, lb = a[rows, cols].astype(np.int64), b[rows, cols].astype(np.int64)
-        cols = cols + c0
+        cols = cols + (first[1].start or 0)
         gaps.append(np.abs(evaluate_quadric(coeffs[la], rows, cols)
                            - evaluate_quadric(coeffs[lb], rows, cols)))
         keys.append(np.minimum(la, lb) * big + np.maximum(la, lb))

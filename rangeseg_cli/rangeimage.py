@@ -163,6 +163,18 @@ def labels_on_valid(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.n
     return z, np.where(np.isfinite(z), labels, 0).astype(np.int32)
 
 
+#: Index pairs ``(first, second)`` of two views of an (H, W) array whose elements are
+#: 8-neighbouring pixels, every pair of 8-neighbours once: offsets (drow, dcol) (0, 1),
+#: (1, -1), (1, 0), (1, 1) from ``first`` to ``second``. ``first`` starts at row 0 and at
+#: column ``first[1].start or 0``.
+HALF_NEIGHBOUR_PAIRS: tuple[tuple[tuple[slice, slice], tuple[slice, slice]], ...] = (
+    ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+    ((slice(None, -1), slice(1, None)), (slice(1, None), slice(None, -1))),
+    ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+    ((slice(None, -1), slice(None, -1)), (slice(1, None), slice(1, None))),
+)
+
+
 def consecutive_labels(labels: np.ndarray) -> np.ndarray:
     """Labels renumbered 1..k in the order of their ids, 0 kept (ids no pixel has dropped).
 

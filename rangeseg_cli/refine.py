@@ -41,22 +41,13 @@ import numpy as np
 from .config import Config
 from .fill import NEIGHBOUR_OFFSETS, surface_models
 from .grow import evaluate_quadric
-from .rangeimage import consecutive_labels, labels_on_valid
-
-#: Slices of the pixel pairs that are 8-neighbours, each pair once: right, down, and
-#: the two diagonals below.
-_PAIRS: tuple[tuple[tuple[slice, slice], tuple[slice, slice]], ...] = (
-    ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
-    ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
-    ((slice(None, -1), slice(None, -1)), (slice(1, None), slice(1, None))),
-    ((slice(None, -1), slice(1, None)), (slice(1, None), slice(None, -1))),
-)
+from .rangeimage import HALF_NEIGHBOUR_PAIRS, consecutive_labels, labels_on_valid
 
 
 def _boundary(labels: np.ndarray) -> np.ndarray:
     """Labelled pixels with an 8-neighbour of another label (not 0)."""
     out = np.zeros(labels.shape, dtype=bool)
-    for one, other in _PAIRS:
+    for one, other in HALF_NEIGHBOUR_PAIRS:
         a, b = labels[one], labels[other]
         differ = (a != b) & (a > 0) & (b > 0)
         out[one] |= differ
