@@ -168,6 +168,9 @@ class SplitConfig:
     recut: bool = _opt(True, "after the merge, cut a region (or re-cut two touching "
                        "regions) along the straight line where a plane ends: a curved surface "
                        "tangent to it (a smooth edge) or another plane (a crease)")
+    carve: bool = _opt(True, "before the refinement, give a narrow face that growing took "
+                       "into a planar region's border (a chamfer) a region of its own, when "
+                       "one plane fits it to the noise at a crease with the region's plane")
     refine: bool = _opt(True, "last, move each boundary pixel to the neighbouring surface "
                         "that predicts it best, counting the neighbours it would disagree with")
     refine_passes: int = _opt(3, "passes of the boundary refinement, each with the surfaces "
@@ -175,6 +178,10 @@ class SplitConfig:
     refine_smoothness: float = _opt(1.0, "cost of each 8-neighbour a pixel would disagree "
                                     "with, against its squared residual in units of the "
                                     "noise (at least grow.min_error)", min=0.0)
+    refine_creases: bool = _opt(True, "in the boundary refinement, give a pixel near a crease "
+                                "to the surface visible there (the lower of the two at a "
+                                "convex crease, the higher at a concave one) instead of the "
+                                "one with the smaller residual")
 
 
 @dataclass(frozen=True)
@@ -241,7 +248,8 @@ _TABLE_CLASSES: dict[str, type] = {
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut or refine)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
-                        "merge": False, "recut": False, "refine": False}},
+                        "merge": False, "recut": False, "carve": False,
+                        "refine": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,

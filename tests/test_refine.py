@@ -11,8 +11,9 @@ from rangeseg_cli.cli import main
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
+from rangeseg_cli.fill import surface_models
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.refine import refine_boundaries
+from rangeseg_cli.refine import crease_kinds, refine_boundaries
 from rangeseg_cli.synth import render_scene
 
 CONFIG = load_config()
@@ -57,11 +58,59 @@ def test_a_narrow_face_gets_back_the_column_its_neighbour_took(lost):
 
 
 def test_smoothness_keeps_noisy_pixels_from_crossing_the_crease():
+    # the crease rule alone puts every pixel right here: off, to test the smoothness
     z, truth = roof(noise=2.0, seed=4)
-    smooth = refine_boundaries(z, truth, CONFIG, noise=2.0)
+    smooth = refine_boundaries(z, truth, load_config(overrides={"split": {
+        "refine_creases": False}}), noise=2.0)
     rough = refine_boundaries(z, truth, load_config(overrides={"split": {
-        "refine_smoothness": 0.0}}), noise=2.0)
+        "refine_smoothness": 0.0, "refine_creases": False}}), noise=2.0)
     assert np.count_nonzero(smooth != truth) < np.count_nonzero(rough != truth)
+
+
+def two_planes(shape: str) -> tuple[np.ndarray, np.ndarray]:
+    """A ridge, a valley or a step between columns 31 and 32, labels 1 | 2, no noise."""
+    y, x = np.mgrid[0:40, 0:64].astype(np.float64)
+    z = {"ridge": 200.0 - 3.0 * np.abs(x - 31.5), "valley": 100.0 + 3.0 * np.abs(x - 31.5),
+         "step": 100.0 + 0.5 * x + 20.0 * (x > 31.5)}[shape] + 0.25 * y
+    return z, np.where(x < 31.5, 1, 2).astype(np.int32)
+
+
+@pytest.mark.parametrize(("shape", "kind"), [("ridge", -1), ("valley", 1), ("step", 0)])
+def test_crease_kinds_tell_a_ridge_a_valley_and_a_step(shape, kind):
+    z, labels = two_planes(shape)
+    coeffs, _ = surface_models(z, labels, 2, CONFIG.grow)
+    kinds = crease_kinds(labels, coeffs)
+    assert kinds[1, 2] == kinds[2, 1] == kind
+    assert not kinds[0].any() and not kinds[:, 0].any()
+
+
+def test_regions_too_far_apart_have_no_crease_kind():
+    z, _ = two_planes("ridge")
+    labels = np.select([np.arange(64) < 28, np.arange(64) >= 36], [1, 2], 0)
+    labels = labels[None, :].repeat(40, axis=0).astype(np.int32)
+    coeffs, _ = surface_models(z, labels, 2, CONFIG.grow)
+    assert not crease_kinds(labels, coeffs).any()
+
+
+@pytest.mark.parametrize("seed", [2, 4])
+def test_the_crease_rule_keeps_noisy_pixels_on_their_side_of_the_crease(seed):
+    z, truth = roof(noise=2.0, seed=seed)
+    plain = refine_boundaries(z, truth, load_config(overrides={"split": {
+        "refine_creases": False}}), noise=2.0)
+    creased = refine_boundaries(z, truth, CONFIG, noise=2.0)
+    assert np.count_nonzero(plain != truth) >= 10  # the residual alone moves them
+    np.testing.assert_array_equal(creased, truth)
+
+
+def test_the_crease_rule_finds_part2s_narrow_side_at_sigma_2():
+    scene = render_scene("part2", noise=2.0, seed=0)
+    side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "base -y side")
+    found = {}
+    for creases in (True, False):
+        config = load_config(overrides={"split": {"refine_creases": creases}})
+        result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
+        found[creases] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
+    assert side in found[True] and side not in found[False]
 
 
 def test_labelled_pixels_stay_labelled_and_the_input_is_kept():
@@ -111,6 +160,7 @@ def test_paper_preset_turns_it_off():
     ({"split": {"refine": "yes"}}, r"\[split\] refine = 'yes': expected true or false"),
     ({"split": {"refine_passes": 0}}, r"\[split\] refine_passes = 0"),
     ({"split": {"refine_smoothness": -1.0}}, r"\[split\] refine_smoothness = -1.0"),
+    ({"split": {"refine_creases": 1}}, r"\[split\] refine_creases = 1: expected true or false"),
 ])
 def test_refine_keys_are_validated(values, match):
     with pytest.raises(ConfigError, match=match):
