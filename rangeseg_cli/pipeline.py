@@ -86,12 +86,12 @@ def uses_noise(config: Config) -> bool:
     """Whether a stage of ``config`` uses the image's noise estimate.
 
     The noise-scaled thresholds (``[input] auto_thresholds``, Sec. V-1, V-2)
-    and the split, recovery, merge, recut and boundary refinement of
+    and the split, recovery, merge, recut, carving and boundary refinement of
     ``[split]`` (beyond the paper; the fill does not).
     """
     s = config.split
     return (config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
-            or s.refine)
+            or s.carve or s.refine)
 
 
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
@@ -125,6 +125,33 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     return labels, surfaces
 
 
+def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
+                    ) -> np.ndarray:
+    """The merge, recut, second fill, carving and refinement of ``[split]``, in order."""
+    cfg = config.split
+    if cfg.merge:
+        from .merge import merge_regions
+
+        labels = merge_regions(z, labels, config, noise=sigma)
+    if cfg.recut:
+        from .recut import recut_regions
+
+        labels = recut_regions(z, labels, config, noise=sigma)
+    if cfg.fill_edges and (cfg.merge or cfg.recut):  # what the new surfaces explain
+        from .fill import fill_edges
+
+        labels = fill_edges(z, labels, config.grow)
+    if cfg.carve:
+        from .carve import carve_faces
+
+        labels = carve_faces(z, labels, config, noise=sigma)
+    if cfg.refine:
+        from .refine import refine_boundaries
+
+        labels = refine_boundaries(z, labels, config, noise=sigma)
+    return labels
+
+
 def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray,
                         config: Config, *, noise: float | None = None
                         ) -> tuple[np.ndarray, list[Surface], dict[tuple[int, int], float]]:
@@ -144,9 +171,11 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     the straight line where a plane meets a tangent surface or another
     plane (:mod:`rangeseg_cli.recut`), and then, with ``[split]
     fill_edges``, the edge pixels that the merged and recut regions'
-    surfaces explain are filled once more; with ``[split] refine`` boundary
-    pixels move to the neighbouring surface that predicts them best
-    (:mod:`rangeseg_cli.refine`).
+    surfaces explain are filled once more; with ``[split] carve`` narrow
+    faces grown into a planar region's border get regions of their own
+    (:mod:`rangeseg_cli.carve`); with ``[split] refine`` boundary pixels
+    move to the neighbouring surface that predicts them best, or, near a
+    crease, to the one visible there (:mod:`rangeseg_cli.refine`).
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
     """
@@ -157,7 +186,7 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
     cfg = config.split
     if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut
-            or cfg.refine):
+            or cfg.carve or cfg.refine):
         return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise
@@ -174,20 +203,7 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
 
     if config.split.fill_edges:
         labels = fill_edges(z, labels, config.grow)
-    if config.split.merge:
-        from .merge import merge_regions
-
-        labels = merge_regions(z, labels, config, noise=sigma)
-    if config.split.recut:
-        from .recut import recut_regions
-
-        labels = recut_regions(z, labels, config, noise=sigma)
-    if cfg.fill_edges and (cfg.merge or cfg.recut):  # what the new surfaces explain
-        labels = fill_edges(z, labels, config.grow)
-    if cfg.refine:
-        from .refine import refine_boundaries
-
-        labels = refine_boundaries(z, labels, config, noise=sigma)
+    labels = _after_the_fill(z, labels, config, sigma)
     return labels, *describe_surfaces_and_gaps(z, labels, config)
 
 

@@ -1,0 +1,257 @@
+"""Carve narrow faces out of the border of a planar region.
+
+Beyond Al-Hujazi & Sood (1990), after the fill of :mod:`rangeseg_cli.fill`
+and before the boundary refinement of :mod:`rangeseg_cli.refine`. Region
+growing (Sec. V-4) accepts a pixel whose squared residual is below
+``grow.error_factor`` times the region's error: ten times, by default. A
+face 2-5 pixels wide along a plane's border -- the chamfer round a nut's
+top, rising 1.7 depth units per pixel against it -- stays within that bound
+for its first pixels and is grown into the plane, so no later step sees it
+as unlabelled (:mod:`rangeseg_cli.recover`) or as a failed fit
+(:mod:`rangeseg_cli.split`: a few dozen pixels barely move the RMS error of
+a region of a thousand). The paper's conclusion (Sec. VIII) asks for a test
+of the fits; this is that test on a region's border.
+
+Notes
+-----
+1. Regions. A region of ``4 * link.min_component`` pixels or more whose
+   interior -- its pixels ``INTERIOR + 1`` or more pixels (chessboard) from
+   any other -- has ``2 * link.min_component`` pixels or more and is planar
+   by ``grow.planar_tolerance`` (:func:`~rangeseg_cli.grow.planar`). Its
+   plane is fitted to the interior only, which an absorbed face barely
+   reaches, and fitted again without the interior pixels farther than
+   ``OUTLIER_FACTOR`` times the fit-test level from it (the face's first
+   pixels); the planar test is made on the rest, which must be
+   ``INLIER_SHARE`` of the interior or more.
+2. Candidates. On the region's border (its pixels not in the interior), the
+   residual to that plane, averaged over the region's pixels in the 3x3
+   window, is a face's when it is over ``SIGNIFICANCE * s / sqrt(k)``, with
+   ``k`` the pixels averaged and ``s = max(noise, sqrt(grow.min_error))``:
+   the mean of pure noise stays below that. Candidates fall into 8-connected
+   groups; groups of ``SEED_PIXELS`` or more are cut into planes by
+   consensus (:func:`~rangeseg_cli.recover.plane_pieces`, each pixel within
+   twice ``PIECE_FACTOR`` times the fit test level: two faces of a chamfer
+   meeting at a corner are two pieces).
+3. Faces. A piece's plane is fitted again after one pass of extension: the
+   region's pixels next to it whose residual to its plane is below their
+   residual to the region's plane join it. It becomes a region of its own
+   when it has ``link.min_component`` pixels or more, its RMS error passes
+   the split's fit test (``split.fit_factor * s``, Sec. VIII) and its plane
+   meets the region's at ``split.min_crease`` degrees or more (the split's
+   rule for two planes that stay apart; a piece of the region's own plane,
+   at a step's mixed pixels, does not).
+
+The boundary refinement that follows settles the new faces' borders
+(:mod:`rangeseg_cli.refine`, Notes 5: the crease rule). New regions are
+numbered after the existing ones, in the order of the regions they are cut
+from; existing labels keep their ids.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from .config import Config
+from .grow import planar
+from .rangeimage import labels_on_valid
+from .recover import _plane, plane_pieces
+
+#: Erosions (3x3) of a region that leave its interior (Notes 1).
+INTERIOR = 2
+
+#: A border pixel's mean residual over its 3x3 window is a face's above this many
+#: ``s / sqrt(k)`` (Notes 2).
+SIGNIFICANCE = 2.5
+
+#: Smallest group of candidates cut into pieces, and smallest piece (pixels).
+SEED_PIXELS = 8
+
+#: A candidate pixel fits a consensus plane within ``2 * PIECE_FACTOR`` times the
+#: fit-test level (Notes 2).
+PIECE_FACTOR = 0.7
+
+#: Interior pixels farther than this many fit-test levels from its first plane are
+#: outliers (the first pixels of an absorbed face); the plane is fitted again without them.
+OUTLIER_FACTOR = 2.0
+
+#: A region whose interior has fewer inliers than this share is not a plane (Notes 1).
+INLIER_SHARE = 0.9
+
+#: Pixels round a group's box in which its consensus planes are found.
+PIECE_PAD = 4
+
+_SQUARE = np.ones((3, 3), dtype=bool)
+
+
+def _box(where: tuple[slice, slice], shape: tuple[int, ...]) -> tuple[slice, slice]:
+    """``where`` grown by one pixel on every side, within ``shape``."""
+    rows, cols = where
+    return (slice(max(rows.start - 1, 0), min(rows.stop + 1, shape[0])),
+            slice(max(cols.start - 1, 0), min(cols.stop + 1, shape[1])))
+
+
+def _plane_and_quadric(z: np.ndarray, rows: np.ndarray, cols: np.ndarray
+                       ) -> tuple[np.ndarray, float, float]:
+    """Plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row``, its MSE and the quadric's MSE.
+
+    From the normal equations in centred coordinates (a region's interior can
+    hold most of a frame).
+    """
+    r0, c0 = rows.mean(), cols.mean()
+    u, v = cols - c0, rows - r0
+    basis = np.column_stack([np.ones(rows.size), u, v, u * u, u * v, v * v])
+    z0 = float(z[rows, cols].mean())
+    zs = z[rows, cols] - z0
+    gram, rhs = basis.T @ basis, basis.T @ zs
+    mse = []
+    for k in (3, 6):
+        coef = np.linalg.lstsq(gram[:k, :k], rhs[:k], rcond=None)[0]
+        mse.append(max(float(zs @ zs - 2.0 * coef @ rhs[:k] + coef @ gram[:k, :k] @ coef)
+                       / rows.size, 0.0))
+        if k == 3:
+            plane = np.array([z0 + coef[0] - coef[1] * c0 - coef[2] * r0, coef[1], coef[2]])
+    return plane, mse[0], mse[1]
+
+
+def _planar_fit(z: np.ndarray, mask: np.ndarray, config: Config, level: float
+                ) -> np.ndarray | None:
+    """The interior's plane, fitted again without its outliers (Notes 1); None if curved."""
+    rows, cols = np.nonzero(mask)
+    plane = _plane_and_quadric(z, rows, cols)[0]
+    inlier = np.abs(z[rows, cols] - _height(plane, rows, cols)) <= OUTLIER_FACTOR * level
+    if np.count_nonzero(inlier) < INLIER_SHARE * rows.size:
+        return None
+    plane, mse_plane, mse_quad = _plane_and_quadric(z, rows[inlier], cols[inlier])
+    flat = planar(np.array([mse_quad]), np.array([mse_plane]), config.grow.planar_tolerance,
+                  config.grow.min_error)
+    return plane if bool(flat[0]) else None
+
+
+def _height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    return plane[0] + plane[1] * cols + plane[2] * rows
+
+
+def _candidates(z: np.ndarray, region: np.ndarray, interior: np.ndarray, plane: np.ndarray,
+                s: float) -> np.ndarray:
+    """Border pixels whose 3x3 mean residual is significant (Notes 2): bool like ``region``."""
+    rows, cols = np.nonzero(region)
+    residual = np.zeros(region.shape)
+    residual[rows, cols] = z[rows, cols] - _height(plane, rows, cols)
+    count = ndimage.correlate(region.astype(np.float64), _SQUARE.astype(np.float64),
+                              mode="constant")
+    total = ndimage.correlate(residual, _SQUARE.astype(np.float64), mode="constant")
+    mean = total / np.maximum(count, 1.0)
+    return region & ~interior & (np.abs(mean) * np.sqrt(count) > SIGNIFICANCE * s)
+
+
+def _crease_degrees(p: np.ndarray, q: np.ndarray) -> float:
+    """Angle between the normals of two planes (a0, a1, a2), degrees."""
+    n1, n2 = np.array([-p[1], -p[2], 1.0]), np.array([-q[1], -q[2], 1.0])
+    cos = float(n1 @ n2 / (np.linalg.norm(n1) * np.linalg.norm(n2)))
+    return math.degrees(math.acos(min(1.0, cos)))
+
+
+def _extended(z: np.ndarray, piece: np.ndarray, free: np.ndarray, region_plane: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The piece after one pass of extension into ``free`` pixels, and its plane (Notes 3)."""
+    rows, cols = np.nonzero(piece)
+    plane = _plane(z, rows, cols)
+    ring = ndimage.binary_dilation(piece, _SQUARE) & free & ~piece
+    rr, rc = np.nonzero(ring)
+    own = (z[rr, rc] - _height(plane, rr, rc)) ** 2
+    theirs = (z[rr, rc] - _height(region_plane, rr, rc)) ** 2
+    face = piece.copy()
+    face[rr[own < theirs], rc[own < theirs]] = True
+    rows, cols = np.nonzero(face)
+    return face, _plane(z, rows, cols)
+
+
+def _pieces(z: np.ndarray, groups: np.ndarray, g: int, where: tuple[slice, slice],
+            level: float) -> list[np.ndarray]:
+    """Group ``g``'s planes by consensus (Notes 2), as masks of the whole of ``groups``.
+
+    The consensus runs on the group's box grown by ``PIECE_PAD`` (the local
+    planes of the hypotheses see only the group's pixels, so the box gives
+    the same pieces as the region's whole frame, faster).
+    """
+    box = tuple(slice(max(s.start - PIECE_PAD, 0), s.stop + PIECE_PAD) for s in where)
+    pieces = []
+    for part in plane_pieces(z[box], groups[box] == g, level=level, min_pixels=SEED_PIXELS):
+        whole = np.zeros(groups.shape, dtype=bool)
+        whole[box] = part
+        pieces.append(whole)
+    return pieces
+
+
+def _faces_of(z: np.ndarray, region: np.ndarray, config: Config, s: float) -> list[np.ndarray]:
+    """The faces carved out of one region (Notes), bool masks like ``region``."""
+    minimum = config.link.min_component
+    interior = ndimage.binary_erosion(region, _SQUARE, iterations=INTERIOR)
+    if np.count_nonzero(region) < 4 * minimum or np.count_nonzero(interior) < 2 * minimum:
+        return []
+    level = config.split.fit_factor * s
+    plane = _planar_fit(z, interior, config, level)
+    if plane is None:
+        return []
+    groups, count = ndimage.label(_candidates(z, region, interior, plane, s), _SQUARE)
+    sizes = np.bincount(groups.ravel(), minlength=count + 1)
+    faces: list[np.ndarray] = []
+    free = region.copy()
+    for g, where in enumerate(ndimage.find_objects(groups), start=1):
+        if where is None or sizes[g] < SEED_PIXELS:
+            continue
+        for piece in _pieces(z, groups, g, where, PIECE_FACTOR * level):
+            face, own = _extended(z, piece & free, free, plane)
+            rows, cols = np.nonzero(face)
+            rms = math.sqrt(float(np.mean((z[rows, cols] - _height(own, rows, cols)) ** 2)))
+            if (rows.size >= minimum and rms <= level
+                    and _crease_degrees(own, plane) >= config.split.min_crease):
+                faces.append(face)
+                free &= ~face
+    return faces
+
+
+def carve_faces(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
+                ) -> np.ndarray:
+    """Give narrow faces grown into a planar region's border regions of their own (Notes).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) regions 1..n, 0 = none.
+    config
+        ``[link] min_component``; ``[grow] planar_tolerance`` and
+        ``min_error``; ``[split] fit_factor`` and ``min_crease``.
+    noise
+        Noise sigma of ``z`` (:func:`~rangeseg_cli.noise.estimate_noise`);
+        NaN counts as 0.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W): ``labels`` with the carved faces numbered n+1, n+2, ...
+
+    Raises
+    ------
+    ValueError
+        When the shapes of ``z`` and ``labels`` differ.
+    """
+    z, out = labels_on_valid(z, labels)
+    sigma = 0.0 if math.isnan(noise) else noise
+    s = math.sqrt(max(sigma * sigma, config.grow.min_error))
+    known = np.nan_to_num(z)
+    next_id = int(out.max(initial=0)) + 1
+    for k, where in enumerate(ndimage.find_objects(out), start=1):
+        if where is None:
+            continue
+        box = _box(where, out.shape)
+        region = out[box] == k
+        for face in _faces_of(known[box], region, config, s):
+            out[box][face & region] = next_id
+            next_id += 1
+    return out.astype(np.int32, copy=False)

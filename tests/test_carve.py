@@ -1,0 +1,109 @@
+"""Narrow faces grown into a planar region's border get regions of their own (rangeseg_cli.carve)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rangeseg_cli.carve import carve_faces
+from rangeseg_cli.config import load_config
+from rangeseg_cli.errors import ConfigError
+from rangeseg_cli.evaluate import hoover_compare
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.refine import refine_boundaries
+from rangeseg_cli.synth import render_scene
+
+CONFIG = load_config()
+CHAMFER = (40, 44)  # columns of the chamfer
+
+
+def chamfered(noise: float, seed: int, *, slope: float = 1.7
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A top plane, a chamfer 4 pixels wide falling ``slope`` per pixel, a steep side.
+
+    Returns heights, the truth (1 top, 2 chamfer, 3 side) and the labels
+    growing leaves: the chamfer grown into the top (1), the side (2).
+    """
+    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
+    top = 150.0 + 0.2 * y + 0.1 * x
+    into = np.clip(x - (CHAMFER[0] - 0.5), 0.0, CHAMFER[1] - CHAMFER[0])
+    beyond = np.clip(x - (CHAMFER[1] - 0.5), 0.0, None)
+    z = top - slope * into - 8.0 * beyond
+    z += np.random.default_rng(seed).normal(0.0, noise, z.shape) if noise else 0.0
+    truth = np.select([x < CHAMFER[0], x < CHAMFER[1]], [1, 2], 3).astype(np.int32)
+    grown = np.where(x < CHAMFER[1], 1, 2).astype(np.int32)
+    return z, truth, grown
+
+
+@pytest.mark.parametrize(("noise", "seed"), [(0.0, 0), (1.0, 0), (1.0, 1), (2.0, 2)])
+def test_a_chamfer_grown_into_the_top_is_carved_out(noise, seed):
+    z, truth, grown = chamfered(noise, seed)
+    out = carve_faces(z, grown, CONFIG, noise=noise)
+    new = out == 3
+    assert np.count_nonzero(new) >= CONFIG.link.min_component
+    assert np.count_nonzero(new & (truth == 2)) >= 0.8 * np.count_nonzero(new)
+    np.testing.assert_array_equal(out[out != 3], grown[out != 3])  # the rest is kept
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_with_the_refinement_the_chamfer_is_a_correct_detection(seed):
+    z, truth, grown = chamfered(1.0, seed)
+    assert hoover_compare(truth, grown).counts()["correct"] == 2  # top and side only
+    out = refine_boundaries(z, carve_faces(z, grown, CONFIG, noise=1.0), CONFIG, noise=1.0)
+    assert hoover_compare(truth, out).counts()["correct"] == 3
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_noise_alone_carves_nothing(seed):
+    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
+    z = 120.0 + 0.3 * x - 0.2 * y + np.random.default_rng(seed).normal(0.0, 2.0, x.shape)
+    labels = np.where(x < 40, 1, 2).astype(np.int32)
+    np.testing.assert_array_equal(carve_faces(z, labels, CONFIG, noise=2.0), labels)
+
+
+def test_a_band_parallel_to_the_plane_is_no_crease():
+    # a border band raised by a step is no chamfer: its plane meets the region's at 0 degrees
+    z, _, grown = chamfered(0.5, 3, slope=0.0)
+    z[:, 41:44] += 6.0
+    np.testing.assert_array_equal(carve_faces(z, grown, CONFIG, noise=0.5), grown)
+
+
+def test_curved_regions_are_left_alone():
+    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
+    z = 200.0 - 0.05 * (x - 20.0) ** 2 - 0.02 * (y - 24.0) ** 2
+    labels = np.ones(z.shape, dtype=np.int32)
+    np.testing.assert_array_equal(carve_faces(z, labels, CONFIG, noise=0.0), labels)
+
+
+def test_the_input_is_kept_and_invalid_pixels_stay_unlabelled():
+    z, _, grown = chamfered(1.0, 0)
+    z[10:14, 42:50] = np.nan
+    before, heights = grown.copy(), z.copy()
+    out = carve_faces(z, grown, CONFIG, noise=1.0)
+    np.testing.assert_array_equal(grown, before)
+    np.testing.assert_array_equal(z, heights)
+    assert not out[10:14, 42:50].any() and out.dtype == np.int32
+
+
+def test_shapes_must_agree():
+    with pytest.raises(ValueError):
+        carve_faces(np.zeros((4, 4)), np.zeros((4, 5), np.int32), CONFIG, noise=0.0)
+
+
+def test_the_nuts_chamfer_facet_is_found_at_sigma_1_only_with_carving():
+    scene = render_scene("nut", noise=1.0, seed=0)
+    facet = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "nut facet 11")
+    found = {}
+    for carve in (True, False):
+        labels = run_pipeline(scene.image, load_config(overrides={"split": {
+            "carve": carve}})).labels
+        result = hoover_compare(scene.gt, labels)
+        found[carve] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
+    assert facet in found[True] and facet not in found[False]
+
+
+def test_paper_preset_turns_it_off_and_the_key_is_validated():
+    assert load_config(preset="paper").split.carve is False
+    assert CONFIG.split.carve is True
+    with pytest.raises(ConfigError, match=r"\[split\] carve = 'no': expected true or false"):
+        load_config(overrides={"split": {"carve": "no"}})
