@@ -60,8 +60,9 @@ from rangeseg_cli.synth import SCENES  # noqa: E402
 SETS: tuple[str, ...] = (
     "split.rounds=1", "split.enabled=false", "split.trim_pieces=false",
     "split.trim_faces=false", "split.crease_pieces=false", "split.recover=false",
-    "split.fill_edges=false", "split.merge=false", "split.recut=false", "split.carve=false",
-    "split.refine_creases=false", "split.refine=false")
+    "split.fill_edges=false", "split.merge=false", "split.recut=false",
+    "split.bridge=false", "split.carve=false", "split.refine_creases=false",
+    "split.refine=false")
 
 #: Name (as on the command line) and the overrides of each variant.
 VARIANTS: tuple[tuple[str, dict[str, dict[str, Any]]], ...] = (

@@ -168,6 +168,10 @@ class SplitConfig:
     recut: bool = _opt(True, "after the merge, cut a region (or re-cut two touching "
                        "regions) along the straight line where a plane ends: a curved surface "
                        "tangent to it (a smooth edge) or another plane (a crease)")
+    bridge: bool = _opt(True, "with fill_edges, after the fills, give an edge pixel still "
+                        "unlabelled to a planar region within 2 pixels whose plane explains "
+                        "it (a narrow diagonal face cut off where its neighbour took a "
+                        "corner pixel)")
     carve: bool = _opt(True, "before the refinement, give a narrow face that growing took "
                        "into a planar region's border (a chamfer) a region of its own, when "
                        "one plane fits it to the noise at a crease with the region's plane")
@@ -248,7 +252,7 @@ _TABLE_CLASSES: dict[str, type] = {
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut or refine)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
-                        "merge": False, "recut": False, "carve": False,
+                        "merge": False, "recut": False, "bridge": False, "carve": False,
                         "refine": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},

@@ -127,7 +127,7 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
 
 def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
                     ) -> np.ndarray:
-    """The merge, recut, second fill, carving and refinement of ``[split]``, in order."""
+    """The merge, recut, second fill, bridge, carving and refinement of ``[split]``, in order."""
     cfg = config.split
     if cfg.merge:
         from .merge import merge_regions
@@ -141,6 +141,10 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .fill import fill_edges
 
         labels = fill_edges(z, labels, config.grow)
+    if cfg.fill_edges and cfg.bridge:  # the fill's test, farther
+        from .fill import bridge_gaps
+
+        labels = bridge_gaps(z, labels, config.grow)
     if cfg.carve:
         from .carve import carve_faces
 
@@ -171,7 +175,9 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     the straight line where a plane meets a tangent surface or another
     plane (:mod:`rangeseg_cli.recut`), and then, with ``[split]
     fill_edges``, the edge pixels that the merged and recut regions'
-    surfaces explain are filled once more; with ``[split] carve`` narrow
+    surfaces explain are filled once more; with ``[split] bridge`` (and
+    ``fill_edges``) edge pixels left go to a planar region within 2 pixels that explains them
+    (:func:`~rangeseg_cli.fill.bridge_gaps`); with ``[split] carve`` narrow
     faces grown into a planar region's border get regions of their own
     (:mod:`rangeseg_cli.carve`); with ``[split] refine`` boundary pixels
     move to the neighbouring surface that predicts them best, or, near a
@@ -186,7 +192,7 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
     cfg = config.split
     if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut
-            or cfg.carve or cfg.refine):
+            or cfg.bridge or cfg.carve or cfg.refine):
         return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from rangeseg_cli.config import load_config
 from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.fill import fill_edges
+from rangeseg_cli.fill import bridge_gaps, fill_edges
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth import render_scene
 
@@ -209,3 +209,74 @@ def test_compiled_fill_on_grown_scenes(scene):
                                              backend="numba"),
                                   fill_edges(result.heights, result.labels, GROW,
                                              backend="numpy"))
+
+
+# ------------------------------------------------------------------ bridge_gaps
+
+
+def cut_off_band(curved: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """A face 4 rows high across a plane; its region (2) stops at column 29, column 30
+    went to the plane (1) and columns 31.. are edge pixels the fill cannot reach."""
+    y, x = np.mgrid[0:40, 0:64].astype(np.float64)
+    band = (y >= 18) & (y < 22)
+    face = 130.0 + 0.5 * x + 3.0 * (y - 18) + (0.02 * (x - 30.0) ** 2 if curved else 0.0)
+    z = np.where(band, face, 100.0 + 0.5 * x - 0.25 * y)
+    labels = np.where(band, 2, 1).astype(np.int32)
+    labels[band & (x == 30)] = 1
+    labels[band & (x > 30)] = 0
+    return z, labels
+
+
+def test_a_band_cut_off_by_one_pixel_is_bridged_to_its_plane():
+    z, labels = cut_off_band()
+    assert np.array_equal(fill_edges(z, labels, GROW), labels)  # the fill cannot reach it
+    out = bridge_gaps(z, labels, GROW)
+    np.testing.assert_array_equal(out[labels == 0], 2)
+    np.testing.assert_array_equal(out[labels > 0], labels[labels > 0])  # labels are kept
+
+
+def test_curved_regions_are_not_bridged_to():
+    z, labels = cut_off_band(curved=True)
+    out = bridge_gaps(z, labels, GROW)
+    np.testing.assert_array_equal(out, labels)
+
+
+def test_pixels_no_plane_explains_are_not_bridged():
+    z, labels = cut_off_band()
+    z[labels == 0] += 40.0  # a step away from every plane
+    np.testing.assert_array_equal(bridge_gaps(z, labels, GROW), labels)
+
+
+def test_reach_1_is_the_fill_of_planes():
+    z, labels = cut_off_band()
+    np.testing.assert_array_equal(bridge_gaps(z, labels, GROW, reach=1), labels)
+
+
+def test_bridging_keeps_the_input_and_invalid_pixels():
+    z, labels = cut_off_band()
+    z[19, 40:45] = np.nan
+    before, heights = labels.copy(), z.copy()
+    out = bridge_gaps(z, labels, GROW)
+    np.testing.assert_array_equal(labels, before)
+    np.testing.assert_array_equal(z, heights, strict=True)
+    assert not out[19, 40:45].any() and out.dtype == np.int32
+    with pytest.raises(ValueError):
+        bridge_gaps(z, labels[:, :10], GROW)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_part1s_grazing_side_is_found_at_sigma_1_only_with_the_bridge(seed):
+    scene = render_scene("part1", noise=1.0, seed=seed)
+    side = next(s["id"] for s in scene.info["surfaces"] if s["name"].startswith("base +y"))
+    found = {}
+    for bridge in (True, False):
+        labels = run_pipeline(scene.image, load_config(overrides={"split": {
+            "bridge": bridge}})).labels
+        result = hoover_compare(scene.gt, labels)
+        found[bridge] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
+    assert side in found[True] and side not in found[False]
+
+
+def test_paper_preset_does_not_bridge():
+    assert load_config(preset="paper").split.bridge is False
+    assert load_config().split.bridge is True
