@@ -250,7 +250,8 @@ _TABLE_CLASSES: dict[str, type] = {
 
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut or refine)
+    # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut, bridge,
+    # carve or refine)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
                         "merge": False, "recut": False, "bridge": False, "carve": False,
                         "refine": False}},

@@ -112,7 +112,8 @@ def _pair_counts(keys: np.ndarray, below: np.ndarray, size: int
 
 
 def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_REACH,
-                 agreement: float = CREASE_AGREEMENT) -> np.ndarray:
+                 agreement: float = CREASE_AGREEMENT, boundary: np.ndarray | None = None
+                 ) -> np.ndarray:
     """The kind of crease between each pair of nearby regions (Notes 5).
 
     Parameters
@@ -127,6 +128,9 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
     agreement
         Fraction of those pixels on which the region's own surface must be
         the lower (convex crease) or the higher one (concave crease).
+    boundary
+        bool (H, W) the labelled pixels with an 8-neighbour of another label,
+        when the caller has them (computed otherwise).
 
     Returns
     -------
@@ -137,7 +141,8 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
         not within ``reach`` of each other.
     """
     n = int(labels.max(initial=0))
-    near = ndimage.maximum_filter(_boundary(labels), size=2 * reach + 1)
+    boundary = _boundary(labels) if boundary is None else boundary
+    near = ndimage.maximum_filter(boundary, size=2 * reach + 1)
     rows, cols = np.nonzero(near & (labels > 0))
     own = labels[rows, cols]
     mine = evaluate_quadric(coeffs[own], rows, cols)
@@ -178,9 +183,10 @@ def _visible(kinds: np.ndarray, own: np.ndarray, near: np.ndarray, rows: np.ndar
 
 
 def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: float,
-              smoothness: float, kinds: np.ndarray | None = None) -> np.ndarray:
+              smoothness: float, creases: bool) -> np.ndarray:
     """Each boundary pixel's cheapest label (Notes 2, 5); ``labels`` elsewhere."""
-    rows, cols = np.nonzero(_boundary(labels))
+    boundary = _boundary(labels)
+    rows, cols = np.nonzero(boundary)
     near = _neighbour_labels(labels, rows, cols)
     heights = z[rows, cols]
 
@@ -197,7 +203,9 @@ def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: floa
         trial = np.where(usable, cost(np.where(usable, ids, own)), np.inf)
         better = trial < lowest
         best[better], lowest[better] = ids[better], trial[better]
-    if kinds is not None:
+    if creases:  # told again in every pass, as the boundaries move
+        kinds = crease_kinds(labels, coeffs, reach=CREASE_REACH, agreement=CREASE_AGREEMENT,
+                             boundary=boundary)
         visible, decided = _visible(kinds, own, near, rows, cols, coeffs,
                                     CREASE_CLOSE * math.sqrt(scale))
         best = np.where(decided, visible, best)
@@ -238,15 +246,13 @@ def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, nois
     z, out = labels_on_valid(z, labels)
     sigma = 0.0 if math.isnan(noise) else noise
     scale = max(sigma * sigma, config.grow.min_error)
-    kinds: np.ndarray | None = None
     for _ in range(config.split.refine_passes):
         n = int(out.max(initial=0))
         if n < 2:
             break
         coeffs, _ = surface_models(z, out, n, config.grow)
-        if config.split.refine_creases:  # told again as the boundaries move
-            kinds = crease_kinds(out, coeffs, reach=CREASE_REACH, agreement=CREASE_AGREEMENT)
-        moved = _one_pass(z, out, coeffs, scale, config.split.refine_smoothness, kinds)
+        moved = _one_pass(z, out, coeffs, scale, config.split.refine_smoothness,
+                          config.split.refine_creases)
         if np.array_equal(moved, out):
             break
         out = moved
