@@ -22,7 +22,9 @@ Notes
    reaches, and fitted again without the interior pixels farther than
    ``OUTLIER_FACTOR`` times the fit-test level from it (the face's first
    pixels); the planar test is made on the rest, which must be
-   ``INLIER_SHARE`` of the interior or more.
+   ``INLIER_SHARE`` of the interior or more. Where that plane fits the
+   inliers with an RMS error above the noise (a real surface that is not
+   quite a plane), the error takes the noise's place in ``s`` below.
 2. Candidates. On the region's border (its pixels not in the interior), the
    residual to that plane, averaged over the region's pixels in the 3x3
    window, is a face's when it is over ``SIGNIFICANCE * s / sqrt(k)``, with
@@ -122,8 +124,11 @@ def _plane_and_quadric(z: np.ndarray, rows: np.ndarray, cols: np.ndarray
 
 
 def _planar_fit(z: np.ndarray, mask: np.ndarray, config: Config, level: float
-                ) -> np.ndarray | None:
-    """The interior's plane, fitted again without its outliers (Notes 1); None if curved."""
+                ) -> tuple[np.ndarray, float] | None:
+    """The interior's plane, fitted again without its outliers, and its RMS error (Notes 1).
+
+    None when the interior is curved.
+    """
     rows, cols = np.nonzero(mask)
     plane = _plane_and_quadric(z, rows, cols)[0]
     inlier = np.abs(z[rows, cols] - _height(plane, rows, cols)) <= OUTLIER_FACTOR * level
@@ -132,7 +137,7 @@ def _planar_fit(z: np.ndarray, mask: np.ndarray, config: Config, level: float
     plane, mse_plane, mse_quad = _plane_and_quadric(z, rows[inlier], cols[inlier])
     flat = planar(np.array([mse_quad]), np.array([mse_plane]), config.grow.planar_tolerance,
                   config.grow.min_error)
-    return plane if bool(flat[0]) else None
+    return (plane, math.sqrt(mse_plane)) if bool(flat[0]) else None
 
 
 def _height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -213,10 +218,12 @@ def _faces_of(z: np.ndarray, region: np.ndarray, config: Config, s: float) -> li
                                       mode="constant").view(bool)  # INTERIOR 3x3 erosions
     if np.count_nonzero(interior) < 2 * minimum:
         return []
-    level = config.split.fit_factor * s
-    plane = _planar_fit(z, interior, config, level)
-    if plane is None:
+    fit = _planar_fit(z, interior, config, config.split.fit_factor * s)
+    if fit is None:
         return []
+    plane, rms = fit
+    s = max(s, rms)  # a real surface that a plane fits less well than the noise: its error
+    level = config.split.fit_factor * s
     groups, count = ndimage.label(_candidates(z, region, interior, plane, s), _SQUARE)
     sizes = np.bincount(groups.ravel(), minlength=count + 1)
     faces: list[np.ndarray] = []

@@ -61,6 +61,16 @@ def test_noise_alone_carves_nothing(seed):
     np.testing.assert_array_equal(carve_faces(z, labels, CONFIG, noise=2.0), labels)
 
 
+@pytest.mark.parametrize("given", [0.0, 1.5])
+def test_noise_alone_carves_nothing_when_the_noise_given_is_too_low(given):
+    # a noise estimate too low (as on a real sensor, or a rough surface): the interior's
+    # inlier share and its plane's RMS error keep its border whole
+    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
+    z = 120.0 + 0.3 * x - 0.2 * y + np.random.default_rng(5).normal(0.0, 2.0, x.shape)
+    labels = np.where(x < 40, 1, 2).astype(np.int32)
+    np.testing.assert_array_equal(carve_faces(z, labels, CONFIG, noise=given), labels)
+
+
 def test_a_band_parallel_to_the_plane_is_no_crease():
     # a border band raised by a step is no chamfer: its plane meets the region's at 0 degrees
     z, _, grown = chamfered(0.5, 3, slope=0.0)
