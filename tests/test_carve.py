@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from rangeseg_cli.carve import carve_faces
 from rangeseg_cli.config import load_config
@@ -117,3 +119,19 @@ def test_paper_preset_turns_it_off_and_the_key_is_validated():
     assert CONFIG.split.carve is True
     with pytest.raises(ConfigError, match=r"\[split\] carve = 'no': expected true or false"):
         load_config(overrides={"split": {"carve": "no"}})
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), noise=st.floats(0.0, 3.0),
+       slope=st.floats(0.5, 6.0), invalid=st.floats(0.0, 0.2))
+def test_carving_only_relabels_pixels_of_one_region_each(seed, noise, slope, invalid):
+    z, _, grown = chamfered(noise, seed, slope=slope)
+    z[np.random.default_rng(seed + 1).random(z.shape) < invalid] = np.nan
+    out = carve_faces(z, grown, CONFIG, noise=noise)
+    valid = np.isfinite(z)
+    assert out.dtype == np.int32 and np.all(out[~valid] == 0)
+    same = out <= grown.max()
+    np.testing.assert_array_equal(out[same & valid], grown[same & valid])
+    for k in np.unique(out[~same]).tolist():  # each new face lies within one old region
+        assert len(np.unique(grown[out == k])) == 1
+        assert np.count_nonzero(out == k) >= CONFIG.link.min_component

@@ -280,3 +280,32 @@ def test_part1s_grazing_side_is_found_at_sigma_1_only_with_the_bridge(seed):
 def test_paper_preset_does_not_bridge():
     assert load_config(preset="paper").split.bridge is False
     assert load_config().split.bridge is True
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), shape=st.tuples(st.integers(3, 24), st.integers(3, 24)),
+       regions=st.integers(1, 5), holes=st.floats(0.0, 0.9), invalid=st.floats(0.0, 0.3))
+def test_bridge_only_labels_unlabelled_valid_pixels_from_planes_within_reach(seed, shape,
+                                                                            regions, holes,
+                                                                            invalid):
+    from rangeseg_cli.fill import _models
+
+    rng = np.random.default_rng(seed)
+    z = rng.normal(50.0, 5.0, shape) + rng.uniform(-3, 3) * np.arange(shape[1])[None, :]
+    z[rng.random(shape) < invalid] = np.nan
+    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
+    labels[rng.random(shape) < holes] = 0
+    out = bridge_gaps(z, labels, GROW)
+    valid = np.isfinite(z)
+    assert out.shape == labels.shape and out.dtype == np.int32
+    assert np.all(out[~valid] == 0)
+    kept = valid & (labels > 0)
+    np.testing.assert_array_equal(out[kept], labels[kept])
+    _, _, flat = _models(z, np.where(valid, labels, 0), int(labels.max()), GROW)
+    padded = np.pad(out, 2)
+    rows, cols = np.nonzero(valid & (labels == 0) & (out > 0))
+    for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
+        assert flat[out[r, c]]  # a plane's region
+        window = padded[r:r + 5, c:c + 5].copy()
+        window[2, 2] = 0
+        assert out[r, c] in window  # within two pixels of a pixel of its region
