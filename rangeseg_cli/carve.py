@@ -232,7 +232,10 @@ def _faces_of(z: np.ndarray, region: np.ndarray, config: Config, s: float) -> li
         if where is None or sizes[g] < SEED_PIXELS:
             continue
         for piece in _pieces(z, groups, g, where, PIECE_FACTOR * level):
-            face, own = _extended(z, piece & free, free, plane)
+            piece &= free  # an earlier face's extension may have taken some of it
+            if np.count_nonzero(piece) < SEED_PIXELS:
+                continue
+            face, own = _extended(z, piece, free, plane)
             rows, cols = np.nonzero(face)
             rms = math.sqrt(float(np.mean((z[rows, cols] - _height(own, rows, cols)) ** 2)))
             if (rows.size >= minimum and rms <= level

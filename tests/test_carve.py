@@ -80,6 +80,18 @@ def test_a_band_parallel_to_the_plane_is_no_crease():
     np.testing.assert_array_equal(carve_faces(z, grown, CONFIG, noise=0.5), grown)
 
 
+def test_a_piece_an_earlier_face_took_is_skipped(monkeypatch):
+    # a piece whose pixels an earlier face's extension took (here: every piece twice)
+    import rangeseg_cli.carve as carve
+
+    z, _, grown = chamfered(1.0, 0)
+    once = carve_faces(z, grown, CONFIG, noise=1.0)
+    pieces = carve._pieces
+    monkeypatch.setattr(carve, "_pieces", lambda *a, **k: [p for p in pieces(*a, **k)
+                                                          for _ in range(2)])
+    np.testing.assert_array_equal(carve_faces(z, grown, CONFIG, noise=1.0), once)
+
+
 def test_curved_regions_are_left_alone():
     y, x = np.mgrid[0:48, 0:64].astype(np.float64)
     z = 200.0 - 0.05 * (x - 20.0) ** 2 - 0.02 * (y - 24.0) ** 2
