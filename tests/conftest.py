@@ -30,6 +30,24 @@ def box_scene(size: int = 64, noise: float = 0.0, seed: int = 0) -> np.ndarray:
     return z
 
 
+def found_with(scene: str, noise: float, seed: int, face: str, **split: object
+               ) -> tuple[int, set[int]]:
+    """The GT id of ``scene``'s surface named ``face`` (or starting so, ending in "…"), and
+    the GT ids the defaults with these ``[split]`` overrides detect correctly (T = 0.8)."""
+    from rangeseg_cli.config import load_config
+    from rangeseg_cli.evaluate import hoover_compare
+    from rangeseg_cli.pipeline import run_pipeline
+    from rangeseg_cli.synth import render_scene
+
+    rendered = render_scene(scene, noise=noise, seed=seed)
+    prefix = face.removesuffix("…")
+    gt = next(s["id"] for s in rendered.info["surfaces"]
+              if (s["name"].startswith(prefix) if face.endswith("…") else s["name"] == face))
+    labels = run_pipeline(rendered.image, load_config(overrides={"split": split})).labels
+    result = hoover_compare(rendered.gt, labels)
+    return gt, {g for i in result.instances if i.kind == "correct" for g in i.gt}
+
+
 @pytest.fixture(autouse=True)
 def _automatic_threads():
     """``--threads`` or a test may set the process's thread count: back to automatic after."""

@@ -7,13 +7,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import found_with
 from rangeseg_cli.carve import carve_faces
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.refine import refine_boundaries
-from rangeseg_cli.synth import render_scene
 
 CONFIG = load_config()
 CHAMFER = (40, 44)  # columns of the chamfer
@@ -115,15 +114,9 @@ def test_shapes_must_agree():
 
 
 def test_the_nuts_chamfer_facet_is_found_at_sigma_1_only_with_carving():
-    scene = render_scene("nut", noise=1.0, seed=0)
-    facet = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "nut facet 11")
-    found = {}
-    for carve in (True, False):
-        labels = run_pipeline(scene.image, load_config(overrides={"split": {
-            "carve": carve}})).labels
-        result = hoover_compare(scene.gt, labels)
-        found[carve] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
-    assert facet in found[True] and facet not in found[False]
+    facet, on = found_with("nut", 1.0, 0, "nut facet 11", carve=True)
+    _, off = found_with("nut", 1.0, 0, "nut facet 11", carve=False)
+    assert facet in on and facet not in off
 
 
 def test_paper_preset_turns_it_off_and_the_key_is_validated():

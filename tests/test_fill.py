@@ -9,6 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import found_with
 from rangeseg_cli.config import load_config
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.fill import bridge_gaps, fill_edges
@@ -19,6 +20,18 @@ GROW = load_config().grow
 
 requires_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
                                     reason="numba is not installed")
+
+
+def random_labels(seed: int, shape: tuple[int, int], regions: int, holes: float,
+                  invalid: float) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy sloped heights with a share ``invalid`` NaN, and random labels 1..regions
+    with a share ``holes`` of 0 (for the property tests)."""
+    rng = np.random.default_rng(seed)
+    z = rng.normal(50.0, 5.0, shape) + rng.uniform(-3, 3) * np.arange(shape[1])[None, :]
+    z[rng.random(shape) < invalid] = np.nan
+    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
+    labels[rng.random(shape) < holes] = 0
+    return z, labels
 
 
 def roof_scene(noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -131,11 +144,7 @@ def test_paper_preset_leaves_the_edges():
        regions=st.integers(1, 5), holes=st.floats(0.0, 0.9), invalid=st.floats(0.0, 0.3))
 def test_fill_only_labels_unlabelled_valid_pixels_from_their_neighbours(seed, shape, regions,
                                                                         holes, invalid):
-    rng = np.random.default_rng(seed)
-    z = rng.normal(50.0, 5.0, shape) + rng.uniform(-3, 3) * np.arange(shape[1])[None, :]
-    z[rng.random(shape) < invalid] = np.nan
-    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
-    labels[rng.random(shape) < holes] = 0
+    z, labels = random_labels(seed, shape, regions, holes, invalid)
     out = fill_edges(z, labels, GROW)
     valid = np.isfinite(z)
     assert out.shape == labels.shape and out.dtype == np.int32
@@ -266,15 +275,9 @@ def test_bridging_keeps_the_input_and_invalid_pixels():
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_part1s_grazing_side_is_found_at_sigma_1_only_with_the_bridge(seed):
-    scene = render_scene("part1", noise=1.0, seed=seed)
-    side = next(s["id"] for s in scene.info["surfaces"] if s["name"].startswith("base +y"))
-    found = {}
-    for bridge in (True, False):
-        labels = run_pipeline(scene.image, load_config(overrides={"split": {
-            "bridge": bridge}})).labels
-        result = hoover_compare(scene.gt, labels)
-        found[bridge] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
-    assert side in found[True] and side not in found[False]
+    side, on = found_with("part1", 1.0, seed, "base +y…", bridge=True)
+    _, off = found_with("part1", 1.0, seed, "base +y…", bridge=False)
+    assert side in on and side not in off
 
 
 def test_paper_preset_does_not_bridge():
@@ -290,11 +293,7 @@ def test_bridge_only_labels_unlabelled_valid_pixels_from_planes_within_reach(see
                                                                             invalid):
     from rangeseg_cli.fill import _models
 
-    rng = np.random.default_rng(seed)
-    z = rng.normal(50.0, 5.0, shape) + rng.uniform(-3, 3) * np.arange(shape[1])[None, :]
-    z[rng.random(shape) < invalid] = np.nan
-    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
-    labels[rng.random(shape) < holes] = 0
+    z, labels = random_labels(seed, shape, regions, holes, invalid)
     out = bridge_gaps(z, labels, GROW)
     valid = np.isfinite(z)
     assert out.shape == labels.shape and out.dtype == np.int32

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from conftest import found_with
 from rangeseg_cli.cli import main
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.fill import surface_models
-from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.refine import crease_kinds, refine_boundaries
 from rangeseg_cli.synth import render_scene
 
@@ -103,16 +103,10 @@ def test_the_crease_rule_keeps_noisy_pixels_on_their_side_of_the_crease(seed):
 
 
 def test_the_crease_rule_finds_part2s_narrow_side_at_sigma_2():
-    scene = render_scene("part2", noise=2.0, seed=0)
-    side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "base -y side")
-    found = {}
-    for creases in (True, False):
-        # the bridge (rangeseg_cli.fill.bridge_gaps) also finds it: off, to test the rule
-        config = load_config(overrides={"split": {"refine_creases": creases,
-                                                  "bridge": False}})
-        result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
-        found[creases] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
-    assert side in found[True] and side not in found[False]
+    # the bridge (rangeseg_cli.fill.bridge_gaps) also finds it: off, to test the rule
+    side, on = found_with("part2", 2.0, 0, "base -y side", bridge=False)
+    _, off = found_with("part2", 2.0, 0, "base -y side", bridge=False, refine_creases=False)
+    assert side in on and side not in off
 
 
 def test_labelled_pixels_stay_labelled_and_the_input_is_kept():
@@ -142,15 +136,10 @@ def test_shapes_must_agree():
 
 
 def test_part2s_chamfer_is_found_at_sigma_2_by_the_refinement_alone():
-    scene = render_scene("part2", noise=2.0, seed=1)
-    chamfer = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "base chamfer")
-    found = {}
-    for refine in (True, False):
-        config = load_config(overrides={"split": {"recut": False, "recover": False,
-                                                  "refine": refine}})
-        result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
-        found[refine] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
-    assert chamfer in found[True] and chamfer not in found[False]
+    chamfer, on = found_with("part2", 2.0, 1, "base chamfer", recut=False, recover=False)
+    _, off = found_with("part2", 2.0, 1, "base chamfer", recut=False, recover=False,
+                        refine=False)
+    assert chamfer in on and chamfer not in off
 
 
 def test_paper_preset_turns_it_off():
