@@ -57,9 +57,9 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config
-from .grow import planar
+from .grow import fit_models, planar, plane_angle
 from .rangeimage import labels_on_valid
-from .recover import _plane, plane_pieces
+from .recover import fit_plane, plane_pieces
 
 #: Erosions (3x3) of a region that leave its interior (Notes 1).
 INTERIOR = 2
@@ -82,9 +82,6 @@ OUTLIER_FACTOR = 2.0
 #: A region whose interior has fewer inliers than this share is not a plane (Notes 1).
 INLIER_SHARE = 0.9
 
-#: Most pixels a region's interior plane is fitted to (evenly spread in raster order).
-FIT_PIXELS = 50_000
-
 #: Pixels round a group's box in which its consensus planes are found.
 PIECE_PAD = 4
 
@@ -98,49 +95,27 @@ def _box(where: tuple[slice, slice], shape: tuple[int, ...]) -> tuple[slice, sli
             slice(max(cols.start - 1, 0), min(cols.stop + 1, shape[1])))
 
 
-def _plane_and_quadric(z: np.ndarray, rows: np.ndarray, cols: np.ndarray
-                       ) -> tuple[np.ndarray, float, float]:
-    """Plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row``, its MSE and the quadric's MSE.
-
-    From the normal equations in centred coordinates, on at most
-    ``FIT_PIXELS`` of them (a region's interior can hold most of a frame).
-    """
-    step = -(-rows.size // FIT_PIXELS)  # a frame-filling interior: every step-th pixel
-    rows, cols = rows[::step], cols[::step]
-    r0, c0 = rows.mean(), cols.mean()
-    u, v = cols - c0, rows - r0
-    basis = np.column_stack([np.ones(rows.size), u, v, u * u, u * v, v * v])
-    z0 = float(z[rows, cols].mean())
-    zs = z[rows, cols] - z0
-    gram, rhs = basis.T @ basis, basis.T @ zs
-    mse = []
-    for k in (3, 6):
-        coef = np.linalg.lstsq(gram[:k, :k], rhs[:k], rcond=None)[0]
-        mse.append(max(float(zs @ zs - 2.0 * coef @ rhs[:k] + coef @ gram[:k, :k] @ coef)
-                       / rows.size, 0.0))
-        if k == 3:
-            plane = np.array([z0 + coef[0] - coef[1] * c0 - coef[2] * r0, coef[1], coef[2]])
-    return plane, mse[0], mse[1]
-
-
 def _planar_fit(z: np.ndarray, mask: np.ndarray, config: Config, level: float
                 ) -> tuple[np.ndarray, float] | None:
     """The interior's plane, fitted again without its outliers, and its RMS error (Notes 1).
 
+    Plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row`` (:func:`~rangeseg_cli.grow.fit_models`);
     None when the interior is curved.
     """
+    [(first, _)], _ = fit_models(z, mask.astype(np.int32), 1, (1,))
     rows, cols = np.nonzero(mask)
-    plane = _plane_and_quadric(z, rows, cols)[0]
-    inlier = np.abs(z[rows, cols] - _height(plane, rows, cols)) <= OUTLIER_FACTOR * level
-    if np.count_nonzero(inlier) < INLIER_SHARE * rows.size:
+    off = np.abs(z[rows, cols] - _height(first[1], rows, cols)) > OUTLIER_FACTOR * level
+    if np.count_nonzero(~off) < INLIER_SHARE * rows.size:
         return None
-    plane, mse_plane, mse_quad = _plane_and_quadric(z, rows[inlier], cols[inlier])
-    flat = planar(np.array([mse_quad]), np.array([mse_plane]), config.grow.planar_tolerance,
-                  config.grow.min_error)
-    return (plane, math.sqrt(mse_plane)) if bool(flat[0]) else None
+    inliers = mask.astype(np.int32)
+    inliers[rows[off], cols[off]] = 0
+    [(_, mse_quad), (plane, mse_plane)], _ = fit_models(z, inliers, 1, (2, 1))
+    flat = planar(mse_quad, mse_plane, config.grow.planar_tolerance, config.grow.min_error)
+    return (plane[1, :3], math.sqrt(float(mse_plane[1]))) if bool(flat[1]) else None
 
 
 def _height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Heights of the plane (a0, a1, a2) at the pixels."""
     return plane[0] + plane[1] * cols + plane[2] * rows
 
 
@@ -166,18 +141,11 @@ def _candidates(z: np.ndarray, region: np.ndarray, interior: np.ndarray, plane: 
     return out
 
 
-def _crease_degrees(p: np.ndarray, q: np.ndarray) -> float:
-    """Angle between the normals of two planes (a0, a1, a2), degrees."""
-    n1, n2 = np.array([-p[1], -p[2], 1.0]), np.array([-q[1], -q[2], 1.0])
-    cos = float(n1 @ n2 / (np.linalg.norm(n1) * np.linalg.norm(n2)))
-    return math.degrees(math.acos(min(1.0, cos)))
-
-
 def _extended(z: np.ndarray, piece: np.ndarray, free: np.ndarray, region_plane: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
     """The piece after one pass of extension into ``free`` pixels, and its plane (Notes 3)."""
     rows, cols = np.nonzero(piece)
-    plane = _plane(z, rows, cols)
+    plane = fit_plane(z, rows, cols)
     box = (slice(max(rows.min() - 1, 0), rows.max() + 2),
            slice(max(cols.min() - 1, 0), cols.max() + 2))
     ring = ndimage.binary_dilation(piece[box], _SQUARE) & free[box] & ~piece[box]
@@ -189,7 +157,7 @@ def _extended(z: np.ndarray, piece: np.ndarray, free: np.ndarray, region_plane: 
     face[rr[own < theirs], rc[own < theirs]] = True
     rows, cols = np.nonzero(face[box])
     rows, cols = rows + box[0].start, cols + box[1].start
-    return face, _plane(z, rows, cols)
+    return face, fit_plane(z, rows, cols)
 
 
 def _pieces(z: np.ndarray, groups: np.ndarray, g: int, where: tuple[slice, slice],
@@ -239,7 +207,7 @@ def _faces_of(z: np.ndarray, region: np.ndarray, config: Config, s: float) -> li
             rows, cols = np.nonzero(face)
             rms = math.sqrt(float(np.mean((z[rows, cols] - _height(own, rows, cols)) ** 2)))
             if (rows.size >= minimum and rms <= level
-                    and _crease_degrees(own, plane) >= config.split.min_crease):
+                    and plane_angle(own, plane) >= config.split.min_crease):
                 faces.append(face)
                 free &= ~face
     return faces

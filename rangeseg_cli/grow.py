@@ -528,6 +528,14 @@ def planar(mse_quad: np.ndarray, mse_plane: np.ndarray, planar_tolerance: float,
     return (mse_plane - mse_quad) <= planar_tolerance * np.maximum(mse_plane, min_error)
 
 
+def plane_angle(p: np.ndarray, q: np.ndarray) -> float:
+    """Angle in degrees (0-90) between two planes (image coefficients a0, a1 (col), a2 (row))."""
+    n1 = np.array([-p[1], -p[2], 1.0])
+    n2 = np.array([-q[1], -q[2], 1.0])
+    cos = abs(float(n1 @ n2)) / float(np.linalg.norm(n1) * np.linalg.norm(n2))
+    return math.degrees(math.acos(min(1.0, cos)))
+
+
 def evaluate_quadric(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Heights of quadrics at pixel positions.
 

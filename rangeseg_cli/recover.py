@@ -176,7 +176,7 @@ def _fits_a_neighbour(z: np.ndarray, labels: np.ndarray, fits: _Fits, rows: np.n
     return out
 
 
-def _plane(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+def fit_plane(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Least-squares plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row`` through pixels.
 
     From the 3x3 normal equations in centred coordinates when they are
@@ -275,7 +275,7 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Bac
     for _ in range(2):  # refit to the inliers
         if not inliers.any():  # no hypothesis won a single vote (e.g. NaN-ridden bands)
             return None
-        a = _plane(z, rows[inliers], cols[inliers])
+        a = fit_plane(z, rows[inliers], cols[inliers])
         inliers = np.abs(z[rows, cols] - (a[0] + a[1] * cols + a[2] * rows)) < tol
     if not inliers.any():
         return None
@@ -394,7 +394,7 @@ def _merge_coplanar(z: np.ndarray, faces: np.ndarray, level: float) -> np.ndarra
         if a == b:
             continue
         rows, cols = np.nonzero((root[faces] == a) | (root[faces] == b))
-        plane = _plane(z, rows, cols)
+        plane = fit_plane(z, rows, cols)
         r = z[rows, cols] - (plane[0] + plane[1] * cols + plane[2] * rows)
         if float(np.mean(r * r)) <= level * level:
             root[root == max(a, b)] = min(a, b)

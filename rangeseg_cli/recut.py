@@ -78,7 +78,7 @@ from scipy import ndimage
 
 from .config import Config, GrowConfig
 from .edges import Backend, select_kernels
-from .grow import fit_models, planar
+from .grow import fit_models, planar, plane_angle
 from .merge import _join_box, touching_pairs
 from .parallel import map_tasks
 from .rangeimage import consecutive_labels, labels_on_valid
@@ -409,14 +409,6 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
     return plane_side, gain
 
 
-def _plane_angle(p: np.ndarray, q: np.ndarray) -> float:
-    """Angle in degrees between two planes (image coefficients a0, a1 (col), a2 (row))."""
-    n1 = np.array([-p[1], -p[2], 1.0])
-    n2 = np.array([-q[1], -q[2], 1.0])
-    cos = abs(float(n1 @ n2)) / float(np.linalg.norm(n1) * np.linalg.norm(n2))
-    return math.degrees(math.acos(min(1.0, cos)))
-
-
 def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig, box: Box | None = None
              ) -> float:
     """Sum of squared errors of labels 1 and 2 of ``two``, each by its own surface."""
@@ -537,7 +529,7 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         quadric_sse = _quadric_sse(z, mask, box)
     gain = ((quadric_sse - crease.sse)
             / (mask.sum() * max(noise ** 2, grow.min_error)))
-    if gain < _MIN_GAIN or _plane_angle(crease.planes[1], crease.planes[2]) < min_crease:
+    if gain < _MIN_GAIN or plane_angle(crease.planes[1], crease.planes[2]) < min_crease:
         return None
     return crease.side
 

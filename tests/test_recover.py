@@ -234,9 +234,9 @@ def test_plane_through_pixels_is_the_least_squares_plane_even_on_a_line() -> Non
         rows, cols = rng.integers(0, 60, size), rng.integers(0, 80, size)
         a = np.column_stack([np.ones(size), cols, rows]).astype(np.float64)
         best = np.linalg.lstsq(a, z[rows, cols], rcond=None)[0]
-        np.testing.assert_allclose(a @ recover._plane(z, rows, cols), a @ best, atol=1e-9)
+        np.testing.assert_allclose(a @ recover.fit_plane(z, rows, cols), a @ best, atol=1e-9)
     rows, cols = np.full(20, 7), np.arange(20, 40)  # one row: singular across it
-    coef = recover._plane(z, rows, cols)
+    coef = recover.fit_plane(z, rows, cols)
     assert np.all(np.isfinite(coef))
     a = np.column_stack([np.ones(20), cols, rows]).astype(np.float64)
     best = np.linalg.lstsq(a, z[rows, cols], rcond=None)[0]
