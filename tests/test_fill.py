@@ -308,3 +308,21 @@ def test_bridge_only_labels_unlabelled_valid_pixels_from_planes_within_reach(see
         window = padded[r:r + 5, c:c + 5].copy()
         window[2, 2] = 0
         assert out[r, c] in window  # within two pixels of a pixel of its region
+
+
+def test_a_bad_bridge_key_is_one_line_on_the_command_line(tmp_path):
+    import imageio.v3 as iio
+    from click.testing import CliRunner
+
+    from rangeseg_cli.cli import main
+    from rangeseg_cli.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"\[split\] bridge = 'maybe': expected true or false"):
+        load_config(overrides={"split": {"bridge": "maybe"}})
+    image = tmp_path / "in.png"
+    iio.imwrite(image, render_scene("box", size=(32, 32)).image)
+    result = CliRunner().invoke(main, ["run", str(image), "-o", str(tmp_path / "out"),
+                                       "--set", "split.bridge=maybe"])
+    assert result.exit_code != 0 and "Traceback" not in result.output
+    assert "bridge" in result.output.strip().splitlines()[-1]
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
