@@ -40,11 +40,10 @@ import numpy as np
 from .config import GrowConfig
 from .edges import Backend, select_kernels
 from .grow import evaluate_quadric, fit_models, planar
-from .rangeimage import labels_on_valid
+from .rangeimage import chessboard_offsets, labels_on_valid
 
 #: The eight neighbour offsets (drow, dcol) in raster order of the 3x3 window.
-NEIGHBOUR_OFFSETS: tuple[tuple[int, int], ...] = tuple(
-    (dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0))
+NEIGHBOUR_OFFSETS: tuple[tuple[int, int], ...] = chessboard_offsets(1)
 
 
 def _best_neighbour(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound: np.ndarray,
@@ -217,8 +216,7 @@ def bridge_gaps(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig, *,
     coeffs, mse, flat = _models(z, out, n, cfg)
     bound = np.where(flat, cfg.error_factor * np.maximum(mse, cfg.min_error), 0.0)
     bound[0] = 0.0
-    span = range(-reach, reach + 1)
-    offsets = tuple((dr, dc) for dr in span for dc in span if dr or dc)
+    offsets = chessboard_offsets(reach)
     rows, cols = np.nonzero(np.isfinite(z) & (out == 0))
     while rows.size:
         best, ratio = _best_neighbour(z, out, coeffs, bound, rows, cols, offsets)

@@ -163,6 +163,12 @@ def labels_on_valid(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.n
     return z, np.where(np.isfinite(z), labels, 0).astype(np.int32)
 
 
+def chessboard_offsets(reach: int) -> tuple[tuple[int, int], ...]:
+    """Offsets (drow, dcol) within chessboard ``reach``, without (0, 0), in raster order."""
+    span = range(-reach, reach + 1)
+    return tuple((dr, dc) for dr in span for dc in span if dr or dc)
+
+
 #: Index pairs ``(first, second)`` of two views of an (H, W) array whose elements are
 #: 8-neighbouring pixels, every pair of 8-neighbours once: offsets (drow, dcol) (0, 1),
 #: (1, -1), (1, 0), (1, 1) from ``first`` to ``second``. ``first`` starts at row 0 and at

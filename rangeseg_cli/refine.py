@@ -58,7 +58,12 @@ from scipy import ndimage
 from .config import Config
 from .fill import NEIGHBOUR_OFFSETS, surface_models
 from .grow import evaluate_quadric
-from .rangeimage import HALF_NEIGHBOUR_PAIRS, consecutive_labels, labels_on_valid
+from .rangeimage import (
+    HALF_NEIGHBOUR_PAIRS,
+    chessboard_offsets,
+    consecutive_labels,
+    labels_on_valid,
+)
 
 #: Chessboard reach (pixels) of the pixels that tell a pair's crease kind (Notes 5).
 CREASE_REACH = 3
@@ -90,12 +95,6 @@ def _neighbour_labels(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray) ->
     steps = np.array([dr * width + dc for dr, dc in NEIGHBOUR_OFFSETS])
     flat = (rows + 1) * width + (cols + 1)
     return np.pad(labels, 1).ravel()[flat[:, None] + steps]
-
-
-def _offsets(reach: int) -> list[tuple[int, int]]:
-    """Chessboard offsets within ``reach``, without (0, 0)."""
-    span = range(-reach, reach + 1)
-    return [(dr, dc) for dr in span for dc in span if dr or dc]
 
 
 def _pair_counts(keys: np.ndarray, below: np.ndarray, size: int
@@ -150,7 +149,7 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
     width = padded.shape[1]
     flat, spread = padded.ravel(), (rows + reach) * width + cols + reach
     keys, below = [], []
-    for dr, dc in _offsets(reach):
+    for dr, dc in chessboard_offsets(reach):
         other = flat[spread + dr * width + dc]
         use = np.nonzero((other > 0) & (other != own))[0]
         keys.append(own[use].astype(np.int64) * (n + 1) + other[use])

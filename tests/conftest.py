@@ -48,6 +48,26 @@ def found_with(scene: str, noise: float, seed: int, face: str, **split: object
     return gt, {g for i in result.instances if i.kind == "correct" for g in i.gt}
 
 
+def bad_setting_on_the_command_line(tmp_path: Path, setting: str) -> str:
+    """``rangeseg run`` on a small box with ``--set setting``: the last line of its output.
+
+    Asserts it failed without a traceback and wrote nothing.
+    """
+    import imageio.v3 as iio
+    from click.testing import CliRunner
+
+    from rangeseg_cli.cli import main
+    from rangeseg_cli.synth import render_scene
+
+    image = tmp_path / "in.png"
+    iio.imwrite(image, render_scene("box", size=(32, 32)).image)
+    result = CliRunner().invoke(main, ["run", str(image), "-o", str(tmp_path / "out"),
+                                       "--set", setting])
+    assert result.exit_code != 0 and "Traceback" not in result.output
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    return result.output.strip().splitlines()[-1]
+
+
 @pytest.fixture(autouse=True)
 def _automatic_threads():
     """``--threads`` or a test may set the process's thread count: back to automatic after."""
