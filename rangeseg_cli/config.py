@@ -171,7 +171,7 @@ class SplitConfig:
     bridge: bool = _opt(True, "with fill_edges, after the fills, give an edge pixel still "
                         "unlabelled to a planar region within 2 pixels whose plane explains "
                         "it (a narrow diagonal face cut off where its neighbour took a "
-                        "corner pixel)")
+                        "corner pixel); again at the end, after carving and the refinement")
     carve: bool = _opt(True, "before the refinement, give a narrow face that growing took "
                        "into a planar region's border (a chamfer) a region of its own, when "
                        "one plane fits it to the noise at a crease with the region's plane")

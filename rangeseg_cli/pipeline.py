@@ -127,7 +127,13 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
 
 def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
                     ) -> np.ndarray:
-    """The merge, recut, second fill, bridge, carving and refinement of ``[split]``, in order."""
+    """The merge, recut, second fill, bridge, carving, refinement and last bridge of ``[split]``.
+
+    In that order. The bridge runs again at the end when carving or the
+    refinement ran: a face carved after the first bridge (part1's +y side,
+    cut from the base top) has edge pixels along it that no region within
+    reach explained then.
+    """
     cfg = config.split
     if cfg.merge:
         from .merge import merge_regions
@@ -153,6 +159,10 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .refine import refine_boundaries
 
         labels = refine_boundaries(z, labels, config, noise=sigma)
+    if cfg.fill_edges and cfg.bridge and (cfg.carve or cfg.refine):
+        from .fill import bridge_gaps  # once more: faces carved since, borders moved
+
+        labels = bridge_gaps(z, labels, config.grow)
     return labels
 
 
@@ -177,7 +187,8 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     fill_edges``, the edge pixels that the merged and recut regions'
     surfaces explain are filled once more; with ``[split] bridge`` (and
     ``fill_edges``) edge pixels left go to a planar region within 2 pixels that explains them
-    (:func:`~rangeseg_cli.fill.bridge_gaps`); with ``[split] carve`` narrow
+    (:func:`~rangeseg_cli.fill.bridge_gaps`; again at the end, after
+    carving and the refinement); with ``[split] carve`` narrow
     faces grown into a planar region's border get regions of their own
     (:mod:`rangeseg_cli.carve`); with ``[split] refine`` boundary pixels
     move to the neighbouring surface that predicts them best, or, near a

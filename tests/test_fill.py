@@ -280,6 +280,48 @@ def test_part1s_grazing_side_is_found_at_sigma_1_only_with_the_bridge(seed):
     assert side in on and side not in off
 
 
+def two_faces() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plane A (columns 0-19, labelled 1) beside plane B (columns 20-39, a crease of 30
+    units per pixel, unlabelled), and bool: where B is."""
+    y, x = np.mgrid[0:24, 0:40].astype(np.float64)
+    b = x >= 20
+    z = np.where(b, 100.0 + 30.0 * (x - 19) + 0.5 * y, 100.0 + 0.5 * y)
+    labels = np.where(b, 0, 1).astype(np.int32)
+    return z, labels, b
+
+
+@pytest.mark.parametrize("bridge", [True, False])
+def test_the_bridge_runs_again_after_carving(monkeypatch, bridge):
+    """A face carved after the first bridge (stubbed: B's columns 22-27) gets the edge
+    pixels along it that its plane explains, by a last bridge; without ``bridge`` not."""
+    import rangeseg_cli.carve
+    from rangeseg_cli.pipeline import _after_the_fill
+
+    z, labels, b = two_faces()
+
+    def carve(z, labels, config, *, noise):  # a face that carving would cut
+        out = labels.copy()
+        out[:, 22:28] = 2
+        return out
+
+    monkeypatch.setattr(rangeseg_cli.carve, "carve_faces", carve)
+    config = load_config(overrides={"split": {"merge": False, "recut": False, "refine": False,
+                                              "carve": True, "bridge": bridge}})
+    out = _after_the_fill(z, labels, config, 0.0)
+    assert np.all(out[~b] == 1)
+    if bridge:
+        assert np.all(out[b] == 2)
+    else:
+        assert np.all(out[:, 22:28] == 2) and not out[:, 20:22].any() and not out[:, 28:].any()
+
+
+def test_part1s_grazing_side_is_found_at_sigma_2_on_seed_1():
+    """The +y side is cut from the base top by carving; the edge pixels along it join it
+    in the last bridge (issue 9; before it: 0.65 of the side)."""
+    side, found = found_with("part1", 2.0, 1, "base +y…")
+    assert side in found
+
+
 def test_paper_preset_does_not_bridge():
     assert load_config(preset="paper").split.bridge is False
     assert load_config().split.bridge is True
