@@ -186,6 +186,9 @@ class SplitConfig:
                                 "to the surface visible there (the lower of the two at a "
                                 "convex crease, the higher at a concave one) instead of the "
                                 "one with the smaller residual")
+    merge_planes: bool = _opt(True, "after the refinement, merge touching planar regions "
+                              "whose union one plane fits within the fit test (pieces of "
+                              "one face that the later steps left apart)")
 
 
 @dataclass(frozen=True)
@@ -251,10 +254,10 @@ _TABLE_CLASSES: dict[str, type] = {
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut, bridge,
-    # carve or refine)
+    # carve, refine or merge_planes)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
                         "merge": False, "recut": False, "bridge": False, "carve": False,
-                        "refine": False}},
+                        "refine": False, "merge_planes": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,

@@ -86,12 +86,12 @@ def uses_noise(config: Config) -> bool:
     """Whether a stage of ``config`` uses the image's noise estimate.
 
     The noise-scaled thresholds (``[input] auto_thresholds``, Sec. V-1, V-2)
-    and the split, recovery, merge, recut, carving and boundary refinement of
-    ``[split]`` (beyond the paper; the fill does not).
+    and the split, recovery, merges, recut, carving and boundary refinement of
+    ``[split]`` (beyond the paper; the fill and the bridge do not).
     """
     s = config.split
     return (config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
-            or s.carve or s.refine)
+            or s.carve or s.refine or s.merge_planes)
 
 
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
@@ -127,9 +127,9 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
 
 def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
                     ) -> np.ndarray:
-    """The merge, recut, second fill, bridge, carving, refinement and last bridge of ``[split]``.
+    """The merge, recut, second fill, bridge, carving, refinement, plane merge and last bridge.
 
-    In that order. The bridge runs again at the end when carving or the
+    Of ``[split]``, in that order. The bridge runs again at the end when carving or the
     refinement ran: a face carved after the first bridge (part1's +y side,
     cut from the base top) has edge pixels along it that no region within
     reach explained then.
@@ -159,6 +159,10 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .refine import refine_boundaries
 
         labels = refine_boundaries(z, labels, config, noise=sigma)
+    if cfg.merge_planes:
+        from .merge import merge_planes
+
+        labels = merge_planes(z, labels, config, noise=sigma)
     if cfg.fill_edges and cfg.bridge and (cfg.carve or cfg.refine):
         from .fill import bridge_gaps  # once more: faces carved since, borders moved
 
@@ -192,7 +196,9 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     faces grown into a planar region's border get regions of their own
     (:mod:`rangeseg_cli.carve`); with ``[split] refine`` boundary pixels
     move to the neighbouring surface that predicts them best, or, near a
-    crease, to the one visible there (:mod:`rangeseg_cli.refine`).
+    crease, to the one visible there (:mod:`rangeseg_cli.refine`); with
+    ``[split] merge_planes`` touching planar regions that one plane fits are
+    merged (:func:`~rangeseg_cli.merge.merge_planes`).
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
     """
@@ -203,7 +209,7 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
     cfg = config.split
     if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut
-            or cfg.bridge or cfg.carve or cfg.refine):
+            or cfg.bridge or cfg.carve or cfg.refine or cfg.merge_planes):
         return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise

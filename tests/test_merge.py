@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+from conftest import bad_setting_on_the_command_line, found_with
 from rangeseg_cli.config import load_config
 from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.merge import merge_regions, touching_pairs
+from rangeseg_cli.merge import merge_planes, merge_regions, touching_pairs
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth import render_scene
 
@@ -108,9 +111,89 @@ def test_part1_base_is_one_region_at_noise_2():
                 if i.kind == "correct"}
 
     assert base in found(CONFIG)
-    assert base not in found(load_config(overrides={"split": {"merge": False}}))
+    assert base not in found(load_config(overrides={"split": {"merge": False,
+                                                              "merge_planes": False}}))
 
 
 def test_paper_preset_does_not_merge():
     assert load_config(preset="paper").split.merge is False
     assert CONFIG.split.merge is True
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
+def test_pieces_of_one_plane_are_merged_by_the_plane_merge(sigma):
+    y, x = _grid()
+    z = _noisy(50.0 + 0.3 * x - 0.2 * y, sigma, seed=3)
+    labels = np.where(x < 20, 1, np.where(x < 40, 2, 3)).astype(np.int32)
+    labels[y > 30] = 4
+    before = labels.copy()
+    out = merge_planes(z, labels, CONFIG, noise=max(sigma, 0.3))
+    assert np.unique(out).tolist() == [1] and out.dtype == np.int32
+    np.testing.assert_array_equal(labels, before)
+
+
+@pytest.mark.parametrize("slope", [0.5, 1.0, 2.0])
+def test_planes_at_a_crease_stay_apart_in_the_plane_merge(slope):
+    y, x = _grid()
+    z = _noisy(100.0 + slope * np.abs(x - 29.5) + 0.5 * y, 2.0, seed=1)
+    labels = np.where(x < 29.5, 1, 2).astype(np.int32)
+    np.testing.assert_array_equal(merge_planes(z, labels, CONFIG, noise=2.0), labels)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0])
+def test_pieces_of_a_cylinder_are_left_to_the_quadric_merge(sigma):
+    """The plane merge takes planes only; the quadric merge (Notes 1-3) joins a cylinder."""
+    y, x = _grid()
+    z = _noisy(30.0 + np.sqrt(80.0**2 - (x - 30.0) ** 2), sigma, seed=2)
+    labels = np.where(x < 30, 1, 2).astype(np.int32)
+    np.testing.assert_array_equal(merge_planes(z, labels, CONFIG, noise=max(sigma, 0.3)),
+                                  labels)
+    assert np.unique(merge_regions(z, labels, CONFIG, noise=max(sigma, 0.3))).tolist() == [1]
+
+
+def test_plane_merge_keeps_coplanar_tops_across_a_gap_apart():
+    y, x = _grid()
+    z = np.full(x.shape, 80.0)
+    z[:, 29:31] = 20.0
+    labels = np.where(x < 29, 1, 2).astype(np.int32)
+    labels[:, 29:31] = 0
+    np.testing.assert_array_equal(merge_planes(z, labels, CONFIG, noise=0.3), labels)
+    with pytest.raises(ValueError, match="shape"):
+        merge_planes(z, labels[:, :5], CONFIG, noise=0.3)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), shape=st.tuples(st.integers(3, 24), st.integers(3, 24)),
+       regions=st.integers(1, 6), holes=st.floats(0.0, 0.6), invalid=st.floats(0.0, 0.3))
+def test_plane_merge_only_joins_whole_regions(seed, shape, regions, holes, invalid):
+    """Whatever the input: the same pixels stay labelled, every old region goes whole into
+    one new region, and the new ids are 1..k in the order of their smallest old id."""
+    rng = np.random.default_rng(seed)
+    z = rng.normal(50.0, 2.0, shape) + rng.uniform(-1, 1) * np.arange(shape[1])[None, :]
+    z[rng.random(shape) < invalid] = np.nan
+    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
+    labels[rng.random(shape) < holes] = 0
+    out = merge_planes(z, labels, CONFIG, noise=2.0)
+    kept = np.isfinite(z) & (labels > 0)
+    assert np.array_equal(out > 0, kept)
+    old = np.unique(labels[kept])
+    new_of = {int(k): np.unique(out[kept & (labels == k)]) for k in old}
+    assert all(v.size == 1 for v in new_of.values())
+    order = list(dict.fromkeys(int(new_of[int(k)][0]) for k in old))  # by smallest old id
+    assert order == list(range(1, len(order) + 1))
+
+
+@pytest.mark.parametrize(("seed", "noise", "face"),
+                         [(0, 1.0, "base +x"), (8, 1.0, "base +y…"), (0, 2.0, "base +y…")])
+def test_part1s_sides_are_found_only_with_the_plane_merge(seed, noise, face):
+    """The recut, carving and refinement leave these sides in two coplanar pieces."""
+    side, on = found_with("part1", noise, seed, face, merge_planes=True)
+    _, off = found_with("part1", noise, seed, face, merge_planes=False)
+    assert side in on and side not in off
+
+
+def test_paper_preset_does_not_merge_planes(tmp_path):
+    assert load_config(preset="paper").split.merge_planes is False
+    assert CONFIG.split.merge_planes is True
+    assert "merge_planes" in bad_setting_on_the_command_line(tmp_path,
+                                                             "split.merge_planes=maybe")
