@@ -172,6 +172,9 @@ class SplitConfig:
                         "unlabelled to a planar region within 2 pixels whose plane explains "
                         "it (a narrow diagonal face cut off where its neighbour took a "
                         "corner pixel); again at the end, after carving and the refinement")
+    chamfers: bool = _opt(True, "before carving, give a narrow face between two planar "
+                          "regions at a crease (a chamfer) a region of its own, when a plane "
+                          "between them explains the image along the crease clearly better")
     carve: bool = _opt(True, "before the refinement, give a narrow face that growing took "
                        "into a planar region's border (a chamfer) a region of its own, when "
                        "one plane fits it to the noise at a crease with the region's plane")
@@ -254,10 +257,10 @@ _TABLE_CLASSES: dict[str, type] = {
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut, bridge,
-    # carve, refine or merge_planes)
+    # chamfers, carve, refine or merge_planes)
     "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
                         "merge": False, "recut": False, "bridge": False, "carve": False,
-                        "refine": False, "merge_planes": False}},
+                        "chamfers": False, "refine": False, "merge_planes": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,

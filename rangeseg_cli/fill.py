@@ -96,13 +96,16 @@ def surface_models(z: np.ndarray, labels: np.ndarray, n: int, cfg: GrowConfig
     mse : numpy.ndarray
         float64 (n+1,) mean squared residual of the chosen model.
     """
-    coeffs, mse, _ = _models(z, labels, n, cfg)
+    coeffs, mse, _ = fit_surfaces(z, labels, n, cfg)
     return coeffs, mse
 
 
-def _models(z: np.ndarray, labels: np.ndarray, n: int, cfg: GrowConfig
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`surface_models`, and bool (n+1,) which of them are planes."""
+def fit_surfaces(z: np.ndarray, labels: np.ndarray, n: int, cfg: GrowConfig
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`surface_models`, and bool (n+1,) which of them are planes.
+
+    A plane's coefficients are (a0, a1, a2, 0, 0, 0): ``z = a0 + a1 col + a2 row``.
+    """
     ((quad, mse_quad), (plane, mse_plane)), _ = fit_models(z, labels, n, (2, 1))
     flat = planar(mse_quad, mse_plane, cfg.planar_tolerance, cfg.min_error)
     return np.where(flat[:, None], plane, quad), np.where(flat, mse_plane, mse_quad), flat
@@ -213,7 +216,7 @@ def bridge_gaps(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig, *,
     n = int(out.max(initial=0))
     if n == 0:
         return out
-    coeffs, mse, flat = _models(z, out, n, cfg)
+    coeffs, mse, flat = fit_surfaces(z, out, n, cfg)
     bound = np.where(flat, cfg.error_factor * np.maximum(mse, cfg.min_error), 0.0)
     bound[0] = 0.0
     offsets = chessboard_offsets(reach)

@@ -86,12 +86,12 @@ def uses_noise(config: Config) -> bool:
     """Whether a stage of ``config`` uses the image's noise estimate.
 
     The noise-scaled thresholds (``[input] auto_thresholds``, Sec. V-1, V-2)
-    and the split, recovery, merges, recut, carving and boundary refinement of
+    and the split, recovery, merges, recut, chamfers, carving and boundary refinement of
     ``[split]`` (beyond the paper; the fill and the bridge do not).
     """
     s = config.split
     return (config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
-            or s.carve or s.refine or s.merge_planes)
+            or s.chamfers or s.carve or s.refine or s.merge_planes)
 
 
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
@@ -127,12 +127,12 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
 
 def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
                     ) -> np.ndarray:
-    """The merge, recut, second fill, bridge, carving, refinement, plane merge and last bridge.
+    """The merge, recut, fill, bridge, chamfers, carving, refinement, plane merge, last bridge.
 
-    Of ``[split]``, in that order. The bridge runs again at the end when carving or the
-    refinement ran: a face carved after the first bridge (part1's +y side,
-    cut from the base top) has edge pixels along it that no region within
-    reach explained then.
+    Of ``[split]``, in that order. The bridge runs again at the end when the
+    chamfers, carving or the refinement ran: a face carved after the first
+    bridge (part1's +y side, cut from the base top) has edge pixels along it
+    that no region within reach explained then.
     """
     cfg = config.split
     if cfg.merge:
@@ -151,6 +151,10 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .fill import bridge_gaps
 
         labels = bridge_gaps(z, labels, config.grow)
+    if cfg.chamfers:
+        from .chamfer import chamfer_faces
+
+        labels = chamfer_faces(z, labels, config, noise=sigma)
     if cfg.carve:
         from .carve import carve_faces
 
@@ -163,7 +167,7 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .merge import merge_planes
 
         labels = merge_planes(z, labels, config, noise=sigma)
-    if cfg.fill_edges and cfg.bridge and (cfg.carve or cfg.refine):
+    if cfg.fill_edges and cfg.bridge and (cfg.chamfers or cfg.carve or cfg.refine):
         from .fill import bridge_gaps  # once more: faces carved since, borders moved
 
         labels = bridge_gaps(z, labels, config.grow)
@@ -192,7 +196,9 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     surfaces explain are filled once more; with ``[split] bridge`` (and
     ``fill_edges``) edge pixels left go to a planar region within 2 pixels that explains them
     (:func:`~rangeseg_cli.fill.bridge_gaps`; again at the end, after
-    carving and the refinement); with ``[split] carve`` narrow
+    carving and the refinement); with ``[split] chamfers`` a narrow face
+    between two planes at a crease gets a region of its own
+    (:mod:`rangeseg_cli.chamfer`); with ``[split] carve`` narrow
     faces grown into a planar region's border get regions of their own
     (:mod:`rangeseg_cli.carve`); with ``[split] refine`` boundary pixels
     move to the neighbouring surface that predicts them best, or, near a
@@ -209,7 +215,7 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
     cfg = config.split
     if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut
-            or cfg.bridge or cfg.carve or cfg.refine or cfg.merge_planes):
+            or cfg.bridge or cfg.chamfers or cfg.carve or cfg.refine or cfg.merge_planes):
         return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise

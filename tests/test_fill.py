@@ -333,7 +333,7 @@ def test_paper_preset_does_not_bridge():
 def test_bridge_only_labels_unlabelled_valid_pixels_from_planes_within_reach(seed, shape,
                                                                             regions, holes,
                                                                             invalid):
-    from rangeseg_cli.fill import _models
+    from rangeseg_cli.fill import fit_surfaces
 
     z, labels = random_labels(seed, shape, regions, holes, invalid)
     out = bridge_gaps(z, labels, GROW)
@@ -342,7 +342,7 @@ def test_bridge_only_labels_unlabelled_valid_pixels_from_planes_within_reach(see
     assert np.all(out[~valid] == 0)
     kept = valid & (labels > 0)
     np.testing.assert_array_equal(out[kept], labels[kept])
-    _, _, flat = _models(z, np.where(valid, labels, 0), int(labels.max()), GROW)
+    _, _, flat = fit_surfaces(z, np.where(valid, labels, 0), int(labels.max()), GROW)
     padded = np.pad(out, 2)
     rows, cols = np.nonzero(valid & (labels == 0) & (out > 0))
     for r, c in zip(rows.tolist(), cols.tolist(), strict=True):

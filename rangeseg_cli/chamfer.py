@@ -1,0 +1,296 @@
+"""Fit a chamfer between two planes that meet at a crease.
+
+Beyond Al-Hujazi & Sood (1990), after the fills of :mod:`rangeseg_cli.fill`
+and before carving (:mod:`rangeseg_cli.carve`). A face 2-4 pixels wide
+between two planes -- the chamfer between a nut's top and one of its sides
+-- is grown partly into the one and partly into the other (Sec. V-4). At
+noise sigma 2 few of its pixels stand out from either plane alone, so a
+test of each region's border (carving) finds only scraps of it; but over
+the whole strip the two planes' envelope explains the image clearly worse
+than the envelope with one more plane between them. The paper's conclusion
+(Sec. VIII) asks for a test of the fits; this is that test along a crease.
+
+Notes
+-----
+1. Pairs. Two touching regions (8-neighbours) that are both planar, each
+   plane fitted to the region's interior -- its pixels whose
+   ``(2 INTERIOR + 1)^2`` window holds no other label -- when that has
+   ``link.min_component`` pixels or more (a chamfer's pixels grown into a
+   steep side tilt the side's plane fitted to all of them), and that meet
+   at a crease: on most of the zone's pixels of each (2.), its plane is
+   the lower of the two (a convex crease, where the image is their lower
+   envelope) or on most of each the higher (concave, the upper envelope).
+   Across a step neither holds. (The refinement's crease kinds,
+   :func:`~rangeseg_cli.refine.crease_kinds`, ask for 80 % of the pixels
+   next to the boundary; with a chamfer between them the two planes meet
+   beyond the labels' boundary, so that test fails on the very pairs
+   sought here.)
+2. The zone: the pixels of each within ``ZONE`` pixels (chessboard) of the
+   other, in the box round the pixels where they touch grown by ``ZONE +
+   1``. A first plane is fitted to its pixels within ``SEED_BAND`` of the
+   other region; then, up to ``ITERATIONS`` times, the chamfer's pixels are
+   those of the zone where its plane is visible -- below both planes at a
+   convex crease, above both at a concave one -- and its plane is fitted
+   again to them, until they no longer change.
+3. The gain: the zone's sum of squared residuals to the two planes'
+   envelope less that to the envelope of the three, in units of ``s^2``
+   (``s = max(noise, sqrt(grow.min_error))``). A chamfer is kept when its
+   gain is ``MIN_GAIN`` or more, it has ``link.min_component`` pixels or
+   more, its plane fits them within the split's fit test
+   (``split.fit_factor * s``), it meets both planes at ``MIN_ANGLE``
+   degrees or more (and ``split.min_crease``), and no other planar region
+   touching it has its plane (within ``split.min_crease`` and, on average
+   over its pixels, within the fit test: a face an earlier step found). On
+   noise-free 8-bit images the quantisation steps of a plane seen at a
+   slant give a "chamfer" 14 degrees off it over a band of 60 pixels; the
+   nut's chamfers are 60 degrees off their top.
+4. Chamfers are taken by decreasing gain; one that shares a pixel with a
+   chamfer already taken is dropped. Each becomes a region of its own,
+   numbered after the existing ones; carving and the boundary refinement
+   that follow (:mod:`rangeseg_cli.refine`, Notes 5) settle its borders.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from .config import Config
+from .fill import fit_surfaces
+from .grow import plane_angle
+from .rangeimage import HALF_NEIGHBOUR_PAIRS, labels_on_valid
+from .recover import fit_plane
+
+#: Chessboard distance from the other region of a pair within which a pixel is in the zone.
+ZONE = 5
+
+#: Pixels within this distance of the other region seed the chamfer's first plane.
+SEED_BAND = 2
+
+#: Most refits of the chamfer's plane (Notes 2).
+ITERATIONS = 8
+
+#: Smallest drop of the zone's sum of squared residuals, in units of ``s^2`` (Notes 3).
+MIN_GAIN = 25.0
+
+#: Smallest angle (degrees) between a chamfer's plane and each of the pair's (Notes 3).
+MIN_ANGLE = 20.0
+
+#: A region's interior: its pixels whose (2 INTERIOR + 1)^2 window holds no other label.
+INTERIOR = 2
+
+#: Fewest seed pixels for a first plane.
+_MIN_SEED = 8
+
+
+def _height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Heights of the plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row`` at the pixels."""
+    return plane[0] + plane[1] * cols + plane[2] * rows
+
+
+def touching_boxes(labels: np.ndarray) -> dict[tuple[int, int], tuple[int, int, int, int]]:
+    """Each pair (i < j) of 8-touching regions: the box (r0, r1, c0, c1) of the touching pixels.
+
+    Both pixels of every touching 8-neighbour pair are in the box (end exclusive).
+    """
+    big = int(labels.max(initial=0)) + 1
+    keys, rows, cols = [], [], []
+    for first, second in HALF_NEIGHBOUR_PAIRS:
+        a, b = labels[first], labels[second]
+        r, c = np.nonzero((a > 0) & (b > 0) & (a != b))
+        la, lb = a[r, c].astype(np.int64), b[r, c].astype(np.int64)
+        key = np.minimum(la, lb) * big + np.maximum(la, lb)
+        keys += [key, key]
+        rows += [r + (first[0].start or 0), r + (second[0].start or 0)]
+        cols += [c + (first[1].start or 0), c + (second[1].start or 0)]
+    if not keys:
+        return {}
+    key, row, col = np.concatenate(keys), np.concatenate(rows), np.concatenate(cols)
+    if key.size == 0:
+        return {}
+    order = np.argsort(key, kind="stable")
+    key, row, col = key[order], row[order], col[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    boxes = zip(np.minimum.reduceat(row, starts), np.maximum.reduceat(row, starts) + 1,
+                np.minimum.reduceat(col, starts), np.maximum.reduceat(col, starts) + 1,
+                strict=True)
+    return {(int(k // big), int(k % big)): tuple(int(v) for v in box)  # type: ignore[misc]
+            for k, box in zip(key[starts].tolist(), boxes, strict=True)}
+
+
+def _zone(labels: np.ndarray, i: int, j: int, box: tuple[int, int, int, int]
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The zone's rows and cols (Notes 2), and bool: which of them seed the first plane."""
+    h, w = labels.shape
+    r0, r1 = max(box[0] - ZONE - 1, 0), min(box[1] + ZONE + 1, h)
+    c0, c1 = max(box[2] - ZONE - 1, 0), min(box[3] + ZONE + 1, w)
+    sub = labels[r0:r1, c0:c1]
+    mi, mj = sub == i, sub == j
+    to_j = ndimage.distance_transform_cdt(~mj, metric="chessboard")
+    to_i = ndimage.distance_transform_cdt(~mi, metric="chessboard")
+    near = np.where(mi, to_j, np.where(mj, to_i, ZONE + 1))
+    rows, cols = np.nonzero(near <= ZONE)
+    return rows + r0, cols + c0, near[rows, cols] <= SEED_BAND
+
+
+def crease_kind(first: np.ndarray, planes: tuple[np.ndarray, np.ndarray], rows: np.ndarray,
+                cols: np.ndarray) -> int:
+    """The pair's crease: -1 convex, +1 concave, 0 neither (Notes 1).
+
+    Convex when on most pixels of each side its plane is the lower of the
+    two, concave when the higher. ``first``: bool, which of the pixels are
+    the first region's.
+    """
+    below = _height(planes[0], rows, cols) < _height(planes[1], rows, cols)
+    own_lower = np.where(first, below, ~below)
+    if first.all() or not first.any():
+        return 0
+    a, b = own_lower[first].mean(), own_lower[~first].mean()
+    return -1 if a > 0.5 and b > 0.5 else 1 if a < 0.5 and b < 0.5 else 0
+
+
+def _chamfer(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, seed: np.ndarray,
+             planes: tuple[np.ndarray, np.ndarray], kind: int
+             ) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """Gain (unscaled), plane and bool pixels of the zone's chamfer (Notes 2, 3); None if none."""
+    if kind == 0 or np.count_nonzero(seed) < _MIN_SEED:
+        return None
+    heights = z[rows, cols]
+    pick = np.minimum if kind < 0 else np.maximum
+    both = pick(_height(planes[0], rows, cols), _height(planes[1], rows, cols))
+    plane = fit_plane(z, rows[seed], cols[seed])
+    mine = seed
+    for _ in range(ITERATIONS):
+        own = _height(plane, rows, cols)
+        visible = own < both if kind < 0 else own > both
+        if np.count_nonzero(visible) < _MIN_SEED:
+            return None
+        if np.array_equal(visible, mine):
+            break
+        mine = visible
+        plane = fit_plane(z, rows[mine], cols[mine])
+    mine = _height(plane, rows, cols) < both if kind < 0 else _height(plane, rows, cols) > both
+    before = float(np.sum((heights - both) ** 2))
+    after = float(np.sum((heights - pick(both, _height(plane, rows, cols))) ** 2))
+    return before - after, plane, mine
+
+
+def _interior_planes(z: np.ndarray, labels: np.ndarray, n: int, config: Config
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Each region's surface fitted to its interior (Notes 1), and bool: which are planes.
+
+    Regions with fewer than ``link.min_component`` interior pixels keep the fit
+    of all their pixels.
+    """
+    size = 2 * INTERIOR + 1
+    inner = (ndimage.minimum_filter(labels, size=size, mode="nearest")
+             == ndimage.maximum_filter(labels, size=size, mode="nearest"))
+    interior = np.where(inner, labels, 0)
+    counts = np.bincount(interior.ravel(), minlength=n + 1)
+    whole, _, whole_flat = fit_surfaces(z, labels, n, config.grow)
+    core, _, core_flat = fit_surfaces(z, interior, n, config.grow)
+    use = counts >= config.link.min_component
+    return np.where(use[:, None], core, whole), np.where(use, core_flat, whole_flat)
+
+
+def _candidates(z: np.ndarray, labels: np.ndarray, config: Config, s: float
+                ) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """Every pair's kept chamfer (Notes 1-3): (gain, rows, cols)."""
+    coeffs, flat = _interior_planes(z, labels, int(labels.max(initial=0)), config)
+    planes = coeffs[:, :3] * flat[:, None]  # zero for curved regions
+    out = []
+    for (i, j), box in touching_boxes(labels).items():
+        if not (flat[i] and flat[j]):
+            continue
+        rows, cols, seed = _zone(labels, i, j, box)
+        pair = (planes[i], planes[j])
+        found = _chamfer(z, rows, cols, seed, pair,
+                         crease_kind(labels[rows, cols] == i, pair, rows, cols))
+        if found is not None and found[0] >= MIN_GAIN * s * s:
+            plane, mine = found[1], found[2]
+            if _kept(z, labels, rows[mine], cols[mine], plane, (i, j), planes, config, s):
+                out.append((found[0], rows[mine], cols[mine]))
+    return out
+
+
+def _kept(z: np.ndarray, labels: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+          plane: np.ndarray, pair: tuple[int, int], planes: np.ndarray, config: Config,
+          s: float) -> bool:
+    """The tests of Notes 3 but the gain's."""
+    level = config.split.fit_factor * s
+    if rows.size < config.link.min_component:
+        return False
+    rms = math.sqrt(float(np.mean((z[rows, cols] - _height(plane, rows, cols)) ** 2)))
+    angle = min(plane_angle(plane, planes[pair[0]]), plane_angle(plane, planes[pair[1]]))
+    return (rms <= level and angle >= max(config.split.min_crease, MIN_ANGLE)
+            and not _a_neighbours(labels, rows, cols, plane, pair, planes, level,
+                                  config.split.min_crease))
+
+
+def _a_neighbours(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray, plane: np.ndarray,
+                  pair: tuple[int, int], planes: np.ndarray, level: float, min_crease: float
+                  ) -> bool:
+    """Whether a planar region touching the chamfer (not of the pair) has its plane (Notes 3).
+
+    Within ``min_crease`` degrees and, on average over the chamfer's pixels,
+    within ``level``: a face that an earlier step has found already, which
+    the refinement will settle. ``planes``: (n+1, 3), zero for curved regions.
+    """
+    h, w = labels.shape
+    r = np.clip(rows[:, None] + np.array([-1, -1, -1, 0, 0, 1, 1, 1]), 0, h - 1)
+    c = np.clip(cols[:, None] + np.array([-1, 0, 1, -1, 1, -1, 0, 1]), 0, w - 1)
+    own = _height(plane, rows, cols)
+    for k in np.unique(labels[r, c]).tolist():
+        if k == 0 or k in pair or not planes[k].any():
+            continue
+        if (plane_angle(plane, planes[k]) < min_crease
+                and np.mean(np.abs(own - _height(planes[k], rows, cols))) <= level):
+            return True
+    return False
+
+
+def chamfer_faces(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
+                  ) -> np.ndarray:
+    """Give a chamfer between two planes at a crease a region of its own (Notes).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) regions 1..n, 0 = none.
+    config
+        ``[link] min_component``; ``[grow] planar_tolerance`` and
+        ``min_error``; ``[split] fit_factor`` and ``min_crease``.
+    noise
+        Noise sigma of ``z`` (:func:`~rangeseg_cli.noise.estimate_noise`);
+        NaN counts as 0.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W): ``labels`` with the chamfers numbered n+1, n+2, ... in
+        the order of decreasing gain; the same pixels are labelled.
+
+    Raises
+    ------
+    ValueError
+        When the shapes of ``z`` and ``labels`` differ.
+    """
+    z, out = labels_on_valid(z, labels)
+    if int(out.max(initial=0)) < 2:
+        return out
+    sigma = 0.0 if math.isnan(noise) else noise
+    s = math.sqrt(max(sigma * sigma, config.grow.min_error))
+    known = np.nan_to_num(z)
+    taken = np.zeros(out.shape, dtype=bool)
+    next_id = int(out.max()) + 1
+    for _, rows, cols in sorted(_candidates(known, out, config, s), key=lambda c: -c[0]):
+        if taken[rows, cols].any():
+            continue
+        taken[rows, cols] = True
+        out[rows, cols] = next_id
+        next_id += 1
+    return out.astype(np.int32, copy=False)
