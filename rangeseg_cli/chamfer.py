@@ -44,9 +44,11 @@ Notes
    noise-free 8-bit images the quantisation steps of a plane seen at a
    slant give a "chamfer" 14 degrees off it over a band of 60 pixels; the
    nut's chamfers are 60 degrees off their top.
-4. Chamfers are taken by decreasing gain; one that shares a pixel with a
-   chamfer already taken is dropped. Each becomes a region of its own,
-   numbered after the existing ones; carving and the boundary refinement
+4. A pixel that two chamfers claim (where two meet at a corner) goes to
+   the one whose plane is nearer its height; a chamfer left with fewer
+   than ``link.min_component`` pixels is dropped (its pixels keep their
+   labels). Each chamfer becomes a region of its own, numbered after the
+   existing ones in the order of decreasing gain; carving and the boundary refinement
    that follow (:mod:`rangeseg_cli.refine`, Notes 5) settle its borders.
 """
 
@@ -196,8 +198,8 @@ def _interior_planes(z: np.ndarray, labels: np.ndarray, n: int, config: Config
 
 
 def _candidates(z: np.ndarray, labels: np.ndarray, config: Config, s: float
-                ) -> list[tuple[float, np.ndarray, np.ndarray]]:
-    """Every pair's kept chamfer (Notes 1-3): (gain, rows, cols)."""
+                ) -> list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]:
+    """Every pair's kept chamfer (Notes 1-3): (gain, rows, cols, plane)."""
     coeffs, flat = _interior_planes(z, labels, int(labels.max(initial=0)), config)
     planes = coeffs[:, :3] * flat[:, None]  # zero for curved regions
     out = []
@@ -211,7 +213,7 @@ def _candidates(z: np.ndarray, labels: np.ndarray, config: Config, s: float
         if found is not None and found[0] >= MIN_GAIN * s * s:
             plane, mine = found[1], found[2]
             if _kept(z, labels, rows[mine], cols[mine], plane, (i, j), planes, config, s):
-                out.append((found[0], rows[mine], cols[mine]))
+                out.append((found[0], rows[mine], cols[mine], plane))
     return out
 
 
@@ -272,7 +274,7 @@ def chamfer_faces(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     -------
     numpy.ndarray
         int32 (H, W): ``labels`` with the chamfers numbered n+1, n+2, ... in
-        the order of decreasing gain; the same pixels are labelled.
+        the order of decreasing gain (Notes 4); the same pixels are labelled.
 
     Raises
     ------
@@ -285,12 +287,29 @@ def chamfer_faces(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     sigma = 0.0 if math.isnan(noise) else noise
     s = math.sqrt(max(sigma * sigma, config.grow.min_error))
     known = np.nan_to_num(z)
-    taken = np.zeros(out.shape, dtype=bool)
+    found = sorted(_candidates(known, out, config, s), key=lambda c: -c[0])
+    owner = _owners(known, out.shape, found)
     next_id = int(out.max()) + 1
-    for _, rows, cols in sorted(_candidates(known, out, config, s), key=lambda c: -c[0]):
-        if taken[rows, cols].any():
-            continue
-        taken[rows, cols] = True
-        out[rows, cols] = next_id
-        next_id += 1
+    for k, (_, rows, cols, _) in enumerate(found):
+        won = owner[rows, cols] == k
+        if np.count_nonzero(won) >= config.link.min_component:
+            out[rows[won], cols[won]] = next_id
+            next_id += 1
     return out.astype(np.int32, copy=False)
+
+
+def _owners(z: np.ndarray, shape: tuple[int, ...],
+            found: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Per pixel, the index of the chamfer that takes it, -1 for none (Notes 4).
+
+    A pixel two chamfers claim (where two chamfers meet at a corner) goes to
+    the one whose plane is nearer its height; on a tie, to the larger gain.
+    """
+    owner = np.full(shape, -1)
+    best = np.full(shape, np.inf)
+    for k, (_, rows, cols, plane) in enumerate(found):
+        residual = np.abs(z[rows, cols] - _height(plane, rows, cols))
+        nearer = residual < best[rows, cols]
+        owner[rows[nearer], cols[nearer]] = k
+        best[rows[nearer], cols[nearer]] = residual[nearer]
+    return owner

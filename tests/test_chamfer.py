@@ -54,6 +54,46 @@ def test_a_chamfer_split_between_two_planes_gets_its_region(noise, seed, in_top)
     np.testing.assert_array_equal(out[~face], labels[~face])  # the rest keeps its labels
 
 
+def corner(noise: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A top (rows and cols < 30) with a chamfer 4 pixels wide along each of its two edges,
+    meeting at the corner, and steep sides beyond: heights, labels (the top's region holds
+    2 rows / cols of each chamfer, the two sides split along the diagonal) and the two
+    chamfers."""
+    y, x = np.mgrid[0:64, 0:64].astype(np.float64)
+    top = np.full(y.shape, 100.0)
+    faces = [top, top - 1.7 * (y - 29.5), top - 6.8 - 10.0 * (y - 33.5),
+             top - 1.7 * (x - 29.5), top - 6.8 - 10.0 * (x - 33.5)]
+    z = np.min(faces, axis=0)
+    visible = np.argmin(faces, axis=0)
+    z += np.random.default_rng(seed).normal(0.0, noise, z.shape) if noise else 0.0
+    labels = np.where((y < 32) & (x < 32), 1, np.where(y - x >= 0, 2, 3)).astype(np.int32)
+    return z, labels, visible == 1, visible == 3
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("noise", [0.0, 1.0, 2.0])
+def test_two_chamfers_meeting_at_a_corner_are_both_found(noise, seed):
+    """Both claim the pixels at the corner; each pixel goes to the nearer plane (Notes 4).
+
+    Each chamfer's region holds 80 % of it and is 75 % its pixels or more (at sigma 2 a
+    few of the other's; the refinement settles such borders later)."""
+    z, labels, first, second = corner(noise, seed)
+    out = chamfer_faces(z, labels, CONFIG, noise=max(noise, 0.5))
+    assert out.max() == 5
+    for truth in (first, second):
+        ids, counts = np.unique(out[truth], return_counts=True)
+        best = ids[np.argmax(counts)]
+        assert best > 3 and counts.max() >= 0.8 * truth.sum()
+        assert counts.max() >= 0.75 * np.count_nonzero(out == best)
+
+
+def test_the_nuts_narrowest_chamfer_is_found_at_sigma_1_only_with_this_step():
+    """Facet 72, a strip 2 pixels wide, meets facet 11 at a corner of the top."""
+    facet, on = found_with("nut", 1.0, 1, "nut facet 72", chamfers=True)
+    _, off = found_with("nut", 1.0, 1, "nut facet 72", chamfers=False)
+    assert facet in on and facet not in off
+
+
 @pytest.mark.parametrize("off", [-1, 0, 1])
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("noise", [0.0, 1.0, 2.0])
