@@ -57,7 +57,7 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config
-from .grow import fit_models, planar, plane_angle
+from .grow import fit_models, planar_regions, plane_angle
 from .rangeimage import labels_on_valid
 from .recover import fit_plane, plane_pieces
 
@@ -109,8 +109,8 @@ def _planar_fit(z: np.ndarray, mask: np.ndarray, config: Config, level: float
         return None
     inliers = mask.astype(np.int32)
     inliers[rows[off], cols[off]] = 0
-    [(_, mse_quad), (plane, mse_plane)], _ = fit_models(z, inliers, 1, (2, 1))
-    flat = planar(mse_quad, mse_plane, config.grow.planar_tolerance, config.grow.min_error)
+    [(_, mse_quad), (plane, mse_plane)], counts = fit_models(z, inliers, 1, (2, 1))
+    flat = planar_regions(mse_quad, mse_plane, counts, config.grow)
     return (plane[1, :3], math.sqrt(float(mse_plane[1]))) if bool(flat[1]) else None
 
 

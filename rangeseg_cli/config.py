@@ -110,6 +110,9 @@ class GrowConfig:
     planar_tolerance: float = _opt(0.1, "a surface is planar unless the quadratic terms lower "
                                    "its mean squared error by more than this fraction",
                                    min=0.0, max=1.0)
+    planar_noise_test: bool = _opt(True, "a surface is also planar when the quadratic terms "
+                                   "lower its error by no more than noise would (an F test at "
+                                   "1 % on its pixel count: small regions)")
 
 
 @dataclass(frozen=True)
@@ -258,7 +261,8 @@ _TABLE_CLASSES: dict[str, type] = {
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut, bridge,
     # chamfers, carve, refine or merge_planes)
-    "paper": {"split": {"enabled": False, "recover": False, "fill_edges": False,
+    "paper": {"grow": {"planar_noise_test": False},
+              "split": {"enabled": False, "recover": False, "fill_edges": False,
                         "merge": False, "recut": False, "bridge": False, "carve": False,
                         "chamfers": False, "refine": False, "merge_planes": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,

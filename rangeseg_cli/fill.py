@@ -39,7 +39,7 @@ import numpy as np
 
 from .config import GrowConfig
 from .edges import Backend, select_kernels
-from .grow import evaluate_quadric, fit_models, planar
+from .grow import evaluate_quadric, fit_models, planar_regions
 from .rangeimage import chessboard_offsets, labels_on_valid
 
 #: The eight neighbour offsets (drow, dcol) in raster order of the 3x3 window.
@@ -106,8 +106,8 @@ def fit_surfaces(z: np.ndarray, labels: np.ndarray, n: int, cfg: GrowConfig
 
     A plane's coefficients are (a0, a1, a2, 0, 0, 0): ``z = a0 + a1 col + a2 row``.
     """
-    ((quad, mse_quad), (plane, mse_plane)), _ = fit_models(z, labels, n, (2, 1))
-    flat = planar(mse_quad, mse_plane, cfg.planar_tolerance, cfg.min_error)
+    ((quad, mse_quad), (plane, mse_plane)), counts = fit_models(z, labels, n, (2, 1))
+    flat = planar_regions(mse_quad, mse_plane, counts, cfg)
     return np.where(flat[:, None], plane, quad), np.where(flat, mse_plane, mse_quad), flat
 
 

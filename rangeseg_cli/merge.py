@@ -47,7 +47,7 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config
-from .grow import evaluate_quadric, fit_models, fit_quadrics, planar
+from .grow import evaluate_quadric, fit_models, fit_quadrics, planar_regions
 from .rangeimage import HALF_NEIGHBOUR_PAIRS, labels_on_valid
 from .split import _crease_angle
 
@@ -199,8 +199,8 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
         return lab
     zc = np.where(np.isfinite(z), z, 0.0)
     level = config.split.fit_factor * max(noise, math.sqrt(config.grow.min_error))
-    ((quad, mse), (planes, mse_plane)), _ = fit_models(zc, lab, n, (2, 1))
-    is_plane = planar(mse, mse_plane, config.grow.planar_tolerance, config.grow.min_error)
+    ((quad, mse), (planes, mse_plane)), counts = fit_models(zc, lab, n, (2, 1))
+    is_plane = planar_regions(mse, mse_plane, counts, config.grow)
     if order == 2:
         rms = np.sqrt(np.maximum(mse, 0.0))
         flat = (rms <= level) & is_plane

@@ -78,7 +78,7 @@ from scipy import ndimage
 
 from .config import Config, GrowConfig
 from .edges import Backend, select_kernels
-from .grow import fit_models, planar, plane_angle
+from .grow import fit_models, planar_regions, plane_angle
 from .merge import _join_box, touching_pairs
 from .parallel import map_tasks
 from .rangeimage import consecutive_labels, labels_on_valid
@@ -396,9 +396,8 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
     if fit is None:
         return None
     plane_side, sse, sse_across = fit
-    ((_, mse_q), (_, mse_p)), _ = _fits(z, plane_side, 1, box)
-    if mse_p[1] > level ** 2 or not planar(mse_q[1:], mse_p[1:], grow.planar_tolerance,
-                                           grow.min_error)[0]:
+    ((_, mse_q), (_, mse_p)), counts = _fits(z, plane_side, 1, box)
+    if mse_p[1] > level ** 2 or not planar_regions(mse_q[1:], mse_p[1:], counts[1:], grow)[0]:
         return None
     s2n = int(mask.sum()) * max(noise ** 2, grow.min_error)
     if quadric_sse is None:
@@ -412,8 +411,8 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
 def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig, box: Box | None = None
              ) -> float:
     """Sum of squared errors of labels 1 and 2 of ``two``, each by its own surface."""
-    ((_, mse_q), (_, mse_p)), _ = _fits(z, two, 2, box)
-    flat = planar(mse_q, mse_p, grow.planar_tolerance, grow.min_error)
+    ((_, mse_q), (_, mse_p)), counts = _fits(z, two, 2, box)
+    flat = planar_regions(mse_q, mse_p, counts, grow)
     count = np.bincount(two.ravel(), minlength=3)
     return float(sum(count[k] * (mse_p[k] if flat[k] else mse_q[k]) for k in (1, 2)))
 
@@ -566,8 +565,8 @@ def candidates(z: np.ndarray, labels: np.ndarray, config: Config, level: float
         ``fails`` the fit test or not), as :func:`_quadric_sse` gives it.
     """
     n = int(labels.max(initial=0))
-    ((quad, mse), (planes, mse_plane)), _ = fit_models(z, labels, n, (2, 1))
-    curved = ~planar(mse, mse_plane, config.grow.planar_tolerance, config.grow.min_error)
+    ((quad, mse), (planes, mse_plane)), counts = fit_models(z, labels, n, (2, 1))
+    curved = ~planar_regions(mse, mse_plane, counts, config.grow)
     curved[0] = False
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     # Each region's quadric here is the one of its pixels alone (the same moments and

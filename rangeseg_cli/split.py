@@ -971,8 +971,8 @@ def _normals(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
 
 def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
                min_gain: float, min_crease: float, planar_tolerance: float,
-               min_error: float, creases: float | None = None, excess: float | None = None
-               ) -> np.ndarray:
+               min_error: float, creases: float | None = None, excess: float | None = None,
+               noise_test: bool = False) -> np.ndarray:
     """Merge neighbouring pieces that are one surface after all.
 
     Two neighbouring pieces i, j stay apart when one quadric fits their
@@ -1026,6 +1026,9 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
         (a ramp's piece beside the floor it rises from) has a high RMS of
         its own, and the union's far larger error then passes as "about as
         bad". A curved surface cut in two leaves little excess. None: off.
+    noise_test
+        ``grow.planar_noise_test``: the planar rule's noise test
+        (:func:`~rangeseg_cli.grow.planar`) on the pieces' pixel counts.
 
     Returns
     -------
@@ -1039,7 +1042,8 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     ((_, mse), (planes, mse_plane)), counts = fitted.fits, fitted.counts
     squares = sums_of_squares(z, pieces, n)
     rms = np.sqrt(np.maximum(mse, 0.0))
-    flat = (rms <= level) & planar(mse, mse_plane, planar_tolerance, min_error)
+    flat = (rms <= level) & planar(mse, mse_plane, planar_tolerance, min_error,
+                                   counts if noise_test else None)
     parent = np.arange(n + 1)
     for i, j in adjacent_pairs(pieces):
         union = math.sqrt(union_quadric_mse(fitted.moments, squares, i, j))
@@ -1226,7 +1230,8 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
                       min_gain=cfg.min_gain, min_crease=cfg.min_crease,
                       planar_tolerance=grow.planar_tolerance, min_error=grow.min_error,
                       creases=_crease_gain(noise, cfg, grow),
-                      excess=cfg.min_excess * level * level if cfg.min_excess > 0 else None)
+                      excess=cfg.min_excess * level * level if cfg.min_excess > 0 else None,
+                      noise_test=grow.planar_noise_test)
 
 
 #: A trimmed piece keeps at least this share of its pixels (else it is left whole).

@@ -54,7 +54,7 @@ from scipy import ndimage
 
 from .config import Config
 from .edges import Backend, select_kernels
-from .grow import evaluate_quadric, planar, region_fits, valid_labels
+from .grow import evaluate_quadric, planar_regions, region_fits, valid_labels
 from .models import Neighbor, Surface
 
 #: Two regions are neighbours when pixels of both lie within this chessboard distance.
@@ -499,7 +499,7 @@ def describe_surfaces_and_gaps(z: np.ndarray, labels: np.ndarray, config: Config
     # Final surface parameters: the quadric fit repeated on the grown regions (Sec. V-4)
     stats = region_fits(z, labels, n, (2, 1), backend=backend)
     (quad, mse_quad), (plane, mse_plane) = stats.fits
-    flat = planar(mse_quad, mse_plane, config.grow.planar_tolerance, config.grow.min_error)
+    flat = planar_regions(mse_quad, mse_plane, stats.counts, config.grow)
     coeffs = np.where(flat[:, None], plane, quad)
     mse = np.where(flat, mse_plane, mse_quad)
     group_i, group_j, medians = boundary_medians(labels, coeffs, backend=backend)

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from rangeseg_cli.config import GrowConfig
+from rangeseg_cli.config import GrowConfig, load_config
 from rangeseg_cli.grow import (
     fit_quadrics,
     grow_regions,
@@ -332,3 +332,84 @@ def test_more_passes_never_unlabel_a_pixel() -> None:
                         replace(GrowConfig(), passes=0))
     assert np.all(many[one > 0] == one[one > 0])
     assert np.count_nonzero(many) >= np.count_nonzero(one)
+
+
+def _small_fits(rng: np.random.Generator, shape: tuple[int, int], curvature: float,
+                sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mse_quad, mse_plane, counts) of one small noisy region z = plane + curvature x^2."""
+    from rangeseg_cli.grow import fit_models
+
+    y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    z = 50.0 + 0.5 * x - 0.3 * y + curvature * (x - x.mean()) ** 2
+    z += rng.normal(0.0, sigma, z.shape)
+    ((_, mse_quad), (_, mse_plane)), counts = fit_models(z, np.ones(z.shape, np.int32), 1,
+                                                          (2, 1))
+    return mse_quad, mse_plane, counts
+
+
+@pytest.mark.parametrize("shape", [(3, 10), (5, 8)])
+def test_the_noise_test_keeps_small_noisy_planes_planar(shape):
+    """On 30-40 pixels at sigma 2 the quadric's three more terms lower the error by about
+    10 % from the noise alone: the tolerance alone calls about a third of such planes
+    curved, the F test at 1 % about one in a hundred."""
+    from rangeseg_cli.grow import planar
+
+    rng = np.random.default_rng(7)
+    alone, tested = 0, 0
+    for _ in range(200):
+        mse_quad, mse_plane, counts = _small_fits(rng, shape, 0.0, 2.0)
+        alone += bool(planar(mse_quad, mse_plane, 0.1, 0.25)[1])
+        tested += bool(planar(mse_quad, mse_plane, 0.1, 0.25, counts)[1])
+    assert tested >= 194 and alone <= 150
+
+
+@pytest.mark.parametrize(("shape", "curvature", "sigma"),
+                         [((3, 10), 0.5, 2.0), ((20, 20), 0.02, 0.0), ((20, 20), 0.02, 1.0)])
+def test_the_noise_test_leaves_curved_surfaces_curved(shape, curvature, sigma):
+    from rangeseg_cli.grow import planar
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        mse_quad, mse_plane, counts = _small_fits(rng, shape, curvature, sigma)
+        assert not planar(mse_quad, mse_plane, 0.1, 0.25, counts)[1]
+
+
+def test_the_noise_test_needs_more_than_six_pixels_and_is_a_config_switch():
+    from rangeseg_cli.grow import planar, planar_regions
+
+    mse_quad, mse_plane = np.array([0.0, 0.0, 0.0]), np.array([0.0, 4.0, 4.0])
+    counts = np.array([0, 6, 7])  # 6 pixels: a quadric fits any; 7: one degree of freedom
+    assert planar(mse_quad, mse_plane, 0.1, 0.25, counts).tolist() == [True, False, True]
+    near = np.array([0.0, 2.0]), np.array([0.0, 4.0]), np.array([0, 40])  # F = 11.3
+    assert not planar(*near[:2], 0.1, 0.25, near[2])[1]
+    weak = np.array([0.0, 3.9]), np.array([0.0, 4.0]), np.array([0, 40])  # F = 0.29
+    assert planar(*weak[:2], 0.1, 0.25, weak[2])[1]
+    on, off = load_config().grow, load_config(preset="paper").grow
+    assert on.planar_noise_test and not off.planar_noise_test
+    few = np.array([0.0, 3.5]), np.array([0.0, 4.0]), np.array([0, 30])  # F = 1.14
+    assert planar_regions(*few, on)[1] and not planar_regions(*few, off)[1]
+
+
+def test_part2s_side_is_found_at_sigma_2_only_with_the_noise_test():
+    """Its two pieces (66 and 33 pixels) are called curved by the tolerance alone, so
+    neither the merges nor the bridge take them as planes."""
+    from rangeseg_cli.evaluate import hoover_compare
+    from rangeseg_cli.pipeline import run_pipeline
+    from rangeseg_cli.synth import render_scene
+
+    scene = render_scene("part2", noise=2.0, seed=1)
+    side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "base -y side")
+
+    def found(test: bool) -> bool:
+        config = load_config(overrides={"grow": {"planar_noise_test": test}})
+        result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
+        return any(side in i.gt for i in result.instances if i.kind == "correct")
+
+    assert found(True) and not found(False)
+
+
+def test_a_bad_planar_noise_test_is_one_line_on_the_command_line(tmp_path):
+    from conftest import bad_setting_on_the_command_line
+
+    assert "planar_noise_test" in bad_setting_on_the_command_line(
+        tmp_path, "grow.planar_noise_test=maybe")
