@@ -59,7 +59,7 @@ from scipy import ndimage
 from .config import Config
 from .grow import fit_models, planar_regions, plane_angle
 from .rangeimage import labels_on_valid
-from .recover import fit_plane, plane_pieces
+from .recover import fit_plane, plane_height, plane_pieces
 
 #: Erosions (3x3) of a region that leave its interior (Notes 1).
 INTERIOR = 2
@@ -104,7 +104,7 @@ def _planar_fit(z: np.ndarray, mask: np.ndarray, config: Config, level: float
     """
     [(first, _)], _ = fit_models(z, mask.astype(np.int32), 1, (1,))
     rows, cols = np.nonzero(mask)
-    off = np.abs(z[rows, cols] - _height(first[1], rows, cols)) > OUTLIER_FACTOR * level
+    off = np.abs(z[rows, cols] - plane_height(first[1], rows, cols)) > OUTLIER_FACTOR * level
     if np.count_nonzero(~off) < INLIER_SHARE * rows.size:
         return None
     inliers = mask.astype(np.int32)
@@ -112,11 +112,6 @@ def _planar_fit(z: np.ndarray, mask: np.ndarray, config: Config, level: float
     [(_, mse_quad), (plane, mse_plane)], counts = fit_models(z, inliers, 1, (2, 1))
     flat = planar_regions(mse_quad, mse_plane, counts, config.grow)
     return (plane[1, :3], math.sqrt(float(mse_plane[1]))) if bool(flat[1]) else None
-
-
-def _height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Heights of the plane (a0, a1, a2) at the pixels."""
-    return plane[0] + plane[1] * cols + plane[2] * rows
 
 
 def _candidates(z: np.ndarray, region: np.ndarray, interior: np.ndarray, plane: np.ndarray,
@@ -133,7 +128,7 @@ def _candidates(z: np.ndarray, region: np.ndarray, interior: np.ndarray, plane: 
             r, c = rows + dr, cols + dc
             there = inside[r + 1, c + 1]
             count += there
-            total += np.where(there, heights[r + 1, c + 1] - _height(plane, r, c), 0.0)
+            total += np.where(there, heights[r + 1, c + 1] - plane_height(plane, r, c), 0.0)
     mean = total / np.maximum(count, 1.0)
     significant = np.abs(mean) * np.sqrt(count) > SIGNIFICANCE * s
     out = np.zeros(region.shape, dtype=bool)
@@ -151,8 +146,8 @@ def _extended(z: np.ndarray, piece: np.ndarray, free: np.ndarray, region_plane: 
     ring = ndimage.binary_dilation(piece[box], _SQUARE) & free[box] & ~piece[box]
     rr, rc = np.nonzero(ring)
     rr, rc = rr + box[0].start, rc + box[1].start
-    own = (z[rr, rc] - _height(plane, rr, rc)) ** 2
-    theirs = (z[rr, rc] - _height(region_plane, rr, rc)) ** 2
+    own = (z[rr, rc] - plane_height(plane, rr, rc)) ** 2
+    theirs = (z[rr, rc] - plane_height(region_plane, rr, rc)) ** 2
     face = piece.copy()
     face[rr[own < theirs], rc[own < theirs]] = True
     rows, cols = np.nonzero(face[box])
@@ -205,7 +200,7 @@ def _faces_of(z: np.ndarray, region: np.ndarray, config: Config, s: float) -> li
                 continue
             face, own = _extended(z, piece, free, plane)
             rows, cols = np.nonzero(face)
-            rms = math.sqrt(float(np.mean((z[rows, cols] - _height(own, rows, cols)) ** 2)))
+            rms = math.sqrt(float(np.mean((z[rows, cols] - plane_height(own, rows, cols)) ** 2)))
             if (rows.size >= minimum and rms <= level
                     and plane_angle(own, plane) >= config.split.min_crease):
                 faces.append(face)

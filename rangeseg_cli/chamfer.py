@@ -50,14 +50,15 @@ Notes
    touching it has its plane (within ``split.min_crease`` and, on average
    over its pixels, within the fit test: a face an earlier step found). On
    noise-free 8-bit images the quantisation steps of a plane seen at a
-   slant give a "chamfer" 14 degrees off it over a band of 60 pixels; the
-   nut's chamfers are 60 degrees off their top.
+   slant give a "chamfer" 14 degrees off it over a band of 66 pixels; the
+   nut's chamfers meet its top at 60-85 degrees and its sides at 25-50.
 4. A pixel that two chamfers claim (where two meet at a corner) goes to
    the one whose plane is nearer its height; a chamfer left with fewer
    than ``link.min_component`` pixels is dropped (its pixels keep their
    labels). Each chamfer becomes a region of its own, numbered after the
-   existing ones in the order of decreasing gain; carving and the boundary refinement
-   that follow (:mod:`rangeseg_cli.refine`, Notes 5) settle its borders.
+   existing ones in the order of decreasing gain; carving and the boundary
+   refinement that follow (:mod:`rangeseg_cli.refine`, Notes 5) settle its
+   borders.
 """
 
 from __future__ import annotations
@@ -71,7 +72,7 @@ from .config import Config
 from .fill import fit_surfaces
 from .grow import plane_angle
 from .rangeimage import HALF_NEIGHBOUR_PAIRS, labels_on_valid
-from .recover import fit_plane
+from .recover import fit_plane, plane_height
 
 #: Chessboard distance from the other region of a pair within which a pixel is in the zone.
 ZONE = 5
@@ -99,11 +100,6 @@ INTERIOR = 2
 _MIN_SEED = 8
 
 
-def _height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Heights of the plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row`` at the pixels."""
-    return plane[0] + plane[1] * cols + plane[2] * rows
-
-
 def touching_boxes(labels: np.ndarray) -> dict[tuple[int, int], tuple[int, int, int, int]]:
     """Each pair (i < j) of 8-touching regions: the box (r0, r1, c0, c1) of the touching pixels.
 
@@ -119,8 +115,6 @@ def touching_boxes(labels: np.ndarray) -> dict[tuple[int, int], tuple[int, int, 
         keys += [key, key]
         rows += [r + (first[0].start or 0), r + (second[0].start or 0)]
         cols += [c + (first[1].start or 0), c + (second[1].start or 0)]
-    if not keys:
-        return {}
     key, row, col = np.concatenate(keys), np.concatenate(rows), np.concatenate(cols)
     if key.size == 0:
         return {}
@@ -157,7 +151,7 @@ def crease_kind(first: np.ndarray, planes: tuple[np.ndarray, np.ndarray], rows: 
     two, concave when the higher. ``first``: bool, which of the pixels are
     the first region's.
     """
-    below = _height(planes[0], rows, cols) < _height(planes[1], rows, cols)
+    below = plane_height(planes[0], rows, cols) < plane_height(planes[1], rows, cols)
     own_lower = np.where(first, below, ~below)
     if first.all() or not first.any():
         return 0
@@ -178,11 +172,11 @@ def _chamfer(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, seed: np.ndarray
         return None
     heights = z[rows, cols]
     pick = np.minimum if kind < 0 else np.maximum
-    both = pick(_height(planes[0], rows, cols), _height(planes[1], rows, cols))
+    both = pick(plane_height(planes[0], rows, cols), plane_height(planes[1], rows, cols))
     plane, mine = fit_plane(z, rows[seed], cols[seed]), seed
     best: tuple[float, float, np.ndarray, np.ndarray] | None = None
     for _ in range(ITERATIONS):
-        own = _height(plane, rows, cols)
+        own = plane_height(plane, rows, cols)
         visible = own < both if kind < 0 else own > both
         if np.count_nonzero(visible) < _MIN_SEED:
             break
@@ -246,7 +240,7 @@ def _kept(z: np.ndarray, labels: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     level = config.split.fit_factor * s
     if rows.size < config.link.min_component:
         return False
-    rms = math.sqrt(float(np.mean((z[rows, cols] - _height(plane, rows, cols)) ** 2)))
+    rms = math.sqrt(float(np.mean((z[rows, cols] - plane_height(plane, rows, cols)) ** 2)))
     return (rms <= level
             and not _a_neighbours(labels, rows, cols, plane, pair, planes, level,
                                   config.split.min_crease))
@@ -264,12 +258,12 @@ def _a_neighbours(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray, plane:
     h, w = labels.shape
     r = np.clip(rows[:, None] + np.array([-1, -1, -1, 0, 0, 1, 1, 1]), 0, h - 1)
     c = np.clip(cols[:, None] + np.array([-1, 0, 1, -1, 1, -1, 0, 1]), 0, w - 1)
-    own = _height(plane, rows, cols)
+    own = plane_height(plane, rows, cols)
     for k in np.unique(labels[r, c]).tolist():
         if k == 0 or k in pair or not planes[k].any():
             continue
         if (plane_angle(plane, planes[k]) < min_crease
-                and np.mean(np.abs(own - _height(planes[k], rows, cols))) <= level):
+                and np.mean(np.abs(own - plane_height(planes[k], rows, cols))) <= level):
             return True
     return False
 
@@ -329,7 +323,7 @@ def _owners(z: np.ndarray, shape: tuple[int, ...],
     owner = np.full(shape, -1)
     best = np.full(shape, np.inf)
     for k, (_, rows, cols, plane) in enumerate(found):
-        residual = np.abs(z[rows, cols] - _height(plane, rows, cols))
+        residual = np.abs(z[rows, cols] - plane_height(plane, rows, cols))
         nearer = residual < best[rows, cols]
         owner[rows[nearer], cols[nearer]] = k
         best[rows[nearer], cols[nearer]] = residual[nearer]

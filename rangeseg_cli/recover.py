@@ -195,6 +195,11 @@ def fit_plane(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     return np.array([coef[0] - coef[1] * cc - coef[2] * cr, coef[1], coef[2]])
 
 
+def plane_height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Heights of the plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row`` (:func:`fit_plane`)."""
+    return plane[0] + plane[1] * cols + plane[2] * rows
+
+
 def plane_pieces(z: np.ndarray, mask: np.ndarray, *, level: float, min_pixels: int
                  ) -> list[np.ndarray]:
     """Cut the pixels of ``mask`` into planes by consensus (Notes, step 2).
