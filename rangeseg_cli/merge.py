@@ -164,28 +164,7 @@ def merge_planes(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: fl
                  ) -> np.ndarray:
     """Merge touching planar regions whose union one plane fits to the noise (Notes 4).
 
-    Parameters
-    ----------
-    z
-        float64 (H, W) heights, NaN where invalid.
-    labels
-        int (H, W) final regions 1..n, 0 = none.
-    config
-        Uses ``[split]`` (``fit_factor``, ``min_gain``, ``min_crease``) and
-        ``[grow]`` (``min_error``, ``planar_tolerance``).
-    noise
-        Noise sigma of ``z`` (:func:`~rangeseg_cli.noise.estimate_noise`).
-
-    Returns
-    -------
-    numpy.ndarray
-        int32 (H, W) regions 1..k, k <= n, numbered in the order of their
-        smallest old id; ``labels`` as int32 when nothing is merged.
-
-    Raises
-    ------
-    ValueError
-        When the shapes of ``z`` and ``labels`` differ.
+    Parameters, return value and errors as :func:`merge_regions`.
     """
     return _merged(z, labels, config, noise, order=1)
 

@@ -21,6 +21,23 @@ def step_image(height: float = 40.0, size: int = 32, col: int = 16) -> np.ndarra
     return z
 
 
+def random_labels(seed: int, shape: tuple[int, int], regions: int, holes: float,
+                  invalid: float, *, roof: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy heights with a share ``invalid`` NaN, and random labels 1..regions with a
+    share ``holes`` of 0 (for the property tests): sloped (sigma 5), or with ``roof`` two
+    planes meeting at a ridge (sigma 1)."""
+    rng = np.random.default_rng(seed)
+    if roof:
+        y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+        z = np.minimum(50.0 + 0.5 * x, 80.0 - 2.0 * y) + rng.normal(0.0, 1.0, shape)
+    else:
+        z = rng.normal(50.0, 5.0, shape) + rng.uniform(-3, 3) * np.arange(shape[1])[None, :]
+    z[rng.random(shape) < invalid] = np.nan
+    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
+    labels[rng.random(shape) < holes] = 0
+    return z, labels
+
+
 def box_scene(size: int = 64, noise: float = 0.0, seed: int = 0) -> np.ndarray:
     """A 24x24 box of height 120 on a table at 20."""
     z = np.full((size, size), 20.0)

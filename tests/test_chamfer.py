@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import bad_setting_on_the_command_line, found_with
+from conftest import bad_setting_on_the_command_line, found_with, random_labels
 from rangeseg_cli.chamfer import chamfer_faces, touching_boxes
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError
@@ -148,12 +148,7 @@ def test_touching_boxes_hold_both_pixels_of_every_touching_pair():
        regions=st.integers(1, 5), holes=st.floats(0.0, 0.6), invalid=st.floats(0.0, 0.3))
 def test_chamfers_only_relabel_labelled_pixels_with_new_ids(seed, shape, regions, holes,
                                                             invalid):
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
-    z = np.minimum(50.0 + 0.5 * x, 80.0 - 2.0 * y) + rng.normal(0.0, 1.0, shape)
-    z[rng.random(shape) < invalid] = np.nan
-    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
-    labels[rng.random(shape) < holes] = 0
+    z, labels = random_labels(seed, shape, regions, holes, invalid, roof=True)
     out = chamfer_faces(z, labels, CONFIG, noise=1.0)
     kept = np.isfinite(z) & (labels > 0)
     assert np.array_equal(out > 0, kept)

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import bad_setting_on_the_command_line, found_with
+from conftest import bad_setting_on_the_command_line, found_with, random_labels
 from rangeseg_cli.config import load_config
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.fill import bridge_gaps, fill_edges
@@ -20,18 +20,6 @@ GROW = load_config().grow
 
 requires_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
                                     reason="numba is not installed")
-
-
-def random_labels(seed: int, shape: tuple[int, int], regions: int, holes: float,
-                  invalid: float) -> tuple[np.ndarray, np.ndarray]:
-    """Noisy sloped heights with a share ``invalid`` NaN, and random labels 1..regions
-    with a share ``holes`` of 0 (for the property tests)."""
-    rng = np.random.default_rng(seed)
-    z = rng.normal(50.0, 5.0, shape) + rng.uniform(-3, 3) * np.arange(shape[1])[None, :]
-    z[rng.random(shape) < invalid] = np.nan
-    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
-    labels[rng.random(shape) < holes] = 0
-    return z, labels
 
 
 def roof_scene(noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import bad_setting_on_the_command_line, found_with
+from conftest import bad_setting_on_the_command_line, found_with, random_labels
 from rangeseg_cli.config import load_config
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.merge import merge_planes, merge_regions, touching_pairs
@@ -168,12 +168,8 @@ def test_plane_merge_keeps_coplanar_tops_across_a_gap_apart():
 def test_plane_merge_only_joins_whole_regions(seed, shape, regions, holes, invalid):
     """Whatever the input: the same pixels stay labelled, every old region goes whole into
     one new region, and the new ids are 1..k in the order of their smallest old id."""
-    rng = np.random.default_rng(seed)
-    z = rng.normal(50.0, 2.0, shape) + rng.uniform(-1, 1) * np.arange(shape[1])[None, :]
-    z[rng.random(shape) < invalid] = np.nan
-    labels = rng.integers(1, regions + 1, shape).astype(np.int32)
-    labels[rng.random(shape) < holes] = 0
-    out = merge_planes(z, labels, CONFIG, noise=2.0)
+    z, labels = random_labels(seed, shape, regions, holes, invalid)
+    out = merge_planes(z, labels, CONFIG, noise=5.0)
     kept = np.isfinite(z) & (labels > 0)
     assert np.array_equal(out > 0, kept)
     old = np.unique(labels[kept])
