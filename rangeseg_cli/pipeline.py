@@ -127,12 +127,13 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
 
 def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
                     ) -> np.ndarray:
-    """The merge, recut, fill, bridge, chamfers, carving, refinement, plane merge, last bridge.
+    """The steps of ``[split]`` after the first fill, in order (:func:`stage_grow_and_gaps`).
 
-    Of ``[split]``, in that order. The bridge runs again at the end when the
-    chamfers, carving or the refinement ran: a face carved after the first
-    bridge (part1's +y side, cut from the base top) has edge pixels along it
-    that no region within reach explained then.
+    Merge, recut, second fill, bridge, chamfers, carving, refinement, plane
+    merge; the bridge runs again at the end when a step after it changed the
+    regions: a face carved after the first bridge (part1's +y side, cut from
+    the base top) has edge pixels along it that no region within reach
+    explained then.
     """
     cfg = config.split
     if cfg.merge:
@@ -167,7 +168,8 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .merge import merge_planes
 
         labels = merge_planes(z, labels, config, noise=sigma)
-    if cfg.fill_edges and cfg.bridge and (cfg.chamfers or cfg.carve or cfg.refine):
+    if cfg.fill_edges and cfg.bridge and (cfg.chamfers or cfg.carve or cfg.refine
+                                          or cfg.merge_planes):
         from .fill import bridge_gaps  # once more: faces carved since, borders moved
 
         labels = bridge_gaps(z, labels, config.grow)
@@ -195,8 +197,8 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     fill_edges``, the edge pixels that the merged and recut regions'
     surfaces explain are filled once more; with ``[split] bridge`` (and
     ``fill_edges``) edge pixels left go to a planar region within 2 pixels that explains them
-    (:func:`~rangeseg_cli.fill.bridge_gaps`; again at the end, after
-    carving and the refinement); with ``[split] chamfers`` a narrow face
+    (:func:`~rangeseg_cli.fill.bridge_gaps`; again at the end, after the
+    steps below); with ``[split] chamfers`` a narrow face
     between two planes at a crease gets a region of its own
     (:mod:`rangeseg_cli.chamfer`); with ``[split] carve`` narrow
     faces grown into a planar region's border get regions of their own
