@@ -205,10 +205,12 @@ def _interior_planes(z: np.ndarray, labels: np.ndarray, n: int, config: Config
     inner = (ndimage.minimum_filter(labels, size=size, mode="nearest")
              == ndimage.maximum_filter(labels, size=size, mode="nearest"))
     interior = np.where(inner, labels, 0)
-    counts = np.bincount(interior.ravel(), minlength=n + 1)
-    whole, _, whole_flat = fit_surfaces(z, labels, n, config.grow)
+    use = np.bincount(interior.ravel(), minlength=n + 1) >= config.link.min_component
     core, _, core_flat = fit_surfaces(z, interior, n, config.grow)
-    use = counts >= config.link.min_component
+    if use[1:].all():
+        return core, core_flat
+    rest = np.where(use[labels], 0, labels)  # the regions without an interior, whole
+    whole, _, whole_flat = fit_surfaces(z, rest, n, config.grow)
     return np.where(use[:, None], core, whole), np.where(use, core_flat, whole_flat)
 
 
