@@ -69,7 +69,7 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config
-from .fill import fit_surfaces
+from .fill import NEIGHBOUR_OFFSETS, fit_surfaces
 from .grow import plane_angle
 from .rangeimage import HALF_NEIGHBOUR_PAIRS, labels_on_valid
 from .recover import fit_plane, plane_height
@@ -218,7 +218,7 @@ def _candidates(z: np.ndarray, labels: np.ndarray, config: Config, s: float
                 ) -> list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]:
     """Every pair's kept chamfer (Notes 1-3): (gain, rows, cols, plane)."""
     coeffs, flat = _interior_planes(z, labels, int(labels.max(initial=0)), config)
-    planes = coeffs[:, :3] * flat[:, None]  # zero for curved regions
+    planes = coeffs[:, :3]
     out = []
     for (i, j), box in touching_boxes(labels).items():
         if not (flat[i] and flat[j]):
@@ -230,14 +230,15 @@ def _candidates(z: np.ndarray, labels: np.ndarray, config: Config, s: float
                          PIXEL_COST * s * s, max(config.split.min_crease, MIN_ANGLE))
         if found is not None and found[0] >= MIN_GAIN * s * s:
             plane, mine = found[1], found[2]
-            if _kept(z, labels, rows[mine], cols[mine], plane, (i, j), planes, config, s):
+            if _kept(z, labels, rows[mine], cols[mine], plane, (i, j), (planes, flat), config,
+                     s):
                 out.append((found[0], rows[mine], cols[mine], plane))
     return out
 
 
 def _kept(z: np.ndarray, labels: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-          plane: np.ndarray, pair: tuple[int, int], planes: np.ndarray, config: Config,
-          s: float) -> bool:
+          plane: np.ndarray, pair: tuple[int, int], planes: tuple[np.ndarray, np.ndarray],
+          config: Config, s: float) -> bool:
     """The tests of Notes 3 but the gain's and the angle's (made in :func:`_chamfer`)."""
     level = config.split.fit_factor * s
     if rows.size < config.link.min_component:
@@ -249,23 +250,26 @@ def _kept(z: np.ndarray, labels: np.ndarray, rows: np.ndarray, cols: np.ndarray,
 
 
 def _a_neighbours(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray, plane: np.ndarray,
-                  pair: tuple[int, int], planes: np.ndarray, level: float, min_crease: float
-                  ) -> bool:
+                  pair: tuple[int, int], planes: tuple[np.ndarray, np.ndarray], level: float,
+                  min_crease: float) -> bool:
     """Whether a planar region touching the chamfer (not of the pair) has its plane (Notes 3).
 
     Within ``min_crease`` degrees and, on average over the chamfer's pixels,
     within ``level``: a face that an earlier step has found already, which
-    the refinement will settle. ``planes``: (n+1, 3), zero for curved regions.
+    the refinement will settle. ``planes``: the regions' (n+1, 3) planes and
+    bool (n+1,) which of them are planar.
     """
     h, w = labels.shape
-    r = np.clip(rows[:, None] + np.array([-1, -1, -1, 0, 0, 1, 1, 1]), 0, h - 1)
-    c = np.clip(cols[:, None] + np.array([-1, 0, 1, -1, 1, -1, 0, 1]), 0, w - 1)
+    offsets = np.array(NEIGHBOUR_OFFSETS)
+    r = np.clip(rows[:, None] + offsets[:, 0], 0, h - 1)
+    c = np.clip(cols[:, None] + offsets[:, 1], 0, w - 1)
     own = plane_height(plane, rows, cols)
+    coeffs, flat = planes
     for k in np.unique(labels[r, c]).tolist():
-        if k == 0 or k in pair or not planes[k].any():
+        if k == 0 or k in pair or not flat[k]:
             continue
-        if (plane_angle(plane, planes[k]) < min_crease
-                and np.mean(np.abs(own - plane_height(planes[k], rows, cols))) <= level):
+        if (plane_angle(plane, coeffs[k]) < min_crease
+                and np.mean(np.abs(own - plane_height(coeffs[k], rows, cols))) <= level):
             return True
     return False
 
