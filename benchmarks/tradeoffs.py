@@ -59,8 +59,8 @@ from rangeseg_cli.synth import SCENES  # noqa: E402
 #: The steps turned off alone, as ``--set`` items.
 SETS: tuple[str, ...] = (
     "split.rounds=1", "split.enabled=false", "split.trim_pieces=false",
-    "split.trim_faces=false", "split.crease_pieces=false", "split.recover=false",
-    "split.fill_edges=false", "split.merge=false", "split.recut=false",
+    "split.trim_faces=false", "split.plane_cut=false", "split.crease_pieces=false",
+    "split.recover=false", "split.fill_edges=false", "split.merge=false", "split.recut=false",
     "split.bridge=false", "split.chamfers=false", "split.carve=false",
     "split.refine_creases=false", "split.refine=false", "split.merge_planes=false")
 

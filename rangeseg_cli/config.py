@@ -154,6 +154,10 @@ class SplitConfig:
                             "(a face too narrow for the normals to divide: a chamfer, a "
                             "grazing side) become pieces of their own instead of being "
                             "regrown into their neighbours")
+    plane_cut: bool = _opt(True, "when a piece whose quadric fails the fit test can be "
+                           "neither split nor trimmed, cut it into the planes that consensus "
+                           "finds in it (two or three narrow faces, as a small frustum's sides "
+                           "with its top) if they hold most of its pixels")
     rounds: int = _opt(2, "rounds of testing and splitting; each round tests the regions "
                        "grown from the last one's pieces", min=1, max=5)
     recover: bool = _opt(True, "after growing, give a narrow face its own region: a band of "

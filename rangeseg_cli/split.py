@@ -32,7 +32,10 @@ Notes
    of a neighbouring face, :func:`_trim`); they are regrown later, except,
    with ``split.trim_faces``, those that one plane fits: a narrow face (a
    chamfer, a grazing side) becomes a piece of its own
-   (:func:`_trimmed_faces`).
+   (:func:`_trimmed_faces`). With ``split.plane_cut``, a failing piece that
+   is neither divided nor trimmed (two or three faces a few pixels wide, a
+   small frustum's sides with its top) is cut into the planes consensus
+   finds in it when they hold most of its pixels (:func:`_plane_cut`).
 4. Merging back (:func:`merge_back`). Neighbouring pieces stay apart only
    when one quadric fits their union ``split.min_gain`` times worse than
    their own quadrics (and worse than region growing's noise-free
@@ -1179,7 +1182,9 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     piece whose quadric fails and that neither divides leaves out, to be
     regrown, the pixels off its dominant surface (:func:`_trim`); with
     ``split.trim_faces`` the planes among them become pieces
-    (:func:`_trimmed_faces`).
+    (:func:`_trimmed_faces`). With ``split.plane_cut`` (beyond the paper) a
+    failing piece that none of these divide or trim is cut into the planes
+    that consensus finds in it, when they hold most of it (:func:`_plane_cut`).
 
     Parameters
     ----------
@@ -1213,10 +1218,8 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
             sub = _crease_cut(z[box], pieces[box] == k, noise=noise, level=level, cfg=cfg,
                               grow=grow)
         if sub is None:
-            if cfg.trim_pieces and k not in quadric_passes:
-                trimmed = _trim(z[box], pieces[box], k, level)
-                if cfg.trim_faces and trimmed is not None:
-                    _trimmed_faces(z[box], pieces[box], trimmed, n, level, cfg)
+            if k not in quadric_passes:
+                _trim_or_cut(z[box], pieces[box], k, n, level, cfg)
             continue
         ids = _replace(pieces[box], k, sub, n, cfg.max_pieces)
         mse, mse_plane, counts = _fit_pieces(z, pieces, ids, backend, box)
@@ -1319,6 +1322,64 @@ def _trimmed_faces(z: np.ndarray, pieces: np.ndarray, trimmed: np.ndarray, n: in
                 return
             n += 1
             pieces[box][face] = n
+
+
+def _trim_or_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
+                 cfg: SplitConfig) -> None:
+    """A failing piece k that nothing divides: trimmed, else cut into planes (in place).
+
+    With ``split.trim_pieces`` :func:`_trim` (and with ``split.trim_faces``
+    :func:`_trimmed_faces` on what it leaves out); when there is no trim,
+    with ``split.plane_cut`` :func:`_plane_cut`. ``n`` is the number of
+    pieces of the whole component.
+    """
+    trimmed = _trim(z, pieces, k, level) if cfg.trim_pieces else None
+    if trimmed is not None:
+        if cfg.trim_faces:
+            _trimmed_faces(z, pieces, trimmed, n, level, cfg)
+    elif cfg.plane_cut:
+        _plane_cut(z, pieces, k, n, level, cfg)
+
+
+#: The planes of a plane cut hold at least this share of the piece's pixels.
+PLANE_CUT_COVER = 0.8
+
+
+def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
+               cfg: SplitConfig) -> bool:
+    """Cut piece k into the planes consensus finds in it, ids k, n+1, ... (in place).
+
+    Beyond the paper (``split.plane_cut``). For a piece whose quadric fails
+    the fit test and that neither the normals (:func:`_split_once`), a
+    straight crease (:func:`_crease_cut`) nor a trim (:func:`_trim`: no
+    surface holds :data:`_TRIM_KEEP` of it) divide: two or three faces each
+    a few pixels wide, as a small frustum's sides with a strip of its top in
+    a bin pile. Their normals blend over the whole width, so no class has a
+    core; and the piece, failing, glues the others of its component back to
+    it in :func:`merge_back` (a failing piece's own RMS makes any union look
+    "about as bad"). The piece is cut into planes by consensus
+    (:func:`~rangeseg_cli.recover.plane_pieces`: the largest connected set
+    of pixels one plane fits within ``INLIER_FACTOR`` times the fit test's
+    level, then the next in what is left) when there are two or more of at
+    least ``split.min_piece`` pixels, together :data:`PLANE_CUT_COVER` of
+    the piece or more, and no more than ``split.max_pieces`` pieces in all
+    result; the rest of its pixels are left to be regrown. A piece of a
+    curved surface whose planes leave more than a fifth of it is left
+    whole; where they hold it, :func:`merge_back` judges the planes as any
+    other pieces. Returns whether the piece was cut.
+    """
+    from .recover import plane_pieces  # recover imports this module
+
+    mask = pieces == k
+    faces = plane_pieces(z, mask, level=level, min_pixels=cfg.min_piece)
+    held = sum(int(np.count_nonzero(f)) for f in faces)
+    if (len(faces) < 2 or held < PLANE_CUT_COVER * np.count_nonzero(mask)
+            or n + len(faces) - 1 > cfg.max_pieces):
+        return False
+    pieces[mask] = 0
+    for i, face in enumerate(faces):
+        pieces[face] = k if i == 0 else n + i
+    return True
 
 
 def _area(box: tuple[slice, slice]) -> int:

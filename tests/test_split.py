@@ -436,6 +436,7 @@ def test_split_pieces_are_numbered_in_raster_order_and_never_cover_invalid_pixel
     ({"input": {"auto_thresholds": 1}}, r"\[input\] auto_thresholds = 1: expected true"),
     ({"split": {"trim_pieces": "maybe"}}, r"\[split\] trim_pieces = 'maybe': expected true"),
     ({"split": {"trim_faces": 2}}, r"\[split\] trim_faces = 2: expected true"),
+    ({"split": {"plane_cut": "yes"}}, r"\[split\] plane_cut = 'yes': expected true"),
 ])
 def test_split_and_auto_threshold_keys_are_validated(values: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -972,3 +973,66 @@ def test_trimmed_chamfers_become_faces_of_their_own() -> None:
     top_region = np.bincount(off[truth == 2]).argmax()
     for g in range(3, 7):
         assert np.mean(off[truth == g] == top_region) > 0.8
+
+
+def narrow_faces(width: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Three faces about ``width`` pixels wide at two roof creases (a ridge), 40 rows, 8 bits.
+
+    Returns the heights and the faces 1, 2, 3 (0 on the two crease columns, which lie
+    on two faces).
+    """
+    yy, xx = np.mgrid[0:40, 0:3 * width].astype(np.float64)
+    rise = np.minimum(xx, width) - np.maximum(xx - 2 * width, 0.0)  # up, level, down
+    truth = np.minimum(xx // width, 2).astype(np.int32) + 1
+    truth[(xx == width) | (xx == 2 * width)] = 0
+    return np.round(100.0 + 3.0 * rise + 0.3 * yy), truth
+
+
+def test_plane_cut_gives_each_of_three_narrow_faces_a_piece() -> None:
+    z, truth = narrow_faces()
+    pieces = np.ones(z.shape, np.int32)
+    assert split_module._plane_cut(z, pieces, 1, 1, 0.625, Config().split)
+    owners = [np.bincount(pieces[truth == g], minlength=4) for g in (1, 2, 3)]
+    assert len({int(o.argmax()) for o in owners}) == 3 and min(o.argmax() for o in owners) > 0
+    for g, o in zip((1, 2, 3), owners, strict=True):
+        assert o.max() == np.count_nonzero(truth == g)
+
+
+def test_plane_cut_leaves_a_piece_whole_that_its_planes_do_not_hold() -> None:
+    # A sphere cap: the consensus planes hold too little of it (PLANE_CUT_COVER).
+    y, x = np.mgrid[0:60, 0:60].astype(np.float64)
+    r2 = (x - 30.0) ** 2 + (y - 30.0) ** 2
+    z = np.round(20.0 + np.sqrt(np.maximum(1600.0 - r2, 0.0)))
+    pieces = (r2 < 28.0 ** 2).astype(np.int32)
+    before = pieces.copy()
+    assert not split_module._plane_cut(z, pieces, 1, 1, 0.625, Config().split)
+    np.testing.assert_array_equal(pieces, before)
+
+
+def test_plane_cut_stays_within_max_pieces() -> None:
+    z, _ = narrow_faces()
+    cfg = replace(Config().split, max_pieces=3)
+    pieces = np.ones(z.shape, np.int32)
+    assert not split_module._plane_cut(z, pieces, 1, 2, 0.625, cfg)  # 2 + 2 new > 3
+    assert (pieces == 1).all()
+    assert split_module._plane_cut(z, pieces, 1, 1, 0.625, cfg)
+    assert set(np.unique(pieces).tolist()) <= {0, 1, 2, 3}
+
+
+def test_a_small_frustum_in_a_pile_is_cut_into_its_faces() -> None:
+    # Pile seed 12, frustum 3 (noise-free): its sides are 4-7 pixels wide. The split
+    # divides its component, but one piece holds two sides and a strip of the top; it
+    # fails the fit test, nothing divides it, and merge_back glued every other piece to
+    # it: the whole frustum came out as one region (docs/QUALITY.md).
+    from rangeseg_cli.synth import render_scene
+
+    scene = render_scene("pile", size=(128, 128), noise=0.0, seed=12)
+    faces = {s["id"] for s in scene.info["surfaces"] if s["name"].startswith("frustum 3 ")}
+    found = {}
+    for cut in (True, False):
+        config = replace(SPLIT, split=replace(SPLIT.split, plane_cut=cut))
+        result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
+        found[cut] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
+    assert len(faces) == 5 and not faces & found[False]
+    assert len(faces & found[True]) >= 4
+    assert found[False] <= found[True]
