@@ -201,15 +201,16 @@ def test_a_sliver_of_a_third_face_does_not_hide_the_crease_between_two_others(
     mask = np.ones(z.shape, bool)
     cfg = Config()
 
-    def planes_apart() -> bool:
-        pieces = split_module.split_component(z, mask, noise=0.0, cfg=cfg.split,
-                                              grow=cfg.grow)
+    def planes_apart(plane_cut: bool = False) -> bool:
+        pieces = split_module.split_component(
+            z, mask, noise=0.0, cfg=replace(cfg.split, plane_cut=plane_cut), grow=cfg.grow)
         a, b = (np.bincount(pieces[side & ~sliver]).argmax() for side in (left, ~left))
         return bool(a != b and a > 0 and b > 0)
 
     assert planes_apart()
     monkeypatch.setattr(split_module, "_split_mode_class", lambda *args, **kwargs: None)
     assert not planes_apart()  # without the second division it stays whole
+    assert planes_apart(plane_cut=True)  # unless the plane cut divides it
 
 
 def test_trim_leaves_out_a_sliver_that_a_piece_cannot_be_split_at() -> None:
