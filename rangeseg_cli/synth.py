@@ -42,6 +42,10 @@ Notes
    Planar faces of one object that touch in the image and lie in one plane
    (two solids flush, as part1's base and block on their +y side) are one
    surface (:func:`join_flush_faces`): no segmenter can see where they meet.
+   Where a surface's noise-free height lies beyond the raw range (above 255
+   in 8 bits: a tall pile's top parts), the image holds the clipped value
+   only and the ground truth is 0 there (:func:`_in_range`); the surfaces'
+   ``pixels`` count what is left and ``info["saturated"]`` the pixels so lost.
    An object is *uncovered* when no other part lies above any of its pixels.
 """
 
@@ -967,6 +971,24 @@ def join_flush_faces(gt: np.ndarray, z: np.ndarray, surfaces: list[dict[str, Any
     return lookup[gt], joined
 
 
+def _in_range(gt: np.ndarray, surfaces: list[dict[str, Any]], raw: np.ndarray, top: int
+              ) -> tuple[np.ndarray, list[dict[str, Any]], int]:
+    """Ground truth 0 where a surface's noise-free raw value is out of ``0..top`` (Notes, 5).
+
+    There the image holds the clipped value (a flat plateau at 255 in 8
+    bits), not the surface: no segmenter can find it. Returns the labels,
+    the surfaces with their ``pixels`` counted again, and how many surface
+    pixels were set to 0 (the labels are returned as they are when none).
+    """
+    out = (gt > 0) & ((raw > top) | (raw < 0))
+    saturated = int(np.count_nonzero(out))
+    if saturated == 0:
+        return gt, surfaces, 0
+    gt = np.where(out, 0, gt).astype(gt.dtype)
+    counts = np.bincount(gt.ravel(), minlength=len(surfaces) + 1)
+    return gt, [{**s, "pixels": int(counts[s["id"]])} for s in surfaces], saturated
+
+
 def _uncovered(parts: Sequence[Part], stack: _Stack, winner: np.ndarray, z: np.ndarray
                ) -> list[int]:
     background = np.array([p.background for p in parts])
@@ -1094,12 +1116,13 @@ def render_scene(name: str, *, size: Sequence[int] = (128, 128), noise: float = 
     top = 255 if bits == 8 else 65535
     image = np.clip(np.rint(noisy * raw_per_unit), 0, top).astype(
         np.uint8 if bits == 8 else np.uint16)
+    gt, surfaces, saturated = _in_range(gt, surfaces, heights * raw_per_unit, top)
     info = {
         "scene": name, "description": spec.description, "figure": spec.figure,
         "size": list(shape), "noise": float(noise), "seed": int(seed), "bits": int(bits),
         "units_per_pixel": upp, "table_height": table_height,
         "input_scale": 1.0 / raw_per_unit,
-        "surfaces": surfaces,
+        "surfaces": surfaces, "saturated": saturated,
         "objects": [{"id": i, "name": p.name, "background": p.background}
                     for i, p in enumerate(parts)],
         "uncovered": _uncovered(parts, stack, winner, z),

@@ -290,3 +290,25 @@ def test_cli_eval_table_json_plot_and_exit_codes(tmp_path):
     (tmp_path / "empty").mkdir()
     res = runner.invoke(main, ["eval", str(pred_dir), str(tmp_path / "empty")])
     assert res.exit_code == 2 and "no ground truth" in res.output
+
+
+def test_surfaces_beyond_the_raw_range_are_no_ground_truth():
+    # A box on a table at 240: its top lies above 255, where the 8-bit image holds a
+    # clipped plateau, not the box. The ground truth is 0 there, and says so.
+    low = render_scene("box", noise=0.0, seed=0)
+    high = render_scene("box", noise=0.0, seed=0, table_height=240.0)
+    out = high.heights > 255.0
+    assert out.any() and low.info["saturated"] == 0
+    assert (high.image[out] == 255).all()
+    assert (high.gt[out] == 0).all() and (high.gt[~out] == low.gt[~out]).all()
+    assert high.info["saturated"] == int(np.count_nonzero(low.gt[out] > 0))
+    counts = np.bincount(high.gt.ravel(), minlength=len(high.info["surfaces"]) + 1)
+    assert [s["pixels"] for s in high.info["surfaces"]] == counts[1:].tolist()
+
+
+def test_a_tall_pile_loses_only_its_clipped_pixels_from_the_ground_truth():
+    # Pile seed 13 stacks a wedge and a frustum up to 285 depth units.
+    scene = render_scene("pile", noise=2.0, seed=13)
+    out = scene.heights > 255.0
+    assert scene.info["saturated"] > 500
+    assert (scene.gt[out] == 0).all() and (scene.gt[~out] > 0).all()
