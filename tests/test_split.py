@@ -7,6 +7,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from scipy import ndimage
 
 from rangeseg_cli import noise as noise_module
@@ -1037,3 +1039,36 @@ def test_a_small_frustum_in_a_pile_is_cut_into_its_faces() -> None:
     assert len(faces) == 5 and not faces & found[False]
     assert len(faces & found[True]) >= 4
     assert found[False] <= found[True]
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), shape=st.tuples(st.integers(12, 48), st.integers(12, 48)),
+       before=st.integers(1, 7), sigma=st.sampled_from([0.0, 1.0, 2.0]))
+def test_a_plane_cut_stays_inside_its_piece_and_within_max_pieces(seed, shape, before, sigma):
+    # Heights: the lower envelope of three random planes (two creases), plus noise;
+    # piece 1 a box of it, pieces 2..before elsewhere.
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    planes = rng.uniform(-3.0, 3.0, (3, 2))
+    z = np.min([100.0 + a * x + b * y + rng.uniform(-10, 10) for a, b in planes], axis=0)
+    z = np.round(z + rng.normal(0.0, sigma, shape))
+    pieces = rng.integers(2, before + 2, shape).astype(np.int32) if before > 1 else np.zeros(
+        shape, np.int32)
+    blob = np.zeros(shape, bool)  # a box of at least half of each side
+    r0, c0 = rng.integers(0, shape[0] // 2), rng.integers(0, shape[1] // 2)
+    blob[r0:r0 + shape[0] // 2 + 1, c0:c0 + shape[1] // 2 + 1] = True
+    pieces[blob] = 1
+    n = int(pieces.max())
+    cfg = Config().split
+    old = pieces.copy()
+    cut = split_module._plane_cut(z, pieces, 1, n, 0.625 * max(sigma, 1.0), cfg)
+    if not cut:
+        np.testing.assert_array_equal(pieces, old)
+        return
+    assert (pieces[~blob] == old[~blob]).all()  # nothing outside the piece moves
+    new = np.unique(pieces[blob]).tolist()
+    assert set(new) <= {0, 1, *range(n + 1, cfg.max_pieces + 1)} and len(new) >= 2
+    held = np.count_nonzero(pieces[blob])
+    assert held >= split_module.PLANE_CUT_COVER * np.count_nonzero(blob)
+    for k in set(new) - {0}:
+        assert np.count_nonzero(pieces[blob] == k) >= cfg.min_piece
