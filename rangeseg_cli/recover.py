@@ -281,7 +281,7 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Bac
         if not inliers.any():  # no hypothesis won a single vote (e.g. NaN-ridden bands)
             return None
         a = fit_plane(z, rows[inliers], cols[inliers])
-        inliers = np.abs(z[rows, cols] - (a[0] + a[1] * cols + a[2] * rows)) < tol
+        inliers = np.abs(z[rows, cols] - plane_height(a, rows, cols)) < tol
     if not inliers.any():
         return None
     found = np.zeros(left.shape, bool)
@@ -400,7 +400,7 @@ def _merge_coplanar(z: np.ndarray, faces: np.ndarray, level: float) -> np.ndarra
             continue
         rows, cols = np.nonzero((root[faces] == a) | (root[faces] == b))
         plane = fit_plane(z, rows, cols)
-        r = z[rows, cols] - (plane[0] + plane[1] * cols + plane[2] * rows)
+        r = z[rows, cols] - plane_height(plane, rows, cols)
         if float(np.mean(r * r)) <= level * level:
             root[root == max(a, b)] = min(a, b)
     return root.astype(np.int32)[faces]
