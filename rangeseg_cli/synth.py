@@ -973,14 +973,15 @@ def join_flush_faces(gt: np.ndarray, z: np.ndarray, surfaces: list[dict[str, Any
 
 def _in_range(gt: np.ndarray, surfaces: list[dict[str, Any]], raw: np.ndarray, top: int
               ) -> tuple[np.ndarray, list[dict[str, Any]], int]:
-    """Ground truth 0 where a surface's noise-free raw value is out of ``0..top`` (Notes, 5).
+    """Ground truth 0 where a surface's noise-free raw value rounds out of ``0..top`` (Notes, 5).
 
     There the image holds the clipped value (a flat plateau at 255 in 8
     bits), not the surface: no segmenter can find it. Returns the labels,
     the surfaces with their ``pixels`` counted again, and how many surface
     pixels were set to 0 (the labels are returned as they are when none).
     """
-    out = (gt > 0) & ((raw > top) | (raw < 0))
+    rounded = np.rint(raw)
+    out = (gt > 0) & ((rounded > top) | (rounded < 0))
     saturated = int(np.count_nonzero(out))
     if saturated == 0:
         return gt, surfaces, 0
