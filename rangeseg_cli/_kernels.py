@@ -881,14 +881,16 @@ def _single_neighbour(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def heights(raw: np.ndarray, factor: float, invalid: float, check_invalid: bool
+def heights(raw: np.ndarray, factor: float, invalid: float, check_invalid: bool,
+            clipped: float, check_clipped: bool
             ) -> tuple[np.ndarray, int, float]:  # pragma: no cover - compiled
     """``rangeimage.to_heights`` of a plain numeric array in one pass: the same heights.
 
     Each raw value as float64, times ``factor`` (the scale, negated for
-    depth); NaN where the value or the product is not finite or the value
-    equals ``invalid`` (when ``check_invalid``). Returns the heights, the
-    number of valid pixels and the largest |height| among them (0 if none).
+    depth); NaN where the value or the product is not finite, or the value
+    equals ``invalid`` (when ``check_invalid``) or ``clipped`` (when
+    ``check_clipped``). Returns the heights, the number of valid pixels and
+    the largest |height| among them (0 if none).
     """
     height, width = raw.shape
     out = np.empty((height, width))
@@ -897,7 +899,8 @@ def heights(raw: np.ndarray, factor: float, invalid: float, check_invalid: bool
     for r in range(height):
         for c in range(width):
             v = np.float64(raw[r, c])
-            bad = not np.isfinite(v) or (check_invalid and v == invalid)
+            bad = (not np.isfinite(v) or (check_invalid and v == invalid)
+                   or (check_clipped and v == clipped))
             v = v * factor
             if bad or not np.isfinite(v):
                 out[r, c] = np.nan

@@ -46,6 +46,10 @@ class InputConfig:
                                   "optical axis (closer = smaller)")
     invalid: float = _opt(math.nan, "raw no-data value (nan = only NaN is invalid; 0 for most "
                           "depth cameras)")
+    clipped_invalid: bool = _opt(True, "raw values at the top of an integer image's range "
+                                 "(255 in 8 bits, 65535 in 16) are invalid too: the surface "
+                                 "there lies beyond the sensor's range, and the clipped "
+                                 "plateau is no surface to describe or to grip")
     metres_per_unit: float = _opt(0.0, "metres per depth unit after scaling (0.001 for mm; "
                                   "0 = unknown)", min=0.0)
     fx: float = _opt(0.0, "camera focal length x in pixels (0 = no intrinsics)", min=0.0)

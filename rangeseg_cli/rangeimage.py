@@ -1,7 +1,8 @@
 """Raw pixel values to heights (SPEC "Units and real sensors").
 
 Heights grow towards the sensor, as in the paper's ERIM images. Depth images
-(closer = smaller) are negated; a configured no-data value, NaN and
+(closer = smaller) are negated; a configured no-data value, the top of an
+integer type's range (a clipped value, :func:`clipped_value`), NaN and
 infinities become NaN, which every later stage treats as "invalid": never
 inside a smoothing mask, a fit or a holdsite, and labelled 0.
 """
@@ -74,7 +75,8 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
         Array-like (H, W) or (H, W, 1) of raw sensor values; the masked pixels
         of a ``numpy.ma.MaskedArray`` are invalid.
     cfg
-        ``[input]``: ``scale``, ``larger_is_closer`` and the ``invalid`` value.
+        ``[input]``: ``scale``, ``larger_is_closer``, the ``invalid`` value and
+        ``clipped_invalid`` (:func:`clipped_value`).
     name
         Named in error messages.
     backend
@@ -98,10 +100,12 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
     masked = np.ma.getmaskarray(raw) if isinstance(raw, np.ma.MaskedArray) else None
     arr = check_array(raw if masked is None else np.ma.getdata(raw), name=name)
     factor = cfg.scale if cfg.larger_is_closer else -cfg.scale
+    clipped = clipped_value(arr.dtype, cfg)
     kernels = select_kernels(backend)
     if kernels is not None and masked is None and arr.dtype in _COMPILED_TYPES:
         z, valid, peak = kernels.heights(np.ascontiguousarray(arr), float(factor),
-                                         float(cfg.invalid), not math.isnan(cfg.invalid))
+                                         float(cfg.invalid), not math.isnan(cfg.invalid),
+                                         float(clipped or 0), clipped is not None)
         _check_heights(valid == 0, peak, cfg, name)
         return z
     z = arr.astype(np.float64)
@@ -110,6 +114,8 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
         invalid |= masked.reshape(z.shape)
     if not math.isnan(cfg.invalid):
         invalid |= z == cfg.invalid
+    if clipped is not None:
+        invalid |= z == clipped
     with np.errstate(over="ignore", invalid="ignore"):
         z *= factor
     invalid |= ~np.isfinite(z)
@@ -117,6 +123,20 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
     none_valid = bool(invalid.all())
     _check_heights(none_valid, 0.0 if none_valid else float(np.nanmax(np.abs(z))), cfg, name)
     return z
+
+
+def clipped_value(dtype: np.dtype, cfg: InputConfig) -> int | None:
+    """The raw value that is clipped, not measured: the top of an integer type's range.
+
+    255 for 8-bit images, 65535 for 16-bit (``np.iinfo(dtype).max``); None
+    for floating-point images and when ``[input] clipped_invalid`` is off.
+    A sensor (or a renderer) whose surface lies beyond its range writes
+    this value: a flat plateau that no segmentation should describe as a
+    surface, nor a holdsite grip (the object's top is closer than it says).
+    """
+    if not cfg.clipped_invalid or np.dtype(dtype).kind not in "ui":
+        return None
+    return int(np.iinfo(dtype).max)
 
 
 #: Raw pixel types :func:`to_heights` converts with the compiled kernel.
@@ -128,8 +148,10 @@ _COMPILED_TYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.uint32, np
 def _check_heights(none_valid: bool, peak: float, cfg: InputConfig, name: str) -> None:
     """The checks of :func:`to_heights` on its result: a valid pixel, heights in range."""
     if none_valid:
-        raise InputError(f"{name}: no valid pixel (all NaN, infinite or equal to the "
-                         f"no-data value {cfg.invalid})")
+        clipped = (", or at the top of an integer type's range, clipped: [input] "
+                   "clipped_invalid = false keeps those") if cfg.clipped_invalid else ""
+        raise InputError(f"{name}: no valid pixel (all NaN, infinite, equal to the "
+                         f"no-data value {cfg.invalid}{clipped})")
     if peak > MAX_ABS_HEIGHT:
         raise InputError(f"{name}: height {peak:.3g} is outside the supported range "
                          f"(|height| <= {MAX_ABS_HEIGHT:.0e} depth units); set [input] "

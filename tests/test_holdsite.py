@@ -340,3 +340,36 @@ def test_step_gaps_given_with_the_surfaces_are_those_the_search_computes(backend
                for k in ref)
     with_gaps = find_holdsite(result.heights, result.labels, surfaces, config, gaps=gaps)
     assert with_gaps == find_holdsite(result.heights, result.labels, surfaces, config)
+
+
+def test_a_plateau_clipped_at_255_is_not_gripped_a_measured_surface_is():
+    # Pile seed 9 stacks a cylinder above 255 depth units: the 8-bit image holds a flat
+    # plateau at 255 there, the highest and flattest "surface" in view. Clipped values
+    # are invalid ([input] clipped_invalid), so the holdsite goes to a surface the image
+    # measures, and the check against the ground truth (0 where clipped) passes.
+    from dataclasses import replace
+
+    from rangeseg_cli.evaluate import check_holdsite
+    from rangeseg_cli.synth import render_scene
+
+    scene = render_scene("pile", noise=1.0, seed=9)
+    assert scene.info["saturated"] > 0
+    config = load_config()
+    sites = {}
+    for clipped in (True, False):
+        cfg = replace(config, input=replace(config.input, clipped_invalid=clipped))
+        sites[clipped] = run_pipeline(scene.image, cfg).holdsite.to_dict()["holdsite"]
+    r0, c0 = sites[True]["row"], sites[True]["col"]
+    assert (scene.image[r0 - 3:r0 + 4, c0 - 3:c0 + 4] < 255).all()
+    assert check_holdsite(sites[True], scene.gt, scene.info)["ok"]
+    r1, c1 = sites[False]["row"], sites[False]["col"]
+    assert scene.image[r1, c1] == 255  # without the rule: on the plateau
+    assert not check_holdsite(sites[False], scene.gt, scene.info)["ok"]
+
+
+def test_clipped_invalid_is_a_boolean_key():
+    from rangeseg_cli.errors import ConfigError
+
+    assert load_config().input.clipped_invalid is True
+    with pytest.raises(ConfigError, match=r"\[input\] clipped_invalid = 'no': expected true"):
+        load_config(overrides={"input": {"clipped_invalid": "no"}})

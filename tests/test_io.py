@@ -112,3 +112,34 @@ def test_outputs_get_the_usual_permissions_not_mkstemps_0600(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert stat.S_IMODE((tmp_path / "a.npy").stat().st_mode) == 0o666 & ~umask
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int16])
+def test_the_top_of_an_integer_range_is_clipped_not_measured(dtype):
+    top = np.iinfo(dtype).max
+    raw = np.full((16, 16), 100, dtype)
+    raw[4:8, 4:8] = top  # a plateau beyond the sensor's range
+    z = to_heights(raw, InputConfig())
+    assert np.isnan(z[4:8, 4:8]).all() and np.isfinite(z).sum() == 256 - 16
+    kept = to_heights(raw, InputConfig(clipped_invalid=False))
+    assert np.isfinite(kept).all() and kept[5, 5] == top
+    assert (raw[4:8, 4:8] == top).all()  # input not modified
+
+
+def test_floating_point_images_have_no_clipped_value():
+    raw = np.full((16, 16), 255.0)
+    assert np.isfinite(to_heights(raw, InputConfig())).all()
+
+
+def test_an_image_clipped_everywhere_is_a_one_line_error(tmp_path, write_png):
+    with pytest.raises(InputError, match=r"no valid pixel .*top of an integer type's range, clipped"):
+        to_heights(np.full((16, 16), 255, np.uint8), InputConfig(), name="white.png")
+    (tmp_path / "in").mkdir()
+    write_png(tmp_path / "in" / "white.png", np.full((16, 16), 255, np.uint8))
+    from click.testing import CliRunner
+
+    from rangeseg_cli.cli import main
+
+    result = CliRunner().invoke(main, ["run", str(tmp_path / "in"), "-o", str(tmp_path / "out")])
+    assert result.exit_code != 0
+    assert "white.png: no valid pixel" in result.output and "Traceback" not in result.output

@@ -484,11 +484,16 @@ def test_compiled_heights_are_bitwise_the_reference(dtype, larger_is_closer):
     raw = (rng.random((20, 24)) * 250).astype(dtype)
     if raw.dtype.kind == "f":
         raw[2, 3], raw[4, 5] = np.nan, np.inf
+    else:
+        raw[2, 3] = np.iinfo(dtype).max  # clipped
     for invalid in (np.nan, 0.0):
-        cfg = InputConfig(scale=0.1, larger_is_closer=larger_is_closer, invalid=invalid)
-        ref = to_heights(raw, cfg, backend="numpy")
-        fast = to_heights(raw, cfg, backend="numba")
-        np.testing.assert_array_equal(_bits(fast), _bits(ref))
+        for clipped in (True, False):
+            cfg = InputConfig(scale=0.1, larger_is_closer=larger_is_closer, invalid=invalid,
+                              clipped_invalid=clipped)
+            ref = to_heights(raw, cfg, backend="numpy")
+            fast = to_heights(raw, cfg, backend="numba")
+            np.testing.assert_array_equal(_bits(fast), _bits(ref))
+            assert np.isnan(ref[2, 3]) == (clipped or raw.dtype.kind == "f")
 
 
 @requires_numba
