@@ -49,7 +49,7 @@ from .config import Config, InputConfig, build_config
 from .errors import ClusterLost, InputError, OutputError, RangesegError
 from .io import Location
 from .pipeline import STAGES, stage_edges, stage_grow_and_gaps, stage_holdsite, stage_link
-from .rangeimage import to_heights
+from .rangeimage import clipped_value, to_heights
 
 MANIFEST = "rangeseg-run.json"
 log = logging.getLogger(__name__)
@@ -88,6 +88,7 @@ class Record:
     detail: str | None = None
     timings: dict[str, float] = field(default_factory=dict)
     noise_sigma: float | None = None
+    clipped_pixels: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """Manifest entry."""
@@ -100,6 +101,8 @@ class Record:
             out["traceback"] = self.detail
         if self.noise_sigma is not None:
             out["noise_sigma"] = self.noise_sigma
+        if self.clipped_pixels:
+            out["clipped_pixels"] = self.clipped_pixels
         return out
 
 
@@ -182,6 +185,7 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
                 _STAGE_RUNNERS[stage](state, out / job.rel, config)
                 record.timings[stage] = time.perf_counter() - t0
         record.noise_sigma = state.get("noise_sigma")
+        record.clipped_pixels = state.get("clipped_pixels", 0)
         _remove_later_outputs(out / job.rel, stages[-1])
     except RangesegError as exc:
         record.status, record.error = "failed", str(exc)
@@ -207,7 +211,9 @@ def _initial_state(job: Job, out: Location, first: str, config: Config) -> dict[
         if job.source is None:
             raise OutputError(f"{job.rel}: no input image")
         raw = io.read_image(job.source)
-        return {"z": to_heights(raw, config.input, name=job.source)}
+        top = clipped_value(raw.dtype, config.input)
+        return {"z": to_heights(raw, config.input, name=job.source),
+                "clipped_pixels": 0 if top is None else int(np.count_nonzero(raw == top))}
     z = _read_map(base, "range.npy", "f")
     state: dict[str, Any] = {"z": z}
     if first in ("link", "grow"):
@@ -476,7 +482,7 @@ class _Manifest:
             stages |= set(self.stages)
         entry["stages"] = [s for s in STAGES if s in stages]
         entry["config"] = self.config.digest()
-        for key in ("input", "noise_sigma"):
+        for key in ("input", "noise_sigma", "clipped_pixels"):
             if key not in entry and key in old:
                 entry[key] = old[key]
         self.data["images"][record.rel] = entry

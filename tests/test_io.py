@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 import tifffile
@@ -143,3 +145,24 @@ def test_an_image_clipped_everywhere_is_a_one_line_error(tmp_path, write_png):
     result = CliRunner().invoke(main, ["run", str(tmp_path / "in"), "-o", str(tmp_path / "out")])
     assert result.exit_code != 0
     assert "white.png: no valid pixel" in result.output and "Traceback" not in result.output
+
+
+def test_the_manifest_counts_the_clipped_pixels(tmp_path, write_png):
+    from click.testing import CliRunner
+
+    from rangeseg_cli.cli import main
+
+    (tmp_path / "in").mkdir()
+    image = np.full((32, 32), 40, np.uint8)
+    image[8:24, 8:24] = 120
+    write_png(tmp_path / "in" / "plain.png", image)
+    image[10:14, 10:15] = 255  # 20 pixels beyond the range
+    write_png(tmp_path / "in" / "clipped.png", image)
+    result = CliRunner().invoke(main, ["run", str(tmp_path / "in"), "-o",
+                                       str(tmp_path / "out"), "-q"])
+    assert result.exit_code == 0, result.output
+    images = json.loads((tmp_path / "out" / "rangeseg-run.json").read_text())["images"]
+    assert images["clipped"]["clipped_pixels"] == 20
+    assert "clipped_pixels" not in images["plain"]
+    labels = np.load(tmp_path / "out" / "clipped.labels.npy")
+    assert (labels[10:14, 10:15] == 0).all()
