@@ -203,6 +203,9 @@ class SplitConfig:
     merge_planes: bool = _opt(True, "after the refinement, merge touching planar regions "
                               "whose union one plane fits within the fit test (pieces of "
                               "one face that the later steps left apart)")
+    facets: bool = _opt(True, "before the refinement and once more at the end, cut a region "
+                        "that fails the fit test into the planes that explain it, when no "
+                        "quadric joins two of them again (a small frustum's faces at noise 2)")
 
 
 @dataclass(frozen=True)
@@ -268,11 +271,12 @@ _TABLE_CLASSES: dict[str, type] = {
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut, bridge,
-    # chamfers, carve, refine or merge_planes)
+    # chamfers, carve, refine, merge_planes or facets)
     "paper": {"grow": {"planar_noise_test": False},
               "split": {"enabled": False, "recover": False, "fill_edges": False,
                         "merge": False, "recut": False, "bridge": False, "carve": False,
-                        "chamfers": False, "refine": False, "merge_planes": False}},
+                        "chamfers": False, "refine": False, "merge_planes": False,
+                        "facets": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,

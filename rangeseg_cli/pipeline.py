@@ -91,7 +91,7 @@ def uses_noise(config: Config) -> bool:
     """
     s = config.split
     return (config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
-            or s.chamfers or s.carve or s.refine or s.merge_planes)
+            or s.chamfers or s.carve or s.refine or s.merge_planes or s.facets)
 
 
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
@@ -129,12 +129,26 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
                     ) -> np.ndarray:
     """The steps of ``[split]`` after the first fill, in order (:func:`stage_grow_and_gaps`).
 
-    Merge, recut, second fill, bridge, chamfers, carving, refinement, plane
-    merge; the bridge runs again at the end when a step after it changed the
-    regions: a face carved after the first bridge (part1's +y side, cut from
-    the base top) has edge pixels along it that no region within reach
-    explained then.
+    Merge, recut, second fill, bridge (:func:`_merge_and_recut`); chamfers,
+    carving, facets, refinement, plane merge, facets again
+    (:func:`_faces_and_borders`); the bridge runs again at the end when a
+    step after it changed the regions: a face carved after the first bridge
+    (part1's +y side, cut from the base top) has edge pixels along it that
+    no region within reach explained then.
     """
+    cfg = config.split
+    labels = _faces_and_borders(z, _merge_and_recut(z, labels, config, sigma), config, sigma)
+    if cfg.fill_edges and cfg.bridge and (cfg.chamfers or cfg.carve or cfg.refine
+                                          or cfg.merge_planes or cfg.facets):
+        from .fill import bridge_gaps  # once more: faces carved since, borders moved
+
+        labels = bridge_gaps(z, labels, config.grow)
+    return labels
+
+
+def _merge_and_recut(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
+                     ) -> np.ndarray:
+    """Merge, recut, the second fill and the bridge (:func:`_after_the_fill`)."""
     cfg = config.split
     if cfg.merge:
         from .merge import merge_regions
@@ -152,6 +166,17 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .fill import bridge_gaps
 
         labels = bridge_gaps(z, labels, config.grow)
+    return labels
+
+
+def _faces_and_borders(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
+                       ) -> np.ndarray:
+    """Chamfers, carving, facets, refinement, plane merge, facets again (:func:`_after_the_fill`).
+
+    The facets run before the refinement, which settles their borders, and
+    once more after the plane merge, on the regions those two changed.
+    """
+    cfg = config.split
     if cfg.chamfers:
         from .chamfer import chamfer_faces
 
@@ -160,6 +185,10 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .carve import carve_faces
 
         labels = carve_faces(z, labels, config, noise=sigma)
+    from .facets import facet_regions
+
+    if cfg.facets:
+        labels = facet_regions(z, labels, config, noise=sigma)
     if cfg.refine:
         from .refine import refine_boundaries
 
@@ -168,11 +197,8 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .merge import merge_planes
 
         labels = merge_planes(z, labels, config, noise=sigma)
-    if cfg.fill_edges and cfg.bridge and (cfg.chamfers or cfg.carve or cfg.refine
-                                          or cfg.merge_planes):
-        from .fill import bridge_gaps  # once more: faces carved since, borders moved
-
-        labels = bridge_gaps(z, labels, config.grow)
+    if cfg.facets and (cfg.refine or cfg.merge_planes):  # regions those two changed
+        labels = facet_regions(z, labels, config, noise=sigma)
     return labels
 
 
@@ -217,7 +243,8 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
     cfg = config.split
     if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut
-            or cfg.bridge or cfg.chamfers or cfg.carve or cfg.refine or cfg.merge_planes):
+            or cfg.bridge or cfg.chamfers or cfg.carve or cfg.refine or cfg.merge_planes
+            or cfg.facets):
         return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise

@@ -824,9 +824,10 @@ def test_a_second_round_splits_what_the_first_left_whole() -> None:
     def correct(rounds: int) -> set[str]:
         # recut off: it cuts the top from its side too, and this tests the split alone
         # crease_pieces off: it cuts the top from its side in round one (a piece whose plane
-        # fails the fit test is split again)
+        # fails the fit test is split again); facets off: it cuts the region round one
+        # leaves into its planes
         config = load_config(overrides={"split": {"rounds": rounds, "recut": False,
-                                                  "crease_pieces": False}})
+                                                  "crease_pieces": False, "facets": False}})
         labels = run_pipeline(scene.image, config, stages=3).labels
         return {names[i.gt[0]] for i in hoover_compare(scene.gt, labels).instances
                 if i.kind == "correct"}

@@ -1,0 +1,143 @@
+"""A region that fails the fit test is cut into the planes that explain it (rangeseg_cli.facets)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import bad_setting_on_the_command_line, found_with
+from rangeseg_cli.config import load_config
+from rangeseg_cli.errors import ConfigError
+from rangeseg_cli.evaluate import hoover_compare
+from rangeseg_cli.facets import cut_into_planes, facet_regions, merge_back
+from rangeseg_cli.grow import fit_quadrics
+
+CONFIG = load_config()
+
+
+def corner(noise: float, seed: int, *, slope: float = 1.5, width: int = 6, size: int = 32
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """A frustum's corner: a top and two sides ``width`` pixels wide falling ``slope`` per pixel.
+
+    Returns heights and the truth (1 top, 2 the +x side, 3 the +y side).
+    """
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    edge = size - width
+    top = 100.0 + 0.1 * x - 0.05 * y
+    side_x = top - slope * (x - edge + 0.5)
+    side_y = top - slope * (y - edge + 0.5)
+    z = np.minimum(top, np.minimum(side_x, side_y))
+    truth = np.select([(x < edge) & (y < edge), side_x <= side_y], [1, 2], 3).astype(np.int32)
+    return z + np.random.default_rng(seed).normal(0.0, noise, z.shape), truth
+
+
+def curved(kind: str, noise: float, seed: int, size: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """A lying cylinder (the whole width) or a sphere cap, 3 depth units per pixel of radius.
+
+    Returns heights and the region (bool): one quadric fails the fit test on both.
+    """
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    u, v = x - size / 2 + 0.5, y - size / 2 + 0.5
+    if kind == "cylinder":
+        z = 60.0 + 3.0 * np.sqrt(np.maximum(25.0**2 - u * u, 0.0))
+        region = np.ones(z.shape, bool)
+    else:
+        z = 60.0 + 3.0 * np.sqrt(np.maximum(28.0**2 - u * u - v * v, 0.0))
+        region = u * u + v * v < (0.97 * 28.0) ** 2
+    return z + np.random.default_rng(seed).normal(0.0, noise, z.shape), region
+
+
+def fails_the_fit_test(z: np.ndarray, region: np.ndarray, noise: float) -> bool:
+    """Whether one quadric of ``region`` fails the split's test (what makes the step look)."""
+    _, mse, _ = fit_quadrics(z, region.astype(np.int32), 1)
+    level = CONFIG.split.fit_factor * max(noise, math.sqrt(CONFIG.grow.min_error))
+    return math.sqrt(mse[1]) > level
+
+
+@pytest.mark.parametrize(("noise", "seed", "slope", "width"),
+                         [(0.0, 0, 1.5, 6), (1.0, 0, 1.5, 6), (1.0, 1, 1.5, 6),
+                          (2.0, 0, 2.5, 7), (2.0, 1, 2.5, 7), (2.0, 2, 2.5, 7)])
+def test_a_region_over_a_corner_of_three_planes_is_cut_into_its_faces(noise, seed, slope,
+                                                                        width):
+    z, truth = corner(noise, seed, slope=slope, width=width)
+    one = np.ones(z.shape, np.int32)
+    assert fails_the_fit_test(z, one == 1, noise)
+    assert hoover_compare(truth, one).counts()["correct"] == 0
+    out = facet_regions(z, one, CONFIG, noise=noise)
+    assert hoover_compare(truth, out).counts()["correct"] == 3
+    assert out.max() == 3
+
+
+@pytest.mark.parametrize("kind", ["cylinder", "sphere"])
+@pytest.mark.parametrize(("noise", "seed"), [(0.0, 0), (1.0, 1), (2.0, 2)])
+def test_a_curved_region_that_fails_the_fit_test_is_left_whole(kind, noise, seed):
+    z, region = curved(kind, noise, seed)
+    labels = region.astype(np.int32)
+    assert fails_the_fit_test(z, region, noise)
+    np.testing.assert_array_equal(facet_regions(z, labels, CONFIG, noise=noise), labels)
+
+
+def test_merge_back_joins_a_cylinders_strips_and_keeps_a_crease():
+    z, _ = curved("cylinder", 1.0, 0)
+    strips = np.digitize(np.arange(48), [16, 32]) + 1  # three strips across the cylinder
+    labels = np.broadcast_to(strips, z.shape).astype(np.int32)
+    np.testing.assert_array_equal(merge_back(z, labels, 1.0), np.ones(z.shape, np.int32))
+    z, truth = corner(1.0, 0)
+    np.testing.assert_array_equal(merge_back(z, truth, 1.0), truth)
+
+
+def test_a_region_with_one_plane_and_noise_is_not_cut():
+    y, x = np.mgrid[0:40, 0:40].astype(np.float64)
+    z = 80.0 + 0.4 * x - 0.3 * y + np.random.default_rng(3).normal(0.0, 2.0, x.shape)
+    level = CONFIG.split.fit_factor * 2.0
+    # even when asked directly, with a level the noise fails: no two planes of min_piece
+    assert cut_into_planes(z, np.ones(z.shape, bool), level=0.5 * level, s2=4.0,
+                           min_piece=CONFIG.split.min_piece) is None
+
+
+def test_other_regions_keep_their_ids_and_new_pieces_come_after_them():
+    z, truth = corner(0.0, 0)
+    labels = np.where(truth == 1, 2, 1).astype(np.int32)  # region 1 holds both sides
+    labels[:, :3] = 0  # unlabelled pixels stay unlabelled
+    out = facet_regions(z, labels, CONFIG, noise=0.0)
+    np.testing.assert_array_equal(out == 0, labels == 0)
+    np.testing.assert_array_equal(out == 2, labels == 2)  # the top passes: kept as it was
+    assert set(np.unique(out[labels == 1]).tolist()) == {1, 3}  # the sides: 1 and a new 3
+    for face in (2, 3):  # each side one piece
+        assert np.unique(out[(truth == face) & (labels > 0)]).size == 1
+
+
+def test_the_small_frustum_of_a_pile_gets_its_faces_at_noise_2():
+    """Pile seed 15, noise 2: the split leaves frustum 5's top with its -x and -y sides."""
+    faces = ["frustum 5 top", "frustum 5 -x", "frustum 5 -y"]
+    gt_on = [found_with("pile", 2.0, 15, face, facets=True) for face in faces]
+    gt_off = [found_with("pile", 2.0, 15, face, facets=False) for face in faces]
+    assert all(gt in good for gt, good in gt_on)
+    assert not any(gt in good for gt, good in gt_off)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**16), noise=st.sampled_from([0.0, 1.0, 2.0]),
+       cut=st.integers(8, 24))
+def test_the_facets_only_ever_divide_regions(seed, noise, cut):
+    z, truth = corner(noise, seed)
+    labels = np.where(np.arange(32)[None, :] < cut, 1, 2).astype(np.int32) * (truth > 0)
+    labels[np.random.default_rng(seed).random(z.shape) < 0.05] = 0
+    out = facet_regions(z, labels, CONFIG, noise=noise)
+    np.testing.assert_array_equal(out == 0, labels == 0)
+    for k in np.unique(out[out > 0]).tolist():
+        assert np.unique(labels[out == k]).size == 1  # inside one region
+    for k in (1, 2):  # each region keeps its id on some of its pixels
+        assert (out[labels == k] == k).any()
+
+
+def test_the_paper_preset_has_no_facets_and_the_key_is_validated(tmp_path):
+    assert CONFIG.split.facets
+    assert not load_config(preset="paper").split.facets
+    with pytest.raises(ConfigError, match=r"\[split\] facets"):
+        load_config(overrides={"split": {"facets": "yes"}})
+    assert "facets" in bad_setting_on_the_command_line(tmp_path, "split.facets=2")
