@@ -865,7 +865,9 @@ def test_small_frustums_whose_pieces_pass_as_quadrics_are_cut_at_their_creases()
              "frustum 2 -y", "frustum 2 top"}
     # Without the boundary refinement: with it, frustum 1's top region takes a strip of
     # the side beside it at their shallow crease (385 pixels, 261 on the top's 297).
-    alone = {"refine": False}
+    # Without the facets (rangeseg_cli.facets), which cut such a region into its planes
+    # later on: this tests the split alone.
+    alone = {"refine": False, "facets": False}
     assert faces <= _pile_faces(5, load_config(overrides={"split": alone}))
     assert not faces & _pile_faces(5, load_config(overrides={"split": {**alone,
                                                                        "crease_pieces": False}}))
@@ -960,8 +962,10 @@ def test_trimmed_chamfers_become_faces_of_their_own() -> None:
     image, truth = chamfered_block_scene()
     regions = {}
     for faces in (True, False):
-        # the carving (rangeseg_cli.carve) would find the chamfers too: off, to test the trim
-        config = replace(SPLIT, split=replace(SPLIT.split, trim_faces=faces, carve=False))
+        # the carving (rangeseg_cli.carve) and the facets (rangeseg_cli.facets) would find
+        # the chamfers too: off, to test the trim
+        config = replace(SPLIT, split=replace(SPLIT.split, trim_faces=faces, carve=False,
+                                              facets=False))
         regions[faces] = run_pipeline(image, config, stages=3).labels
     on, off = regions[True], regions[False]
     top = {g for i in hoover_compare(truth, on).instances if i.kind == "correct" for g in i.gt}
