@@ -23,7 +23,12 @@ Notes
 2. Seeds: planes by consensus (:func:`~rangeseg_cli.recover.consensus_plane`,
    each pixel within ``SEED_FACTOR`` times the level), each from the pixels
    the ones before leave, up to ``MAX_PLANES``; those of ``split.min_piece``
-   pixels or more are kept, and two are needed.
+   pixels or more are kept, and two are needed, whose inliers hold
+   ``SEED_COVER`` of the region or more. (Where the surface is rougher than
+   the noise estimate says -- a real camera that smooths its noise reads
+   low, as the SR300 frame of ``sample_data/arc`` -- planes fitting within
+   the level hold a quarter of a region's pixels or so; those regions are
+   left whole without the work of the passes.)
 3. k planes: each pixel takes the plane of least cost ``r^2 / s^2 +
    SMOOTHNESS * m``, with ``r`` its residual and ``m`` the number of its
    8-neighbours in the region that another plane holds; the planes are
@@ -59,13 +64,16 @@ import numpy as np
 from scipy import ndimage
 
 from .config import Config
-from .grow import EIGHT_NEIGHBOURS
+from .grow import EIGHT_NEIGHBOURS, region_fits, sums_of_squares, union_quadric_mse
 from .rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
 from .recover import consensus_plane, fit_plane, plane_height
 from .split import adjacent_pairs, failing_components
 
 #: A pixel fits a seed plane within this many times the fit-test level (Notes 2).
 SEED_FACTOR = 1.0
+
+#: The seed planes' inliers hold at least this share of the region (Notes 2).
+SEED_COVER = 0.5
 
 #: Most planes one region is cut into (Notes 2).
 MAX_PLANES = 6
@@ -86,9 +94,10 @@ _OFFSETS = chessboard_offsets(1)
 
 
 def _seeds(z: np.ndarray, mask: np.ndarray, tol: float, min_piece: int) -> list[np.ndarray]:
-    """Consensus planes (a0, a1, a2) of ``min_piece`` pixels or more (Notes 2)."""
+    """Consensus planes (a0, a1, a2) of ``min_piece`` pixels or more; none below the cover."""
     left = mask.copy()
     planes = []
+    held = 0
     for _ in range(MAX_PLANES):
         if np.count_nonzero(left) < min_piece:
             break
@@ -98,6 +107,9 @@ def _seeds(z: np.ndarray, mask: np.ndarray, tol: float, min_piece: int) -> list[
         left &= ~piece
         if np.count_nonzero(piece) >= min_piece:
             planes.append(fit_plane(z, *np.nonzero(piece)))
+            held += np.count_nonzero(piece)
+    if held < SEED_COVER * np.count_nonzero(mask):
+        return []
     return planes
 
 
@@ -209,19 +221,6 @@ def _parts(assign: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[
     return consecutive_labels(pieces)
 
 
-def _sse(z: np.ndarray, mask: np.ndarray, order: int) -> float:
-    """Sum of squared residuals of the least-squares plane (1) or quadric (2) of ``mask``."""
-    r, c = np.nonzero(mask)
-    u, v = c - c.mean(), r - r.mean()
-    scale = max(float(np.abs(u).max(initial=0)), float(np.abs(v).max(initial=0)), 1.0)
-    u, v = u / scale, v / scale
-    terms = [np.ones(r.size), u, v] + ([u * u, u * v, v * v] if order == 2 else [])
-    a = np.column_stack(terms)
-    zs = z[r, c]
-    coef = np.linalg.lstsq(a, zs, rcond=None)[0]
-    return float(np.sum((a @ coef - zs) ** 2))
-
-
 def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float) -> np.ndarray:
     """Merge touching pieces one quadric explains almost as well, least gain first (Notes 5).
 
@@ -237,24 +236,30 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float) -> np.ndarray:
     Returns
     -------
     numpy.ndarray
-        int32 (h, w) pieces renumbered 1..k.
+        int32 (h, w) pieces renumbered 1..k in the order of their ids.
     """
-    pieces = pieces.astype(np.int32, copy=True)
-    own = {i: _sse(z, pieces == i, 1) for i in range(1, int(pieces.max(initial=0)) + 1)}
-    while len(own) > 1:
+    pieces = consecutive_labels(pieces)
+    quadric = np.zeros(int(pieces.max(initial=0)) + 1, bool)  # own surface: quadric, not plane
+    while (n := int(pieces.max(initial=0))) > 1:
+        fitted = region_fits(z, pieces, n, (2, 1))
+        ((_, mse), (_, mse_plane)), counts = fitted.fits, fitted.counts
+        own = counts * np.where(quadric, mse, mse_plane)
+        squares = sums_of_squares(z, pieces, n)
         best: tuple[float, int, int] | None = None
         for i, j in adjacent_pairs(pieces, 1):
-            union = (pieces == i) | (pieces == j)
-            gain = (_sse(z, union, 2) - own[i] - own[j]) / (np.count_nonzero(union) * s2)
+            both = counts[i] + counts[j]
+            union = union_quadric_mse(fitted.moments, squares, i, j) * both
+            gain = float(union - own[i] - own[j]) / (both * s2)
             if best is None or gain < best[0]:
                 best = (gain, i, j)
         if best is None or best[0] >= MIN_GAIN:
             break
         _, i, j = best
         pieces[pieces == j] = i
-        del own[j]
-        own[i] = _sse(z, pieces == i, 2)
-    return consecutive_labels(pieces)
+        quadric[i] = True
+        quadric = np.delete(quadric, j)
+        pieces = consecutive_labels(pieces)
+    return pieces
 
 
 def _raster_order(pieces: np.ndarray) -> np.ndarray:
@@ -301,10 +306,8 @@ def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,
     k = int(pieces.max(initial=0))
     if k < 2:
         return None
-    for i in range(1, k + 1):
-        if _sse(z, pieces == i, 1) > level * level * np.count_nonzero(pieces == i):
-            return None
-    return pieces
+    (_, mse_plane), = region_fits(z, pieces, k, (1,)).fits
+    return pieces if (mse_plane[1:] <= level * level).all() else None
 
 
 def facet_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
