@@ -62,7 +62,8 @@ SETS: tuple[str, ...] = (
     "split.trim_faces=false", "split.plane_cut=false", "split.crease_pieces=false",
     "split.recover=false", "split.fill_edges=false", "split.merge=false", "split.recut=false",
     "split.bridge=false", "split.chamfers=false", "split.carve=false",
-    "split.refine_creases=false", "split.refine=false", "split.merge_planes=false")
+    "split.refine_creases=false", "split.refine=false", "split.merge_planes=false",
+    "split.facets=false")
 
 #: Name (as on the command line) and the overrides of each variant.
 VARIANTS: tuple[tuple[str, dict[str, dict[str, Any]]], ...] = (

@@ -105,9 +105,10 @@ def _seeds(z: np.ndarray, mask: np.ndarray, tol: float, min_piece: int) -> list[
         if piece is None:
             break
         left &= ~piece
-        if np.count_nonzero(piece) >= min_piece:
+        size = int(np.count_nonzero(piece))
+        if size >= min_piece:
             planes.append(fit_plane(z, *np.nonzero(piece)))
-            held += np.count_nonzero(piece)
+            held += size
     if held < SEED_COVER * np.count_nonzero(mask):
         return []
     return planes
@@ -239,27 +240,38 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float) -> np.ndarray:
         int32 (h, w) pieces renumbered 1..k in the order of their ids.
     """
     pieces = consecutive_labels(pieces)
-    quadric = np.zeros(int(pieces.max(initial=0)) + 1, bool)  # own surface: quadric, not plane
-    while (n := int(pieces.max(initial=0))) > 1:
-        fitted = region_fits(z, pieces, n, (2, 1))
-        ((_, mse), (_, mse_plane)), counts = fitted.fits, fitted.counts
-        own = counts * np.where(quadric, mse, mse_plane)
-        squares = sums_of_squares(z, pieces, n)
-        best: tuple[float, int, int] | None = None
-        for i, j in adjacent_pairs(pieces, 1):
-            both = counts[i] + counts[j]
-            union = union_quadric_mse(fitted.moments, squares, i, j) * both
-            gain = float(union - own[i] - own[j]) / (both * s2)
-            if best is None or gain < best[0]:
-                best = (gain, i, j)
-        if best is None or best[0] >= MIN_GAIN:
+    n = int(pieces.max(initial=0))
+    quadric = np.zeros(n + 1, bool)  # a piece's own surface: its quadric, not its plane
+    fits = _Fits(z, pieces, n, quadric)
+    gains = {(i, j): fits.gain(i, j, s2) for i, j in adjacent_pairs(pieces, 1)}
+    while gains:
+        gain, (i, j) = min((g, pair) for pair, g in gains.items())
+        if gain >= MIN_GAIN:
             break
-        _, i, j = best
         pieces[pieces == j] = i
         quadric[i] = True
-        quadric = np.delete(quadric, j)
-        pieces = consecutive_labels(pieces)
-    return pieces
+        fits = _Fits(z, pieces, n, quadric)
+        near = {k for pair in gains if i in pair or j in pair for k in pair} - {i, j}
+        gains = {pair: g for pair, g in gains.items() if i not in pair and j not in pair}
+        gains.update({(min(i, k), max(i, k)): fits.gain(i, k, s2) for k in near})
+    return consecutive_labels(pieces)
+
+
+class _Fits:
+    """The pieces' own squared errors and the moments for their unions (:func:`merge_back`)."""
+
+    def __init__(self, z: np.ndarray, pieces: np.ndarray, n: int, quadric: np.ndarray) -> None:
+        fitted = region_fits(z, pieces, n, (2, 1))
+        ((_, mse), (_, mse_plane)), self.counts = fitted.fits, fitted.counts
+        self.own = self.counts * np.where(quadric, mse, mse_plane)
+        self.moments = fitted.moments
+        self.squares = sums_of_squares(z, pieces, n)
+
+    def gain(self, i: int, j: int, s2: float) -> float:
+        """Squared error per pixel, in ``s2``, one quadric of i and j adds to their own."""
+        both = self.counts[i] + self.counts[j]
+        union = union_quadric_mse(self.moments, self.squares, i, j) * both
+        return float(union - self.own[i] - self.own[j]) / (both * s2)
 
 
 def _raster_order(pieces: np.ndarray) -> np.ndarray:
