@@ -28,6 +28,7 @@ Inputs and the output folder are local paths or URLs (``s3://bucket/out``;
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -52,6 +53,8 @@ from .pipeline import STAGES, stage_edges, stage_grow_and_gaps, stage_holdsite, 
 from .rangeimage import clipped_value, to_heights
 
 MANIFEST = "rangeseg-run.json"
+#: Most ``n_jobs`` a batch takes: worker processes here, or images in flight on Dask.
+MAX_JOBS = 1024
 log = logging.getLogger(__name__)
 
 #: Files each stage writes (``png`` ones only when ``[output] png``).
@@ -173,20 +176,25 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
     Returns
     -------
     Record
-        ``done`` with stage timings, or ``failed`` with a one-line reason.
+        ``done`` with stage timings, or ``failed`` with a one-line reason; a
+        failed image's files of ``stages`` and the later stages are deleted
+        (:func:`remove_failed_outputs`), whichever run wrote them.
     """
     record = Record(rel=job.rel, status="done", source=job.source)
+    base = out / job.rel
     try:
         state = _initial_state(job, out, stages[0], config)
         state["then_link"] = "link" in stages  # link writes edges.npy; write it once
         with parallel.blas_one_thread():
             for stage in stages:
                 t0 = time.perf_counter()
-                _STAGE_RUNNERS[stage](state, out / job.rel, config)
+                _STAGE_RUNNERS[stage](state, base, config)
                 record.timings[stage] = time.perf_counter() - t0
         record.noise_sigma = state.get("noise_sigma")
         record.clipped_pixels = state.get("clipped_pixels", 0)
-        _remove_later_outputs(out / job.rel, stages[-1])
+        _remove_outputs(base, STAGES[STAGES.index(stages[-1]) + 1:])  # they no longer match
+        if not config.output.png:  # pictures of an earlier run would show other results
+            _remove_outputs(base, stages, pictures_only=True)
     except RangesegError as exc:
         record.status, record.error = "failed", str(exc)
     except MemoryError:
@@ -195,14 +203,35 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
         record.status = "failed"
         record.error = f"{job.source or job.rel}: internal error ({type(exc).__name__}: {exc})"
         record.detail = traceback.format_exc()
+    if record.status == "failed":
+        remove_failed_outputs(out, record, stages[0])
     return record
 
 
-def _remove_later_outputs(base: Location, last: str) -> None:
-    """Delete the image's files of the stages after ``last``: they no longer match."""
-    for stage in STAGES[STAGES.index(last) + 1:]:
-        for name in STAGE_FILES[stage] + STAGE_PICTURES[stage]:
-            _p(base, name).unlink(missing_ok=True)
+def remove_failed_outputs(out: Location, record: Record, first: str) -> None:
+    """Delete a failed image's files of stage ``first`` and the later ones.
+
+    They are left from an earlier run (or half written by this one) and would
+    otherwise be read, scored or resumed as this run's results; the files of
+    the stages before ``first`` are current and stay. The last stage's files go
+    first, so a process killed meanwhile leaves the outputs of the first few
+    stages only, as a run stopped between stages does. A file that cannot be
+    deleted is added to ``record.error``.
+    """
+    try:
+        _remove_outputs(out / record.rel, reversed(STAGES[STAGES.index(first):]))
+    except RangesegError as exc:
+        record.error = f"{record.error}; its outputs of an earlier run remain ({exc})"
+
+
+def _remove_outputs(base: Location, stages: Iterable[str], *, pictures_only: bool = False
+                    ) -> None:
+    """Delete the image's files (or only its pictures) of ``stages``; missing ones are fine."""
+    for stage in stages:
+        names = STAGE_PICTURES[stage] if pictures_only else (STAGE_FILES[stage]
+                                                             + STAGE_PICTURES[stage])
+        for name in names:
+            io.remove_file(_p(base, name))
 
 
 def _initial_state(job: Job, out: Location, first: str, config: Config) -> dict[str, Any]:
@@ -358,6 +387,80 @@ def _same_file(a: Location, b: Location) -> bool:
     return str(a) == str(b)
 
 
+def check_inputs_kept(jobs: list[Job], out: Location, stages: tuple[str, ...],
+                      skipped_files: Iterable[str] = ()) -> None:
+    """Refuse a batch that would write over, or delete, one of its own input files.
+
+    Parameters
+    ----------
+    jobs, out, stages
+        As for :func:`run_batch`: each job with a ``source`` touches the files of
+        ``stages[0]`` and the later stages (written, or removed as stale).
+    skipped_files
+        The files of the input folders that are not read as images.
+
+    Raises
+    ------
+    OutputError
+        One line naming the input and the image whose output would replace it:
+        an input image named as another's output (``x.range.npy`` beside
+        ``x.png`` in OUT), or a file of an input folder named like an output
+        (so not read as an image) that no earlier run into ``out`` wrote.
+    """
+    touched = _touched_files(jobs, out, stages)
+    if not touched:
+        return
+    for job in jobs:
+        other = _first_hit(job.source, touched) if job.source else None
+        if other is not None:
+            raise OutputError(f"{job.source} is an input, and this run would overwrite it "
+                              f"with an output of {other.source}; choose another output "
+                              "folder or rename one of them")
+    ours = None
+    for name in skipped_files:
+        other = _first_hit(name, touched)
+        if other is None:
+            continue
+        ours = read_manifest(out).get("images", {}) if ours is None else ours
+        if other.rel not in ours:  # not a file an earlier run of rangeseg wrote there
+            raise OutputError(f"{name} is in an input folder (named like an output of "
+                              "rangeseg, it is not read as an image), and this run would "
+                              f"overwrite it with an output of {other.source}; choose "
+                              "another output folder or rename it")
+
+
+def _touched_files(jobs: list[Job], out: Location, stages: tuple[str, ...]
+                   ) -> dict[str, Job]:
+    """The output files of the jobs with a source, by :func:`_output_keys`: their jobs."""
+    names = [n for s in STAGES[STAGES.index(stages[0]):]
+             for n in STAGE_FILES[s] + STAGE_PICTURES[s]]
+    folders: dict[str, list[str]] = {}
+    touched: dict[str, Job] = {}
+    for job in (j for j in jobs if j.source is not None):
+        for name in names:
+            touched.update((key, job) for key in _output_keys(_p(out / job.rel, name), folders))
+    return touched
+
+
+def _output_keys(path: Location, folders: dict[str, list[str]]) -> list[str]:
+    """Names of an output file as typed and with its folder's links resolved.
+
+    ``folders`` caches the forms of each folder (one ``realpath`` per folder).
+    """
+    if isinstance(path, io.URLPath):
+        return [str(path)]
+    parent = str(path.parent)
+    if parent not in folders:
+        folders[parent] = list({os.path.abspath(parent), os.path.realpath(parent)})
+    return [os.path.join(folder, path.name) for folder in folders[parent]]
+
+
+def _first_hit(name: str, touched: dict[str, Job]) -> Job | None:
+    """The job whose output is the file ``name`` (or the file its link points to)."""
+    keys = [name] if io.is_url(name) else [os.path.abspath(name), os.path.realpath(name)]
+    return next((touched[k] for k in keys if k in touched), None)
+
+
 def jobs_from_output(out: Location) -> list[Job]:
     """Jobs for every image the ``edges`` stage has written into ``out``."""
     if not out.is_dir():
@@ -369,12 +472,66 @@ def jobs_from_output(out: Location) -> list[Job]:
 
 
 def read_manifest(out: Location) -> dict[str, Any]:
-    """The manifest in ``out``, or an empty one."""
+    """The manifest in ``out``, or an empty one.
+
+    Raises
+    ------
+    OutputError
+        One line naming the file, when it is not JSON or not shaped as rangeseg
+        writes it (what is read from it is checked: :func:`_manifest_problem`).
+    """
     path = out / MANIFEST
     if not path.exists():
         return {}
     data = io.read_json(path)
-    return data if isinstance(data, dict) else {}
+    problem = _manifest_problem(data)
+    if problem:
+        raise OutputError(f"{path}: not a manifest of rangeseg ({problem}); repair it, or "
+                          "delete it and redo the images with --overwrite")
+    return dict(data)
+
+
+def _manifest_problem(data: Any) -> str | None:
+    """What is wrong with a manifest's shape, or ``None`` when it is right.
+
+    An object, with ``config`` an object and ``images`` an object of entries
+    (:func:`_entry_problem`): what :func:`plan_jobs`, :func:`manifest_config`
+    and :class:`_Manifest` read.
+    """
+    if not isinstance(data, dict):
+        return f"it holds {_json_kind(data)}, not an object"
+    if not isinstance(data.get("config", {}), dict):
+        return f'"config" is {_json_kind(data["config"])}, not an object of tables'
+    images = data.get("images", {})
+    if not isinstance(images, dict):
+        return f'"images" is {_json_kind(images)}, not an object of images'
+    for rel, entry in images.items():
+        problem = _entry_problem(entry)
+        if problem:
+            return f'"images" entry {rel!r}: {problem}'
+    return None
+
+
+def _entry_problem(entry: Any) -> str | None:
+    """What is wrong with one image's manifest entry, or ``None``."""
+    if not isinstance(entry, dict):
+        return f"{_json_kind(entry)}, not an object"
+    for key in ("status", "config", "input"):
+        if key in entry and not isinstance(entry[key], str):
+            return f'"{key}" is {_json_kind(entry[key])}, not a string'
+    stages = entry.get("stages", [])
+    if not (isinstance(stages, list) and all(isinstance(s, str) for s in stages)):
+        return '"stages" is not a list of stage names'
+    return None
+
+
+def _json_kind(value: Any) -> str:
+    """``a number``, ``a list``, ...: a JSON value's kind, for messages."""
+    if value is None or isinstance(value, bool):
+        return json.dumps(value)
+    kinds = {dict: "an object", list: "a list", str: "a string", int: "a number",
+             float: "a number"}
+    return kinds.get(type(value), type(value).__name__)
 
 
 def manifest_config(out: Location) -> Config | None:
@@ -522,9 +679,10 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
     stages
         Consecutive stages to run (e.g. ``STAGES`` for ``run``).
     n_jobs
-        Local: worker processes (``None`` or 1 runs in this process). Dask: at
-        most this many images in flight on the cluster at once (``None``: all
-        are submitted and the cluster's workers set the parallelism).
+        1 to :data:`MAX_JOBS`. Local: worker processes, at most one per image
+        to run (``None`` or 1 runs in this process). Dask: at most this many
+        images in flight on the cluster at once (``None``: all are submitted
+        and the cluster's workers set the parallelism).
     resume, overwrite
         See :func:`plan_jobs`. Stage commands after ``edges`` pass ``overwrite``.
     skipped_files
@@ -555,9 +713,15 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         or without the shared storage).
     OutputError, rangeseg_cli.errors.StorageError
         When ``out`` holds results and neither ``resume`` nor ``overwrite`` is
-        set, or its store cannot be written.
+        set, or its store cannot be written, or its manifest is damaged, or the
+        batch would write over an input file (:func:`check_inputs_kept`).
+    ValueError
+        For ``n_jobs`` outside 1..:data:`MAX_JOBS`.
     """
     t0 = time.perf_counter()
+    if n_jobs is not None and not 1 <= n_jobs <= MAX_JOBS:
+        raise ValueError(f"`n_jobs` = {n_jobs!r}: expected 1 to {MAX_JOBS}, or None")
+    check_inputs_kept(jobs, out, stages, skipped_files or [])
     with _executor(executor, scheduler, n_jobs) as execute:  # dask: connect before any work
         remove_stale_temporaries(out)
         todo, records = plan_jobs(jobs, out, config, stages, resume=resume,
@@ -670,13 +834,14 @@ class StopFlag:
 
 def _execute(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
              n_jobs: int, finish: Callable[[Record], None]) -> None:
+    workers = min(n_jobs, len(todo))  # a worker more than images would only start up
     with StopFlag() as stop:
-        if n_jobs <= 1 or len(todo) <= 1:
+        if workers <= 1:
             for job in todo:
                 stop.check()
                 finish(process_image(job, out, config, stages))
             return
-        _execute_pool(todo, out, config, stages, n_jobs, finish, stop)
+        _execute_pool(todo, out, config, stages, workers, finish, stop)
 
 
 def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
@@ -748,8 +913,9 @@ def _init_worker(threads: int = 1) -> None:
 
 
 def default_jobs() -> int:
-    """Default number of worker processes: the cores this process may use."""
+    """Default number of worker processes: the cores this process may use (<= MAX_JOBS)."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cores = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+        cores = os.cpu_count() or 1
+    return min(max(1, cores), MAX_JOBS)

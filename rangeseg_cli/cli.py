@@ -23,6 +23,7 @@ log = logging.getLogger("rangeseg")
 STAGE_NAMES = ("edges", "link", "grow", "holdsite")
 PRESET_NAMES = ("paper", "mm-depth", "tenth-mm-depth", "metre-depth")
 EXECUTOR_NAMES = ("local", "dask")  # rangeseg_cli.batch.EXECUTORS (not imported: fast --help)
+MAX_JOBS = 1024  # rangeseg_cli.batch.MAX_JOBS
 
 # --------------------------------------------------------------------------- shared options
 
@@ -34,9 +35,10 @@ preset_opt = click.option("--preset", type=click.Choice(PRESET_NAMES),
 set_opt = click.option("--set", "settings", multiple=True, metavar="TABLE.KEY=VALUE",
                        help="Override one config value (TOML syntax), e.g. "
                             "--set step.threshold=8. Repeatable.")
-jobs_opt = click.option("--jobs", "-j", type=click.IntRange(min=1), default=None,
-                        help="Worker processes (default: all cores); with --executor dask, "
-                             "at most N images on the cluster at once (default: no limit).")
+jobs_opt = click.option("--jobs", "-j", type=click.IntRange(min=1, max=MAX_JOBS), default=None,
+                        help="Worker processes (default: all cores; at most one per image); "
+                             "with --executor dask, at most N images on the cluster at once "
+                             f"(default: no limit). 1 to {MAX_JOBS}.")
 threads_opt = click.option("--threads", type=click.IntRange(min=1), default=None,
                            help="Threads for one image (default: the cores shared out among "
                                 "--jobs, or RANGESEG_THREADS); the results are the same for "
@@ -392,10 +394,16 @@ def synth_cmd(out: str, scenes: list[str] | None, noise: list[float], seed: int,
     Writes OUT/<scene>-n<noise>.png, .gt.npy (int32 surface labels) and
     .gt.json (surfaces, objects, uncovered parts) for `rangeseg eval`.
     """
+    from .errors import OutputError
     from .synth import SCENES, write_scenes
 
     names = scenes or list(SCENES)
-    written = write_scenes(Path(out), names, noise, seed, size, int(bits))
+    try:
+        written = write_scenes(Path(out), names, noise, seed, size, int(bits))
+    except ValueError as exc:  # the options are checked; two noise levels with one name
+        raise click.BadParameter(str(exc), param_hint="--noise") from None
+    except OutputError as exc:  # OUT cannot be written
+        raise UsageProblem(str(exc)) from None
     if not quiet:
         click.echo(f"wrote {len(written) // 3} scenes ({len(written)} files) to {out}",
                    err=True)

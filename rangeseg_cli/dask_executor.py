@@ -49,7 +49,14 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 from . import __version__, io
-from .batch import Job, Record, StopFlag, process_image, remove_stale_temporaries
+from .batch import (
+    Job,
+    Record,
+    StopFlag,
+    process_image,
+    remove_failed_outputs,
+    remove_stale_temporaries,
+)
 from .config import Config
 from .errors import ClusterError, ClusterLost, RangesegError
 from .io import Location
@@ -202,16 +209,21 @@ class _Batch:
         try:
             record: Record = future.result()
         except self.distributed.KilledWorker:
-            return Record(rel=job.rel, status="failed", source=job.source,
-                          error=f"{name}: every Dask worker that ran it died (out of memory?)")
+            return self.failed(job, f"{name}: every Dask worker that ran it died "
+                                    "(out of memory?)")
         except (Exception, CancelledError) as exc:  # noqa: BLE001 - fails its image only
             if self.lost(exc):
                 raise ClusterLost(self.lost_message()) from None
-            return Record(rel=job.rel, status="failed", source=job.source,
-                          error=f"{name}: Dask task failed ({type(exc).__name__}: {exc})")
+            return self.failed(job, f"{name}: Dask task failed ({type(exc).__name__}: {exc})")
         if sent.source and job.source and record.error:
             record.error = record.error.replace(sent.source, job.source)
         record.source = job.source
+        return record
+
+    def failed(self, job: Job, error: str) -> Record:
+        """A failed record for an image whose task gave none; its stale outputs are removed."""
+        record = Record(rel=job.rel, status="failed", source=job.source, error=error)
+        remove_failed_outputs(self.out, record, self.stages[0])
         return record
 
     def lost(self, exc: BaseException) -> bool:

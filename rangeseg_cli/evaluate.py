@@ -437,6 +437,32 @@ def _pairs(pred_dir: Path, gt_dir: Path) -> list[tuple[str, Path, Path]]:
     return out
 
 
+def _failed_in_run(pred_dir: Path) -> dict[str, str]:
+    """Images the manifest in ``pred_dir`` marks failed before their labels were made.
+
+    Returns
+    -------
+    dict
+        Relative stem: one line saying why (none without a manifest).
+
+    Raises
+    ------
+    InputError
+        When the manifest is damaged.
+    """
+    from .batch import MANIFEST, read_manifest
+    from .errors import InputError, OutputError
+
+    try:
+        images = read_manifest(pred_dir).get("images", {})
+    except OutputError as exc:
+        raise InputError(str(exc)) from None
+    return {rel: f"not scored: {pred_dir / MANIFEST} records that it failed "
+                 f"({entry.get('error', 'no reason given')})"
+            for rel, entry in images.items()
+            if entry.get("status") == "failed" and "grow" not in entry.get("stages", [])}
+
+
 def _one_image(rel: str, gt_path: Path, pred_path: Path, pred_dir: Path, tolerance: float,
                min_region: int, tolerances: Sequence[float], gt_parts: bool
                ) -> dict[str, Any]:
@@ -508,7 +534,8 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
     ----------
     pred_dir
         Output folder of ``rangeseg run`` (``<stem>.labels.npy``, and
-        ``<stem>.holdsite.json`` when present).
+        ``<stem>.holdsite.json`` when present). An image its manifest records
+        as failed before its labels were made is an error, not scored.
     gt_dir
         Folder of ``rangeseg synth`` (``<stem>.gt.npy`` and ``<stem>.gt.json``),
         searched recursively; ``a/b.gt.npy`` pairs with ``PRED/a/b.labels.npy``.
@@ -533,11 +560,12 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
     Raises
     ------
     InputError
-        When a folder is missing or holds no ground truth.
+        When a folder is missing or holds no ground truth, or PRED's manifest
+        is damaged.
     ValueError
         For a tolerance or ``min_region`` out of range.
     """
-    from .errors import RangesegError
+    from .errors import InputError, RangesegError
 
     tolerance = _check_tolerance(tolerance)
     for t in tolerances:
@@ -547,8 +575,12 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
     pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
     images: dict[str, Any] = {}
     errors: list[str] = []
-    for rel, gt_path, pred_path in _pairs(pred_dir, gt_dir):
+    pairs = _pairs(pred_dir, gt_dir)
+    failed = _failed_in_run(pred_dir)
+    for rel, gt_path, pred_path in pairs:
         try:
+            if rel in failed:
+                raise InputError(failed[rel])
             images[rel] = _one_image(rel, gt_path, pred_path, pred_dir, tolerance,
                                      min_region, tolerances, bool(gt_parts))
         except (RangesegError, ValueError, KeyError, TypeError) as exc:

@@ -546,6 +546,27 @@ def _replace_file(path: Path, data: memoryview) -> None:
         raise
 
 
+def remove_file(path: Location) -> None:
+    """Delete a file; a missing one (or a missing folder above it) is no error.
+
+    Raises
+    ------
+    OutputError
+        One line naming the file, when it is there and cannot be deleted.
+    StorageError
+        When a URL's store refuses.
+    """
+    if isinstance(path, URLPath):
+        path.unlink()
+        return
+    try:
+        path.unlink(missing_ok=True)
+    except NotADirectoryError:
+        pass  # a file stands where its folder would be: no file of that name is there
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot delete ({_os_reason(exc)})") from None
+
+
 def write_npy(path: Location, array: np.ndarray) -> None:
     """Write an array as ``.npy`` atomically."""
     _atomic_write(path, lambda fh: np.save(fh, np.ascontiguousarray(array),

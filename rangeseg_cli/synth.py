@@ -1151,7 +1151,8 @@ def write_scenes(out_dir: str | Path, names: Iterable[str], noises: Iterable[flo
     For each scene and noise level writes ``OUT/<stem>.png`` (the range
     image), ``OUT/<stem>.gt.npy`` (int32 labels) and ``OUT/<stem>.gt.json``
     (:attr:`Scene.info`), atomically; ``<stem>`` is :func:`scene_stem`.
-    The same arguments give the same bytes.
+    The same arguments give the same bytes. A scene and noise level given
+    twice is written once.
 
     Parameters
     ----------
@@ -1172,7 +1173,9 @@ def write_scenes(out_dir: str | Path, names: Iterable[str], noises: Iterable[flo
     Raises
     ------
     ValueError
-        For an unknown scene or an option out of range, before anything is written.
+        For an unknown scene, an option out of range, or two noise levels that
+        would be written under one name (:func:`scene_stem`), before anything
+        is written.
     """
     from .io import write_json, write_npy, write_png
 
@@ -1183,13 +1186,32 @@ def write_scenes(out_dir: str | Path, names: Iterable[str], noises: Iterable[flo
         _check_options(size, noise, bits, None)
     out = Path(out_dir)
     written: list[Path] = []
+    for stem, (name, noise) in _stems(names, noises).items():
+        scene = render_scene(name, size=size, noise=noise, seed=seed, bits=bits)
+        paths = (out / f"{stem}.png", out / f"{stem}.gt.npy", out / f"{stem}.gt.json")
+        write_png(paths[0], scene.image)
+        write_npy(paths[1], scene.gt)
+        write_json(paths[2], scene.info)
+        written.extend(paths)
+    return written
+
+
+def _stems(names: list[str], noises: list[float]) -> dict[str, tuple[str, float]]:
+    """The scene and noise level of each file stem to write, in the order requested.
+
+    Raises
+    ------
+    ValueError
+        When two noise levels give one stem (``0.123456789`` and ``0.1234567891``
+        are both ``-n0.123457``): the second would replace the first.
+    """
+    stems: dict[str, tuple[str, float]] = {}
     for name in names:
         for noise in noises:
-            scene = render_scene(name, size=size, noise=noise, seed=seed, bits=bits)
             stem = scene_stem(name, noise)
-            paths = (out / f"{stem}.png", out / f"{stem}.gt.npy", out / f"{stem}.gt.json")
-            write_png(paths[0], scene.image)
-            write_npy(paths[1], scene.gt)
-            write_json(paths[2], scene.info)
-            written.extend(paths)
-    return written
+            if stem in stems and stems[stem] != (name, noise):
+                raise ValueError(f"noise levels {stems[stem][1]!r} and {noise!r} would both "
+                                 f"be written as {stem}.*; give levels that differ within "
+                                 "6 significant digits")
+            stems[stem] = (name, noise)
+    return stems

@@ -249,6 +249,53 @@ def test_threads_option_gives_the_same_bytes(good_folder, tmp_path, monkeypatch)
     assert tree_bytes(tmp_path / "1") == tree_bytes(tmp_path / "3")
 
 
+@pytest.mark.parametrize("jobs", ["1025", "99999999999999999999", "0"])
+def test_absurd_job_counts_are_one_line_range_errors(good_folder, tmp_path, jobs):
+    res = CliRunner().invoke(main, ["run", str(good_folder), "-o", str(tmp_path / "o"),
+                                    "-j", jobs])
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    assert res.output.strip().splitlines()[-1] == (
+        f"Error: Invalid value for '--jobs' / '-j': {jobs} is not in the range 1<=x<=1024.")
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_and_library_agree_on_the_most_jobs():
+    from rangeseg_cli import batch, cli
+
+    assert cli.MAX_JOBS == batch.MAX_JOBS
+
+
+def test_pool_has_at_most_one_worker_per_image(good_folder, tmp_path, monkeypatch):
+    from concurrent.futures import ProcessPoolExecutor
+
+    from rangeseg_cli import batch
+
+    started = []
+
+    def pool(max_workers, **kwargs):
+        started.append(max_workers)
+        return ProcessPoolExecutor(max_workers=max_workers, **kwargs)
+
+    monkeypatch.setattr(batch, "ProcessPoolExecutor", pool)
+    res = CliRunner().invoke(main, ["run", str(good_folder / "img0.png"),
+                                    str(good_folder / "img1.png"), "-o", str(tmp_path / "o"),
+                                    "-j", "1000", "-q"])
+    assert res.exit_code == 0, res.output
+    assert started == [2]
+
+
+def test_run_batch_refuses_n_jobs_out_of_range(good_folder, tmp_path):
+    from rangeseg_cli import load_config
+    from rangeseg_cli.batch import MAX_JOBS, jobs_from_inputs, run_batch
+    from rangeseg_cli.pipeline import STAGES
+
+    jobs, _ = jobs_from_inputs([good_folder], tmp_path / "o")
+    for n in (0, MAX_JOBS + 1):
+        with pytest.raises(ValueError, match=f"`n_jobs` = {n}: expected 1 to {MAX_JOBS}"):
+            run_batch(jobs, tmp_path / "o", load_config(), STAGES, n_jobs=n)
+    assert not (tmp_path / "o").exists()
+
+
 def test_bad_thread_counts_are_usage_errors(good_folder, tmp_path, monkeypatch):
     runner = CliRunner()
     res = runner.invoke(main, ["run", str(good_folder), "-o", str(tmp_path / "a"), "--threads", "0"])

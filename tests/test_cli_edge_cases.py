@@ -203,6 +203,185 @@ def test_stage_command_with_resume_completes_only_what_is_missing(runner, tmp_pa
     assert (out / "b.labels.npy").exists()
 
 
+# --------------------------------------------------------------------------- failed images
+
+
+def outputs_of(out, stem: str) -> list[str]:
+    return sorted(p.name for p in out.iterdir() if p.name.startswith(f"{stem}."))
+
+
+@pytest.fixture
+def cup_scene(tmp_path):
+    """A synthetic cup (PNG in ``in/``) and its ground truth (in ``gt/``)."""
+    from rangeseg_cli.synth import write_scenes
+
+    write_scenes(tmp_path / "scene", ["cup"], [0.0], seed=0, size=(64, 64))
+    (tmp_path / "in").mkdir()
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "scene" / "cup-n0.png").rename(tmp_path / "in" / "cup-n0.png")
+    for name in ("cup-n0.gt.npy", "cup-n0.gt.json"):
+        (tmp_path / "scene" / name).rename(tmp_path / "gt" / name)
+    return tmp_path / "in" / "cup-n0.png", tmp_path / "gt"
+
+
+def test_failed_overwrite_leaves_no_old_results_and_eval_does_not_score_them(runner, cup_scene,
+                                                                             tmp_path):
+    image, gt = cup_scene
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(image.parent), "-o", str(out), "-j", "1",
+                                "-q"]).exit_code == 0
+    assert len(outputs_of(out, "cup-n0")) == 13
+    image.write_bytes(image.read_bytes()[:100])  # the input is damaged since
+    res = runner.invoke(main, ["run", str(image.parent), "-o", str(out), "-j", "1", "-q",
+                               "--overwrite"])
+    assert res.exit_code == 1 and "not a readable image" in one_line_error(res)
+    assert outputs_of(out, "cup-n0") == []  # the old results are not left to be taken as new
+    res = runner.invoke(main, ["eval", str(out), str(gt), "-q"])
+    assert res.exit_code == 1
+    assert one_line_error(res).startswith("cup-n0: not scored: ")
+
+
+def test_eval_does_not_score_labels_the_manifest_records_as_failed(runner, cup_scene, tmp_path):
+    image, gt = cup_scene
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(image), "-o", str(out), "-j", "1",
+                                "-q"]).exit_code == 0
+    assert runner.invoke(main, ["eval", str(out), str(gt), "-q"]).exit_code == 0
+    manifest = json.loads((out / "rangeseg-run.json").read_text())
+    manifest["images"]["cup-n0"] |= {"status": "failed", "stages": [], "error": "it broke"}
+    (out / "rangeseg-run.json").write_text(json.dumps(manifest))  # labels of an older run
+    res = runner.invoke(main, ["eval", str(out), str(gt), "-q"])
+    assert res.exit_code == 1
+    assert one_line_error(res) == (f"cup-n0: not scored: {out / 'rangeseg-run.json'} records "
+                                   "that it failed (it broke)")
+    manifest["images"]["cup-n0"]["stages"] = ["edges", "link", "grow"]  # holdsite failed
+    (out / "rangeseg-run.json").write_text(json.dumps(manifest))
+    assert runner.invoke(main, ["eval", str(out), str(gt), "-q"]).exit_code == 0
+
+
+def test_image_failing_at_a_later_stage_keeps_no_results_of_an_earlier_run(
+        runner, box_png, tmp_path, monkeypatch):
+    from rangeseg_cli import batch
+    from rangeseg_cli.errors import InputError
+
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+
+    def broken(*args):
+        raise InputError("box: no surface fits")
+
+    monkeypatch.setitem(batch._STAGE_RUNNERS, "grow", broken)
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1", "-q",
+                               "--overwrite", "--set", "step.threshold=20"])
+    assert res.exit_code == 1 and "box: no surface fits" in res.output
+    # new edges beside old labels and holdsite would be two runs in one folder
+    assert outputs_of(out, "box") == []
+
+
+def test_stage_command_failing_removes_its_stale_files_and_keeps_the_earlier_stages(
+        runner, box_png, tmp_path):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    np.save(out / "box.components.npy", np.zeros((5, 5), np.int32))
+    res = runner.invoke(main, ["grow", str(out), "-j", "1", "-q"])
+    assert res.exit_code == 1 and "box.components.npy" in one_line_error(res)
+    assert outputs_of(out, "box") == [
+        "box.components.npy", "box.components.png", "box.edges.npy", "box.edges.png",
+        "box.linked.png", "box.range.npy", "box.roof.png", "box.step.png"]
+
+
+def test_rerun_without_pictures_removes_the_old_pictures(runner, box_png, tmp_path):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1", "--overwrite",
+                               "--set", "output.png=false", "--set", "step.threshold=20"])
+    assert res.exit_code == 0
+    assert [n for n in outputs_of(out, "box") if n.endswith(".png")] == []
+
+
+# --------------------------------------------------------------------------- inputs kept
+
+
+def test_input_named_as_another_inputs_output_is_refused_before_any_work(runner, box_png,
+                                                                         tmp_path):
+    other = tmp_path / "box.range.npy"
+    np.save(other, np.random.default_rng(0).random((48, 48)) * 100)
+    before = other.read_bytes()
+    res = runner.invoke(main, ["run", str(box_png), str(other), "-o", str(tmp_path), "-j", "1"])
+    assert res.exit_code == 2
+    assert one_line_error(res) == (f"Error: {other} is an input, and this run would overwrite "
+                                   f"it with an output of {box_png}; choose another output "
+                                   "folder or rename one of them")
+    assert other.read_bytes() == before
+    assert not (tmp_path / "rangeseg-run.json").exists() and outputs_of(tmp_path, "box") == [
+        "box.png", "box.range.npy"]
+
+
+def test_input_linked_to_an_output_is_refused(runner, box_png, tmp_path):
+    data = tmp_path / "box.range.npy"
+    np.save(data, box_scene(48))
+    (tmp_path / "elsewhere").mkdir()
+    link = tmp_path / "elsewhere" / "frame.npy"
+    link.symlink_to(data)
+    res = runner.invoke(main, ["run", str(box_png), str(link), "-o", str(tmp_path), "-j", "1"])
+    assert res.exit_code == 2 and f"{link} is an input" in one_line_error(res)
+    assert np.array_equal(np.load(data), box_scene(48))
+
+
+def test_file_named_like_an_output_in_the_input_folder_is_not_overwritten(runner, box_png,
+                                                                          tmp_path):
+    mine = tmp_path / "box.range.npy"  # the user's; not read as an image, named as an output
+    np.save(mine, box_scene(48))
+    before = mine.read_bytes()
+    res = runner.invoke(main, ["run", str(tmp_path), "-o", str(tmp_path), "-j", "1"])
+    assert res.exit_code == 2
+    line = one_line_error(res)
+    assert line.startswith(f"Error: {mine} is in an input folder") and str(box_png) in line
+    assert mine.read_bytes() == before
+
+
+def test_rerun_into_the_input_folder_may_overwrite_its_own_results(runner, box_png, tmp_path):
+    args = ["run", str(tmp_path), "-o", str(tmp_path), "-j", "1", "-q", "--json"]
+    assert runner.invoke(main, args).exit_code == 0
+    res = runner.invoke(main, [*args, "--overwrite"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["done"] == 1
+
+
+# --------------------------------------------------------------------------- damaged manifest
+
+
+@pytest.mark.parametrize("damage, problem", [
+    (lambda m: m | {"images": 5}, '"images" is a number, not an object of images'),
+    (lambda m: m | {"images": {"box": [1]}}, "\"images\" entry 'box': a list, not an object"),
+    (lambda m: m | {"images": {"box": {"stages": "edges"}}},
+     "\"images\" entry 'box': \"stages\" is not a list of stage names"),
+    (lambda m: m | {"images": {"box": {"status": None}}},
+     "\"images\" entry 'box': \"status\" is null, not a string"),
+    (lambda m: m | {"config": []}, '"config" is a list, not an object of tables'),
+    (lambda m: [m], "it holds a list, not an object"),
+])
+@pytest.mark.parametrize("command", ["run --resume", "link --overwrite", "grow", "eval"])
+def test_manifest_of_the_wrong_shape_is_one_line_naming_it(runner, box_png, tmp_path, damage,
+                                                           problem, command):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    path = out / "rangeseg-run.json"
+    path.write_text(json.dumps(damage(json.loads(path.read_text()))))
+    before = path.read_bytes()
+    (tmp_path / "box.gt.npy").write_bytes(b"")  # for eval: one ground truth to pair
+    res = runner.invoke(main, {
+        "run --resume": ["run", str(box_png), "-o", str(out), "--resume", "-j", "1"],
+        "link --overwrite": ["link", str(out), "--overwrite", "-j", "1"],
+        "grow": ["grow", str(out), "-j", "1"],
+        "eval": ["eval", str(out), str(tmp_path)]}[command])
+    assert res.exit_code == 2
+    assert one_line_error(res) == (f"Error: {path}: not a manifest of rangeseg ({problem}); "
+                                   "repair it, or delete it and redo the images with "
+                                   "--overwrite")
+    assert path.read_bytes() == before
+
+
 # --------------------------------------------------------------------------- options
 
 

@@ -155,6 +155,28 @@ def test_workers_that_do_not_see_the_output_folder_are_refused(cluster, tmp_path
                         load_config(), STAGES, cluster.scheduler_address, lambda r: None)
 
 
+def test_image_whose_workers_all_died_keeps_no_results_of_an_earlier_run(tmp_path):
+    import distributed
+
+    out = tmp_path / "out"
+    out.mkdir()
+    old = [out / f"img.{name}" for name in ("range.npy", "labels.npy", "holdsite.json")]
+    for path in old:
+        path.write_text("from an earlier run")
+
+    class DeadTask:
+        def result(self):
+            raise distributed.KilledWorker("task", None, 3)
+
+    job = Job(rel="img", source=str(tmp_path / "img.png"))
+    batch = dask_executor._Batch(client=None, distributed=distributed, address="tcp://x:1",
+                                 out=out, config=load_config(), stages=STAGES)
+    batch.pending[DeadTask()] = (job, job)
+    record = batch.record(next(iter(batch.pending)))
+    assert record.status == "failed" and "every Dask worker that ran it died" in record.error
+    assert not any(path.exists() for path in old)
+
+
 def test_worker_killed_mid_batch_still_completes_with_identical_bytes(
         cluster, client, images, local_bytes, tmp_path, monkeypatch):
     # When the first image is reported, SIGKILL a worker that holds one of the

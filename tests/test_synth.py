@@ -248,6 +248,30 @@ def test_cli_synth_writes_scenes_and_rejects_bad_options(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_noise_levels_written_under_one_name_are_a_usage_error(tmp_path):
+    runner = CliRunner()
+    res = runner.invoke(main, ["synth", str(tmp_path / "sy"), "--scenes", "box",
+                               "--noise", "0.123456789,0.1234567891"])
+    assert res.exit_code == 2
+    assert res.output.strip().splitlines()[-1] == (
+        "Error: Invalid value for --noise: noise levels 0.123456789 and 0.1234567891 would "
+        "both be written as box-n0.123457.*; give levels that differ within 6 significant "
+        "digits")
+    assert not (tmp_path / "sy").exists()
+    res = runner.invoke(main, ["synth", str(tmp_path / "twice"), "--scenes", "box,box",
+                               "--noise", "0,0.0", "--size", "32"])
+    assert res.exit_code == 0 and "wrote 1 scenes (3 files)" in res.output  # one scene, once
+    assert len(list((tmp_path / "twice").iterdir())) == 3
+
+
+def test_synth_into_a_folder_blocked_by_a_file_is_one_line(tmp_path):
+    (tmp_path / "blocker").write_text("a file")
+    res = CliRunner().invoke(main, ["synth", str(tmp_path / "blocker" / "sy"), "--scenes", "box"])
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    assert res.output.strip().splitlines()[-1].startswith(
+        f"Error: {tmp_path / 'blocker' / 'sy'}: cannot create the output folder")
+
+
 def test_parse_scenes_takes_known_names_and_names_every_unknown_one():
     assert parse_scenes(" nut, cup ,") == ["nut", "cup"]
     with pytest.raises(ValueError, match="unknown scene teapot, kettle; allowed: part1, "):
