@@ -277,7 +277,28 @@ def _read_map(base: Location, name: str, kind: str, z: np.ndarray | None = None
     if z is not None and arr.shape != z.shape:
         raise OutputError(f"{path}: shape {arr.shape} differs from the heights "
                           f"{_p(base, 'range.npy')} {z.shape}; run the stages before it again")
+    if kind == "i":
+        _check_label_range(path, arr)
     return arr
+
+
+def _check_label_range(path: Location, labels: np.ndarray) -> None:
+    """Labels 0 to the pixel count: the stages size their tables by the largest label.
+
+    Raises
+    ------
+    OutputError
+        Naming the file and the label, for a negative label or one above the
+        pixel count (a file edited by hand: 2^31-1 took 16 GB and more).
+    """
+    if labels.size == 0:
+        return
+    low, high = int(labels.min()), int(labels.max())
+    if low < 0 or high > labels.size:
+        bad = low if low < 0 else high
+        raise OutputError(f"{path}: label {bad} is outside 0..{labels.size} (the pixel "
+                          "count): not a label map rangeseg writes; run the stages before it "
+                          "again")
 
 
 def _p(base: Location, name: str) -> Location:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -413,6 +414,7 @@ def synth_cmd(out: str, scenes: list[str] | None, noise: list[float], seed: int,
 @click.argument("pred_dir", type=click.Path(file_okay=False))
 @click.argument("gt_dir", type=click.Path(file_okay=False))
 @click.option("--tolerance", type=click.FloatRange(0.5, 1.0), default=0.8, show_default=True,
+              callback=lambda ctx, param, value: _tolerance_not_nan(value),
               help="Overlap tolerance T of Hoover et al. (1996).")
 @click.option("--min-region", type=click.IntRange(min=0), default=50, show_default=True,
               help="Smaller GT regions are not judged.")
@@ -432,13 +434,16 @@ def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
     regions (Hoover et al. 1996), and whether each <stem>.holdsite.json lies
     inside one surface of an uncovered part. Exit code 1 when an image fails.
     """
-    from .errors import InputError
-    from .evaluate import evaluate_folder, plot_curve
+    from .errors import InputError, OutputError
+    from .evaluate import evaluate_folder
+    from .io import check_writable
 
     try:
+        if plot:
+            check_writable(Path(plot))
         result = evaluate_folder(pred_dir, gt_dir, tolerance=tolerance, min_region=min_region,
                                  gt_parts=gt_parts)
-    except InputError as exc:
+    except (InputError, OutputError) as exc:
         raise UsageProblem(str(exc)) from None
     for reason in result["errors"]:
         click.echo(reason, err=True)
@@ -448,10 +453,28 @@ def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
         from .cli_report import print_eval_table
 
         print_eval_table(result)
-    if plot and not plot_curve(result["total"]["curve"], Path(plot),
-                               gt_regions=result["total"]["gt_regions"]):
-        click.echo("--plot: matplotlib is not installed; no plot written", err=True)
+    if plot:
+        _plot(result["total"], Path(plot))
     ctx.exit(1 if result["errors"] else 0)
+
+
+def _plot(total: dict[str, Any], path: Path) -> None:
+    """``eval --plot``: the curve as a PNG; a failed write is one line and exit code 1."""
+    from .errors import OutputError
+    from .evaluate import plot_curve
+
+    try:
+        if not plot_curve(total["curve"], path, gt_regions=total["gt_regions"]):
+            click.echo("--plot: matplotlib is not installed; no plot written", err=True)
+    except OutputError as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def _tolerance_not_nan(value: float) -> float:
+    """``eval --tolerance``: NaN, which click's FloatRange lets through, is refused."""
+    if math.isnan(value):
+        raise click.BadParameter(f"{value} is not in the range 0.5<=x<=1.0")
+    return value
 
 
 if __name__ == "__main__":  # pragma: no cover

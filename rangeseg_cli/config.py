@@ -30,6 +30,19 @@ from .errors import ConfigError
 Truncation = Literal["symmetric", "one-sided"]
 BackgroundRule = Literal["lowest-border", "largest-border", "none"]
 
+# Upper limits of the numeric keys: far beyond any useful setting, and small enough
+# that no product or square the stages form overflows (a fit level squared,
+# error_factor x e_A, a focal length times a depth; counts in int32).
+#: Depth units (thresholds, noise levels): the largest height accepted
+#: (:data:`~rangeseg_cli.rangeimage.MAX_ABS_HEIGHT`).
+MAX_DEPTH = 1e12
+#: Factors on an RMS error or a noise level; squared ratios go to its square.
+MAX_FACTOR = 1e3
+#: Camera focal lengths and principal point, in pixels.
+MAX_PIXELS = 1e6
+#: Pixel counts: the largest int32.
+MAX_COUNT = 2**31 - 1
+
 
 def _opt(default: Any, help: str, **limits: Any) -> Any:
     """Declare a config field with its help text and limits (min, max, choices, odd)."""
@@ -41,7 +54,7 @@ class InputConfig:
     """How raw pixel values become heights (SPEC "Units and real sensors")."""
 
     scale: float = _opt(1.0, "multiply raw values by this (e.g. 0.1 for depth in 0.1 mm -> mm)",
-                        min_excl=0.0)
+                        min_excl=0.0, max=1e6)
     larger_is_closer: bool = _opt(True, "true for height maps; false for depth along the "
                                   "optical axis (closer = smaller)")
     invalid: float = _opt(math.nan, "raw no-data value (nan = only NaN is invalid; 0 for most "
@@ -51,11 +64,15 @@ class InputConfig:
                                  "there lies beyond the sensor's range, and the clipped "
                                  "plateau is no surface to describe or to grip")
     metres_per_unit: float = _opt(0.0, "metres per depth unit after scaling (0.001 for mm; "
-                                  "0 = unknown)", min=0.0)
-    fx: float = _opt(0.0, "camera focal length x in pixels (0 = no intrinsics)", min=0.0)
-    fy: float = _opt(0.0, "camera focal length y in pixels (0 = no intrinsics)", min=0.0)
-    cx: float = _opt(0.0, "camera principal point x (column) in pixels")
-    cy: float = _opt(0.0, "camera principal point y (row) in pixels")
+                                  "0 = unknown)", min=0.0, max=1e3)
+    fx: float = _opt(0.0, "camera focal length x in pixels (0 = no intrinsics)", min=0.0,
+                     max=MAX_PIXELS)
+    fy: float = _opt(0.0, "camera focal length y in pixels (0 = no intrinsics)", min=0.0,
+                     max=MAX_PIXELS)
+    cx: float = _opt(0.0, "camera principal point x (column) in pixels", min=-MAX_PIXELS,
+                     max=MAX_PIXELS)
+    cy: float = _opt(0.0, "camera principal point y (row) in pixels", min=-MAX_PIXELS,
+                     max=MAX_PIXELS)
     auto_thresholds: bool = _opt(False, "set the step and roof thresholds from the image's "
                                  "estimated noise (false = the paper's fixed thresholds)")
 
@@ -73,7 +90,7 @@ class StepConfig:
                         max=10.0)
     taps: int = _opt(5, "length of the 1-D Gaussian mask (odd)", min=3, max=41, odd=True)
     threshold: float = _opt(6.0, "minimum absolute residual (AR, eq. 3) of a step edge, "
-                            "depth units", min_excl=0.0)
+                            "depth units", min_excl=0.0, max=MAX_DEPTH)
 
 
 @dataclass(frozen=True)
@@ -84,9 +101,9 @@ class RoofConfig:
                         max=20.0)
     taps: int = _opt(17, "length of the 1-D Gaussian mask (odd)", min=3, max=81, odd=True)
     threshold_a: float = _opt(6.0, "AR threshold of pass 2a (step edges excluded)",
-                              min_excl=0.0)
+                              min_excl=0.0, max=MAX_DEPTH)
     threshold_b: float = _opt(4.0, "AR threshold of pass 2b (step and 2a roof edges excluded)",
-                              min_excl=0.0)
+                              min_excl=0.0, max=MAX_DEPTH)
     search_radius: int = _opt(2, "a roof edge is the AR maximum within +-this many pixels "
                               "along the direction", min=1, max=10)
     truncation: str = _opt("symmetric", "how the adaptive mask is cut at an excluded pixel: "
@@ -98,7 +115,8 @@ class RoofConfig:
 class LinkConfig:
     """Linking and connected components (Sec. V-3)."""
 
-    min_component: int = _opt(20, "components with fewer pixels are dropped", min=1)
+    min_component: int = _opt(20, "components with fewer pixels are dropped", min=1,
+                             max=MAX_COUNT)
 
 
 @dataclass(frozen=True)
@@ -106,11 +124,12 @@ class GrowConfig:
     """Least-squares quadratic region growing (Sec. V-4)."""
 
     error_factor: float = _opt(10.0, "a pixel joins a surface when its squared residual is "
-                               "below this times the surface's e_A", min_excl=0.0)
+                               "below this times the surface's e_A", min=MAX_FACTOR ** -2,
+                               max=MAX_FACTOR ** 2)
     passes: int = _opt(1, "growing passes (1 as in the paper; 0 = until nothing changes)",
                        min=0, max=1000)
     min_error: float = _opt(0.25, "floor on e_A in depth units squared (quantisation alone "
-                            "gives 1/12)", min=0.0)
+                            "gives 1/12)", min=MAX_DEPTH ** -1, max=MAX_DEPTH ** 2)
     planar_tolerance: float = _opt(0.1, "a surface is planar unless the quadratic terms lower "
                                    "its mean squared error by more than this fraction",
                                    min=0.0, max=1.0)
@@ -127,24 +146,25 @@ class SplitConfig:
                          "and split a failing one at its creases, then regrow")
     fit_factor: float = _opt(1.25, "a component fails when its RMS fit error exceeds this "
                              "times the noise (estimated, at least sqrt(grow.min_error))",
-                             min_excl=0.0)
+                             min_excl=0.0, max=MAX_FACTOR)
     normal_sigma: float = _opt(2.0, "Gaussian sigma in pixels of the local plane fits that "
                                "give the surface normals", min_excl=0.0, max=20.0)
     min_gain: float = _opt(1.5, "two pieces stay apart when one quadric fits their "
                            "union this many times worse (RMS) than their own quadrics",
-                           min=1.0)
+                           min=1.0, max=MAX_FACTOR)
     min_excess: float = _opt(0.0, "two pieces also stay apart when one quadric of their union "
                              "leaves more squared error per pixel than their own quadrics by "
                              "this many times the fit test's level squared (fit_factor x "
                              "noise)^2, as when a small piece's few stray pixels raise its own "
                              "RMS; 0 = off (the default: it needs a noise estimate that holds, "
-                             "8 suits the synthetic scenes)", min=0.0)
+                             "8 suits the synthetic scenes)", min=0.0,
+                             max=MAX_FACTOR ** 2)
     min_crease: float = _opt(10.0, "two planar pieces that pass the fit test also stay apart "
                              "when their planes meet at this angle in degrees or more",
                              min=0.0, max=90.0)
     min_piece: int = _opt(20, "smallest piece, and smallest core of a piece (pixels "
                           "normal_sigma or more from its border), in pixels; smaller ones "
-                          "join their nearest piece", min=1)
+                          "join their nearest piece", min=1, max=MAX_COUNT)
     max_pieces: int = _opt(8, "most pieces one component is split into", min=2, max=64)
     crease_pieces: bool = _opt(True, "split a piece again when its plane fails the fit test "
                                "(a quadric can absorb the crease of two small faces), along a "
@@ -170,7 +190,7 @@ class SplitConfig:
     recover_passes: int = _opt(2, "passes extending a recovered face into edge pixels it fits "
                                "better than their region", min=0, max=100)
     recover_max_noise: float = _opt(2.5, "recover no face when the estimated image noise is "
-                                    "above this, depth units", min=0.0)
+                                    "above this, depth units", min=0.0, max=MAX_DEPTH)
     fill_edges: bool = _opt(True, "last, give each edge pixel still unlabelled to the "
                             "neighbouring surface that fits it best within the growing bound "
                             "(regions then abut)")
@@ -195,7 +215,8 @@ class SplitConfig:
                               "fitted again", min=1, max=100)
     refine_smoothness: float = _opt(1.0, "cost of each 8-neighbour a pixel would disagree "
                                     "with, against its squared residual in units of the "
-                                    "noise (at least grow.min_error)", min=0.0)
+                                    "noise (at least grow.min_error)", min=0.0,
+                                    max=MAX_FACTOR ** 2)
     refine_creases: bool = _opt(True, "in the boundary refinement, give a pixel near a crease "
                                 "to the surface visible there (the lower of the two at a "
                                 "convex crease, the higher at a concave one) instead of the "
@@ -215,11 +236,14 @@ class HoldsiteConfig:
     size: tuple[int, int] = _opt((7, 7), "gripper footprint [rows, cols] in pixels (odd)",
                                  min=1, max=255, odd=True)
     max_ar_std: float = _opt(1.0, "largest standard deviation of the 2-D AR (5x5 Gaussian, "
-                             "sigma 1) inside the window, depth units", min=0.0)
+                             "sigma 1) inside the window, depth units", min=0.0,
+                             max=MAX_DEPTH)
     max_candidates: int = _opt(5, "runners-up reported beside the chosen site", min=0,
                                max=100)
-    rotation_step: float = _opt(15.0, "rotation step in degrees for a non-square footprint",
-                                min_excl=0.0, max=90.0)
+    rotation_step: float = _opt(15.0, "rotation step in degrees for a non-square footprint "
+                                "(at 0.5 the ends of a 255-pixel footprint move 1.1 pixels a "
+                                "step: finer steps add angles, not windows)",
+                                min=0.5, max=90.0)
     background: str = _opt("lowest-border", "which regions are background: lowest-border "
                            "(touching the border at the lowest height), largest-border, or "
                            "none", choices=get_args(BackgroundRule))
@@ -304,11 +328,11 @@ def _describe_allowed(f: dataclasses.Field) -> str:
         parts.append({bool: "true or false", int: "an integer", float: "a number",
                       str: "a string"}[kind])
     if "min" in meta:
-        parts.append(f">= {meta['min']}")
+        parts.append(f">= {_limit(meta['min'])}")
     if "min_excl" in meta:
-        parts.append(f"> {meta['min_excl']}")
+        parts.append(f"> {_limit(meta['min_excl'])}")
     if "max" in meta:
-        parts.append(f"<= {meta['max']}")
+        parts.append(f"<= {_limit(meta['max'])}")
     if meta.get("odd"):
         parts.append("odd")
     return " ".join(parts)
@@ -319,23 +343,56 @@ def _kind(f: dataclasses.Field) -> type:
     return type(default) if not isinstance(default, tuple) else tuple
 
 
+def _limit(x: float) -> str:
+    """A limit as written in messages: ``0.5``, ``41``, ``1e+12``."""
+    text = repr(x)
+    return text if len(text) <= 10 else f"{x:.4g}"
+
+
+def _shown(value: Any) -> str:
+    """``repr(value)`` for a message, cut short: an integer may have 4,000 digits."""
+    try:
+        text = repr(value)
+    except ValueError:  # an integer beyond Python's limit on digits in a string
+        return "<an integer of more than 4300 digits>"
+    return text if len(text) <= 40 else f"{text[:30]}...<{len(text)} characters>"
+
+
+def _beyond_floats(x: Any) -> bool:
+    """Whether ``x`` is an integer too large for a float (TOML has integers of any size)."""
+    if isinstance(x, bool) or not isinstance(x, int):
+        return False
+    try:
+        float(x)
+    except OverflowError:
+        return True
+    return False
+
+
 def _check_number(x: Any, f: dataclasses.Field, integer: bool) -> bool:
+    """Whether ``x`` is an integer (or a finite number) within ``f``'s limits.
+
+    An integer too large for a float is refused for a float key, as any
+    value beyond the key's ``max``, rather than overflowing in a comparison.
+    """
     meta = f.metadata
-    if integer and (isinstance(x, bool) or not isinstance(x, int)):
+    if isinstance(x, bool) or not isinstance(x, int if integer else int | float):
         return False
-    if not integer and (isinstance(x, bool) or not isinstance(x, int | float)):
-        return False
-    if math.isnan(x):
-        return f.name == "invalid"  # NaN: "no no-data value besides NaN"
+    if not integer:
+        if _beyond_floats(x):
+            return False
+        x = float(x)
+        if math.isnan(x):
+            return f.name == "invalid"  # NaN: "no no-data value besides NaN"
+        if math.isinf(x):
+            return False
     if "min" in meta and x < meta["min"]:
         return False
     if "min_excl" in meta and x <= meta["min_excl"]:
         return False
     if "max" in meta and x > meta["max"]:
         return False
-    if meta.get("odd") and int(x) % 2 == 0:
-        return False
-    return not math.isinf(x)
+    return not (meta.get("odd") and int(x) % 2 == 0)
 
 
 def _coerce(table: str, f: dataclasses.Field, value: Any) -> Any:
@@ -356,8 +413,10 @@ def _coerce(table: str, f: dataclasses.Field, value: Any) -> Any:
         if ok and kind is float and math.isnan(value):
             value = math.nan  # the one NaN object, so that configs compare equal
     if not ok:
+        beyond = kind is float and _beyond_floats(value)
         raise ConfigError(
-            f"[{table}] {f.name} = {value!r}: expected {_describe_allowed(f)}"
+            f"[{table}] {f.name} = {_shown(value)}: expected {_describe_allowed(f)}"
+            + (" (this integer is beyond the floating-point range)" if beyond else "")
         )
     return value
 
@@ -504,7 +563,7 @@ def parse_settings(items: Iterable[str]) -> dict[str, dict[str, Any]]:
             raise ConfigError(f"{item!r}: expected TABLE.KEY=VALUE, e.g. step.threshold=8")
         try:
             value = tomllib.loads(f"v = {raw.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
+        except ValueError:  # TOMLDecodeError, or an integer of more than 4300 digits
             value = raw.strip()  # a bare word: a string choice such as one-sided
         out.setdefault(table, {})[name] = value
     return out
@@ -519,7 +578,7 @@ def read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: config file not found") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config file ({exc.strerror})") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+    except ValueError as exc:  # TOMLDecodeError, UnicodeDecodeError, 4300-digit integers
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
 
 

@@ -1,9 +1,10 @@
 """Image files in and out: the only module that touches files.
 
-Reads PNG (8/16 bit), PGM, TIFF (uint8/uint16/float32 via tifffile) and NPY
-range images into 2-D numpy arrays of raw values; writes NPY, PNG, JSON and
-text atomically (a temporary file in the same folder, then a rename), so a
-killed run never leaves a half-written file.
+Reads PNG (8/16 bit), PGM (8/16 bit, as stored), TIFF (uint8/uint16/float32
+via tifffile) and NPY range images into 2-D numpy arrays of raw values, in the
+file's own pixel type; writes NPY, PNG, JSON and text atomically (a
+temporary file in the same folder, then a rename), so a killed run never
+leaves a half-written file.
 
 Files and folders are local paths or, where fsspec and the filesystem's
 package are installed, URLs (``s3://bucket/frames``, ``memory://...``): see
@@ -25,7 +26,7 @@ import warnings
 from collections.abc import Callable, Iterable, Iterator
 from io import BytesIO
 from pathlib import Path, PurePath, PurePosixPath
-from typing import Any, TypeAlias
+from typing import Any, BinaryIO, TypeAlias
 from urllib.parse import unquote, urlsplit
 
 import numpy as np
@@ -264,7 +265,9 @@ def read_image(path: str | Path | URLPath) -> np.ndarray:
     Returns
     -------
     numpy.ndarray
-        Shape (H, W): an (H, W, 1) file is squeezed. dtype as stored.
+        Shape (H, W): an (H, W, 1) file is squeezed. dtype as stored: a
+        16-bit PNG or PGM is uint16 (not the int32 Pillow widens it to), so
+        that its clipped value is 65535.
 
     Raises
     ------
@@ -311,16 +314,94 @@ def _decode(source: Path | BytesIO, suffix: str, path: Location) -> np.ndarray:
 
         return tifffile.imread(source)
     if suffix in (".png", ".pgm", ".pnm"):
-        import imageio.v3 as iio
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            if isinstance(source, Path):
-                with source.open("rb") as fh:  # closed even when the decoder fails
-                    return iio.imread(fh, extension=suffix)
-            return iio.imread(source, extension=suffix)
+        if isinstance(source, Path):
+            with source.open("rb") as fh:  # closed even when the decoder fails
+                return _decode_png_pnm(fh, suffix, path)
+        return _decode_png_pnm(source, suffix, path)
     raise InputError(f"{path}: unsupported extension {suffix!r}; allowed: "
                      + ", ".join(IMAGE_EXTENSIONS))
+
+
+def _decode_png_pnm(fh: BinaryIO, suffix: str, path: Location) -> np.ndarray:
+    """A PNG or netpbm file at its own bit depth; a grey map (P2, P5) by :func:`_read_graymap`.
+
+    Pillow widens 16-bit samples to its 32-bit mode (int32, whose top 2^31-1
+    is no clipped value) and rescales a netpbm maxval other than 255 and
+    65535 to the full range (raw values changed); PNG and netpbm hold at
+    most 16 bits a sample, so an int32 image whose values fit is uint16.
+    """
+    if fh.read(2) in (b"P2", b"P5"):
+        fh.seek(0)
+        return _read_graymap(fh.read(), str(path))
+    fh.seek(0)
+    import imageio.v3 as iio
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        arr = iio.imread(fh, extension=suffix)
+    if arr.dtype == np.int32 and arr.size and 0 <= arr.min() and arr.max() <= 65535:
+        return arr.astype(np.uint16)
+    return arr
+
+
+#: A header field of a netpbm file: whitespace and comments, then the number.
+_NETPBM_FIELD = re.compile(rb"(?:\s|#[^\r\n]*)+([0-9]+)")
+
+
+def _read_graymap(data: bytes, name: str) -> np.ndarray:
+    """The raw values of a PGM file (P5 binary or P2 plain): uint8, or uint16 above 255.
+
+    Parameters
+    ----------
+    data
+        The file's bytes; an image after the first is ignored.
+    name
+        Named in error messages.
+
+    Returns
+    -------
+    numpy.ndarray
+        (H, W) as stored: uint8 when the header's maxval is below 256, else
+        uint16 (netpbm's one or two bytes a sample), never rescaled.
+
+    Raises
+    ------
+    InputError
+        For a malformed header, a maxval outside 1..65535, too few pixels or
+        a value above maxval.
+    """
+    fields, pos = [], 2
+    for _ in range(3):  # width, height, maxval
+        match = _NETPBM_FIELD.match(data, pos)
+        if match is None:
+            raise InputError(f"{name}: not a readable image (malformed PGM header)")
+        fields.append(int(match.group(1)))
+        pos = match.end()
+    width, height, maxval = fields
+    if not 0 < maxval < 65536 or not data[pos:pos + 1].isspace():
+        raise InputError(f"{name}: not a readable image (PGM maxval {maxval}; allowed: "
+                         "1 to 65535, then one whitespace character)")
+    dtype = np.dtype(np.uint8 if maxval < 256 else np.uint16)
+    count = width * height
+    if data[:2] == b"P5":
+        if len(data) - pos - 1 < count * dtype.itemsize:
+            raise InputError(f"{name}: not a readable image (PGM data truncated)")
+        values = np.frombuffer(data, dtype.newbyteorder(">"), count, pos + 1)
+    else:
+        values = _plain_values(data[pos:], count, name)
+    if values.size and int(values.max()) > maxval:
+        raise InputError(f"{name}: not a readable image (pixel value {int(values.max())} "
+                         f"above the header's maxval {maxval})")
+    return values.astype(dtype).reshape(height, width)
+
+
+def _plain_values(text: bytes, count: int, name: str) -> np.ndarray:
+    """The first ``count`` numbers of a plain (P2) PGM's raster, as int64."""
+    tokens = re.sub(rb"#[^\r\n]*", b"", text).split(None, count)[:count]
+    if len(tokens) < count or not all(t.isdigit() and len(t.lstrip(b"0")) <= 5 for t in tokens):
+        raise InputError(f"{name}: not a readable image (PGM data truncated or not "
+                         "numbers 0 to 65535)")
+    return np.array(tokens, dtype=np.int64)
 
 
 def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
@@ -502,6 +583,31 @@ def make_folder(where: Location) -> None:
     except OSError as exc:
         raise OutputError(f"{where}: cannot create the output folder "
                           f"({_os_reason(exc)})") from None
+
+
+def check_writable(path: Location) -> None:
+    """Check, before a long computation, that a file can be written at ``path``.
+
+    A temporary file is made and removed in the nearest existing folder above
+    ``path`` (the write makes the folders missing below it); on a URL nothing
+    is checked (the store's rights show only in a write).
+
+    Raises
+    ------
+    OutputError
+        One line naming the file, when that folder cannot be written (no
+        permission, a read-only or special file system, a file in the way).
+    """
+    if isinstance(path, URLPath):
+        return
+    folder = Path(os.path.abspath(path)).parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot write ({_os_reason(exc)})") from None
 
 
 def _os_reason(exc: OSError) -> str:

@@ -14,14 +14,14 @@ from typing import Any
 
 import numpy as np
 
-from .config import InputConfig
+from .config import MAX_DEPTH, InputConfig
 from .edges import Backend, select_kernels
 from .errors import InputError
 
 MIN_SIZE = 16
 #: Largest |height| accepted, in depth units: far beyond any sensor, and small
 #: enough that squares and moment sums of the fit stay finite in float64.
-MAX_ABS_HEIGHT = 1e12
+MAX_ABS_HEIGHT = MAX_DEPTH
 
 
 def check_array(raw: Any, *, name: str = "image") -> np.ndarray:

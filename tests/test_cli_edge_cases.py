@@ -188,6 +188,35 @@ def test_replaced_intermediate_file_is_named_not_an_internal_error(runner, box_p
     assert "internal error" not in res.output
 
 
+@pytest.mark.parametrize("name, command, label", [
+    ("components.npy", "grow", 48 * 48 + 1),  # 2^31-1 took 16 GB or was killed
+    ("components.npy", "grow", -1),
+    ("labels.npy", "holdsite", 48 * 48 + 1),
+])
+def test_label_map_with_a_label_beyond_the_pixel_count_is_named(runner, box_png, tmp_path,
+                                                                name, command, label):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    labels = np.load(out / f"box.{name}")
+    labels[labels == labels.max()] = label
+    np.save(out / f"box.{name}", labels)
+    res = runner.invoke(main, [command, str(out), "-j", "1", "-q"])
+    assert res.exit_code == 1
+    assert one_line_error(res) == (f"{out / ('box.' + name)}: label {label} is outside "
+                                   "0..2304 (the pixel count): not a label map rangeseg "
+                                   "writes; run the stages before it again")
+
+
+def test_label_map_with_labels_up_to_the_pixel_count_is_used(runner, box_png, tmp_path):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["edges", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    assert runner.invoke(main, ["link", str(out), "-j", "1", "-q"]).exit_code == 0
+    components = np.load(out / "box.components.npy")
+    components[components == components.max()] = 48 * 48
+    np.save(out / "box.components.npy", components)
+    assert runner.invoke(main, ["grow", str(out), "-j", "1", "-q"]).exit_code == 0
+
+
 def test_stage_command_with_resume_completes_only_what_is_missing(runner, tmp_path, write_png):
     for name in ("a", "b"):
         write_png(tmp_path / f"{name}.png", box_scene(48).astype(np.uint8))
@@ -432,3 +461,67 @@ def test_run_pipeline_with_a_config_that_is_not_a_config_says_so(config):
 
     with pytest.raises(TypeError, match="config"):
         run_pipeline(np.ones((32, 32)), config)
+
+
+# --------------------------------------------------------------------------- numbers and eval
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("link.min_component=1" + "0" * 400, "[link] min_component = 1000000000"),
+    ("step.threshold=1" + "0" * 400, "beyond the floating-point range"),
+    ("link.min_component=100000000000000000000", "expected an integer >= 1 <= 2147483647"),
+    ("split.fit_factor=1e200", "[split] fit_factor = 1e+200: expected a number > 0.0 <= 1000.0"),
+    ("holdsite.rotation_step=0.001", "expected a number >= 0.5 <= 90.0"),
+])
+def test_out_of_range_number_on_the_command_line_is_one_line_exit_2(runner, box_png, tmp_path,
+                                                                    setting, message):
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out"), "--set",
+                               setting])
+    assert res.exit_code == 2 and message in one_line_error(res)
+    assert len(res.output.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture
+def scored(tmp_path):
+    """``(pred, gt)`` folders: one scene and its own truth as the labels."""
+    from rangeseg_cli.synth import write_scenes
+
+    gt, pred = tmp_path / "gt", tmp_path / "pred"
+    write_scenes(gt, ["box"], [0], seed=0, size=(32, 32))
+    pred.mkdir()
+    np.save(pred / "box-n0.labels.npy", np.load(gt / "box-n0.gt.npy"))
+    return str(pred), str(gt)
+
+
+def test_eval_tolerance_nan_is_a_usage_error(runner, scored):
+    # click's FloatRange lets NaN through: a 31-line ValueError traceback
+    res = runner.invoke(main, ["eval", *scored, "--tolerance", "nan"])
+    assert res.exit_code == 2
+    assert one_line_error(res) == ("Error: Invalid value for '--tolerance': nan is not in the "
+                                   "range 0.5<=x<=1.0")
+
+
+def test_eval_plot_that_cannot_be_written_stops_before_scoring(runner, scored, tmp_path):
+    (tmp_path / "afile").write_text("")
+    plot = tmp_path / "afile" / "curve.png"
+    res = runner.invoke(main, ["eval", *scored, "--plot", str(plot)])
+    assert res.exit_code == 2
+    assert res.output.strip() == f"Error: {plot}: cannot write (Not a directory)"
+
+
+def test_eval_plot_write_failing_after_scoring_is_one_line(runner, scored, tmp_path,
+                                                           monkeypatch):
+    # the table, then a traceback ending in OutputError: cannot write
+    from rangeseg_cli import evaluate
+    from rangeseg_cli.errors import OutputError
+
+    def fail(curve, path, **kwargs):
+        raise OutputError(f"{path}: cannot write (No space left on device)")
+
+    monkeypatch.setattr(evaluate, "plot_curve", fail)
+    plot = tmp_path / "curve.png"
+    res = runner.invoke(main, ["eval", *scored, "--plot", str(plot), "-q"])
+    assert res.exit_code == 1
+    assert one_line_error(res) == f"Error: {plot}: cannot write (No space left on device)"
+    assert not plot.exists()

@@ -1,9 +1,18 @@
+import dataclasses
 import math
 import tomllib
+from typing import Any
 
 import pytest
 
-from rangeseg_cli.config import PRESETS, Config, default_toml, load_config, parse_settings
+from rangeseg_cli.config import (
+    _TABLE_CLASSES,
+    PRESETS,
+    Config,
+    default_toml,
+    load_config,
+    parse_settings,
+)
 from rangeseg_cli.errors import ConfigError
 
 
@@ -93,7 +102,7 @@ def test_bad_value_in_a_file_names_the_file_and_not_for_command_line_values(tmp_
     path = tmp_path / "cell.toml"
     path.write_text("[step]\nthreshold = \"8\"\n")
     with pytest.raises(ConfigError, match=r"^.*cell.toml: \[step\] threshold = '8': expected "
-                                          r"a number > 0.0$"):
+                                          r"a number > 0.0 <= 1e\+12$"):
         load_config(path)
     path.write_text("[step]\nthreshold = 8\n")
     with pytest.raises(ConfigError, match=r"^\[step\] taps = 4: expected an integer"):
@@ -141,3 +150,105 @@ def test_parse_settings_reads_values_as_toml_and_bare_words_as_strings():
     for bad in ("step.threshold", "threshold=8", ".threshold=8", "step.=8"):
         with pytest.raises(ConfigError, match=f"{bad!r}: expected TABLE.KEY=VALUE"):
             parse_settings([bad])
+
+
+@pytest.mark.parametrize("values, match", [
+    # an integer too large for a float gave a 44-line OverflowError traceback (math.isnan)
+    ({"link": {"min_component": 10 ** 400}},
+     r"^\[link\] min_component = 1000000000.*<401 characters>: expected an integer >= 1 "
+     r"<= 2147483647$"),
+    ({"step": {"threshold": 10 ** 400}},
+     r"^\[step\] threshold = 1000000000.*: expected a number > 0.0 <= 1e\+12 \(this integer "
+     r"is beyond the floating-point range\)$"),
+    ({"input": {"invalid": -10 ** 400}},
+     r"^\[input\] invalid = -1000000000.*: expected a number \(this integer is beyond"),
+    ({"link": {"min_component": 10 ** 5000}},
+     r"^\[link\] min_component = <an integer of more than 4300 digits>: expected an integer"),
+    # accepted, then numba failed on every image ("Int value is too large")
+    ({"link": {"min_component": 10 ** 20}},
+     r"^\[link\] min_component = 100000000000000000000: expected an integer >= 1 <= "
+     r"2147483647$"),
+    ({"split": {"min_piece": 2 ** 31}}, r"^\[split\] min_piece = 2147483648: expected an "),
+])
+def test_huge_integers_are_one_line_errors_not_overflows(values, match):
+    with pytest.raises(ConfigError, match=match) as info:
+        load_config(overrides=values)
+    assert "\n" not in str(info.value)
+
+
+def test_huge_integers_in_a_file_or_on_the_command_line_are_one_line_errors(tmp_path):
+    path = tmp_path / "big.toml"
+    path.write_text("[link]\nmin_component = 1" + "0" * 400 + "\n")
+    with pytest.raises(ConfigError, match=r"big.toml: \[link\] min_component = 1000"):
+        load_config(path)
+    path.write_text("[link]\nmin_component = 1" + "0" * 5000 + "\n")  # tomllib: ValueError
+    with pytest.raises(ConfigError, match=r"big.toml: not valid TOML \(Exceeds the limit"):
+        load_config(path)
+    overrides = parse_settings(["link.min_component=1" + "0" * 5000])
+    with pytest.raises(ConfigError, match=r"^\[link\] min_component = '1000.*expected an "
+                                          r"integer") as info:
+        load_config(overrides=overrides)
+    assert len(str(info.value)) < 200
+
+
+@pytest.mark.parametrize("table, key, value, match", [
+    # level = fit_factor x noise; level ** 2 overflowed in recut.py on every image
+    ("split", "fit_factor", 1e155, r"expected a number > 0.0 <= 1000.0$"),
+    ("split", "min_excess", 1e300, r"expected a number >= 0.0 <= 1000000.0$"),
+    ("grow", "error_factor", 1e300, r"expected a number >= 1e-06 <= 1000000.0$"),
+    ("grow", "min_error", 0.0, r"expected a number >= 1e-12 <= 1e\+24$"),
+    ("holdsite", "max_ar_std", 1e200, r"expected a number >= 0.0 <= 1e\+12$"),
+    ("input", "scale", 1e308, r"expected a number > 0.0 <= 1000000.0$"),
+    # 180 / step angles: 0.001 took 50 s and 9.7 GB, 1e-300 never ended
+    ("holdsite", "rotation_step", 0.001, r"expected a number >= 0.5 <= 90.0$"),
+    ("holdsite", "rotation_step", 1e-300, r"expected a number >= 0.5 <= 90.0$"),
+])
+def test_numbers_beyond_a_keys_sane_range_are_refused(table, key, value, match):
+    with pytest.raises(ConfigError, match=rf"^\[{table}\] {key} = .*: {match}"):
+        load_config(overrides={table: {key: value}})
+
+
+def _numeric_keys() -> list[tuple[str, Any]]:
+    return [(table, f) for table, cls in _TABLE_CLASSES.items() for f in dataclasses.fields(cls)
+            if isinstance(f.default, int | float | tuple) and not isinstance(f.default, bool)]
+
+
+def test_every_numeric_key_has_a_finite_range():
+    for table, f in _numeric_keys():
+        if f.name == "invalid":  # any raw value (or NaN) may be the no-data value
+            continue
+        assert math.isfinite(f.metadata.get("max", math.inf)), f"[{table}] {f.name}"
+        assert "min" in f.metadata or "min_excl" in f.metadata, f"[{table}] {f.name}"
+
+
+def _at_limits() -> list[tuple[str, str, Any]]:
+    cases = []
+    for table, f in _numeric_keys():
+        meta = f.metadata
+        low = meta.get("min", meta.get("min_excl"))
+        if "min_excl" in meta:
+            low = 1 if isinstance(f.default, int) else math.nextafter(low, math.inf)
+        for value in (low, meta.get("max")):
+            if value is not None and f.name not in ("invalid", "size"):
+                cases.append((table, f.name, value))
+    return cases
+
+
+@pytest.mark.parametrize("table, key, value", _at_limits())
+def test_pipeline_runs_with_any_key_at_the_end_of_its_range(table, key, value):
+    # no overflow (warnings are errors here) nor internal error at any limit
+    from rangeseg_cli.pipeline import run_pipeline
+    from rangeseg_cli.synth import render_scene
+
+    overrides: dict[str, dict[str, Any]] = {table: {key: value}}
+    if table == "input" and key in ("fx", "fy", "cx", "cy"):
+        focal = value if key in ("fx", "fy") and value else 500.0
+        overrides["input"] = {"fx": focal, "fy": focal, "larger_is_closer": False,
+                              **({key: value} if key in ("cx", "cy") else {})}
+    if table == "roof" and key == "threshold_b":
+        overrides["roof"]["threshold_a"] = max(value, 6.0)
+    if table == "roof" and key == "threshold_a":
+        overrides["roof"]["threshold_b"] = min(value, 4.0)
+    image = render_scene("part1", size=(64, 64), noise=2.0, seed=1).image
+    result = run_pipeline(image, load_config(overrides=overrides))
+    assert result.labels.shape == (64, 64)

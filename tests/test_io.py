@@ -1,4 +1,5 @@
 import json
+import re
 
 import numpy as np
 import pytest
@@ -7,7 +8,7 @@ import tifffile
 from rangeseg_cli import io
 from rangeseg_cli.config import InputConfig, load_config
 from rangeseg_cli.errors import InputError
-from rangeseg_cli.rangeimage import to_heights
+from rangeseg_cli.rangeimage import clipped_value, to_heights
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
@@ -34,6 +35,86 @@ def test_pgm_and_npy_and_single_channel(tmp_path):
     np.testing.assert_array_equal(io.read_image(tmp_path / "a.pgm"), a)
     np.save(tmp_path / "b.npy", a[:, :, None].astype(np.float64))
     np.testing.assert_array_equal(io.read_image(tmp_path / "b.npy"), a)
+
+
+def _pgm(magic: str, maxval: int, a: np.ndarray) -> bytes:
+    """A PGM file's bytes: P5 (binary, big-endian) or P2 (plain), with a comment."""
+    header = f"{magic}\n# made by a test\n{a.shape[1]} {a.shape[0]}\n{maxval}\n".encode()
+    if magic == "P5":
+        return header + a.astype(">u2" if maxval > 255 else "u1").tobytes()
+    return header + "\n".join(" ".join(map(str, row)) for row in a).encode() + b"\n"
+
+
+@pytest.mark.parametrize("magic", ["P5", "P2"])
+def test_16_bit_pgm_is_uint16_and_its_top_value_is_clipped(tmp_path, magic):
+    # Pillow reads a 16-bit PGM as int32, whose top (2^31-1) no pixel holds: 65535 stayed valid
+    a = (1000 + 50 * np.mgrid[0:32, 0:32][1]).astype(np.uint16)
+    a[10:20, 10:20] = 65535
+    path = tmp_path / "a.pgm"
+    path.write_bytes(_pgm(magic, 65535, a))
+    out = io.read_image(path)
+    assert out.dtype == np.uint16
+    np.testing.assert_array_equal(out, a)
+    assert clipped_value(out.dtype, InputConfig()) == 65535
+    z = to_heights(out, InputConfig())
+    assert np.isnan(z[10:20, 10:20]).all() and np.count_nonzero(np.isnan(z)) == 100
+
+
+def test_pgm_written_by_pillow_reads_as_the_png_of_the_same_values(tmp_path):
+    from PIL import Image
+
+    a = (1000 + 50 * np.mgrid[0:32, 0:32][1]).astype(np.uint16)
+    a[0, 0] = 65535
+    Image.fromarray(a).save(tmp_path / "a.pgm")
+    Image.fromarray(a).save(tmp_path / "a.png")
+    pgm, png = io.read_image(tmp_path / "a.pgm"), io.read_image(tmp_path / "a.png")
+    assert pgm.dtype == png.dtype == np.uint16
+    np.testing.assert_array_equal(pgm, png)
+
+
+@pytest.mark.parametrize("magic, maxval, dtype", [("P5", 4095, np.uint16), ("P2", 4095, np.uint16),
+                                                   ("P5", 100, np.uint8), ("P2", 100, np.uint8)])
+def test_pgm_of_another_maxval_keeps_its_raw_values(tmp_path, magic, maxval, dtype):
+    # Pillow rescaled them to 0..65535 (or 0..255): 12-bit depth in mm came back x16
+    a = (np.arange(32 * 32).reshape(32, 32) % (maxval + 1)).astype(dtype)
+    path = tmp_path / "a.pnm"
+    path.write_bytes(_pgm(magic, maxval, a))
+    out = io.read_image(path)
+    assert out.dtype == dtype
+    np.testing.assert_array_equal(out, a)
+
+
+@pytest.mark.parametrize("data, message", [
+    (b"P5\n32 32\n65535\n" + bytes(100), "PGM data truncated"),
+    (b"P2\n32 32\n255\n" + b"1 " * 100, "PGM data truncated or not numbers 0 to 65535"),
+    (b"P2\n32 32\n255\n" + b"-1 " * 1024, "not numbers 0 to 65535"),
+    (b"P5\n32 32\n0\n" + bytes(1024), "PGM maxval 0; allowed: 1 to 65535"),
+    (b"P5\n32 32\n70000\n" + bytes(2048), "PGM maxval 70000"),
+    (b"P5\n32 32\n100\n" + bytes([200]) * 1024, "pixel value 200 above the header's maxval 100"),
+    (b"P5\n32 x\n255\n" + bytes(1024), "malformed PGM header"),
+    (b"P5\n99999999 99999999\n255\n" + bytes(1024), "PGM data truncated"),
+])
+def test_malformed_pgm_is_a_one_line_error_naming_the_file(tmp_path, data, message):
+    path = tmp_path / "bad.pgm"
+    path.write_bytes(data)
+    with pytest.raises(InputError, match=rf"bad.pgm: not a readable image \(.*"
+                                         rf"{re.escape(message)}") as info:
+        io.read_image(path)
+    assert "\n" not in str(info.value)
+
+
+def test_grey_image_pillow_widens_to_int32_comes_back_as_uint16(tmp_path, monkeypatch,
+                                                                 write_png):
+    # as older Pillow did with 16-bit PNGs; the clipped value must be 65535, not 2^31-1
+    import imageio.v3 as iio
+
+    a = np.full((20, 20), 65535, np.int32)
+    monkeypatch.setattr(iio, "imread", lambda *args, **kwargs: a)
+    path = write_png(tmp_path / "a.png", np.zeros((20, 20), np.uint16))
+    out = io.read_image(path)
+    assert out.dtype == np.uint16 and clipped_value(out.dtype, InputConfig()) == 65535
+    monkeypatch.setattr(iio, "imread", lambda *args, **kwargs: a - 70000)  # no 16-bit values
+    assert io.read_image(path).dtype == np.int32
 
 
 def test_rgb_too_small_empty_and_corrupt_files_are_named_errors(tmp_path, write_png):
