@@ -75,8 +75,9 @@ SEED_FACTOR = 1.0
 #: The seed planes' inliers hold at least this share of the region (Notes 2).
 SEED_COVER = 0.5
 
-#: Most planes one region is cut into (Notes 2).
-MAX_PLANES = 6
+#: Most seed planes, and planes, of one region (Notes 2; 6 gains one region in 1,926 on
+#: the held-out scenes for 60 % more time on the SR300 frame).
+MAX_PLANES = 4
 
 #: Cost of each 8-neighbour a pixel would disagree with, in units of ``s^2`` (Notes 3).
 SMOOTHNESS = 1.0
@@ -98,8 +99,9 @@ def _seeds(z: np.ndarray, mask: np.ndarray, tol: float, min_piece: int) -> list[
     left = mask.copy()
     planes = []
     held = 0
+    need = SEED_COVER * np.count_nonzero(mask)
     for _ in range(MAX_PLANES):
-        if np.count_nonzero(left) < min_piece:
+        if np.count_nonzero(left) < min_piece or held + np.count_nonzero(left) < need:
             break
         piece = consensus_plane(z, left, tol)
         if piece is None:
@@ -109,7 +111,7 @@ def _seeds(z: np.ndarray, mask: np.ndarray, tol: float, min_piece: int) -> list[
         if size >= min_piece:
             planes.append(fit_plane(z, *np.nonzero(piece)))
             held += size
-    if held < SEED_COVER * np.count_nonzero(mask):
+    if held < need:
         return []
     return planes
 
