@@ -19,7 +19,12 @@ Notes
 1. Regions: those the split's fit test fails
    (:func:`~rangeseg_cli.split.failing_components`: ``2 * split.min_piece``
    pixels or more, quadric RMS error above the level ``split.fit_factor *
-   s``, with ``s = max(noise, sqrt(grow.min_error))``).
+   s``, with ``s = max(noise, sqrt(grow.min_error))``), of ``MAX_REGION``
+   pixels or fewer: a bound on the work, which grows with the region's
+   pixels (a small frustum's faces at 128 x 128 are a few hundred pixels,
+   at 640 x 480 a few thousand; with ``split.enabled = false`` the failing
+   components of a 640 x 480 pile, tens of thousands of pixels each, took
+   0.7 s without it).
 2. Seeds: planes by consensus (:func:`~rangeseg_cli.recover.consensus_plane`,
    each pixel within ``SEED_FACTOR`` times the level), each from the pixels
    the ones before leave, up to ``MAX_PLANES``; those of ``split.min_piece``
@@ -78,6 +83,9 @@ SEED_COVER = 0.5
 #: Most seed planes, and planes, of one region (Notes 2; 6 gains one region in 1,926 on
 #: the held-out scenes for 60 % more time on the SR300 frame).
 MAX_PLANES = 4
+
+#: Regions with more pixels are left whole (a bound on the work, Notes 1).
+MAX_REGION = 20_000
 
 #: Cost of each 8-neighbour a pixel would disagree with, in units of ``s^2`` (Notes 3).
 SMOOTHNESS = 1.0
@@ -359,7 +367,8 @@ def facet_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
         return out
     boxes = ndimage.find_objects(out)
     next_id = int(out.max(initial=0)) + 1
-    for k in failing.tolist():
+    counts = np.bincount(out.ravel(), minlength=int(out.max(initial=0)) + 1)
+    for k in failing[counts[failing] <= MAX_REGION].tolist():
         box = boxes[k - 1]
         mask = out[box] == k
         pieces = cut_into_planes(z[box], mask, level=level, s2=s2,

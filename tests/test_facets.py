@@ -141,3 +141,13 @@ def test_the_paper_preset_has_no_facets_and_the_key_is_validated(tmp_path):
     with pytest.raises(ConfigError, match=r"\[split\] facets"):
         load_config(overrides={"split": {"facets": "yes"}})
     assert "facets" in bad_setting_on_the_command_line(tmp_path, "split.facets=2")
+
+
+def test_a_region_beyond_the_bound_on_the_work_is_left_whole(monkeypatch):
+    import rangeseg_cli.facets as facets
+
+    z, _ = corner(0.0, 0)
+    one = np.ones(z.shape, np.int32)
+    assert facet_regions(z, one, CONFIG, noise=0.0).max() == 3
+    monkeypatch.setattr(facets, "MAX_REGION", one.size - 1)
+    np.testing.assert_array_equal(facet_regions(z, one, CONFIG, noise=0.0), one)
