@@ -72,7 +72,7 @@ from .config import Config
 from .grow import EIGHT_NEIGHBOURS, region_fits, sums_of_squares, union_quadric_mse
 from .rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
 from .recover import consensus_plane, fit_plane, plane_height
-from .split import adjacent_pairs, failing_components
+from .split import _raster_renumber, adjacent_pairs, failing_components
 
 #: A pixel fits a seed plane within this many times the fit-test level (Notes 2).
 SEED_FACTOR = 1.0
@@ -169,11 +169,11 @@ def k_planes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.
     """
     zs = z[rows, cols]
     while True:
-        assign = _passes(z, rows, cols, planes, s2, shape)
-        if assign is None:
+        passed = _passes(z, rows, cols, planes, s2, shape)
+        if passed is None:
             return None
-        k = int(assign.max()) + 1
-        planes = [fit_plane(z, rows[assign == i], cols[assign == i]) for i in range(k)]
+        assign, planes = passed
+        k = len(planes)
         r2 = np.stack([(zs - plane_height(p, rows, cols)) ** 2 for p in planes]) / s2
         gains = [float(np.mean(np.delete(r2[:, assign == i], i, axis=0).min(axis=0)
                                - r2[i, assign == i])) for i in range(k)]
@@ -186,8 +186,12 @@ def k_planes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.
 
 
 def _passes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.ndarray],
-            s2: float, shape: tuple[int, int]) -> np.ndarray | None:
-    """The passes of :func:`k_planes`: plane indices 0..k-1 per pixel, or None (< 2 planes)."""
+            s2: float, shape: tuple[int, int]) -> tuple[np.ndarray, list[np.ndarray]] | None:
+    """The passes of :func:`k_planes`: each pixel's plane 0..k-1, and the planes; or None.
+
+    None when fewer than two planes are left; the planes are those fitted to
+    the returned indices.
+    """
     zs = z[rows, cols]
     assign: np.ndarray | None = None
     for _ in range(PASSES):
@@ -206,7 +210,7 @@ def _passes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.n
             break
         assign = new
         planes = [fit_plane(z, rows[assign == i], cols[assign == i]) for i in range(len(planes))]
-    return assign
+    return None if assign is None else (assign, planes)
 
 
 def _parts(assign: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int],
@@ -284,16 +288,6 @@ class _Fits:
         return float(union - self.own[i] - self.own[j]) / (both * s2)
 
 
-def _raster_order(pieces: np.ndarray) -> np.ndarray:
-    """Pieces renumbered 1..k in the raster order of their first pixels (0 kept)."""
-    ids, first = np.unique(pieces.ravel(), return_index=True)
-    order = ids[np.argsort(first)]
-    order = order[order > 0]
-    lookup = np.zeros(int(ids.max(initial=0)) + 1, np.int32)
-    lookup[order] = np.arange(1, order.size + 1, dtype=np.int32)
-    return lookup[pieces]
-
-
 def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,
                     min_piece: int) -> np.ndarray | None:
     """Pieces of a region that fails the fit test, one plane each, or None (Notes 2-6).
@@ -324,7 +318,8 @@ def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,
     assign = k_planes(z, rows, cols, planes, s2, mask.shape)
     if assign is None:
         return None
-    pieces = _raster_order(merge_back(z, _parts(assign, rows, cols, mask.shape, min_piece), s2))
+    pieces = _raster_renumber(merge_back(z, _parts(assign, rows, cols, mask.shape, min_piece),
+                                          s2))
     k = int(pieces.max(initial=0))
     if k < 2:
         return None
