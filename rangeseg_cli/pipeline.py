@@ -185,9 +185,9 @@ def _faces_and_borders(z: np.ndarray, labels: np.ndarray, config: Config, sigma:
         from .carve import carve_faces
 
         labels = carve_faces(z, labels, config, noise=sigma)
-    from .facets import facet_regions
-
     if cfg.facets:
+        from .facets import facet_regions
+
         labels = facet_regions(z, labels, config, noise=sigma)
     if cfg.refine:
         from .refine import refine_boundaries
@@ -198,6 +198,8 @@ def _faces_and_borders(z: np.ndarray, labels: np.ndarray, config: Config, sigma:
 
         labels = merge_planes(z, labels, config, noise=sigma)
     if cfg.facets and (cfg.refine or cfg.merge_planes):  # regions those two changed
+        from .facets import facet_regions
+
         labels = facet_regions(z, labels, config, noise=sigma)
     return labels
 
