@@ -204,6 +204,53 @@ def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path
     assert res.returncode == 0 and json.loads(res.stdout)["resumed"] >= len(done)
 
 
+def _children(pid: int) -> set[int]:
+    """Pids of the processes ``pid`` forked (Linux ``/proc``)."""
+    kids: set[int] = set()
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as fh:
+            kids.update(int(k) for k in fh.read().split())
+    return kids
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl and /proc are Linux's")
+def test_workers_do_not_outlive_a_batch_killed_with_sigkill(tmp_path, write_png):
+    # An OOM killer or a scheduler's time limit sends SIGKILL: the pool cannot be stopped,
+    # and the workers used to wait for work for ever, each holding its memory.
+    folder = tmp_path / "many"
+    folder.mkdir()
+    for i in range(40):
+        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder),
+                             "-o", str(out), "-j", "2", "-q"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    workers: set[int] = set()
+    while time.monotonic() < deadline and len(workers) < 2:
+        workers = _children(proc.pid)
+        time.sleep(0.02)
+    assert len(workers) == 2
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.05)
+    left = [w for w in workers if _alive(w)]
+    for w in left:  # not to leave them on the machine when the test fails
+        os.kill(w, signal.SIGKILL)
+    assert not left
+
+
 def _blas_threads() -> list[int]:
     from threadpoolctl import threadpool_info
 
