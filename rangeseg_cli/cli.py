@@ -59,11 +59,23 @@ scheduler_opt = click.option("--scheduler", metavar="ADDRESS",
                                   "at the same paths or URLs.")
 json_opt = click.option("--json", "as_json", is_flag=True,
                         help="Print the batch summary as JSON on stdout.")
+
+
+def _not_empty(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
+    """An empty path is a usage error: the current folder, as an unset ``$OUT`` says it."""
+    for item in value if isinstance(value, tuple) else (value,):
+        if isinstance(item, str) and not item.strip():
+            raise click.BadParameter("an empty path (an unset shell variable?); for the "
+                                     "current folder write .", ctx=ctx, param=param)
+    return value
+
+
 output_opt = click.option("--output", "-o", "out", required=True,
-                          type=click.Path(file_okay=False),
+                          type=click.Path(file_okay=False), callback=_not_empty,
                           help="Output folder: a path or a URL such as s3://bucket/out.")
-inputs_arg = click.argument("inputs", nargs=-1, required=True, type=click.Path())
-outdir_arg = click.argument("out", type=click.Path(file_okay=False))
+inputs_arg = click.argument("inputs", nargs=-1, required=True, type=click.Path(),
+                            callback=_not_empty)
+outdir_arg = click.argument("out", type=click.Path(file_okay=False), callback=_not_empty)
 
 
 def verbosity_opts(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -411,8 +423,8 @@ def synth_cmd(out: str, scenes: list[str] | None, noise: list[float], seed: int,
 
 
 @main.command(name="eval")
-@click.argument("pred_dir", type=click.Path(file_okay=False))
-@click.argument("gt_dir", type=click.Path(file_okay=False))
+@click.argument("pred_dir", type=click.Path(file_okay=False), callback=_not_empty)
+@click.argument("gt_dir", type=click.Path(file_okay=False), callback=_not_empty)
 @click.option("--tolerance", type=click.FloatRange(0.5, 1.0), default=0.8, show_default=True,
               callback=lambda ctx, param, value: _tolerance_not_nan(value),
               help="Overlap tolerance T of Hoover et al. (1996).")
@@ -420,7 +432,7 @@ def synth_cmd(out: str, scenes: list[str] | None, noise: list[float], seed: int,
               help="Smaller GT regions are not judged.")
 @click.option("--gt-parts", is_flag=True,
               help="Judge each 8-connected patch of a GT label as a region of its own.")
-@click.option("--plot", type=click.Path(dir_okay=False),
+@click.option("--plot", type=click.Path(dir_okay=False), callback=_not_empty,
               help="Write a PNG of correct detections vs tolerance (needs matplotlib).")
 @json_opt
 @verbosity_opts

@@ -40,6 +40,25 @@ def test_output_folder_below_a_file_is_one_line_exit_2(runner, box_png, tmp_path
     assert blocker.read_text() == "a file, not a folder"
 
 
+@pytest.mark.parametrize("args", [
+    ["run", "{png}", "-o", ""],          # -o "$OUT" with OUT unset: not the current folder
+    ["run", "", "-o", "{tmp}/out"],      # an unset input: not every image below here
+    ["run", "{png}", " ", "-o", "{tmp}/out"],
+    ["grow", ""],
+    ["synth", ""],
+    ["eval", "", "{tmp}"],
+    ["eval", "{tmp}", "{tmp}", "--plot", ""],
+])
+def test_an_empty_path_is_a_usage_error_not_the_current_folder(runner, box_png, tmp_path,
+                                                               monkeypatch, args):
+    monkeypatch.chdir(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    res = runner.invoke(main, [a.format(png=box_png, tmp=tmp_path) for a in args])
+    assert res.exit_code == 2
+    assert "an empty path" in one_line_error(res)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written here
+
+
 def test_output_subfolder_blocked_by_a_file_fails_that_image_only(runner, tmp_path, write_png):
     (tmp_path / "in" / "sub").mkdir(parents=True)
     write_png(tmp_path / "in" / "a.png", box_scene(48).astype(np.uint8))
