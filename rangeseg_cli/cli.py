@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -483,10 +482,17 @@ def _plot(total: dict[str, Any], path: Path) -> None:
 
 
 def _tolerance_not_nan(value: float) -> float:
-    """``eval --tolerance``: NaN, which click's FloatRange lets through, is refused."""
-    if math.isnan(value):
-        raise click.BadParameter(f"{value} is not in the range 0.5<=x<=1.0")
-    return value
+    """``eval --tolerance`` by the library's check (``evaluate._check_tolerance``).
+
+    NaN, which click's FloatRange lets through, is refused in click's words
+    for a value out of range.
+    """
+    from .evaluate import _check_tolerance
+
+    try:
+        return _check_tolerance(value)
+    except ValueError:
+        raise click.BadParameter(f"{value} is not in the range 0.5<=x<=1.0") from None
 
 
 if __name__ == "__main__":  # pragma: no cover
