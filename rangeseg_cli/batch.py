@@ -92,12 +92,15 @@ class Record:
     timings: dict[str, float] = field(default_factory=dict)
     noise_sigma: float | None = None
     clipped_pixels: int = 0
+    input_stamp: str | None = None  # the input's version its results were made from
 
     def to_dict(self) -> dict[str, Any]:
         """Manifest entry."""
         out: dict[str, Any] = {"status": self.status, "timings": self.timings}
         if self.source is not None:
             out["input"] = self.source
+        if self.input_stamp is not None:
+            out["input_stamp"] = self.input_stamp
         if self.error is not None:
             out["error"] = self.error
         if self.detail is not None:
@@ -192,6 +195,7 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
                 record.timings[stage] = time.perf_counter() - t0
         record.noise_sigma = state.get("noise_sigma")
         record.clipped_pixels = state.get("clipped_pixels", 0)
+        record.input_stamp = state.get("input_stamp")
         _remove_outputs(base, STAGES[STAGES.index(stages[-1]) + 1:])  # they no longer match
         if not config.output.png:  # pictures of an earlier run would show other results
             _remove_outputs(base, stages, pictures_only=True)
@@ -239,9 +243,10 @@ def _initial_state(job: Job, out: Location, first: str, config: Config) -> dict[
     if first == "edges":
         if job.source is None:
             raise OutputError(f"{job.rel}: no input image")
+        stamp = io.input_stamp(job.source)  # before reading: a change meanwhile is redone
         raw = io.read_image(job.source)
         top = clipped_value(raw.dtype, config.input)
-        return {"z": to_heights(raw, config.input, name=job.source),
+        return {"z": to_heights(raw, config.input, name=job.source), "input_stamp": stamp,
                 "clipped_pixels": 0 if top is None else int(np.count_nonzero(raw == top))}
     z = _read_map(base, "range.npy", "f")
     state: dict[str, Any] = {"z": z}
@@ -537,7 +542,7 @@ def _entry_problem(entry: Any) -> str | None:
     """What is wrong with one image's manifest entry, or ``None``."""
     if not isinstance(entry, dict):
         return f"{_json_kind(entry)}, not an object"
-    for key in ("status", "config", "input"):
+    for key in ("status", "config", "input", "input_stamp"):
         if key in entry and not isinstance(entry[key], str):
             return f'"{key}" is {_json_kind(entry[key])}, not a string'
     stages = entry.get("stages", [])
@@ -601,6 +606,7 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         entry = images.get(job.rel, {})
         complete = (entry.get("status") == "done" and entry.get("config") == config.digest()
                     and set(stages) <= set(entry.get("stages", []))
+                    and _same_input(job, entry, stages[0])
                     and all(exists(f"{job.rel}.{n}")
                             for n in expected_files(job.rel, stages, config)))
         if complete:
@@ -608,6 +614,19 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         else:
             todo.append(job)
     return todo, skipped
+
+
+def _same_input(job: Job, entry: dict[str, Any], first: str) -> bool:
+    """Whether ``job``'s input is the version its recorded results were made from.
+
+    Only a run that reads the input (from ``edges``) asks: the stage commands
+    after it go on from the files in OUT. An entry with no stamp (a manifest
+    written before stamps were recorded) cannot vouch for its input: redone.
+    """
+    if first != STAGES[0] or job.source is None:
+        return True
+    stamp = entry.get("input_stamp")
+    return stamp is not None and stamp == io.input_stamp(job.source)
 
 
 def _refuse_stale(jobs: list[Job], images: dict[str, Any], first: str
@@ -660,7 +679,7 @@ class _Manifest:
             stages |= set(self.stages)
         entry["stages"] = [s for s in STAGES if s in stages]
         entry["config"] = self.config.digest()
-        for key in ("input", "noise_sigma", "clipped_pixels"):
+        for key in ("input", "input_stamp", "noise_sigma", "clipped_pixels"):
             if key not in entry and key in old:
                 entry[key] = old[key]
         self.data["images"][record.rel] = entry

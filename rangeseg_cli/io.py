@@ -293,6 +293,33 @@ def read_image(path: str | Path | URLPath) -> np.ndarray:
     return check_array(raw, name=str(path))
 
 
+def input_stamp(path: str | Path | URLPath) -> str | None:
+    """A stamp of the version of an input file: its size and modification time.
+
+    ``"<size>:<mtime in ns>"`` for a local file (the quick check of make and
+    rsync); on a store, its size and ETag (or modification time). ``--resume``
+    redoes an image whose input's stamp is not the one its results were made
+    from: a frame replaced under the same name is not kept as done.
+
+    Returns
+    -------
+    str or None
+        ``None`` when the file cannot be reached (reading it then fails with
+        its own one-line error).
+    """
+    where = location(path)
+    try:
+        if isinstance(where, URLPath):
+            info = where._call("reach it", "info", where.path)
+            version = next((info[k] for k in ("ETag", "etag", "mtime", "LastModified",
+                                              "last_modified", "created") if info.get(k)), "")
+            return f"{info.get('size', '')}:{version}"
+        st = where.stat()
+    except (OSError, RangesegError):
+        return None
+    return f"{st.st_size}:{st.st_mtime_ns}"
+
+
 def _read_any(path: Location) -> np.ndarray:
     suffix = path.suffix.lower()
     if isinstance(path, URLPath):

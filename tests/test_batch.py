@@ -142,6 +142,57 @@ def test_resume_redoes_images_made_with_another_config(good_folder, tmp_path):
     assert json.loads(res.output)["done"] == 4
 
 
+def test_resume_redoes_an_image_whose_input_was_replaced(good_folder, tmp_path, write_png):
+    """A frame replaced under the same name (cron over a camera folder) is not kept as done."""
+    runner = CliRunner()
+    out = tmp_path / "o"
+    runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q"])
+    before = np.load(out / "img2.labels.npy")
+    new = scene(0)[::-1].copy()  # other content, same name and size
+    write_png(good_folder / "img2.png", new)
+    stat = os.stat(good_folder / "img2.png")
+    os.utime(good_folder / "img2.png", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q", "--resume", "--json"])
+    summary = json.loads(res.output)
+    assert res.exit_code == 0 and (summary["done"], summary["resumed"]) == (1, 3)
+    after = np.load(out / "img2.labels.npy")
+    assert not np.array_equal(after, before)
+    np.testing.assert_array_equal(after, run_pipeline(new).labels)
+    entry = json.loads((out / "rangeseg-run.json").read_text())["images"]["img2"]
+    stamp = os.stat(good_folder / "img2.png")
+    assert entry["input_stamp"] == f"{stamp.st_size}:{stamp.st_mtime_ns}"
+
+
+def test_resume_redoes_an_image_whose_entry_has_no_input_stamp(good_folder, tmp_path):
+    """A manifest that cannot vouch for the input's version (written before stamps) is redone."""
+    runner = CliRunner()
+    out = tmp_path / "o"
+    runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q"])
+    manifest = out / "rangeseg-run.json"
+    data = json.loads(manifest.read_text())
+    del data["images"]["img1"]["input_stamp"]
+    manifest.write_text(json.dumps(data))
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-j", "1", "-q", "--resume", "--json"])
+    summary = json.loads(res.output)
+    assert (summary["done"], summary["resumed"]) == (1, 3)
+    assert "input_stamp" in json.loads(manifest.read_text())["images"]["img1"]
+
+
+def test_a_stage_command_keeps_the_input_stamp_of_its_image(good_folder, tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "o"
+    assert runner.invoke(main, ["edges", str(good_folder), "-o", str(out), "-q"]).exit_code == 0
+    stamps = {k: v["input_stamp"] for k, v in
+              json.loads((out / "rangeseg-run.json").read_text())["images"].items()}
+    assert runner.invoke(main, ["link", str(out), "-q"]).exit_code == 0
+    images = json.loads((out / "rangeseg-run.json").read_text())["images"]
+    assert {k: v["input_stamp"] for k, v in images.items()} == stamps
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-q", "--resume", "--json"])
+    assert json.loads(res.output)["done"] == 4  # grow and holdsite were missing
+    res = runner.invoke(main, ["run", str(good_folder), "-o", str(out), "-q", "--resume", "--json"])
+    assert json.loads(res.output)["resumed"] == 4
+
+
 arrays = hnp.arrays(
     dtype=st.sampled_from([np.uint8, np.uint16, np.int32, np.float32, np.float64, np.bool_]),
     shape=st.one_of(hnp.array_shapes(min_dims=1, max_dims=4, min_side=1, max_side=40),

@@ -23,7 +23,7 @@ from distributed import LocalCluster
 from moto.server import ThreadedMotoServer
 
 from conftest import box_scene, tree_bytes
-from rangeseg_cli import io
+from rangeseg_cli import io, run_pipeline
 from rangeseg_cli.cli import main
 from rangeseg_cli.errors import StorageError
 
@@ -173,6 +173,23 @@ def test_s3_input_to_a_local_folder_and_local_input_to_s3(s3, local_frames, loca
     code, output = run_cli(str(local_frames), "-o", f"s3://{BUCKET}/from-local", "--jobs", "1")
     assert code == 0, output
     assert store_bytes(s3, f"{BUCKET}/from-local") == local_bytes
+
+
+def test_s3_resume_redoes_a_frame_replaced_under_the_same_key(s3, tmp_path):
+    """The input's ETag is its stamp: a new object under the old key is redone, the rest kept."""
+    src = f"{BUCKET}/replaced"
+    for i, name in enumerate(NAMES[:3]):
+        s3.pipe_file(f"{src}/{name}", png_bytes(i))
+    out = tmp_path / "out"
+    assert run_cli(f"s3://{src}", "-o", str(out), "--jobs", "1")[0] == 0
+    s3.pipe_file(f"{src}/b.png", png_bytes(3))
+    res = CliRunner().invoke(main, ["run", f"s3://{src}", "-o", str(out), "--jobs", "1", "-q",
+                                    "--resume", "--json"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.output)
+    assert (summary["done"], summary["resumed"]) == (1, 2)
+    np.testing.assert_array_equal(np.load(out / "b.labels.npy"),
+                                  run_pipeline(scene(3)).labels)
 
 
 def test_stage_commands_on_an_s3_output_give_the_bytes_of_run(s3, local_bytes):
