@@ -162,6 +162,13 @@ class SplitConfig:
     min_crease: float = _opt(10.0, "two planar pieces that pass the fit test also stay apart "
                              "when their planes meet at this angle in degrees or more",
                              min=0.0, max=90.0)
+    crease_evidence: float = _opt(16.0, "the merges join two planar pieces at min_crease "
+                                  "or more all the same when one surface of their union "
+                                  "leaves less squared error beyond their own two than this "
+                                  "many times the noise variance (at least grow.min_error): "
+                                  "no evidence of a crease, the narrow piece's tilt is noise "
+                                  "(16: chi-square, 3 degrees of freedom, at 0.999); 0 = off",
+                                  min=0.0, max=MAX_FACTOR ** 2)
     min_piece: int = _opt(20, "smallest piece, and smallest core of a piece (pixels "
                           "normal_sigma or more from its border), in pixels; smaller ones "
                           "join their nearest piece", min=1, max=MAX_COUNT)

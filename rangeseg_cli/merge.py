@@ -22,7 +22,13 @@ Notes
    the two (floored at ``sqrt(grow.min_error)``), and, when both were
    planes passing the test, their planes meet at less than
    ``split.min_crease`` degrees along the boundary: the rules by which
-   :func:`~rangeseg_cli.split.merge_back` glues pieces of a split back.
+   :func:`~rangeseg_cli.split.merge_back` glues pieces of a split back. The
+   angle keeps them apart only when the union's surface leaves at least
+   ``split.crease_evidence`` times the noise variance of squared error
+   beyond their own two (the F-test's idea: a narrow piece's plane, a ring
+   segment of a nut's top with a few pixels of its chamfer, can tilt by
+   18 degrees at noise sigma 2 while one plane fits both pieces as well as
+   their own).
 3. Order: candidate pairs are taken by increasing RMS error of their union
    (ties by ids), and a pair whose regions already belong to larger groups is
    tested again on the groups, so no group is merged that its union would
@@ -112,6 +118,7 @@ class _Groups:
         self.rms = rms.copy()
         self.parent = np.arange(rms.size)
         self.boxes = {k + 1: b for k, b in enumerate(ndimage.find_objects(labels)) if b}
+        self.counts = np.bincount(labels.ravel(), minlength=rms.size)[:rms.size].astype(float)
 
     def root(self, k: int) -> int:
         """The group of region k (the smallest id in it)."""
@@ -128,6 +135,13 @@ class _Groups:
         sub = self.labels[box]
         sub[sub == gone] = keep
         self.rms[keep] = rms
+        self.counts[keep] += self.counts[gone]
+
+    def excess(self, a: int, b: int, union: float) -> float:
+        """Squared error one surface of groups a, b leaves beyond their own two surfaces."""
+        n = self.counts
+        return (union ** 2 * (n[a] + n[b]) - self.rms[a] ** 2 * n[a]
+                - self.rms[b] ** 2 * n[b])
 
 
 def merge_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
@@ -141,7 +155,7 @@ def merge_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     labels
         int (H, W) final regions 1..n, 0 = none.
     config
-        Uses ``[split]`` (``fit_factor``, ``min_gain``, ``min_crease``) and
+        Uses ``[split]`` (``fit_factor``, ``min_gain``, ``min_crease``, ``crease_evidence``) and
         ``[grow]`` (``min_error``, ``planar_tolerance``).
     noise
         Noise sigma of ``z`` (:func:`~rangeseg_cli.noise.estimate_noise`).
@@ -167,6 +181,20 @@ def merge_planes(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: fl
     Parameters, return value and errors as :func:`merge_regions`.
     """
     return _merged(z, labels, config, noise, order=1)
+
+
+def _crease_shown(excess: float, noise: float, config: Config) -> bool:
+    """Whether a union's excess squared error is evidence of a crease (Notes 2).
+
+    ``excess`` is what one surface of the union leaves beyond the pieces' own
+    two; for two pieces of one plane it is the noise variance times a
+    chi-square variable of 3 degrees of freedom (mean 3). Below
+    ``split.crease_evidence`` times the variance (``max(noise^2,
+    grow.min_error)``) the angle between the pieces' planes is noise in the
+    tilt of a narrow piece, not a crease. ``crease_evidence = 0``: always.
+    """
+    bound = config.split.crease_evidence * max(noise ** 2, config.grow.min_error)
+    return bound <= 0 or not math.isfinite(bound) or excess >= bound
 
 
 def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, order: int
@@ -202,7 +230,8 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
         bound = min(level, config.split.min_gain * max(groups.rms[a], groups.rms[b], floor))
         if union > bound:
             continue
-        if flat[i] and flat[j] and _crease_angle(lab, planes, i, j) >= config.split.min_crease:
+        if (flat[i] and flat[j] and _crease_angle(lab, planes, i, j) >= config.split.min_crease
+                and _crease_shown(groups.excess(a, b, union), noise, config)):
             continue
         groups.join(a, b, union)
     roots = np.array([groups.root(k) for k in range(n + 1)])

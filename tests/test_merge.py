@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from conftest import bad_setting_on_the_command_line, found_with, random_labels
 from rangeseg_cli.config import load_config
+from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.merge import merge_planes, merge_regions, touching_pairs
 from rangeseg_cli.pipeline import run_pipeline
@@ -193,3 +194,49 @@ def test_paper_preset_does_not_merge_planes(tmp_path):
     assert CONFIG.split.merge_planes is True
     assert "merge_planes" in bad_setting_on_the_command_line(tmp_path,
                                                              "split.merge_planes=maybe")
+
+
+def _strip_split(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One noisy plane cut into a wide piece and a strip 2 pixels wide along its side."""
+    y, x = _grid()
+    z = _noisy(60.0 + 0.3 * x - 0.2 * y, 2.0, seed)
+    labels = np.ones(z.shape, np.int32)
+    labels[:, -2:] = 2
+    return z, labels
+
+
+def test_a_narrow_piece_tilted_only_by_noise_is_merged_back():
+    """The strip's own plane tilts by 10 degrees or more on some seeds; one plane fits both."""
+    off = load_config(overrides={"split": {"crease_evidence": 0.0}})
+    apart = [int(merge_planes(*_strip_split(s), off, noise=2.0).max()) for s in range(12)]
+    assert 2 in apart  # the angle alone keeps such a strip apart
+    merged = [int(merge_planes(*_strip_split(s), CONFIG, noise=2.0).max()) for s in range(12)]
+    assert merged == [1] * 12
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
+def test_planes_at_a_shallow_crease_stay_apart_with_the_crease_evidence(sigma):
+    """1 unit per pixel of slope change (about 27 degrees) leaves far more than 16 s^2."""
+    y, x = _grid()
+    z = _noisy(60.0 + np.where(x < 30, 0.0, x - 30.0), sigma, 3)
+    labels = np.where(x < 30, 1, 2).astype(np.int32)
+    out = merge_planes(z, labels, CONFIG, noise=max(sigma, 0.5))
+    np.testing.assert_array_equal(out, labels)
+
+
+def test_a_nut_top_in_a_pile_at_noise_2_is_one_region():
+    """Pile seed 20, sigma 2: nut 3's top used to end in two pieces 18 degrees apart."""
+    scene = render_scene("pile", noise=2.0, seed=20)
+    top = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "nut 3 facet 13")
+    share = {}
+    for evidence in (16.0, 0.0):
+        config = load_config(overrides={"split": {"crease_evidence": evidence}})
+        labels = run_pipeline(scene.image, config).labels[scene.gt == top]
+        share[evidence] = np.bincount(labels).max() / labels.size
+    assert share[16.0] > 0.99
+    assert share[0.0] < 0.8
+
+
+def test_crease_evidence_is_checked():
+    with pytest.raises(ConfigError, match="crease_evidence"):
+        load_config(overrides={"split": {"crease_evidence": -1.0}})
