@@ -234,6 +234,10 @@ class SplitConfig:
     facets: bool = _opt(True, "before the refinement and once more at the end, cut a region "
                         "that fails the fit test into the planes that explain it, when no "
                         "quadric joins two of them again (a small frustum's faces at noise 2)")
+    join_occluded: bool = _opt(True, "last, give one label to separate patches of one surface "
+                               "that something closer to the sensor divides (a lying "
+                               "cylinder under a part laid across it): one surface fits "
+                               "both, and between them it is hidden, never seen to end")
 
 
 @dataclass(frozen=True)
@@ -307,7 +311,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
               "split": {"enabled": False, "recover": False, "fill_edges": False,
                         "merge": False, "recut": False, "bridge": False, "carve": False,
                         "chamfers": False, "refine": False, "merge_planes": False,
-                        "facets": False}},
+                        "facets": False, "join_occluded": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,

@@ -91,7 +91,8 @@ def uses_noise(config: Config) -> bool:
     """
     s = config.split
     return (config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
-            or s.chamfers or s.carve or s.refine or s.merge_planes or s.facets)
+            or s.chamfers or s.carve or s.refine or s.merge_planes or s.facets
+            or s.join_occluded)
 
 
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
@@ -143,6 +144,10 @@ def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: fl
         from .fill import bridge_gaps  # once more: faces carved since, borders moved
 
         labels = bridge_gaps(z, labels, config.grow)
+    if cfg.join_occluded:
+        from .occlusion import join_occluded
+
+        labels = join_occluded(z, labels, config, noise=sigma)
     return labels
 
 
@@ -246,7 +251,7 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     cfg = config.split
     if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut
             or cfg.bridge or cfg.chamfers or cfg.carve or cfg.refine or cfg.merge_planes
-            or cfg.facets):
+            or cfg.facets or cfg.join_occluded):
         return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise

@@ -1,0 +1,207 @@
+"""Join the patches of one surface that an object lying across it divides.
+
+Beyond Al-Hujazi & Sood (1990). Region growing (Sec. V-4) labels connected
+components (Sec. V-3), so a surface that something closer to the sensor
+crosses -- a lying cylinder under a part laid across it, a box top half
+covered, the table seen through a nut's bore -- comes out as two regions,
+each of them a good fit. They are one surface, with one description
+(``surfaces.json``): its extent, its fit and its holdsite clearance are those
+of the whole. This module gives such patches one label.
+
+Notes
+-----
+1. Candidates. Regions of at least ``link.min_component`` pixels whose
+   surface (plane when planar, else quadric; the rule of
+   :func:`~rangeseg_cli.fill.surface_models`) passes the fit test of the
+   split (RMS error within ``split.fit_factor * s``, ``s = max(noise,
+   sqrt(grow.min_error))``, Sec. VIII), taken in pairs that do not touch
+   (8-neighbours) and one quadric of whose union passes the fit test (from
+   the moment sums).
+2. One surface. One surface of the pair's model (a plane when both are
+   planes, else a quadric) fits the union within the fit test and at most
+   ``split.min_gain`` times the larger of the two RMS errors: the rules by
+   which :mod:`rangeseg_cli.merge` joins touching regions; and it leaves
+   less than ``split.crease_evidence`` times ``s^2`` of squared error beyond
+   the two patches' own surfaces (the chi-square bound of the merges'
+   crease rule: two nearly coplanar faces of different parts pass the fit
+   test at noise 2, not this; 0 = not tested).
+3. Occlusion. Along the shortest straight segment from one patch to the
+   other, every valid pixel between them lies on that surface (within
+   ``OCCLUSION_MARGIN * s``) or above it (closer to the sensor), and some
+   pixel lies clearly above: the surface goes on under something in front
+   of it. A pixel clearly below it means the surface is seen to end there
+   (two coplanar box tops with the floor between them): not joined.
+4. Order: pairs by increasing RMS error of their union; a pair whose regions
+   already belong to groups is tested again on the groups. A joined region
+   keeps the smallest id; ids are then made consecutive.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from .config import Config
+from .fill import fit_surfaces
+from .grow import (
+    evaluate_quadric,
+    fit_quadrics,
+    region_fits,
+    sums_of_squares,
+    union_quadric_mse,
+)
+from .rangeimage import consecutive_labels, labels_on_valid
+from .split import adjacent_pairs
+
+#: Pixels between two patches must lie within this many ``s`` of the surface, or above it.
+OCCLUSION_MARGIN = 3.0
+
+#: Screen of the pairs: one surface predicts the other's centroid within this many fit levels.
+SCREEN = 10.0
+
+
+def join_occluded(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
+                  ) -> np.ndarray:
+    """Give separate patches of one surface, divided by something in front, one label.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) final regions 1..n, 0 = none.
+    config
+        Uses ``[split]`` (``fit_factor``, ``min_gain``), ``[link]``
+        (``min_component``) and ``[grow]`` (``min_error``, ``planar_tolerance``).
+    noise
+        The image's noise estimate, depth units (NaN: nothing is joined).
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W) labels 1..k; regions joined take the smallest id, ids
+        made consecutive; pixels never change between labelled and 0.
+    """
+    z, lab = labels_on_valid(z, labels)
+    n = int(lab.max(initial=0))
+    if n < 2 or not math.isfinite(noise):
+        return lab
+    s = max(noise, math.sqrt(config.grow.min_error))
+    level = config.split.fit_factor * s
+    zc = np.where(np.isfinite(z), z, 0.0)
+    coeffs, mse, flat = fit_surfaces(zc, lab, n, config.grow)
+    rms = np.sqrt(np.maximum(mse, 0.0))
+    pairs = _candidate_pairs(zc, lab, coeffs, rms, level, config.link.min_component)
+    if not pairs:
+        return lab
+    joined = _join(z, lab, pairs, coeffs, flat, rms, s, config)
+    return consecutive_labels(joined) if joined is not lab else lab
+
+
+def _candidate_pairs(z: np.ndarray, lab: np.ndarray, coeffs: np.ndarray, rms: np.ndarray,
+                     level: float, min_pixels: int) -> list[tuple[int, int]]:
+    """Pairs (i < j) of well-fitted regions that do not touch and may be one surface (Notes 1).
+
+    Screens, cheapest first: one of the two surfaces predicts the other's
+    height at its centroid within three times the level (all pairs at once;
+    a narrow patch's quadric extrapolates badly, the wide one's does not),
+    and one quadric of the union passes the fit test, from the regions'
+    moment sums (:func:`~rangeseg_cli.grow.union_quadric_mse`, without
+    visiting a pixel; a plane of the union fits no better).
+    """
+    n = rms.size - 1
+    fits = region_fits(z, lab, n)
+    ids = np.nonzero((fits.counts >= min_pixels) & (rms <= level))[0]
+    ids = ids[ids > 0]
+    if ids.size < 2:
+        return []
+    rows, cols = fits.centroid_row[ids], fits.centroid_col[ids]
+    at = evaluate_quadric(coeffs[ids][:, None, :], rows[None, :], cols[None, :])
+    off = np.abs(at - np.diag(at)[None, :])  # i's surface at j's centroid against j's own
+    near = np.minimum(off, off.T) <= SCREEN * level
+    first, second = np.nonzero(np.triu(near, 1))
+    if first.size == 0:
+        return []
+    squares = sums_of_squares(z, lab, n)
+    touching = set(adjacent_pairs(lab, 1))
+    pairs = [(int(ids[a]), int(ids[b])) for a, b in zip(first, second, strict=True)]
+    return [(i, j) for i, j in pairs if (i, j) not in touching
+            and union_quadric_mse(fits.moments, squares, i, j) <= level * level]
+
+
+def _union_fit(z: np.ndarray, groups: np.ndarray, a: int, b: int, order: int
+               ) -> tuple[float, np.ndarray, tuple[slice, slice]]:
+    """RMS error and image coefficients of one surface of groups a, b, and their box."""
+    rows, cols = np.nonzero((groups == a) | (groups == b))
+    box = (slice(int(rows.min()), int(rows.max()) + 1), slice(int(cols.min()), int(cols.max()) + 1))
+    both = np.isin(groups[box], (a, b)).astype(np.int32)
+    coeffs, mse, _ = fit_quadrics(np.where(np.isfinite(z[box]), z[box], 0.0), both, 1,
+                                  order=order)
+    c = coeffs[1].copy()  # to the whole image's coordinates
+    c = _shift(c, box[0].start, box[1].start)
+    return math.sqrt(max(float(mse[1]), 0.0)), c, box
+
+
+def _shift(c: np.ndarray, r0: int, c0: int) -> np.ndarray:
+    """Coefficients in a crop at (r0, c0) as coefficients in the whole image."""
+    a0, a1, a2, a3, a4, a5 = c
+    return np.array([
+        a0 - a1 * c0 - a2 * r0 + a3 * c0 * c0 + a4 * c0 * r0 + a5 * r0 * r0,
+        a1 - 2 * a3 * c0 - a4 * r0,
+        a2 - a4 * c0 - 2 * a5 * r0,
+        a3, a4, a5])
+
+
+def _occluded(z: np.ndarray, groups: np.ndarray, a: int, b: int, coeffs: np.ndarray,
+              box: tuple[slice, slice], s: float) -> bool:
+    """Whether the shortest segment from patch a to patch b runs under something (Notes 3).
+
+    ``box`` holds both patches; ``coeffs`` is their union's surface in image coordinates.
+    """
+    sub, zs = groups[box], z[box]
+    dist, (nr, nc) = ndimage.distance_transform_edt(sub != a, return_indices=True)
+    rows, cols = np.nonzero(sub == b)
+    k = int(np.argmin(dist[rows, cols]))
+    p, q = (rows[k], cols[k]), (nr[rows[k], cols[k]], nc[rows[k], cols[k]])
+    steps = int(max(abs(p[0] - q[0]), abs(p[1] - q[1]))) + 1
+    r = np.rint(np.linspace(q[0], p[0], steps)).astype(int)
+    c = np.rint(np.linspace(q[1], p[1], steps)).astype(int)
+    between = ~np.isin(sub[r, c], (a, b)) & np.isfinite(zs[r, c])
+    if not between.any():
+        return False
+    r, c = r[between], c[between]
+    above = zs[r, c] - evaluate_quadric(coeffs, r + box[0].start, c + box[1].start)
+    return bool(above.min() >= -OCCLUSION_MARGIN * s and above.max() > OCCLUSION_MARGIN * s)
+
+
+def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[int, int]], coeffs: np.ndarray,
+          flat: np.ndarray, rms: np.ndarray, s: float, config: Config) -> np.ndarray:
+    """Join the pairs that pass Notes 2 and 3, by increasing union RMS (Notes 4)."""
+    level = config.split.fit_factor * s
+    floor = math.sqrt(config.grow.min_error)
+    groups, grms = lab.copy(), rms.copy()
+    counts = np.bincount(lab.ravel(), minlength=rms.size).astype(np.float64)
+    order = {p: 1 if flat[p[0]] and flat[p[1]] else 2 for p in pairs}
+    first = sorted((_union_fit(z, groups, i, j, order[(i, j)])[0], i, j) for i, j in pairs)
+    changed = False
+    for _, i, j in first:
+        a, b = int(groups[lab == i][0]), int(groups[lab == j][0])
+        if a == b:
+            continue
+        union, c, box = _union_fit(z, groups, a, b, order[(i, j)])
+        if union > min(level, config.split.min_gain * max(grms[a], grms[b], floor)):
+            continue
+        na, nb = counts[a], counts[b]
+        excess = union ** 2 * (na + nb) - grms[a] ** 2 * na - grms[b] ** 2 * nb
+        if 0 < config.split.crease_evidence * s * s <= excess:
+            continue
+        if not _occluded(z, groups, a, b, c, box, s):
+            continue
+        keep, gone = min(a, b), max(a, b)
+        groups[groups == gone] = keep
+        grms[keep] = union
+        counts[keep] += counts[gone]
+        changed = True
+    return groups if changed else lab

@@ -1,0 +1,112 @@
+"""Patches of one surface divided by something in front are joined (rangeseg_cli.occlusion)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from conftest import bad_setting_on_the_command_line
+from rangeseg_cli.config import load_config
+from rangeseg_cli.occlusion import join_occluded
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.synth import render_scene
+
+CONFIG = load_config()
+BAR = slice(25, 35)  # columns of the strip between the two patches
+
+
+def _scene(left: np.ndarray, right: np.ndarray, between: float | np.ndarray, sigma: float,
+           seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Heights of two patches (columns 0-24 and 35-59) and a strip between; labels 1, 2, 3."""
+    y, x = np.mgrid[0:40, 0:60].astype(np.float64)
+    z = np.where(x < 30, left, right).astype(np.float64)
+    z[:, BAR] = np.broadcast_to(between, z.shape)[:, BAR]
+    z = z + (np.random.default_rng(seed).normal(0.0, sigma, z.shape) if sigma else 0.0)
+    labels = np.where(x < 30, 1, 2).astype(np.int32)
+    labels[:, BAR] = 3
+    return z, labels
+
+
+def _plane() -> np.ndarray:
+    y, x = np.mgrid[0:40, 0:60].astype(np.float64)
+    return 50.0 + 0.4 * x + 0.2 * y
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
+def test_a_plane_under_a_bar_laid_across_it_is_one_region(sigma):
+    z, labels = _scene(_plane(), _plane(), 120.0, sigma)
+    out = join_occluded(z, labels, CONFIG, noise=max(sigma, 0.5))
+    assert out[0, 0] == out[0, -1] != out[0, 30]
+    assert len(np.unique(out)) == 2
+    np.testing.assert_array_equal(out > 0, labels > 0)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
+def test_a_curved_surface_under_a_bar_is_one_region(sigma):
+    y, _ = np.mgrid[0:40, 0:60].astype(np.float64)
+    trough = 80.0 - 0.05 * (y - 20.0) ** 2  # a parabolic cylinder lying along the columns
+    z, labels = _scene(trough, trough, 140.0, sigma, seed=1)
+    out = join_occluded(z, labels, CONFIG, noise=max(sigma, 0.5))
+    assert out[5, 2] == out[5, -3] != out[5, 30]
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
+def test_two_coplanar_tops_with_the_floor_seen_between_them_stay_apart(sigma):
+    """The surface is seen to end: two boxes of one height side by side."""
+    z, labels = _scene(_plane(), _plane(), 10.0, sigma, seed=2)
+    out = join_occluded(z, labels, CONFIG, noise=max(sigma, 0.5))
+    np.testing.assert_array_equal(out, labels)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
+def test_parallel_planes_at_other_heights_under_a_bar_stay_apart(sigma):
+    z, labels = _scene(_plane(), _plane() + 8.0, 120.0, sigma, seed=3)
+    out = join_occluded(z, labels, CONFIG, noise=max(sigma, 0.5))
+    np.testing.assert_array_equal(out, labels)
+
+
+def test_a_plane_and_a_slightly_tilted_one_under_a_bar_stay_apart():
+    """One plane fits both within the fit test, but far worse than their own two."""
+    y, x = np.mgrid[0:40, 0:60].astype(np.float64)
+    z, labels = _scene(_plane(), _plane() + 0.04 * (x - 47), 120.0, 1.0, seed=4)
+    out = join_occluded(z, labels, CONFIG, noise=1.0)
+    np.testing.assert_array_equal(out, labels)
+    untested = load_config(overrides={"split": {"crease_evidence": 0.0}})
+    assert len(np.unique(join_occluded(z, labels, untested, noise=1.0))) == 2
+
+
+def test_without_a_noise_estimate_nothing_is_joined():
+    z, labels = _scene(_plane(), _plane(), 120.0, 0.0)
+    np.testing.assert_array_equal(join_occluded(z, labels, CONFIG, noise=math.nan), labels)
+
+
+def test_small_patches_are_not_joined():
+    z, labels = _scene(_plane(), _plane(), 120.0, 0.0)
+    labels[:, :25] = np.where(np.arange(40)[:, None] < 36, 0, 1)  # 4 x 25 = 100 px: kept
+    labels[:, 35:] = np.where(np.arange(40)[:, None] < 39, 0, 2)  # 1 x 25 = 25 px: kept
+    few = load_config(overrides={"link": {"min_component": 30}})
+    np.testing.assert_array_equal(join_occluded(z, labels, few, noise=0.5), labels)
+
+
+def test_a_cylinder_crossed_by_another_part_in_a_pile_is_one_region():
+    """Pile seed 20, sigma 2: cylinder 2's side is seen on both sides of a part across it."""
+    scene = render_scene("pile", noise=2.0, seed=20)
+    side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "cylinder 2 side")
+    found = {}
+    for on in (True, False):
+        config = load_config(overrides={"split": {"join_occluded": on}})
+        labels = run_pipeline(scene.image, config).labels[scene.gt == side]
+        found[on] = len(np.unique(labels[labels > 0]))
+    assert found == {True: 1, False: 2}
+
+
+def test_the_paper_preset_joins_nothing():
+    assert load_config(preset="paper").split.join_occluded is False
+    assert CONFIG.split.join_occluded is True
+
+
+def test_join_occluded_must_be_a_boolean(tmp_path):
+    last = bad_setting_on_the_command_line(tmp_path, "split.join_occluded=3")
+    assert "join_occluded" in last and "true or false" in last
