@@ -241,9 +241,13 @@ def test_split_table_at_the_same_level_is_all_background():
     z = table()
     z[:, 30:34] = 150.0  # a wall across the image splits the table in two
     z[8:24, 6:22] = 100.0
-    result = run(noisy(z))
+    apart = load_config(overrides={"split": {"join_occluded": False}})
+    result = run_pipeline(noisy(z), apart)
     left, right = result.labels[50, 5], result.labels[50, 60]
     assert left != right and set(result.holdsite.background) == {left, right}
+    result = run(noisy(z))  # the table goes on under the wall: one surface, the background
+    left, right = result.labels[50, 5], result.labels[50, 60]
+    assert left == right and set(result.holdsite.background) == {left}
 
 
 def test_result_dict_follows_the_file_contract_and_is_json_ready():
