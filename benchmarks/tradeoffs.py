@@ -63,7 +63,7 @@ SETS: tuple[str, ...] = (
     "split.recover=false", "split.fill_edges=false", "split.merge=false", "split.recut=false",
     "split.bridge=false", "split.chamfers=false", "split.carve=false",
     "split.refine_creases=false", "split.refine=false", "split.merge_planes=false",
-    "split.facets=false")
+    "split.facets=false", "split.crease_evidence=0", "split.join_occluded=false")
 
 #: Name (as on the command line) and the overrides of each variant.
 VARIANTS: tuple[tuple[str, dict[str, dict[str, Any]]], ...] = (
