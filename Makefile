@@ -27,7 +27,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_pipeline.py
 
-# Time and correct detections of each step beyond the paper turned off alone (~5 min).
+# Time and correct detections of each step beyond the paper turned off alone (~20 min).
 tradeoffs: $(STAMP)
 	$(BIN)/python benchmarks/tradeoffs.py
 

@@ -23,7 +23,7 @@ table comes from it.
 
 Usage::
 
-    .venv/bin/python benchmarks/tradeoffs.py                 # seeds 0-8, 5 repeats (~5 min)
+    .venv/bin/python benchmarks/tradeoffs.py                 # seeds 0-8, 5 repeats (~20 min)
     .venv/bin/python benchmarks/tradeoffs.py --seeds 0,1,2 --repeats 3
 """
 
