@@ -15,8 +15,9 @@ Notes
    :func:`~rangeseg_cli.fill.surface_models`) passes the fit test of the
    split (RMS error within ``split.fit_factor * s``, ``s = max(noise,
    sqrt(grow.min_error))``, Sec. VIII), taken in pairs that do not touch
-   (8-neighbours) and one quadric of whose union passes the fit test (from
-   the moment sums).
+   (8-neighbours), one of whose surfaces predicts the other's height at its
+   centroid within ``SCREEN`` fit levels, and one quadric of whose union
+   passes the fit test (from the moment sums).
 2. One surface. One surface of the pair's model (a plane when both are
    planes, else a quadric) fits the union within the fit test and at most
    ``split.min_gain`` times the larger of the two RMS errors: the rules by
@@ -73,7 +74,7 @@ def join_occluded(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     labels
         int (H, W) final regions 1..n, 0 = none.
     config
-        Uses ``[split]`` (``fit_factor``, ``min_gain``), ``[link]``
+        Uses ``[split]`` (``fit_factor``, ``min_gain``, ``crease_evidence``), ``[link]``
         (``min_component``) and ``[grow]`` (``min_error``, ``planar_tolerance``).
     noise
         The image's noise estimate, depth units (NaN: nothing is joined).
@@ -96,7 +97,7 @@ def join_occluded(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     pairs = _candidate_pairs(zc, lab, coeffs, rms, level, config.link.min_component)
     if not pairs:
         return lab
-    joined = _join(z, lab, pairs, coeffs, flat, rms, s, config)
+    joined = _join(z, lab, pairs, flat, rms, s, config)
     return consecutive_labels(joined) if joined is not lab else lab
 
 
@@ -105,7 +106,7 @@ def _candidate_pairs(z: np.ndarray, lab: np.ndarray, coeffs: np.ndarray, rms: np
     """Pairs (i < j) of well-fitted regions that do not touch and may be one surface (Notes 1).
 
     Screens, cheapest first: one of the two surfaces predicts the other's
-    height at its centroid within three times the level (all pairs at once;
+    height at its centroid within :data:`SCREEN` times the level (all pairs at once;
     a narrow patch's quadric extrapolates badly, the wide one's does not),
     and one quadric of the union passes the fit test, from the regions'
     moment sums (:func:`~rangeseg_cli.grow.union_quadric_mse`, without
@@ -176,8 +177,8 @@ def _occluded(z: np.ndarray, groups: np.ndarray, a: int, b: int, coeffs: np.ndar
     return bool(above.min() >= -OCCLUSION_MARGIN * s and above.max() > OCCLUSION_MARGIN * s)
 
 
-def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[int, int]], coeffs: np.ndarray,
-          flat: np.ndarray, rms: np.ndarray, s: float, config: Config) -> np.ndarray:
+def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[int, int]], flat: np.ndarray,
+          rms: np.ndarray, s: float, config: Config) -> np.ndarray:
     """Join the pairs that pass Notes 2 and 3, by increasing union RMS (Notes 4)."""
     level = config.split.fit_factor * s
     floor = math.sqrt(config.grow.min_error)
