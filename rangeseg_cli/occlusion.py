@@ -43,12 +43,14 @@ import math
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from .config import Config
-from .fill import fit_surfaces
 from .grow import (
+    RegionFits,
     evaluate_quadric,
     fit_quadrics,
+    planar_regions,
     region_fits,
     sums_of_squares,
     union_quadric_mse,
@@ -92,28 +94,36 @@ def join_occluded(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     s = max(noise, math.sqrt(config.grow.min_error))
     level = config.split.fit_factor * s
     zc = np.where(np.isfinite(z), z, 0.0)
-    coeffs, mse, flat = fit_surfaces(zc, lab, n, config.grow)
-    rms = np.sqrt(np.maximum(mse, 0.0))
-    pairs = _candidate_pairs(zc, lab, coeffs, rms, level, config.link.min_component)
+    fits = region_fits(zc, lab, n, (2, 1))
+    ((quad, mse_quad), (plane, mse_plane)) = fits.fits
+    flat = planar_regions(mse_quad, mse_plane, fits.counts, config.grow)
+    coeffs = np.where(flat[:, None], plane, quad)  # the rule of fill.surface_models
+    rms = np.sqrt(np.maximum(np.where(flat, mse_plane, mse_quad), 0.0))
+    pairs = _candidate_pairs(zc, lab, fits, coeffs, rms, level, config.link.min_component)
     if not pairs:
         return lab
     joined = _join(z, lab, pairs, flat, rms, s, config)
     return consecutive_labels(joined) if joined is not lab else lab
 
 
-def _candidate_pairs(z: np.ndarray, lab: np.ndarray, coeffs: np.ndarray, rms: np.ndarray,
-                     level: float, min_pixels: int) -> list[tuple[int, int]]:
+def _candidate_pairs(z: np.ndarray, lab: np.ndarray, fits: RegionFits, coeffs: np.ndarray,
+                     rms: np.ndarray, level: float, min_pixels: int
+                     ) -> list[tuple[float, int, int]]:
     """Pairs (i < j) of well-fitted regions that do not touch and may be one surface (Notes 1).
 
     Screens, cheapest first: one of the two surfaces predicts the other's
-    height at its centroid within :data:`SCREEN` times the level (all pairs at once;
-    a narrow patch's quadric extrapolates badly, the wide one's does not),
-    and one quadric of the union passes the fit test, from the regions'
+    height at its centroid within :data:`SCREEN` times the level (all pairs
+    at once; a narrow patch's quadric extrapolates badly, the wide one's does
+    not), and one quadric of the union passes the fit test, from the regions'
     moment sums (:func:`~rangeseg_cli.grow.union_quadric_mse`, without
     visiting a pixel; a plane of the union fits no better).
+
+    Returns
+    -------
+    list of (float, int, int)
+        The union quadric's mean squared error and the pair, in increasing order.
     """
     n = rms.size - 1
-    fits = region_fits(z, lab, n)
     ids = np.nonzero((fits.counts >= min_pixels) & (rms <= level))[0]
     ids = ids[ids > 0]
     if ids.size < 2:
@@ -121,28 +131,24 @@ def _candidate_pairs(z: np.ndarray, lab: np.ndarray, coeffs: np.ndarray, rms: np
     rows, cols = fits.centroid_row[ids], fits.centroid_col[ids]
     at = evaluate_quadric(coeffs[ids][:, None, :], rows[None, :], cols[None, :])
     off = np.abs(at - np.diag(at)[None, :])  # i's surface at j's centroid against j's own
-    near = np.minimum(off, off.T) <= SCREEN * level
-    first, second = np.nonzero(np.triu(near, 1))
+    first, second = np.nonzero(np.triu(np.minimum(off, off.T) <= SCREEN * level, 1))
     if first.size == 0:
         return []
     squares = sums_of_squares(z, lab, n)
     touching = set(adjacent_pairs(lab, 1))
     pairs = [(int(ids[a]), int(ids[b])) for a, b in zip(first, second, strict=True)]
-    return [(i, j) for i, j in pairs if (i, j) not in touching
-            and union_quadric_mse(fits.moments, squares, i, j) <= level * level]
+    scored = [(union_quadric_mse(fits.moments, squares, i, j), i, j) for i, j in pairs
+              if (i, j) not in touching]
+    return sorted(t for t in scored if t[0] <= level * level)
 
 
-def _union_fit(z: np.ndarray, groups: np.ndarray, a: int, b: int, order: int
-               ) -> tuple[float, np.ndarray, tuple[slice, slice]]:
-    """RMS error and image coefficients of one surface of groups a, b, and their box."""
-    rows, cols = np.nonzero((groups == a) | (groups == b))
-    box = (slice(int(rows.min()), int(rows.max()) + 1), slice(int(cols.min()), int(cols.max()) + 1))
+def _union_fit(z: np.ndarray, groups: np.ndarray, a: int, b: int, box: tuple[slice, slice],
+               order: int) -> tuple[float, np.ndarray]:
+    """RMS error and image coefficients of one surface of groups a, b (both within ``box``)."""
     both = np.isin(groups[box], (a, b)).astype(np.int32)
-    coeffs, mse, _ = fit_quadrics(np.where(np.isfinite(z[box]), z[box], 0.0), both, 1,
-                                  order=order)
-    c = coeffs[1].copy()  # to the whole image's coordinates
-    c = _shift(c, box[0].start, box[1].start)
-    return math.sqrt(max(float(mse[1]), 0.0)), c, box
+    zs = z[box]
+    coeffs, mse, _ = fit_quadrics(np.where(np.isfinite(zs), zs, 0.0), both, 1, order=order)
+    return math.sqrt(max(float(mse[1]), 0.0)), _shift(coeffs[1], box[0].start, box[1].start)
 
 
 def _shift(c: np.ndarray, r0: int, c0: int) -> np.ndarray:
@@ -155,18 +161,25 @@ def _shift(c: np.ndarray, r0: int, c0: int) -> np.ndarray:
         a3, a4, a5])
 
 
+def _border(mask: np.ndarray) -> np.ndarray:
+    """(k, 2) row, col of the pixels of ``mask`` with a 4-neighbour outside it."""
+    inner = ndimage.binary_erosion(mask, border_value=0)
+    return np.argwhere(mask & ~inner)
+
+
 def _occluded(z: np.ndarray, groups: np.ndarray, a: int, b: int, coeffs: np.ndarray,
               box: tuple[slice, slice], s: float) -> bool:
     """Whether the shortest segment from patch a to patch b runs under something (Notes 3).
 
-    ``box`` holds both patches; ``coeffs`` is their union's surface in image coordinates.
+    ``box`` holds both patches; ``coeffs`` is their union's surface in image
+    coordinates. The closest pair of their border pixels ends the segment.
     """
     sub, zs = groups[box], z[box]
-    dist, (nr, nc) = ndimage.distance_transform_edt(sub != a, return_indices=True)
-    rows, cols = np.nonzero(sub == b)
-    k = int(np.argmin(dist[rows, cols]))
-    p, q = (rows[k], cols[k]), (nr[rows[k], cols[k]], nc[rows[k], cols[k]])
-    steps = int(max(abs(p[0] - q[0]), abs(p[1] - q[1]))) + 1
+    pa, pb = _border(sub == a), _border(sub == b)
+    dist, near = cKDTree(pa).query(pb)
+    k = int(np.argmin(dist))
+    p, q = pb[k], pa[int(near[k])]
+    steps = int(np.abs(p - q).max()) + 1
     r = np.rint(np.linspace(q[0], p[0], steps)).astype(int)
     c = np.rint(np.linspace(q[1], p[1], steps)).astype(int)
     between = ~np.isin(sub[r, c], (a, b)) & np.isfinite(zs[r, c])
@@ -177,32 +190,44 @@ def _occluded(z: np.ndarray, groups: np.ndarray, a: int, b: int, coeffs: np.ndar
     return bool(above.min() >= -OCCLUSION_MARGIN * s and above.max() > OCCLUSION_MARGIN * s)
 
 
-def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[int, int]], flat: np.ndarray,
-          rms: np.ndarray, s: float, config: Config) -> np.ndarray:
-    """Join the pairs that pass Notes 2 and 3, by increasing union RMS (Notes 4)."""
+def _join_box(p: tuple[slice, slice], q: tuple[slice, slice]) -> tuple[slice, slice]:
+    """The bounding box of two boxes."""
+    return (slice(min(p[0].start, q[0].start), max(p[0].stop, q[0].stop)),
+            slice(min(p[1].start, q[1].start), max(p[1].stop, q[1].stop)))
+
+
+def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[float, int, int]],
+          flat: np.ndarray, rms: np.ndarray, s: float, config: Config) -> np.ndarray:
+    """Join the pairs that pass Notes 2 and 3, by increasing union error (Notes 4)."""
     level = config.split.fit_factor * s
     floor = math.sqrt(config.grow.min_error)
     groups, grms = lab.copy(), rms.copy()
     counts = np.bincount(lab.ravel(), minlength=rms.size).astype(np.float64)
-    order = {p: 1 if flat[p[0]] and flat[p[1]] else 2 for p in pairs}
-    first = sorted((_union_fit(z, groups, i, j, order[(i, j)])[0], i, j) for i, j in pairs)
+    boxes = dict(enumerate(ndimage.find_objects(lab), start=1))
+    root = np.arange(rms.size)
     changed = False
-    for _, i, j in first:
-        a, b = int(groups[lab == i][0]), int(groups[lab == j][0])
-        if a == b:
-            continue
-        union, c, box = _union_fit(z, groups, a, b, order[(i, j)])
+    evidence = config.split.crease_evidence * s * s
+
+    def one_surface(a: int, b: int, union: float) -> bool:  # Notes 2
         if union > min(level, config.split.min_gain * max(grms[a], grms[b], floor)):
-            continue
-        na, nb = counts[a], counts[b]
-        excess = union ** 2 * (na + nb) - grms[a] ** 2 * na - grms[b] ** 2 * nb
-        if 0 < config.split.crease_evidence * s * s <= excess:
-            continue
-        if not _occluded(z, groups, a, b, c, box, s):
+            return False
+        excess = (union ** 2 * (counts[a] + counts[b]) - grms[a] ** 2 * counts[a]
+                  - grms[b] ** 2 * counts[b])
+        return not 0 < evidence <= excess
+
+    for mse_quadric, i, j in pairs:
+        a, b = int(root[i]), int(root[j])
+        if a == b or (a, b) == (i, j) and not one_surface(a, b, math.sqrt(mse_quadric)):
+            continue  # the union's quadric fits no worse than its plane: a bound, no fit
+        box = _join_box(boxes[a], boxes[b])
+        union, c = _union_fit(z, groups, a, b, box, 1 if flat[i] and flat[j] else 2)
+        if not one_surface(a, b, union) or not _occluded(z, groups, a, b, c, box, s):
             continue
         keep, gone = min(a, b), max(a, b)
-        groups[groups == gone] = keep
-        grms[keep] = union
-        counts[keep] += counts[gone]
+        sub = groups[box]
+        sub[sub == gone] = keep
+        root[root == gone] = keep
+        boxes[keep] = box
+        grms[keep], counts[keep] = union, counts[a] + counts[b]
         changed = True
     return groups if changed else lab
