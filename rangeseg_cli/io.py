@@ -299,7 +299,10 @@ def input_stamp(path: str | Path | URLPath) -> str | None:
     ``"<size>:<mtime in ns>"`` for a local file (the quick check of make and
     rsync); on a store, its size and ETag (or modification time). ``--resume``
     redoes an image whose input's stamp is not the one its results were made
-    from: a frame replaced under the same name is not kept as done.
+    from: a frame replaced under the same name is not kept as done. Not a
+    content hash, which would read every input again to plan a run (on a
+    store, download it): a file put back with its old size and modification
+    time (``cp -p`` of an older copy) is taken for unchanged.
 
     Returns
     -------
