@@ -113,12 +113,12 @@ def _join_box(p: tuple[slice, slice], q: tuple[slice, slice]) -> tuple[slice, sl
 class _Groups:
     """Union-find over region ids with each group's pixels, box and RMS error."""
 
-    def __init__(self, labels: np.ndarray, rms: np.ndarray):
+    def __init__(self, labels: np.ndarray, rms: np.ndarray, counts: np.ndarray):
         self.labels = labels.copy()
         self.rms = rms.copy()
         self.parent = np.arange(rms.size)
         self.boxes = {k + 1: b for k, b in enumerate(ndimage.find_objects(labels)) if b}
-        self.counts = np.bincount(labels.ravel(), minlength=rms.size)[:rms.size].astype(float)
+        self.counts = counts.astype(np.float64)  # pixels per group, as the fits counted them
 
     def root(self, k: int) -> int:
         """The group of region k (the smallest id in it)."""
@@ -139,9 +139,19 @@ class _Groups:
 
     def excess(self, a: int, b: int, union: float) -> float:
         """Squared error one surface of groups a, b leaves beyond their own two surfaces."""
-        n = self.counts
-        return (union ** 2 * (n[a] + n[b]) - self.rms[a] ** 2 * n[a]
-                - self.rms[b] ** 2 * n[b])
+        return union_excess(union, self.rms, self.counts, a, b)
+
+
+def union_excess(union: float, rms: np.ndarray, counts: np.ndarray, a: int, b: int) -> float:
+    """Squared error one surface of a and b (RMS ``union``) leaves beyond their own two.
+
+    ``rms`` and ``counts``: each region's (or group's) own RMS error and pixel
+    count. For two pieces of one surface it is the noise variance times a
+    chi-square variable (3 degrees of freedom for planes): the statistic of
+    ``split.crease_evidence``.
+    """
+    return float(union ** 2 * (counts[a] + counts[b]) - rms[a] ** 2 * counts[a]
+                 - rms[b] ** 2 * counts[b])
 
 
 def merge_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
@@ -218,7 +228,7 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
                  if is_plane[i] and is_plane[j]]
     if not pairs:
         return lab
-    groups = _Groups(lab, rms)
+    groups = _Groups(lab, rms, counts)
     first = [(_union_rms(zc, lab, groups.boxes, i, j, order), i, j) for i, j in pairs]
     floor = math.sqrt(config.grow.min_error)
     for union, i, j in sorted(first):

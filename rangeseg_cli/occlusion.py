@@ -49,12 +49,13 @@ from .config import Config
 from .grow import (
     RegionFits,
     evaluate_quadric,
-    fit_quadrics,
+    fit_models,
     planar_regions,
     region_fits,
     sums_of_squares,
     union_quadric_mse,
 )
+from .merge import _join_box, union_excess
 from .rangeimage import consecutive_labels, labels_on_valid
 from .split import adjacent_pairs
 
@@ -102,7 +103,7 @@ def join_occluded(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     pairs = _candidate_pairs(zc, lab, fits, coeffs, rms, level, config.link.min_component)
     if not pairs:
         return lab
-    joined = _join(z, lab, pairs, flat, rms, s, config)
+    joined = _join(z, lab, pairs, flat, rms, fits.counts, s, config)
     return consecutive_labels(joined) if joined is not lab else lab
 
 
@@ -147,18 +148,9 @@ def _union_fit(z: np.ndarray, groups: np.ndarray, a: int, b: int, box: tuple[sli
     """RMS error and image coefficients of one surface of groups a, b (both within ``box``)."""
     both = np.isin(groups[box], (a, b)).astype(np.int32)
     zs = z[box]
-    coeffs, mse, _ = fit_quadrics(np.where(np.isfinite(zs), zs, 0.0), both, 1, order=order)
-    return math.sqrt(max(float(mse[1]), 0.0)), _shift(coeffs[1], box[0].start, box[1].start)
-
-
-def _shift(c: np.ndarray, r0: int, c0: int) -> np.ndarray:
-    """Coefficients in a crop at (r0, c0) as coefficients in the whole image."""
-    a0, a1, a2, a3, a4, a5 = c
-    return np.array([
-        a0 - a1 * c0 - a2 * r0 + a3 * c0 * c0 + a4 * c0 * r0 + a5 * r0 * r0,
-        a1 - 2 * a3 * c0 - a4 * r0,
-        a2 - a4 * c0 - 2 * a5 * r0,
-        a3, a4, a5])
+    ((coeffs, mse),), _ = fit_models(np.where(np.isfinite(zs), zs, 0.0), both, 1, (order,),
+                                     origin=(box[0].start, box[1].start))
+    return math.sqrt(max(float(mse[1]), 0.0)), coeffs[1]
 
 
 def _border(mask: np.ndarray) -> np.ndarray:
@@ -190,19 +182,16 @@ def _occluded(z: np.ndarray, groups: np.ndarray, a: int, b: int, coeffs: np.ndar
     return bool(above.min() >= -OCCLUSION_MARGIN * s and above.max() > OCCLUSION_MARGIN * s)
 
 
-def _join_box(p: tuple[slice, slice], q: tuple[slice, slice]) -> tuple[slice, slice]:
-    """The bounding box of two boxes."""
-    return (slice(min(p[0].start, q[0].start), max(p[0].stop, q[0].stop)),
-            slice(min(p[1].start, q[1].start), max(p[1].stop, q[1].stop)))
-
-
 def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[float, int, int]],
-          flat: np.ndarray, rms: np.ndarray, s: float, config: Config) -> np.ndarray:
-    """Join the pairs that pass Notes 2 and 3, by increasing union error (Notes 4)."""
+          flat: np.ndarray, rms: np.ndarray, counts: np.ndarray, s: float, config: Config
+          ) -> np.ndarray:
+    """Join the pairs that pass Notes 2 and 3, by increasing union error (Notes 4).
+
+    ``rms`` and ``counts``: each region's own RMS error and pixel count.
+    """
     level = config.split.fit_factor * s
     floor = math.sqrt(config.grow.min_error)
-    groups, grms = lab.copy(), rms.copy()
-    counts = np.bincount(lab.ravel(), minlength=rms.size).astype(np.float64)
+    groups, grms, counts = lab.copy(), rms.copy(), counts.astype(np.float64)
     boxes = dict(enumerate(ndimage.find_objects(lab), start=1))
     root = np.arange(rms.size)
     changed = False
@@ -211,9 +200,7 @@ def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[float, int, int]],
     def one_surface(a: int, b: int, union: float) -> bool:  # Notes 2
         if union > min(level, config.split.min_gain * max(grms[a], grms[b], floor)):
             return False
-        excess = (union ** 2 * (counts[a] + counts[b]) - grms[a] ** 2 * counts[a]
-                  - grms[b] ** 2 * counts[b])
-        return not 0 < evidence <= excess
+        return not 0 < evidence <= union_excess(union, grms, counts, a, b)
 
     for mse_quadric, i, j in pairs:
         a, b = int(root[i]), int(root[j])
