@@ -406,6 +406,8 @@ def test_rerun_into_the_input_folder_may_overwrite_its_own_results(runner, box_p
      "\"images\" entry 'box': \"stages\" is not a list of stage names"),
     (lambda m: m | {"images": {"box": {"status": None}}},
      "\"images\" entry 'box': \"status\" is null, not a string"),
+    (lambda m: m | {"images": {"box": {"input_stamp": 5}}},
+     "\"images\" entry 'box': \"input_stamp\" is a number, not a string"),
     (lambda m: m | {"config": []}, '"config" is a list, not an object of tables'),
     (lambda m: [m], "it holds a list, not an object"),
 ])
