@@ -71,3 +71,19 @@ def test_the_options_are_parsed_into_seeds_scenes_and_size() -> None:
     assert quality.frame_size("480X640") == (480, 640)
     assert quality.frame_size("64") == (64, 64)
     assert quality.set_item("split.rounds=1") == "split.rounds=1"
+
+
+def test_best_overlap_is_the_smaller_share_of_the_nearest_region() -> None:
+    gt = np.zeros((4, 10), np.int32)
+    gt[:, :5] = 1  # 20 pixels
+    pred = np.zeros((4, 10), np.int32)
+    pred[:, :4] = 3  # 16 of them: 16/20 of G, 16/16 of R
+    pred[:, 4:] = 5  # 4 of them in a region of 24: 4/20, 4/24
+    assert quality.best_overlap(gt, pred, 1) == pytest.approx(0.8)
+    pred[:, 4] = 3  # R holds all of G and nothing else
+    assert quality.best_overlap(gt, pred, 1) == pytest.approx(1.0)
+    pred[:, 5] = 3  # R grows beyond G: 20/24 of R
+    assert quality.best_overlap(gt, pred, 1) == pytest.approx(20 / 24)
+    pred[:] = 0  # unlabelled pixels are no region
+    assert quality.best_overlap(gt, pred, 1) == 0.0
+    assert quality.best_overlap(gt, pred, 7) == 0.0  # no such GT region
