@@ -46,13 +46,17 @@ from typing import Any
 import numpy as np
 
 from . import __version__, io, parallel, render
-from .config import Config, InputConfig, build_config
+from .config import STAGE_TABLES, Config, InputConfig, build_config
 from .errors import ClusterLost, InputError, OutputError, RangesegError
 from .io import Location
 from .pipeline import STAGES, stage_edges, stage_grow_and_gaps, stage_holdsite, stage_link
 from .rangeimage import clipped_value, to_heights
 
 MANIFEST = "rangeseg-run.json"
+
+#: Significant digits of the manifest's floats: 17 give every float back exactly, so
+#: the configuration the stage commands read from it is the one that was run.
+MANIFEST_DIGITS = 17
 #: Most ``n_jobs`` a batch takes: worker processes here, or images in flight on Dask.
 MAX_JOBS = 1024
 log = logging.getLogger(__name__)
@@ -548,7 +552,26 @@ def _entry_problem(entry: Any) -> str | None:
     stages = entry.get("stages", [])
     if not (isinstance(stages, list) and all(isinstance(s, str) for s in stages)):
         return '"stages" is not a list of stage names'
+    digests = entry.get("stage_configs", {})
+    if not (isinstance(digests, dict) and all(isinstance(d, str) for d in digests.values())):
+        return '"stage_configs" is not an object of stage names and digests'
     return None
+
+
+def _stage_configs(entry: dict[str, Any], config: Config) -> dict[str, str]:
+    """The entry's current stages and the digests of the tables they were made with.
+
+    ``config`` stands in for a manifest written before per-stage digests
+    (``stage_configs``): there the entry's stages are current under the same
+    whole configuration only.
+    """
+    recorded = entry.get("stage_configs")
+    if isinstance(recorded, dict):
+        return {s: d for s, d in recorded.items() if s in entry.get("stages", [])}
+    if entry.get("config") != config.digest():
+        return {}
+    digests = config.stage_digests()
+    return {s: digests[s] for s in entry.get("stages", []) if s in digests}
 
 
 def _json_kind(value: Any) -> str:
@@ -589,7 +612,7 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         ``resume`` nor ``overwrite`` is set.
     """
     images = read_manifest(out).get("images", {})
-    jobs, refused = _refuse_stale(jobs, images, stages[0])
+    jobs, refused = _refuse_stale(jobs, images, stages[0], config)
     if overwrite:
         return jobs, refused
     exists = io.file_checker(out)
@@ -602,10 +625,12 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
                 "or --overwrite to redo all")
         return jobs, refused
     todo, skipped = [], list(refused)
+    digests = config.stage_digests()
     for job in jobs:
         entry = images.get(job.rel, {})
-        complete = (entry.get("status") == "done" and entry.get("config") == config.digest()
-                    and set(stages) <= set(entry.get("stages", []))
+        made = _stage_configs(entry, config)
+        complete = (entry.get("status") == "done"
+                    and all(made.get(s) == digests[s] for s in stages)
                     and _same_input(job, entry, stages[0])
                     and all(exists(f"{job.rel}.{n}")
                             for n in expected_files(job.rel, stages, config)))
@@ -629,26 +654,34 @@ def _same_input(job: Job, entry: dict[str, Any], first: str) -> bool:
     return stamp is not None and stamp == io.input_stamp(job.source)
 
 
-def _refuse_stale(jobs: list[Job], images: dict[str, Any], first: str
+def _refuse_stale(jobs: list[Job], images: dict[str, Any], first: str, config: Config
                   ) -> tuple[list[Job], list[Record]]:
     """Jobs whose earlier stage is current, and failed records for the others.
 
     A stage command (``link``, ``grow``, ``holdsite``) needs the result of the
-    stage before it. The manifest lists, per image, the stages whose outputs
-    are current: running a stage again (``edges --overwrite``) drops the later
-    ones, so ``holdsite`` never combines new heights with old labels. Images
-    the manifest does not list are run as they are.
+    stage before it, made with the settings it runs with (the tables of
+    :data:`~rangeseg_cli.config.STAGE_TABLES` up to that stage). The manifest
+    lists, per image, the stages whose outputs are current and the digests of
+    their settings: running a stage again (``edges --overwrite``) drops the
+    later ones, so ``holdsite`` never combines new heights with old labels.
+    Images the manifest does not list are run as they are. A refused image's
+    entry and files are left as they are: nothing was run.
     """
     if first == STAGES[0]:
         return jobs, []
     before = STAGES[STAGES.index(first) - 1]
+    wanted = config.stage_digests()[before]
+    upto = list(STAGE_TABLES)[: STAGES.index(before) + 1]
+    tables = ", ".join(f"[{t}]" for stage in upto for t in STAGE_TABLES[stage])
     todo, refused = [], []
     for job in jobs:
         entry = images.get(job.rel)
-        if isinstance(entry, dict) and before not in entry.get("stages", []):
+        if isinstance(entry, dict) and _stage_configs(entry, config).get(before) != wanted:
             refused.append(Record(rel=job.rel, status="failed", error=(
-                f"{job.rel}: its `{before}` result is missing, failed or older than its "
-                f"earlier stages; run `rangeseg {before}` on this folder first")))
+                f"{job.rel}: its `{before}` result is missing, failed, older than its "
+                f"earlier stages or made with other settings of {tables} than these; run "
+                f"`rangeseg {before}` on this folder first, or give this command the "
+                "--config, --preset and --set that made it")))
         else:
             todo.append(job)
     return todo, refused
@@ -660,24 +693,31 @@ class _Manifest:
     def __init__(self, out: Location, config: Config, command: str, stages: tuple[str, ...]):
         self.out, self.config, self.stages = out, config, stages
         self.data = read_manifest(out) if out.exists() else {}
-        self.data.update({"version": __version__, "config": config.to_dict(),
-                          "config_digest": config.digest(), "command": command})
+        # the configuration the results were last made with: recorded once an image is run
+        # (the stage commands' default); a command that runs none leaves it as it was
+        self.header = {"version": __version__, "config": config.to_dict(),
+                       "config_digest": config.digest(), "command": command}
+        if "config" not in self.data:
+            self.data.update(self.header)
         self.data.setdefault("images", {})
+        self.digests = config.stage_digests()
         self.last_write = 0.0
 
     def add(self, record: Record) -> None:
         if record.status == "skipped":
             return
+        self.data.update(self.header)
         entry = record.to_dict()
         old = self.data["images"].get(record.rel, {})
-        same = old.get("config") == self.config.digest()
         first = STAGES.index(self.stages[0])
-        # the stages before these stay current; these and the later ones are redone or lost
-        stages = {s for s in old.get("stages", [])
-                  if same and s in STAGES and STAGES.index(s) < first}
+        # the stages before these stay current when the tables they read are unchanged;
+        # these and the later ones are redone or lost
+        kept = {s: d for s, d in _stage_configs(old, self.config).items()
+                if s in STAGES and STAGES.index(s) < first and self.digests.get(s) == d}
         if record.status == "done":
-            stages |= set(self.stages)
-        entry["stages"] = [s for s in STAGES if s in stages]
+            kept.update({s: self.digests[s] for s in self.stages})
+        entry["stages"] = [s for s in STAGES if s in kept]
+        entry["stage_configs"] = {s: kept[s] for s in entry["stages"]}
         entry["config"] = self.config.digest()
         for key in ("input", "input_stamp", "noise_sigma", "clipped_pixels"):
             if key not in entry and key in old:
@@ -689,13 +729,13 @@ class _Manifest:
     def start(self) -> None:
         """Write it before any image: OUT exists then, also on an object store."""
         io.make_folder(self.out)
-        io.write_json(self.out / MANIFEST, self.data, digits=6)
+        io.write_json(self.out / MANIFEST, self.data, digits=MANIFEST_DIGITS)
 
     def write(self, summary: BatchSummary | None = None) -> None:
         if summary is not None:
             self.data["summary"] = summary.to_dict()
         io.make_folder(self.out)
-        io.write_json(self.out / MANIFEST, self.data, digits=6)
+        io.write_json(self.out / MANIFEST, self.data, digits=MANIFEST_DIGITS)
         self.last_write = time.monotonic()
 
 
@@ -781,8 +821,10 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
             if on_result is not None:
                 on_result(record)
 
-        for record in refused:
-            finish(record)
+        for record in refused:  # nothing was run: their entries and files stay as they are
+            records.append(record)
+            if on_result is not None:
+                on_result(record)
         try:
             execute(todo, out, config, stages, finish)
         except KeyboardInterrupt:

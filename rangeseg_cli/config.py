@@ -292,11 +292,34 @@ class Config:
             for table in dataclasses.fields(self)
         }
 
-    def digest(self) -> str:
-        """Short stable hash of the configuration (for ``--resume``)."""
-        text = json.dumps(self.to_dict(), sort_keys=True, default=str)
+    def digest(self, tables: tuple[str, ...] | None = None) -> str:
+        """Short stable hash of the configuration, or of some of its tables (``--resume``)."""
+        whole = self.to_dict()
+        chosen = whole if tables is None else {t: whole[t] for t in tables}
+        text = json.dumps(chosen, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
+    def stage_digests(self) -> dict[str, str]:
+        """Per stage, the digest of the tables that its result and the earlier ones depend on.
+
+        A stage's result depends on its own table(s) and on everything the
+        stages before it used (:data:`STAGE_TABLES`, cumulative): changing
+        ``[holdsite]`` leaves the edges, components and labels current,
+        changing ``[grow]`` or ``[split]`` leaves the edges and components.
+        """
+        out, used = {}, ()
+        for stage, tables in STAGE_TABLES.items():
+            used += tables
+            out[stage] = self.digest(used)
+        return out
+
+
+#: The tables each stage reads, in stage order (``input`` and ``output`` shape every stage's
+#: files: heights, camera frame, pictures and digits; the noise-scaled thresholds).
+STAGE_TABLES: dict[str, tuple[str, ...]] = {
+    "edges": ("input", "output", "step", "roof"), "link": ("link",), "grow": ("grow", "split"),
+    "holdsite": ("holdsite",),
+}
 
 _TABLE_CLASSES: dict[str, type] = {
     "input": InputConfig, "step": StepConfig, "roof": RoofConfig, "link": LinkConfig,

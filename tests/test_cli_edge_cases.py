@@ -162,8 +162,9 @@ def test_redone_edges_make_later_stages_out_of_date(runner, box_png, tmp_path):
     assert (out / "box.edges.npy").exists()
     res = runner.invoke(main, ["holdsite", str(out), "-j", "1"])
     assert res.exit_code == 1
-    assert "box: its `grow` result is missing, failed or older than its earlier stages; run " \
-           "`rangeseg grow` on this folder first" in res.output
+    assert "box: its `grow` result is missing, failed, older than its earlier stages or " \
+           "made with other settings of [input], [output], [step], [roof], [link], [grow], " \
+           "[split] than these; run `rangeseg grow` on this folder first" in res.output
     for stage in ("link", "grow", "holdsite"):
         assert runner.invoke(main, [stage, str(out), "-j", "1", "-q"]).exit_code == 0
     manifest = json.loads((out / "rangeseg-run.json").read_text())
@@ -546,3 +547,83 @@ def test_eval_plot_write_failing_after_scoring_is_one_line(runner, scored, tmp_p
     assert res.exit_code == 1
     assert one_line_error(res) == f"Error: {plot}: cannot write (No space left on device)"
     assert not plot.exists()
+
+
+def _entry(out) -> dict:
+    return json.loads((out / "rangeseg-run.json").read_text())["images"]["box"]
+
+
+def test_a_stage_command_twice_with_a_config_of_many_digits_is_current(runner, box_png,
+                                                                        tmp_path):
+    # The manifest used to round the configuration to 6 digits: the stage commands read
+    # it back changed, so the second `holdsite` found every earlier stage "older" and
+    # marked the image failed.
+    toml = tmp_path / "c.toml"
+    toml.write_text("[step]\nthreshold = 6.123456789\n[holdsite]\nmax_ar_std = 1.000000123\n")
+    out = tmp_path / "out"
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1",
+                               "--config", str(toml)])
+    assert res.exit_code == 0, res.output
+    manifest = json.loads((out / "rangeseg-run.json").read_text())
+    assert manifest["config"]["step"]["threshold"] == 6.123456789
+    first = (out / "box.holdsite.json").read_bytes()
+    for _ in range(2):
+        res = runner.invoke(main, ["holdsite", str(out), "-j", "1"])
+        assert res.exit_code == 0, res.output
+        assert _entry(out)["stages"] == ["edges", "link", "grow", "holdsite"]
+        assert (out / "box.holdsite.json").read_bytes() == first
+
+
+def test_new_settings_of_a_later_stage_keep_the_earlier_stages_current(runner, box_png,
+                                                                       tmp_path):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    res = runner.invoke(main, ["holdsite", str(out), "-j", "1",
+                               "--set", "holdsite.max_ar_std=2"])
+    assert res.exit_code == 0, res.output
+    assert _entry(out)["stages"] == ["edges", "link", "grow", "holdsite"]
+    res = runner.invoke(main, ["grow", str(out), "-j", "1", "--set", "split.facets=false"])
+    assert res.exit_code == 0, res.output
+    entry = _entry(out)
+    assert entry["stages"] == ["edges", "link", "grow"]  # the holdsite came from old labels
+    assert not (out / "box.holdsite.json").exists()
+    assert entry["stage_configs"]["link"] != entry["stage_configs"]["grow"]
+
+
+def test_a_refused_image_keeps_its_entry_and_its_files(runner, box_png, tmp_path):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    before = _entry(out)
+    site = (out / "box.holdsite.json").read_bytes()
+    # other settings of an earlier stage than the labels were made with: refused, not mixed
+    res = runner.invoke(main, ["holdsite", str(out), "-j", "1",
+                               "--set", "link.min_component=50"])
+    assert res.exit_code == 1
+    assert "box: its `grow` result is missing, failed, older than its earlier stages or " \
+           "made with other settings of" in res.output
+    assert "give this command the --config, --preset and --set that made it" in res.output
+    after = _entry(out)
+    assert after["status"] == "done" and after["stages"] == before["stages"]
+    assert after["stage_configs"] == before["stage_configs"]
+    assert (out / "box.holdsite.json").read_bytes() == site
+    # and the folder still goes on as it was
+    assert runner.invoke(main, ["holdsite", str(out), "-j", "1", "-q"]).exit_code == 0
+
+
+def test_a_manifest_without_stage_digests_keeps_its_stages_under_the_same_config(
+        runner, box_png, tmp_path):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    path = out / "rangeseg-run.json"
+    manifest = json.loads(path.read_text())
+    del manifest["images"]["box"]["stage_configs"]  # as written before they were recorded
+    path.write_text(json.dumps(manifest))
+    res = runner.invoke(main, ["holdsite", str(out), "-j", "1"])
+    assert res.exit_code == 0, res.output
+    assert _entry(out)["stages"] == ["edges", "link", "grow", "holdsite"]
+    manifest = json.loads(path.read_text())
+    manifest["images"]["box"]["stage_configs"] = {"grow": 7}
+    path.write_text(json.dumps(manifest))
+    res = runner.invoke(main, ["holdsite", str(out), "-j", "1"])
+    assert res.exit_code == 2
+    assert '"stage_configs" is not an object of stage names and digests' in res.output
