@@ -62,8 +62,10 @@ json_opt = click.option("--json", "as_json", is_flag=True,
 
 def _not_empty(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
     """An empty path is a usage error: the current folder, as an unset ``$OUT`` says it."""
+    from .io import is_empty_path
+
     for item in value if isinstance(value, tuple) else (value,):
-        if isinstance(item, str) and not item.strip():
+        if isinstance(item, str) and is_empty_path(item):
             raise click.BadParameter("an empty path (an unset shell variable?); for the "
                                      "current folder write .", ctx=ctx, param=param)
     return value

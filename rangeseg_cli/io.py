@@ -220,6 +220,14 @@ class URLPath:
 Location: TypeAlias = Path | URLPath
 
 
+def is_empty_path(text: str) -> bool:
+    """Whether a path as typed names nothing: ``""``, blanks, or ``file://`` without a path."""
+    if text.lower().startswith("file://"):
+        parts = urlsplit(text)
+        return parts.netloc in ("", "localhost") and not unquote(parts.path).strip()
+    return not text.strip()
+
+
 def location(name: str | PurePath | URLPath) -> Location:
     """The local path or :class:`URLPath` that ``name`` (as typed by a user) names.
 
@@ -239,6 +247,9 @@ def location(name: str | PurePath | URLPath) -> Location:
         if parts.netloc not in ("", "localhost"):
             raise StorageError(f"{text}: a file:// URL names a file of this machine, "
                                f"file:///path; got host {parts.netloc!r}")
+        if is_empty_path(text):  # Path("") is the current folder
+            raise StorageError(f"{text}: a file:// URL without a path (an unset shell "
+                               "variable?); for the current folder write .")
         return Path(unquote(parts.path))
     return URLPath(text)
 

@@ -48,6 +48,8 @@ def test_output_folder_below_a_file_is_one_line_exit_2(runner, box_png, tmp_path
     ["synth", ""],
     ["eval", "", "{tmp}"],
     ["eval", "{tmp}", "{tmp}", "--plot", ""],
+    ["run", "{png}", "-o", "file://"],   # -o "file://$OUT" with OUT unset
+    ["run", "file://localhost", "-o", "{tmp}/out"],
 ])
 def test_an_empty_path_is_a_usage_error_not_the_current_folder(runner, box_png, tmp_path,
                                                                monkeypatch, args):

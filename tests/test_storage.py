@@ -328,3 +328,13 @@ def test_writes_to_a_filesystem_without_atomic_puts_go_through_a_moved_temporary
     (Path(tmp_path) / "out" / ".a.npy.1234.tmp").write_bytes(b"half")
     io.remove_temporaries(where)
     assert not list(tmp_path.rglob("*.tmp"))
+
+
+@pytest.mark.parametrize("name", ["file://", "file://localhost", "FILE://"])
+def test_a_file_url_without_a_path_is_refused_not_the_current_folder(name):
+    from rangeseg_cli.errors import StorageError
+    from rangeseg_cli.io import location
+
+    with pytest.raises(StorageError, match="without a path"):
+        location(name)
+    assert location("file:///") == Path("/")
