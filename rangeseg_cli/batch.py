@@ -50,7 +50,7 @@ from .config import STAGE_TABLES, Config, InputConfig, build_config
 from .errors import ClusterLost, InputError, OutputError, RangesegError
 from .io import Location
 from .pipeline import STAGES, stage_edges, stage_grow_and_gaps, stage_holdsite, stage_link
-from .rangeimage import clipped_value, to_heights
+from .rangeimage import MAX_ABS_HEIGHT, MAX_EDGE_CODE, clipped_value, to_heights
 
 MANIFEST = "rangeseg-run.json"
 
@@ -288,6 +288,16 @@ def _read_map(base: Location, name: str, kind: str, z: np.ndarray | None = None
                           f"{_p(base, 'range.npy')} {z.shape}; run the stages before it again")
     if kind == "i":
         _check_label_range(path, arr)
+    elif kind == "u" and arr.size and int(arr.max()) > MAX_EDGE_CODE:
+        raise OutputError(f"{path}: edge code {int(arr.max())} is outside 0..{MAX_EDGE_CODE}: "
+                          "not an edge map rangeseg writes; run the stages before it again")
+    elif kind == "f":
+        finite = np.abs(arr[np.isfinite(arr)])
+        if finite.size == 0 or float(finite.max()) > MAX_ABS_HEIGHT:
+            what = "no valid height" if finite.size == 0 else f"height {finite.max():.3g}"
+            raise OutputError(f"{path}: {what}; rangeseg writes heights within "
+                              f"+-{MAX_ABS_HEIGHT:.0e}, finite somewhere; run the stages "
+                              "before it again")
     return arr
 
 

@@ -520,6 +520,35 @@ def _check_consistency(config: Config) -> None:
         )
 
 
+def check_config(config: Any) -> None:
+    """Check a :class:`Config` made without :func:`load_config` (a table built by hand).
+
+    The tables are frozen dataclasses: ``Config(step=StepConfig(threshold=nan))``
+    or :func:`dataclasses.replace` skips the checks of :func:`load_config`.
+    This makes them on every value and across tables, as :func:`load_config` does.
+
+    Raises
+    ------
+    TypeError
+        When ``config`` is not a :class:`Config`, or one of its tables not
+        the table's class.
+    ConfigError
+        For a value of the wrong type or out of range, or tables that do not
+        agree (the messages of :func:`load_config`).
+    """
+    if not isinstance(config, Config):
+        raise TypeError(f"config must be a rangeseg_cli.config.Config (load_config() makes "
+                        f"one), got {type(config).__name__}")
+    for name, cls in _TABLE_CLASSES.items():
+        table = getattr(config, name)
+        if not isinstance(table, cls):
+            raise TypeError(f"config.{name} must be a {cls.__name__}, got "
+                            f"{type(table).__name__}")
+        for f in dataclasses.fields(cls):
+            _coerce(name, f, getattr(table, f.name))
+    _check_consistency(config)
+
+
 def merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
     """Merge two nested ``{table: {key: value}}`` dicts; ``extra`` wins."""
     out = {t: dict(v) if isinstance(v, dict) else v for t, v in base.items()}

@@ -102,7 +102,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from .config import Config, HoldsiteConfig, InputConfig
+from .config import Config, HoldsiteConfig, InputConfig, check_config
 from .edges import Backend, ar_2d, gaussian_taps, select_kernels
 from .errors import InputError
 from .grow import evaluate_quadric, valid_labels
@@ -1009,6 +1009,10 @@ def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto"
                          f"({z.shape})")
     if labels.dtype.kind not in "iu":
         raise InputError(f"`labels` (dtype {labels.dtype}) must be integer")
+    if labels.size and not 0 <= int(labels.min()) <= int(labels.max()) <= labels.size:
+        bad = int(labels.min()) if int(labels.min()) < 0 else int(labels.max())
+        raise InputError(f"`labels` holds {bad}: labels must lie in 0..{labels.size} (the "
+                         "pixel count)")
     # int32 where it holds every label: the compiled boundary pairs run twice as wide
     if np.can_cast(labels.dtype, np.int32):
         return z, valid_labels(z, labels, backend=backend)[0]
@@ -1124,12 +1128,14 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     Raises
     ------
     InputError
-        When ``labels`` is not an integer array of the shape of ``z``.
+        When ``labels`` is not an integer array of the shape of ``z`` with
+        labels from 0 to its pixel count.
     """
     z, labels = _check(z, labels, backend)
+    check_config(config)
     valid = np.isfinite(z)
-    by_id = {s.id: s for s in surfaces if s.id > 0}
-    n = max(int(labels.max(initial=0)), max(by_id, default=0))
+    n = int(labels.max(initial=0))
+    by_id = {s.id: s for s in surfaces if 0 < s.id <= n}  # the others have no pixel
     known = np.zeros(n + 1, dtype=bool)
     known[list(by_id)] = True
     labels = np.where(known[labels], labels, 0)

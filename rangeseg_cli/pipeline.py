@@ -23,12 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from .config import Config, load_config
+from .config import Config, check_config, load_config
 from .edges import EdgeMaps, detect_edges
 from .models import Surface
 from .noise import estimate_noise
 from .parallel import blas_one_thread, row_bands
-from .rangeimage import to_heights
+from .rangeimage import check_stage_arrays, to_heights
 
 #: Stage names in order.
 STAGES = ("edges", "link", "grow", "holdsite")
@@ -100,7 +100,14 @@ def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) ->
 
     With ``[input] auto_thresholds`` the thresholds are scaled to the noise of
     ``z``: ``noise`` when the caller has estimated it, computed here otherwise.
+
+    The arguments are checked first: ``ValueError`` for arrays that are not
+    what the stage takes (:func:`~rangeseg_cli.rangeimage.check_stage_arrays`),
+    ``ConfigError`` for a configuration value out of range
+    (:func:`~rangeseg_cli.config.check_config`).
     """
+    check_stage_arrays(z)
+    check_config(config)
     if config.input.auto_thresholds:
         from .noise import noise_scaled_config
 
@@ -110,9 +117,17 @@ def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) ->
 
 def stage_link(z: np.ndarray, codes: np.ndarray, config: Config
                ) -> tuple[np.ndarray, np.ndarray]:
-    """Step 3 (Sec. V-3): linked edge codes and connected components."""
+    """Step 3 (Sec. V-3): linked edge codes and connected components.
+
+    The arguments are checked first: ``ValueError`` for arrays that are not
+    what the stage takes (:func:`~rangeseg_cli.rangeimage.check_stage_arrays`),
+    ``ConfigError`` for a configuration value out of range
+    (:func:`~rangeseg_cli.config.check_config`).
+    """
     from .link import link_edges
 
+    check_stage_arrays(z, edges=codes)
+    check_config(config)
     return link_edges(codes, ~np.isnan(z), config.link)
 
 
@@ -242,10 +257,17 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     merged (:func:`~rangeseg_cli.merge.merge_planes`).
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
+
+    The arguments are checked first: ``ValueError`` for arrays that are not
+    what the stage takes (:func:`~rangeseg_cli.rangeimage.check_stage_arrays`),
+    ``ConfigError`` for a configuration value out of range
+    (:func:`~rangeseg_cli.config.check_config`).
     """
     from .grow import component_fits, grow_regions
     from .surfaces import describe_surfaces_and_gaps
 
+    check_stage_arrays(z, edges=edges, components=components)
+    check_config(config)
     fits = component_fits(z, components)  # seeds the growth; the split tests them
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
     cfg = config.split
@@ -308,9 +330,10 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
     image
         Array-like (H, W) or (H, W, 1) of raw values, read as ``[input]`` says.
     config
-        The configuration; the paper's defaults when ``None``.
+        The configuration; the defaults of :func:`~rangeseg_cli.config.load_config`
+        when ``None`` (``load_config(preset="paper")`` is the paper's pipeline).
     stages
-        How many stages of :data:`STAGES` to run (4 = all).
+        How many stages of :data:`STAGES` to run, 1 to 4 (4 = all).
     name
         Named in error messages.
 
@@ -325,12 +348,19 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
         When ``image`` is not a usable range image.
     TypeError
         When ``config`` is not a :class:`~rangeseg_cli.config.Config`.
+    ConfigError
+        When a value of ``config`` is of the wrong type or out of range (a
+        table built by hand: :func:`~rangeseg_cli.config.check_config`).
+    ValueError
+        When ``stages`` is not an integer from 1 to 4.
     """
+    if isinstance(stages, bool) or not isinstance(stages, int | np.integer) or not (
+            1 <= stages <= len(STAGES)):
+        raise ValueError(f"`stages` = {stages!r}: expected an integer from 1 to {len(STAGES)}")
     if config is None:
         config = load_config()
-    elif not isinstance(config, Config):
-        raise TypeError(f"config must be a rangeseg_cli.config.Config (load_config() makes one "
-                        f"from a TOML file, a preset or overrides), got {type(config).__name__}")
+    else:
+        check_config(config)  # a table built by hand skips load_config's checks
     with blas_one_thread(shares_threads(getattr(image, "shape", None), config)):
         return _run(image, config, stages, name)
 

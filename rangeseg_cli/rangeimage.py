@@ -172,6 +172,44 @@ def require_shape_of_z(z: np.ndarray, **arrays: Any) -> None:
                              f"({np.shape(z)})")
 
 
+#: Highest edge code of the edge maps (none 0, step 1, roof 2, linked 3: ``edges.py``).
+MAX_EDGE_CODE = 3
+
+
+def check_stage_arrays(z: Any, *, edges: Any = None, **label_maps: Any) -> None:
+    """Check the arrays a stage function is given, before any work (the library's front door).
+
+    ``z``: a 2-D array of real numbers (heights, NaN where invalid), not empty. ``edges``
+    (optional): edge codes 0..3 of ``z``'s shape. Each of ``label_maps``
+    (components, labels): integers of ``z``'s shape from 0 to the pixel count
+    -- the stages size their tables by the largest label, so a label of 2^31
+    would ask for gigabytes.
+
+    Raises
+    ------
+    ValueError
+        One line naming the argument, what it is and what is allowed.
+    """
+    zs = np.asarray(z)
+    if zs.ndim != 2 or zs.size == 0 or zs.dtype.kind not in "biuf":
+        raise ValueError(f"`z` must be a 2-D array of heights (real numbers) with a pixel at "
+                         f"least; got shape {zs.shape}, dtype {zs.dtype}")
+    maps = dict(label_maps) if edges is None else {"edges": edges, **label_maps}
+    require_shape_of_z(zs, **maps)
+    for name, arr in maps.items():
+        values = np.asarray(arr)
+        if values.dtype.kind not in "biu":
+            raise ValueError(f"`{name}` must hold integers; got dtype {values.dtype}")
+        if values.size == 0:
+            continue
+        low, high = int(values.min()), int(values.max())
+        top = MAX_EDGE_CODE if name == "edges" else values.size
+        if low < 0 or high > top:
+            what = "edge codes" if name == "edges" else "labels (at most the pixel count)"
+            raise ValueError(f"`{name}` holds {low if low < 0 else high}: {what} must lie "
+                             f"in 0..{top}")
+
+
 def labels_on_valid(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Heights as float64 and labels as int32, 0 wherever the height is not finite.
 

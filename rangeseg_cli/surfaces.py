@@ -52,10 +52,11 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from .config import Config
+from .config import Config, check_config
 from .edges import Backend, select_kernels
 from .grow import evaluate_quadric, planar_regions, region_fits, valid_labels
 from .models import Neighbor, Surface
+from .rangeimage import check_stage_arrays
 
 #: Two regions are neighbours when pixels of both lie within this chessboard distance.
 NEIGHBOUR_REACH = 2
@@ -470,7 +471,15 @@ def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config, *,
         region, else the quadric), RMS error of that fit, type
         (planar/curved), HK shape and neighbours sorted by id (see the module
         Notes for the rules).
+
+    Raises
+    ------
+    ValueError
+        When ``z`` is not a 2-D array of numbers, or ``labels`` not integers
+        from 0 to the pixel count of its shape.
     """
+    check_stage_arrays(z, labels=labels)
+    check_config(config)
     return describe_surfaces_and_gaps(z, labels, config, backend=backend)[0]
 
 

@@ -629,3 +629,21 @@ def test_a_manifest_without_stage_digests_keeps_its_stages_under_the_same_config
     res = runner.invoke(main, ["holdsite", str(out), "-j", "1"])
     assert res.exit_code == 2
     assert '"stage_configs" is not an object of stage names and digests' in res.output
+
+
+@pytest.mark.parametrize("name, command, edit, message", [
+    ("edges.npy", "grow", lambda a: np.where(a == a.max(), 77, a).astype(a.dtype),
+     "edge code 77 is outside 0..3: not an edge map rangeseg writes"),
+    ("range.npy", "link", lambda a: np.full_like(a, np.nan), "no valid height"),
+    ("range.npy", "grow", lambda a: np.where(np.isfinite(a), 1e300, a), "height 1e+300"),
+])
+def test_a_hand_edited_edge_or_height_map_is_named_not_an_internal_error(
+        runner, box_png, tmp_path, name, command, edit, message):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    np.save(out / f"box.{name}", edit(np.load(out / f"box.{name}")))
+    res = runner.invoke(main, [command, str(out), "-j", "1", "-q"])
+    assert res.exit_code == 1
+    line = one_line_error(res)
+    assert line.startswith(f"{out / ('box.' + name)}: ") and message in line
+    assert "internal error" not in res.output and "Warning" not in res.output
