@@ -307,7 +307,8 @@ class Config:
         ``[holdsite]`` leaves the edges, components and labels current,
         changing ``[grow]`` or ``[split]`` leaves the edges and components.
         """
-        out, used = {}, ()
+        out: dict[str, str] = {}
+        used: tuple[str, ...] = ()
         for stage, tables in STAGE_TABLES.items():
             used += tables
             out[stage] = self.digest(used)
