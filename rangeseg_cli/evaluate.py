@@ -51,6 +51,7 @@ not the background (the table).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -393,10 +394,21 @@ def check_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
     -------
     dict
         ``ok`` (bool), ``reason``, ``surface`` and ``object`` (GT ids or None).
+
+    Raises
+    ------
+    ValueError
+        For a holdsite without integer ``row`` and ``col``, or with a window
+        or angle :func:`check_holdsite` cannot draw (naming the key).
     """
     result: dict[str, Any] = {"ok": False, "surface": None, "object": None}
     if holdsite is None:
         return {**result, "reason": "no holdsite reported"}
+    if not all(_is_int(holdsite.get(k)) for k in ("row", "col")):
+        raise ValueError(f"`holdsite` needs integer \"row\" and \"col\", got {dict(holdsite)!r}")
+    problem = _window_problem(holdsite)
+    if problem:
+        raise ValueError(f"`holdsite`: {problem}")
     r, c = _window(holdsite, size)
     h, w = gt.shape
     if r.min() < 0 or c.min() < 0 or r.max() >= h or c.max() >= w:
@@ -498,12 +510,36 @@ def _read_holdsite(path: Path) -> dict[str, Any] | None:
     site = data.get("holdsite", ...) if isinstance(data, dict) else ...
     if site is None:
         return None
-    if not (isinstance(site, dict) and all(isinstance(site.get(k), int) and
-                                           not isinstance(site.get(k), bool)
-                                           for k in ("row", "col"))):
+    if not (isinstance(site, dict) and all(_is_int(site.get(k)) for k in ("row", "col"))):
         raise InputError(f"{path}: not a holdsite.json of rangeseg (expected "
                          '{"holdsite": null or {"row": int, "col": int, ...}})')
+    problem = _window_problem(site)
+    if problem:
+        raise InputError(f"{path}: not a holdsite.json of rangeseg ({problem})")
     return site
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _window_problem(site: Mapping[str, Any]) -> str | None:
+    """What is wrong with a holdsite's optional ``size``/``window`` and ``angle``, or None.
+
+    A window as ``[holdsite] size`` allows it (odd, 1 to 255 pixels a side) and a
+    finite angle in degrees: what :func:`check_holdsite` draws.
+    """
+    for key in ("size", "window"):
+        value = site.get(key)
+        if value is not None and not (isinstance(value, list | tuple) and len(value) == 2
+                                      and all(_is_int(v) and 1 <= v <= 255 and v % 2 == 1
+                                              for v in value)):
+            return f'"{key}" is {value!r}, expected [rows, cols] of odd integers 1 to 255'
+    angle = site.get("angle")
+    if angle is not None and not (isinstance(angle, int | float) and not isinstance(angle, bool)
+                                  and math.isfinite(angle)):
+        return f'"angle" is {angle!r}, expected a finite number of degrees'
+    return None
 
 
 def _read_gt_info(path: Path) -> dict[str, Any]:
@@ -568,6 +604,7 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
     from .errors import InputError, RangesegError
 
     tolerance = _check_tolerance(tolerance)
+    tolerances = tuple(tolerances)  # read twice: checked here, then counted
     for t in tolerances:
         _check_tolerance(t)
     if isinstance(min_region, bool) or not isinstance(min_region, int) or min_region < 0:

@@ -256,6 +256,18 @@ def test_plot_curve_writes_a_png(tmp_path):
     ("pred/s.holdsite.json", '{"holdsite": 3}', "s.holdsite.json: not a holdsite.json of rangeseg"),
     ("pred/s.holdsite.json", '[1, 2]', "s.holdsite.json: not a holdsite.json of rangeseg"),
     ("pred/s.holdsite.json", '{"holdsite": {"row": 3}}', "not a holdsite.json"),
+    # a window or an angle the check cannot draw (an IndexError that stopped the whole eval)
+    ("pred/s.holdsite.json", '{"holdsite": {"row": 5, "col": 5, "size": [9, 3], "angle": NaN}}',
+     'not a holdsite.json of rangeseg ("angle" is nan, expected a finite number of degrees)'),
+    ("pred/s.holdsite.json", '{"holdsite": {"row": 5, "col": 5, "angle": Infinity}}',
+     'not a holdsite.json of rangeseg ("angle" is inf'),
+    ("pred/s.holdsite.json", '{"holdsite": {"row": 5, "col": 5, "size": [0, 0]}}',
+     'not a holdsite.json of rangeseg ("size" is [0, 0], expected [rows, cols] of odd '
+     'integers 1 to 255)'),
+    ("pred/s.holdsite.json", '{"holdsite": {"row": 5, "col": 5, "size": [99999, 9]}}',
+     'not a holdsite.json of rangeseg ("size" is [99999, 9]'),
+    ("pred/s.holdsite.json", '{"holdsite": {"row": 5, "col": 5, "window": "7x7"}}',
+     'not a holdsite.json of rangeseg ("window" is \'7x7\''),
     ("gt/s.gt.json", '[1, 2]', "s.gt.json: not a gt.json of rangeseg synth"),
     ("gt/s.gt.json", '{"surfaces": 3, "objects": [], "uncovered": []}', "not a gt.json"),
 ])
@@ -276,6 +288,26 @@ def test_malformed_json_beside_the_labels_is_one_line_naming_the_file(tmp_path, 
     assert res.exit_code == 1
     assert isinstance(res.exception, SystemExit)  # an exit code, not a traceback
     assert f"s: {tmp_path / file}: {message.split(': ', 1)[-1]}" in res.output
+
+
+def test_check_holdsite_names_a_key_it_cannot_draw():
+    gt = np.ones((32, 32), np.int32)
+    info = {"surfaces": [{"id": 1, "object": 1}], "objects": [{"id": 1}], "uncovered": [1]}
+    with pytest.raises(ValueError, match='"angle" is nan'):
+        check_holdsite({"row": 5, "col": 5, "size": [9, 3], "angle": float("nan")}, gt, info)
+    with pytest.raises(ValueError, match='integer "row" and "col"'):
+        check_holdsite({"col": 5}, gt, info)
+    assert check_holdsite({"row": 16, "col": 16, "size": [9, 3], "angle": 30}, gt, info)["ok"]
+
+
+def test_tolerances_may_be_any_iterable(tmp_path):
+    for d in ("pred", "gt"):
+        (tmp_path / d).mkdir()
+    labels = np.ones((32, 32), np.int32)
+    np.save(tmp_path / "pred" / "s.labels.npy", labels)
+    np.save(tmp_path / "gt" / "s.gt.npy", labels)
+    out = evaluate_folder(tmp_path / "pred", tmp_path / "gt", tolerances=(t for t in (0.5, 0.9)))
+    assert out["total"]["curve"] == {"tolerance": [0.5, 0.9], "correct": [1, 1]}
 
 
 def test_labels_of_another_shape_name_both_files(tmp_path):
