@@ -260,7 +260,23 @@ def _output_jobs(out: Any) -> list[Any]:
 # --------------------------------------------------------------------------- commands
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Group(click.Group):
+    """The command group, with Ctrl-C handled before the batch as during it.
+
+    Ctrl-C while the config is read, IMAGES are listed or the batch is planned
+    exits 130 as one during the batch does, not with click's ``Aborted!`` and
+    1 (the code of a failed image).
+    """
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            click.echo("interrupted", err=True)
+            ctx.exit(130)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="rangeseg")
 def main() -> None:
     """Segment range images into surfaces and pick vacuum-gripper holdsites.

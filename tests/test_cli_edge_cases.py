@@ -647,3 +647,37 @@ def test_a_hand_edited_edge_or_height_map_is_named_not_an_internal_error(
     line = one_line_error(res)
     assert line.startswith(f"{out / ('box.' + name)}: ") and message in line
     assert "internal error" not in res.output and "Warning" not in res.output
+
+
+def test_ctrl_c_before_the_batch_exits_130_not_aborted(runner, box_png, tmp_path,
+                                                       monkeypatch):
+    import rangeseg_cli.cli as cli
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt  # Ctrl-C while the config is read or IMAGES are listed
+
+    monkeypatch.setattr(cli, "_load_config", interrupted)
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out")])
+    assert res.exit_code == 130
+    assert "interrupted" in res.output and "Aborted" not in res.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_ctrl_c_while_the_modules_load_exits_130_without_a_traceback(monkeypatch, capsys):
+    import importlib.abc
+    import sys
+
+    from rangeseg_cli import _entry
+
+    class Interrupt(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path, target=None):
+            if name == "rangeseg_cli.cli":
+                raise KeyboardInterrupt
+            return None
+
+    monkeypatch.delitem(sys.modules, "rangeseg_cli.cli")
+    monkeypatch.setattr(sys, "meta_path", [Interrupt(), *sys.meta_path])
+    with pytest.raises(SystemExit) as stop:
+        _entry.main()
+    assert stop.value.code == 130
+    assert capsys.readouterr().err == "interrupted\n"
