@@ -432,6 +432,8 @@ def _check_number(x: Any, f: dataclasses.Field, integer: bool) -> bool:
 
 def _coerce(table: str, f: dataclasses.Field, value: Any) -> Any:
     """Check one value against its declaration; return it in the field's type."""
+    if type(value).__module__ == "numpy" and getattr(value, "shape", None) == ():
+        value = value.item()  # a numpy scalar (np.int64(5), np.float32(0.5), np.bool_)
     kind = _kind(f)
     ok: bool
     if kind is bool:
@@ -589,7 +591,12 @@ def load_config(
     ConfigError
         For an unreadable file, invalid TOML, an unknown preset, table or key,
         a wrong type or a value out of range.
+    TypeError
+        When ``overrides`` is not a dict.
     """
+    if overrides is not None and not isinstance(overrides, dict):
+        raise TypeError(f"`overrides` must be a dict of tables, {{table: {{key: value}}}} "
+                        f"(parse_settings makes one), got {type(overrides).__name__}")
     values: dict[str, Any] = {}
     if preset is not None:
         if preset not in PRESETS:
@@ -617,12 +624,21 @@ def parse_settings(items: Iterable[str]) -> dict[str, dict[str, Any]]:
     Raises
     ------
     ConfigError
-        For an item without ``=`` or without a table and a key.
+        For an item without ``=``, without a table and a key, or with a line break.
+    TypeError
+        When ``items`` is not a list (a tuple, ...) of strings.
     """
+    if isinstance(items, str | bytes) or not isinstance(items, Iterable):
+        raise TypeError(f"`items` must be a list of 'TABLE.KEY=VALUE' strings, got "
+                        f"{type(items).__name__}")
     out: dict[str, dict[str, Any]] = {}
     for item in items:
+        if not isinstance(item, str):
+            raise TypeError(f"`items` must hold 'TABLE.KEY=VALUE' strings, got {item!r}")
+        if "\n" in item or "\r" in item:  # TOML would read the lines after the first too
+            raise ConfigError(f"{item!r}: one TABLE.KEY=VALUE per --set, on one line")
         key, sep, raw = item.partition("=")
-        table, dot, name = key.strip().partition(".")
+        table, dot, name = (part.strip() for part in key.partition("."))
         if not sep or not dot or not table or not name:
             raise ConfigError(f"{item!r}: expected TABLE.KEY=VALUE, e.g. step.threshold=8")
         try:

@@ -150,6 +150,36 @@ def test_parse_settings_reads_values_as_toml_and_bare_words_as_strings():
     for bad in ("step.threshold", "threshold=8", ".threshold=8", "step.=8"):
         with pytest.raises(ConfigError, match=f"{bad!r}: expected TABLE.KEY=VALUE"):
             parse_settings([bad])
+    assert parse_settings([" step . threshold = 8"]) == {"step": {"threshold": 8}}
+
+
+def test_a_line_break_in_a_setting_is_refused_not_half_read():
+    # TOML read the value "8\nroof.taps = 4" as 8 and a table it then dropped
+    with pytest.raises(ConfigError, match="one TABLE.KEY=VALUE per --set, on one line"):
+        parse_settings(["step.threshold=8\nroof.taps = 4"])
+
+
+@pytest.mark.parametrize("items, named", [
+    ("step.threshold=8", "got str"),
+    ([3], "got 3"),
+    (None, "got NoneType"),
+])
+def test_parse_settings_wants_a_list_of_strings(items, named):
+    with pytest.raises(TypeError, match=named):
+        parse_settings(items)
+
+
+def test_overrides_must_be_a_dict_and_numpy_scalars_are_numbers():
+    with pytest.raises(TypeError, match="`overrides` must be a dict of tables"):
+        load_config(overrides=["step.threshold=8"])
+    import numpy as np
+
+    cfg = load_config(overrides={"step": {"taps": np.int64(7), "threshold": np.float32(6.5)},
+                                 "split": {"enabled": np.bool_(False)}})
+    assert (cfg.step.taps, cfg.step.threshold, cfg.split.enabled) == (7, 6.5, False)
+    assert type(cfg.step.taps) is int and type(cfg.split.enabled) is bool
+    with pytest.raises(ConfigError, match=r"\[step\] taps = 4: expected an integer >= 3"):
+        load_config(overrides={"step": {"taps": np.int64(4)}})
 
 
 @pytest.mark.parametrize("values, match", [
