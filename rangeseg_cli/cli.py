@@ -381,15 +381,17 @@ def _parse_scenes(ctx: click.Context, param: click.Parameter, value: str | None
 
 
 def _parse_noise(ctx: click.Context, param: click.Parameter, value: str) -> list[float]:
+    from .synth import MAX_NOISE
+
     out = []
     for item in _split_csv(value, "--noise"):
         try:
-            noise = float(item)
+            noise = float(item) + 0.0  # -0 is 0: one file name, n0
         except ValueError:
             noise = float("nan")
-        if not noise >= 0 or noise == float("inf"):
-            raise click.BadParameter(f"{item!r}: expected numbers >= 0 (depth units), e.g. "
-                                     "0,1,2", param_hint="--noise")
+        if not 0 <= noise <= MAX_NOISE:
+            raise click.BadParameter(f"{item!r}: expected numbers from 0 to {MAX_NOISE:g} "
+                                     "(depth units), e.g. 0,1,2", param_hint="--noise")
         out.append(noise)
     return out
 

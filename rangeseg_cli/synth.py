@@ -1046,19 +1046,33 @@ def parse_size(text: str) -> tuple[int, int]:
     return size
 
 
+#: Largest noise sigma of a rendered scene, depth units (the 8-bit range is 255 of them).
+MAX_NOISE = 1000.0
+
+
+def _real(value: Any) -> bool:
+    """Whether ``value`` is a finite real number (not a bool, a string or NaN)."""
+    return (isinstance(value, int | float | np.integer | np.floating)
+            and not isinstance(value, bool | np.bool_) and math.isfinite(value))
+
+
 def _check_options(size: Sequence[int], noise: float, bits: int,
-                   units_per_pixel: float | None) -> tuple[int, int]:
-    if len(size) != 2 or not all(isinstance(s, int | np.integer) and 16 <= s <= 8192
-                                 for s in size):
-        raise ValueError(f"`size` {tuple(size)!r} must be two integers (rows, cols) "
-                         "from 16 to 8192")
-    if not (math.isfinite(noise) and noise >= 0):
-        raise ValueError(f"`noise` {noise!r} must be a finite number >= 0 (depth units)")
+                   units_per_pixel: float | None, table_height: float = TABLE_HEIGHT
+                   ) -> tuple[int, int]:
+    if (isinstance(size, str | bytes) or not hasattr(size, "__len__") or len(size) != 2
+            or not all(isinstance(s, int | np.integer) and not isinstance(s, bool)
+                       and 16 <= s <= 8192 for s in size)):
+        raise ValueError(f"`size` {size!r} must be two integers (rows, cols) from 16 to 8192")
+    if not (_real(noise) and 0 <= noise <= MAX_NOISE):
+        raise ValueError(f"`noise` {noise!r} must be a number from 0 to {MAX_NOISE:g} "
+                         "(depth units)")
     if bits not in BITS:
         raise ValueError(f"`bits` {bits!r} must be 8 or 16")
-    if units_per_pixel is not None and not (math.isfinite(units_per_pixel)
-                                            and units_per_pixel > 0):
+    if units_per_pixel is not None and not (_real(units_per_pixel) and units_per_pixel > 0):
         raise ValueError(f"`units_per_pixel` {units_per_pixel!r} must be a number > 0")
+    if not _real(table_height):
+        raise ValueError(f"`table_height` {table_height!r} must be a finite number (depth "
+                         "units)")
     return int(size[0]), int(size[1])
 
 
@@ -1099,7 +1113,7 @@ def render_scene(name: str, *, size: Sequence[int] = (128, 128), noise: float = 
         For an unknown scene or an option out of range (the message names it).
     """
     _check_name(name)
-    shape = _check_options(size, noise, bits, units_per_pixel)
+    shape = _check_options(size, noise, bits, units_per_pixel, table_height)
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"`seed` {seed!r} must be an integer >= 0")
     spec = SCENES[name]

@@ -195,6 +195,12 @@ def test_any_size_and_16_bit_output():
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"name": "teapot"}, "unknown"), ({"size": (8, 128)}, "size"), ({"noise": -1}, "noise"),
     ({"bits": 12}, "bits"), ({"units_per_pixel": 0}, "units_per_pixel"), ({"seed": -1}, "seed"),
+    # a blank image with ground truth, an all-255 one, or an internal TypeError before
+    ({"table_height": float("nan")}, "`table_height` nan must be a finite number"),
+    ({"table_height": float("inf")}, "`table_height` inf"), ({"table_height": "30"}, "'30'"),
+    ({"size": 64}, "`size` 64 must be two integers"), ({"size": "64x64"}, "`size` '64x64'"),
+    ({"size": (True, 64)}, "`size`"), ({"noise": 1e308}, "from 0 to 1000"),
+    ({"noise": "1"}, "`noise` '1'"), ({"units_per_pixel": float("nan")}, "units_per_pixel"),
 ])
 def test_bad_options_name_the_option(kwargs, match):
     name = kwargs.pop("name", "box")
@@ -242,6 +248,7 @@ def test_cli_synth_writes_scenes_and_rejects_bad_options(tmp_path):
     assert iio.imread(out / "box-n1.5.png").dtype == np.uint16
     assert json.loads((out / "box-n0.gt.json").read_text())["size"] == [40, 64]
     for bad, hint in ((["--scenes", "box,teapot"], "teapot"), (["--noise", "1,x"], "noise"),
+                      (["--noise", "1e308"], "'1e308': expected numbers from 0 to 1000"),
                       (["--size", "8x8"], "size"), (["--bits", "12"], "bits")):
         res = runner.invoke(main, ["synth", str(tmp_path / "bad"), *bad])
         assert res.exit_code == 2 and hint in res.output, bad
@@ -259,7 +266,7 @@ def test_noise_levels_written_under_one_name_are_a_usage_error(tmp_path):
         "digits")
     assert not (tmp_path / "sy").exists()
     res = runner.invoke(main, ["synth", str(tmp_path / "twice"), "--scenes", "box,box",
-                               "--noise", "0,0.0", "--size", "32"])
+                               "--noise", "0,0.0,-0", "--size", "32"])
     assert res.exit_code == 0 and "wrote 1 scenes (3 files)" in res.output  # one scene, once
     assert len(list((tmp_path / "twice").iterdir())) == 3
 
