@@ -123,7 +123,8 @@ class BatchSummary:
     records: list[Record]
     skipped_files: list[str]
     seconds: float
-    interrupted: bool = False
+    interrupted: bool = False  # by Ctrl-C or SIGTERM
+    terminated: bool = False  # by SIGTERM (exit code 143, not 130)
     error: str | None = None  # why the batch stopped early (the Dask scheduler was lost)
 
     def count(self, status: str) -> int:
@@ -145,7 +146,7 @@ class BatchSummary:
             "done": self.count("done"), "failed": self.count("failed"),
             "resumed": self.count("skipped"), "not_images": len(self.skipped_files),
             "seconds": self.seconds, "stage_seconds": self.stage_seconds,
-            "interrupted": self.interrupted,
+            "interrupted": self.interrupted, "terminated": self.terminated,
             "errors": {r.rel: r.error for r in self.records if r.status == "failed"},
         } | ({"stopped": self.error} if self.error else {})
 
@@ -823,7 +824,7 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         records = [r for r in records if r.status != "failed"]
         if on_start is not None:
             on_start(len(todo) + len(refused))
-        interrupted, error = False, None
+        interrupted, terminated, error = False, False, None
 
         def finish(record: Record) -> None:
             records.append(record)
@@ -837,14 +838,14 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
                 on_result(record)
         try:
             execute(todo, out, config, stages, finish)
-        except KeyboardInterrupt:
-            interrupted = True
+        except KeyboardInterrupt as exc:
+            interrupted, terminated = True, isinstance(exc, Terminated)
         except ClusterLost as exc:
             error = str(exc)
     summary = BatchSummary(records=sorted(records, key=lambda r: r.rel),
                            skipped_files=skipped_files or [],
                            seconds=time.perf_counter() - t0, interrupted=interrupted,
-                           error=error)
+                           terminated=terminated, error=error)
     manifest.write(summary)
     return summary
 
@@ -880,37 +881,49 @@ def remove_stale_temporaries(out: Location) -> None:
     io.remove_temporaries(out)
 
 
+class Terminated(KeyboardInterrupt):
+    """The batch was asked to stop by SIGTERM (``timeout``, ``docker stop``, a scheduler)."""
+
+
 class StopFlag:
-    """Ctrl-C sets a flag and the batch stops between images; a second Ctrl-C stops at once.
+    """Ctrl-C or SIGTERM sets a flag and the batch stops between images; a second stops at once.
 
     An interrupt raised inside a numba kernel would surface as a ``SystemError``
     and be recorded as a failed image; a flag checked between images keeps
     every finished image complete and the interrupted one simply not done.
-    Inside :meth:`interruptible` (a wait that does no work) Ctrl-C stops at once.
+    Inside :meth:`interruptible` (a wait that does no work) it stops at once.
+    SIGTERM raises :class:`Terminated` (exit code 143), Ctrl-C
+    :class:`KeyboardInterrupt` (130); the manifest is written either way.
     """
 
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
     def __init__(self) -> None:
-        self.requested = False
+        self.requested: int | None = None  # the signal that asked to stop
         self._waiting = False
-        self._previous: Any = None
+        self._previous: dict[int, Any] = {}
 
     def __enter__(self) -> StopFlag:
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handle)
+            self._previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
 
     def _handle(self, signum: int, frame: Any) -> None:
-        if self.requested or self._waiting:
-            raise KeyboardInterrupt
-        self.requested = True
+        first = self.requested is None
+        self.requested = signum if first else self.requested
+        if not first or self._waiting:
+            self._raise()
+
+    def _raise(self) -> None:
+        raise Terminated if self.requested == signal.SIGTERM else KeyboardInterrupt
 
     @contextmanager
     def interruptible(self) -> Iterator[None]:
-        """A block where Ctrl-C raises :class:`KeyboardInterrupt` at once."""
+        """A block where Ctrl-C or SIGTERM stops at once."""
         self.check()
         self._waiting = True
         try:
@@ -919,9 +932,9 @@ class StopFlag:
             self._waiting = False
 
     def check(self) -> None:
-        """Raise :class:`KeyboardInterrupt` once Ctrl-C was pressed."""
-        if self.requested:
-            raise KeyboardInterrupt
+        """Raise :class:`KeyboardInterrupt` (:class:`Terminated`) once asked to stop."""
+        if self.requested is not None:
+            self._raise()
 
 
 def _execute(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
@@ -993,13 +1006,15 @@ def _init_worker(threads: int = 1, parent: int | None = None) -> None:
     the batch's process, which the worker does not outlive
     (:func:`_exit_with_parent`).
 
-    Workers leave Ctrl-C to the main process, which stops the batch cleanly.
+    Workers leave Ctrl-C and SIGTERM to the main process, which stops the batch
+    cleanly.
     Each worker keeps its BLAS to one thread: the batch already uses a process
     per core, and OpenBLAS's own threads (one per core in every worker) would
     spin against each other; on 2 cores that took ``--jobs 2`` from about
     1.6x to 1.1x the throughput of ``--jobs 1``.
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for signum in StopFlag.SIGNALS:  # sent to the whole group: the batch's process decides
+        signal.signal(signum, signal.SIG_IGN)
     if parent is not None:
         _exit_with_parent(parent)
     parallel.set_threads(threads)
@@ -1013,12 +1028,14 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _exit_with_parent(parent: int) -> None:
-    """Linux: end this worker with SIGTERM when the batch's process ``parent`` dies.
+    """Linux: end this worker with SIGKILL when the batch's process ``parent`` dies.
 
     A batch killed with SIGKILL (by an OOM killer, a scheduler's time limit,
     ``kill -9``) cannot stop its pool, and the workers waited for work
     forever, each holding its memory. Elsewhere, or where ``prctl`` cannot
-    be called, nothing changes.
+    be called, nothing changes. SIGKILL, as workers ignore SIGTERM (the
+    batch's process stops them, :class:`StopFlag`); what a worker writes goes
+    through temporary files that the next run removes.
     """
     import ctypes
     import sys
@@ -1027,7 +1044,7 @@ def _exit_with_parent(parent: int) -> None:
         return
     try:
         libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+        if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) != 0:
             return
     except (OSError, AttributeError):
         return

@@ -183,14 +183,15 @@ def _set_threads(threads: int | None) -> None:
 
 
 def _exit(ctx: click.Context, summary: Any) -> None:
-    """Exit code of a finished batch: 0 all done, 1 failed or cluster lost, 130 Ctrl-C."""
+    """Exit code of a finished batch: 0 done, 1 failed or cluster lost, 130 Ctrl-C, 143 SIGTERM."""
     if summary.error:  # the Dask scheduler was lost: what finished is kept
         click.echo(f"Error: {summary.error}", err=True)
         ctx.exit(1)
     if summary.interrupted:
-        click.echo(f"interrupted: {summary.count('done')} images done and kept; rerun the "
+        how = "terminated (SIGTERM)" if summary.terminated else "interrupted"
+        click.echo(f"{how}: {summary.count('done')} images done and kept; rerun the "
                    "same command with --resume to finish", err=True)
-        ctx.exit(130)
+        ctx.exit(143 if summary.terminated else 130)
     ctx.exit(1 if summary.count("failed") else 0)
 
 

@@ -230,8 +230,14 @@ def test_random_nan_patterns_never_leak_into_labels(seed, frac):
     assert not result.labels[bad].any() and not result.edges[bad].any()
 
 
-@pytest.mark.parametrize("jobs", ["1", "2"])
-def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path, write_png, jobs):
+@pytest.mark.parametrize(("jobs", "signum", "code", "said"), [
+    ("1", signal.SIGINT, 130, "interrupted:"), ("2", signal.SIGINT, 130, "interrupted:"),
+    # `timeout`, `docker stop`, a scheduler's time limit: the manifest was left behind
+    ("2", signal.SIGTERM, 143, "terminated (SIGTERM):"),
+])
+def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path, write_png,
+                                                                        jobs, signum, code,
+                                                                        said):
     folder = tmp_path / "many"
     folder.mkdir()
     for i in range(30):
@@ -243,10 +249,10 @@ def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 2:
         time.sleep(0.02)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
-    assert "--resume" in err and "Traceback" not in err
+    assert proc.returncode == code, err
+    assert said in err and "--resume" in err and "Traceback" not in err
     manifest = json.loads((out / "rangeseg-run.json").read_text())
     done = [k for k, v in manifest["images"].items() if v["status"] == "done"]
     assert 2 <= len(done) < 30
