@@ -486,6 +486,10 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
     tables: dict[str, Any] = {}
     for table, entries in values.items():
         if table not in _TABLE_CLASSES:
+            if not isinstance(entries, dict):  # `threshold = 8` above any [table]
+                raise ConfigError(f"{source}: key {table} = {_shown(entries)} is outside any "
+                                  "table; put it under its table, e.g. [step] threshold = 8 "
+                                  "(tables: " + ", ".join(_TABLE_CLASSES) + ")")
             raise ConfigError(f"{source}: unknown table [{table}]; allowed tables: "
                               + ", ".join(_TABLE_CLASSES))
         if not isinstance(entries, dict):
@@ -653,7 +657,9 @@ def read_toml(path: Path) -> dict[str, Any]:
     """Read a TOML file, turning every failure into a one-line :class:`ConfigError`."""
     try:
         with open(path, "rb") as fh:
-            return tomllib.load(fh)
+            data = fh.read()
+        # a UTF-8 byte order mark (Windows editors write one) is not TOML's, but harmless
+        return tomllib.loads(data.removeprefix(b"\xef\xbb\xbf").decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
     except OSError as exc:

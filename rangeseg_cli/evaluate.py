@@ -139,6 +139,8 @@ def _check_labels(gt: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndar
                              "integer label image")
         if a.size and a.min() < 0:
             raise ValueError(f"`{name}` has negative labels; allowed: 0 (no region) and up")
+        if a.size and int(a.max()) > np.iinfo(np.int64).max:  # uint64: would wrap below 0
+            raise ValueError(f"`{name}` has label {int(a.max())}; allowed: 0 to 2^63 - 1")
     if gt.shape != pred.shape:
         raise ValueError(f"`pred` (shape {pred.shape}) must have the shape of `gt` "
                          f"({gt.shape})")
@@ -167,8 +169,16 @@ def connected_parts(gt: np.ndarray) -> np.ndarray:
         int64 (H, W): 0 where ``gt`` is 0; else 1..k, numbered by GT label,
         then by the raster order of each patch's first pixel. A label whose
         pixels are all 8-connected becomes one part.
+
+    Raises
+    ------
+    ValueError
+        When ``gt`` is not a 2-D integer array or holds a negative label.
     """
     gt = np.asarray(gt)
+    if gt.ndim != 2 or gt.dtype.kind not in "iu" or (gt.size and gt.min() < 0):
+        raise ValueError(f"`gt` (shape {gt.shape}, dtype {gt.dtype}) must be a 2-D image of "
+                         "labels 0 (no surface) and up")
     values, inverse = np.unique(gt, return_inverse=True)  # any label values, dense 0..m
     dense = inverse.reshape(gt.shape) + (1 if values.size and values[0] != 0 else 0)
     out = np.zeros(gt.shape, np.int64)

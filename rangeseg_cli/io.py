@@ -300,7 +300,10 @@ def read_image(path: str | Path | URLPath) -> np.ndarray:
     except PermissionError:
         raise InputError(f"{path}: permission denied") from None
     except Exception as exc:  # noqa: BLE001 - every decoder failure becomes one line
-        raise InputError(f"{path}: not a readable image ({_reason(exc)})") from None
+        reason = _reason(exc)
+        if reason.startswith("Could not find a backend"):  # imageio names a file object
+            reason = "its content is no image format rangeseg reads: PNG, PGM/PNM, TIFF, NPY"
+        raise InputError(f"{path}: not a readable image ({reason})") from None
     return check_array(raw, name=str(path))
 
 

@@ -282,3 +282,17 @@ def test_pipeline_runs_with_any_key_at_the_end_of_its_range(table, key, value):
     image = render_scene("part1", size=(64, 64), noise=2.0, seed=1).image
     result = run_pipeline(image, load_config(overrides=overrides))
     assert result.labels.shape == (64, 64)
+
+
+def test_a_toml_file_with_a_byte_order_mark_is_read(tmp_path):
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf[step]\nthreshold = 7\n")
+    assert load_config(path).step.threshold == 7
+
+
+def test_a_key_above_every_table_says_so(tmp_path):
+    path = tmp_path / "flat.toml"
+    path.write_text("threshold = 8\n")
+    with pytest.raises(ConfigError, match=r"key threshold = 8 is outside any table; put it "
+                                          r"under its table, e\.g\. \[step\] threshold = 8"):
+        load_config(path)

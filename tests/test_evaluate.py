@@ -383,3 +383,14 @@ def test_eval_gt_parts_option_judges_patches_and_says_so(tmp_path):
     assert whole["gt_parts"] is False and by_patch["gt_parts"] is True
     assert whole["total"]["correct"] == 0 and whole["total"]["gt_regions"] == 1
     assert by_patch["total"]["correct"] == by_patch["total"]["gt_regions"] == 2
+
+
+def test_labels_beyond_int64_and_negative_gt_parts_are_refused():
+    gt = np.ones((8, 8), np.uint64)
+    gt[0, 0] = 2**63 + 5  # used to wrap below 0 and vanish from the count
+    with pytest.raises(ValueError, match=r"`gt` has label 9223372036854775813"):
+        hoover_compare(gt, np.ones((8, 8), np.int32))
+    with pytest.raises(ValueError, match="labels 0 \\(no surface\\) and up"):
+        connected_parts(np.array([[-1, 0], [0, 0]]))  # the background became a region
+    with pytest.raises(ValueError, match="2-D image of labels"):
+        connected_parts(np.zeros(4, np.int32))

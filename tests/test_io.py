@@ -131,6 +131,10 @@ def test_rgb_too_small_empty_and_corrupt_files_are_named_errors(tmp_path, write_
     with pytest.raises(InputError, match=r"bad.png: not a readable image") as info:
         io.read_image(tmp_path / "bad.png")
     assert "\n" not in str(info.value)
+    (tmp_path / "text.pgm").write_text("hello, not an image\n")
+    with pytest.raises(InputError, match=r"text.pgm: not a readable image \(its content is no "
+                                         r"image format rangeseg reads: PNG, PGM/PNM"):
+        io.read_image(tmp_path / "text.pgm")  # not imageio's "Could not find a backend"
     np.save(tmp_path / "cube.npy", np.zeros((20, 20, 20)))
     with pytest.raises(InputError, match=r"cube.npy: shape \(20, 20, 20\)"):
         io.read_image(tmp_path / "cube.npy")
