@@ -681,3 +681,13 @@ def test_ctrl_c_while_the_modules_load_exits_130_without_a_traceback(monkeypatch
         _entry.main()
     assert stop.value.code == 130
     assert capsys.readouterr().err == "interrupted\n"
+
+
+@pytest.mark.parametrize("out", ["http://localhost:9/out", "HTTPS://example.com/x"])
+def test_an_out_that_can_only_be_read_is_a_usage_error(runner, box_png, out):
+    res = runner.invoke(main, ["run", str(box_png), "-o", out, "-j", "1"])
+    assert res.exit_code == 2
+    assert one_line_error(res).endswith(
+        "URLs can be read, not written; OUT must be a local folder or a store such as "
+        "s3://bucket/folder")
+    assert "NotImplementedError" not in res.output
