@@ -232,15 +232,14 @@ def _location(name: str) -> Any:
     from .errors import StorageError
     from .io import location
 
-    try:
-        where = location(name)
-    except StorageError as exc:
-        raise UsageProblem(str(exc)) from None
     protocol = name.split("://", 1)[0].lower() if "://" in name else ""
     if protocol in READ_ONLY_PROTOCOLS:
         raise UsageProblem(f"{name}: {protocol}:// URLs can be read, not written; OUT must "
                            "be a local folder or a store such as s3://bucket/folder")
-    return where
+    try:
+        return location(name)
+    except StorageError as exc:
+        raise UsageProblem(str(exc)) from None
 
 
 def _input_jobs(inputs: tuple[str, ...], out: Any) -> tuple[list[Any], list[str]]:
