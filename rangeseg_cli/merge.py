@@ -54,7 +54,7 @@ from scipy import ndimage
 
 from .config import Config
 from .grow import evaluate_quadric, fit_models, fit_quadrics, planar_regions
-from .rangeimage import HALF_NEIGHBOUR_PAIRS, labels_on_valid
+from .rangeimage import HALF_NEIGHBOUR_PAIRS, consecutive_labels, labels_on_valid
 from .split import _crease_angle
 
 
@@ -174,7 +174,8 @@ def merge_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     -------
     numpy.ndarray
         int32 (H, W) regions 1..k, k <= n, numbered in the order of their
-        smallest old id; ``labels`` as int32 when nothing is merged.
+        smallest old id (also when nothing is merged: the ids that only
+        invalid pixels held are gone).
 
     Raises
     ------
@@ -213,7 +214,7 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
     z, lab = labels_on_valid(z, labels)
     n = int(lab.max(initial=0))
     if n < 2:
-        return lab
+        return consecutive_labels(lab)  # a label only on invalid pixels leaves a gap
     zc = np.where(np.isfinite(z), z, 0.0)
     level = config.split.fit_factor * max(noise, math.sqrt(config.grow.min_error))
     ((quad, mse), (planes, mse_plane)), counts = fit_models(zc, lab, n, (2, 1))
@@ -227,7 +228,7 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
         pairs = [(i, j) for i, j in touching_pairs(lab, planes, 3.0 * level)
                  if is_plane[i] and is_plane[j]]
     if not pairs:
-        return lab
+        return consecutive_labels(lab)
     groups = _Groups(lab, rms, counts)
     first = [(_union_rms(zc, lab, groups.boxes, i, j, order), i, j) for i, j in pairs]
     floor = math.sqrt(config.grow.min_error)

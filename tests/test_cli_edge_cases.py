@@ -250,7 +250,7 @@ def test_stage_command_with_resume_completes_only_what_is_missing(runner, tmp_pa
     assert res.exit_code == 0
     assert json.loads(res.stdout) | {"seconds": 0, "stage_seconds": {}} == {
         "done": 1, "resumed": 1, "failed": 0, "not_images": 0, "interrupted": False,
-        "errors": {}, "seconds": 0, "stage_seconds": {}}
+        "terminated": False, "errors": {}, "seconds": 0, "stage_seconds": {}}
     assert (out / "b.labels.npy").exists()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from conftest import bad_setting_on_the_command_line, found_with, random_labels
@@ -166,6 +166,7 @@ def test_plane_merge_keeps_coplanar_tops_across_a_gap_apart():
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**32 - 1), shape=st.tuples(st.integers(3, 24), st.integers(3, 24)),
        regions=st.integers(1, 6), holes=st.floats(0.0, 0.6), invalid=st.floats(0.0, 0.3))
+@example(seed=8, shape=(3, 3), regions=2, holes=0.5, invalid=0.0)  # label 1 only on holes
 def test_plane_merge_only_joins_whole_regions(seed, shape, regions, holes, invalid):
     """Whatever the input: the same pixels stay labelled, every old region goes whole into
     one new region, and the new ids are 1..k in the order of their smallest old id."""
