@@ -50,7 +50,7 @@ from .config import STAGE_TABLES, Config, InputConfig, build_config
 from .errors import ClusterLost, InputError, OutputError, RangesegError
 from .io import Location
 from .pipeline import STAGES, stage_edges, stage_grow_and_gaps, stage_holdsite, stage_link
-from .rangeimage import MAX_ABS_HEIGHT, MAX_EDGE_CODE, clipped_value, to_heights
+from .rangeimage import MAX_ABS_HEIGHT, MAX_EDGE_CODE, clipped_value, to_heights, value_outside
 
 MANIFEST = "rangeseg-run.json"
 
@@ -287,11 +287,13 @@ def _read_map(base: Location, name: str, kind: str, z: np.ndarray | None = None
     if z is not None and arr.shape != z.shape:
         raise OutputError(f"{path}: shape {arr.shape} differs from the heights "
                           f"{_p(base, 'range.npy')} {z.shape}; run the stages before it again")
-    if kind == "i":
-        _check_label_range(path, arr)
-    elif kind == "u" and arr.size and int(arr.max()) > MAX_EDGE_CODE:
-        raise OutputError(f"{path}: edge code {int(arr.max())} is outside 0..{MAX_EDGE_CODE}: "
-                          "not an edge map rangeseg writes; run the stages before it again")
+    if kind in "iu":  # labels 0..the pixel count (tables are sized by them), edge codes 0..3
+        top = arr.size if kind == "i" else MAX_EDGE_CODE
+        bad = value_outside(arr, top)
+        if bad is not None:
+            what = (f"label {bad} is outside 0..{top} (the pixel count): not a label map"
+                    if kind == "i" else f"edge code {bad} is outside 0..{top}: not an edge map")
+            raise OutputError(f"{path}: {what} rangeseg writes; run the stages before it again")
     elif kind == "f":
         finite = np.abs(arr[np.isfinite(arr)])
         if finite.size == 0 or float(finite.max()) > MAX_ABS_HEIGHT:
@@ -300,25 +302,6 @@ def _read_map(base: Location, name: str, kind: str, z: np.ndarray | None = None
                               f"+-{MAX_ABS_HEIGHT:.0e}, finite somewhere; run the stages "
                               "before it again")
     return arr
-
-
-def _check_label_range(path: Location, labels: np.ndarray) -> None:
-    """Labels 0 to the pixel count: the stages size their tables by the largest label.
-
-    Raises
-    ------
-    OutputError
-        Naming the file and the label, for a negative label or one above the
-        pixel count (a file edited by hand: 2^31-1 took 16 GB and more).
-    """
-    if labels.size == 0:
-        return
-    low, high = int(labels.min()), int(labels.max())
-    if low < 0 or high > labels.size:
-        bad = low if low < 0 else high
-        raise OutputError(f"{path}: label {bad} is outside 0..{labels.size} (the pixel "
-                          "count): not a label map rangeseg writes; run the stages before it "
-                          "again")
 
 
 def _p(base: Location, name: str) -> Location:

@@ -107,6 +107,7 @@ from .edges import Backend, ar_2d, gaussian_taps, select_kernels
 from .errors import InputError
 from .grow import evaluate_quadric, valid_labels
 from .models import Surface
+from .rangeimage import check_stage_arrays
 from .surfaces import NEIGHBOUR_REACH, kernel_labels, neighbour_pairs, pair_medians
 
 #: Regions whose pixels lie within this chessboard distance are neighbours
@@ -1000,19 +1001,13 @@ def _preference(obj: ObjectInfo, s: Surface) -> tuple[bool, bool, float, int]:
 
 def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto"
            ) -> tuple[np.ndarray, np.ndarray]:
+    """``z`` as float64 and ``labels`` on its valid pixels, checked (:func:`find_holdsite`)."""
+    try:
+        check_stage_arrays(z, labels=labels)
+    except ValueError as exc:  # find_holdsite's documented error
+        raise InputError(str(exc)) from None
     z = np.asarray(z, dtype=np.float64)
     labels = np.asarray(labels)
-    if z.ndim != 2:
-        raise InputError(f"`z` (shape {z.shape}) must be a 2-D range image")
-    if labels.shape != z.shape:
-        raise InputError(f"`labels` (shape {labels.shape}) must have the shape of `z` "
-                         f"({z.shape})")
-    if labels.dtype.kind not in "iu":
-        raise InputError(f"`labels` (dtype {labels.dtype}) must be integer")
-    if labels.size and not 0 <= int(labels.min()) <= int(labels.max()) <= labels.size:
-        bad = int(labels.min()) if int(labels.min()) < 0 else int(labels.max())
-        raise InputError(f"`labels` holds {bad}: labels must lie in 0..{labels.size} (the "
-                         "pixel count)")
     # int32 where it holds every label: the compiled boundary pairs run twice as wide
     if np.can_cast(labels.dtype, np.int32):
         return z, valid_labels(z, labels, backend=backend)[0]

@@ -176,14 +176,26 @@ def require_shape_of_z(z: np.ndarray, **arrays: Any) -> None:
 MAX_EDGE_CODE = 3
 
 
+def value_outside(values: np.ndarray, top: int) -> int | None:
+    """A value of ``values`` outside ``0..top`` (the lowest when below), or None.
+
+    The range of a label map (``top`` = its pixel count: the stages size their
+    tables by the largest label, so a label of 2^31 would ask for gigabytes)
+    or of an edge map (``top`` = :data:`MAX_EDGE_CODE`).
+    """
+    if values.size == 0:
+        return None
+    low, high = int(values.min()), int(values.max())
+    return low if low < 0 else high if high > top else None
+
+
 def check_stage_arrays(z: Any, *, edges: Any = None, **label_maps: Any) -> None:
     """Check the arrays a stage function is given, before any work (the library's front door).
 
-    ``z``: a 2-D array of real numbers (heights, NaN where invalid), not empty. ``edges``
-    (optional): edge codes 0..3 of ``z``'s shape. Each of ``label_maps``
-    (components, labels): integers of ``z``'s shape from 0 to the pixel count
-    -- the stages size their tables by the largest label, so a label of 2^31
-    would ask for gigabytes.
+    ``z``: a 2-D array of real numbers (heights, NaN where invalid), not empty.
+    ``edges`` (optional): edge codes 0..3 of ``z``'s shape. Each of
+    ``label_maps`` (components, labels): integers of ``z``'s shape from 0 to
+    the pixel count (:func:`value_outside`).
 
     Raises
     ------
@@ -200,14 +212,11 @@ def check_stage_arrays(z: Any, *, edges: Any = None, **label_maps: Any) -> None:
         values = np.asarray(arr)
         if values.dtype.kind not in "biu":
             raise ValueError(f"`{name}` must hold integers; got dtype {values.dtype}")
-        if values.size == 0:
-            continue
-        low, high = int(values.min()), int(values.max())
         top = MAX_EDGE_CODE if name == "edges" else values.size
-        if low < 0 or high > top:
+        bad = value_outside(values, top)
+        if bad is not None:
             what = "edge codes" if name == "edges" else "labels (at most the pixel count)"
-            raise ValueError(f"`{name}` holds {low if low < 0 else high}: {what} must lie "
-                             f"in 0..{top}")
+            raise ValueError(f"`{name}` holds {bad}: {what} must lie in 0..{top}")
 
 
 def labels_on_valid(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -96,7 +96,8 @@ def test_negative_labels_are_refused(staged) -> None:
     z = staged["z"]
     with pytest.raises(ValueError, match="`labels` holds -1"):
         describe_surfaces(z, -np.ones(z.shape, np.int32), CFG)
-    with pytest.raises(InputError, match=r"`labels` holds -\d+: labels must lie in 0"):
+    with pytest.raises(InputError, match=r"`labels` holds -\d+: labels \(at most the pixel "
+                                         r"count\) must lie in 0\.\.2304"):
         find_holdsite(z, -staged["labels"] - 1, [], CFG)
 
 
