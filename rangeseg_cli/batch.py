@@ -787,14 +787,17 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         or without the shared storage).
     OutputError, rangeseg_cli.errors.StorageError
         When ``out`` holds results and neither ``resume`` nor ``overwrite`` is
-        set, or its store cannot be written, or its manifest is damaged, or the
-        batch would write over an input file (:func:`check_inputs_kept`).
+        set, or its store cannot be written (an https:// URL:
+        :func:`~rangeseg_cli.io.check_output_protocol`), or its manifest is
+        damaged, or the batch would write over an input file
+        (:func:`check_inputs_kept`).
     ValueError
         For ``n_jobs`` outside 1..:data:`MAX_JOBS`.
     """
     t0 = time.perf_counter()
     if n_jobs is not None and not 1 <= n_jobs <= MAX_JOBS:
         raise ValueError(f"`n_jobs` = {n_jobs!r}: expected 1 to {MAX_JOBS}, or None")
+    io.check_output_protocol(out)
     check_inputs_kept(jobs, out, stages, skipped_files or [])
     with _executor(executor, scheduler, n_jobs) as execute:  # dask: connect before any work
         remove_stale_temporaries(out)

@@ -223,20 +223,13 @@ def _check_executor(executor: str, scheduler: str | None) -> None:
                                  param_hint="--scheduler")
 
 
-#: URL protocols fsspec reads but cannot write: not an OUT.
-READ_ONLY_PROTOCOLS = ("http", "https", "github", "zip", "tar")
-
-
 def _location(name: str) -> Any:
     """OUT as a local path or a URL; an unusable URL is a usage error (exit 2)."""
     from .errors import StorageError
-    from .io import location
+    from .io import check_output_protocol, location
 
-    protocol = name.split("://", 1)[0].lower() if "://" in name else ""
-    if protocol in READ_ONLY_PROTOCOLS:
-        raise UsageProblem(f"{name}: {protocol}:// URLs can be read, not written; OUT must "
-                           "be a local folder or a store such as s3://bucket/folder")
     try:
+        check_output_protocol(name)
         return location(name)
     except StorageError as exc:
         raise UsageProblem(str(exc)) from None

@@ -220,6 +220,26 @@ class URLPath:
 Location: TypeAlias = Path | URLPath
 
 
+#: URL protocols fsspec reads but cannot write: never an output folder.
+READ_ONLY_PROTOCOLS = ("http", "https", "github", "zip", "tar")
+
+
+def check_output_protocol(where: str | Location) -> None:
+    """Refuse an output folder on a URL protocol that can be read but not written.
+
+    Raises
+    ------
+    StorageError
+        Naming the URL (e.g. ``https://``: the first temporary file could not
+        be deleted, ``NotImplementedError``, after the manifest was tried).
+    """
+    text = str(where)
+    protocol = text.split("://", 1)[0].lower() if _URL.match(text) else ""
+    if protocol in READ_ONLY_PROTOCOLS:
+        raise StorageError(f"{text}: {protocol}:// URLs can be read, not written; OUT must "
+                           "be a local folder or a store such as s3://bucket/folder")
+
+
 def is_empty_path(text: str) -> bool:
     """Whether a path as typed names nothing: ``""``, blanks, or ``file://`` without a path."""
     if text.lower().startswith("file://"):

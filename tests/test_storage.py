@@ -338,3 +338,15 @@ def test_a_file_url_without_a_path_is_refused_not_the_current_folder(name):
     with pytest.raises(StorageError, match="without a path"):
         location(name)
     assert location("file:///") == Path("/")
+
+
+def test_run_batch_refuses_an_out_it_cannot_write_before_any_work(tmp_path):
+    from rangeseg_cli.batch import run_batch
+    from rangeseg_cli.config import load_config
+    from rangeseg_cli.errors import StorageError
+    from rangeseg_cli.io import check_output_protocol, location
+
+    with pytest.raises(StorageError, match="https:// URLs can be read, not written"):
+        run_batch([], location("https://example.com/out"), load_config(), ("edges",))
+    check_output_protocol(tmp_path)  # a local folder, and
+    check_output_protocol("memory://out")  # a store that can be written, pass
