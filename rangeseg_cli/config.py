@@ -384,7 +384,7 @@ def _limit(x: float) -> str:
     return text if len(text) <= 10 else f"{x:.4g}"
 
 
-def _shown(value: Any) -> str:
+def shown_value(value: Any) -> str:
     """``repr(value)`` for a message, cut short: an integer may have 4,000 digits."""
     try:
         text = repr(value)
@@ -452,10 +452,27 @@ def _coerce(table: str, f: dataclasses.Field, value: Any) -> Any:
     if not ok:
         beyond = kind is float and _beyond_floats(value)
         raise ConfigError(
-            f"[{table}] {f.name} = {_shown(value)}: expected {_describe_allowed(f)}"
+            f"[{table}] {f.name} = {shown_value(value)}: expected {_describe_allowed(f)}"
             + (" (this integer is beyond the floating-point range)" if beyond else "")
         )
     return value
+
+
+def check_value(table: str, key: str, value: Any) -> Any:
+    """One value checked as ``[table] key`` is (its type and range); returned in its type.
+
+    For values read elsewhere that mean the same thing (a holdsite's window in
+    ``holdsite.json`` is a ``[holdsite] size``).
+
+    Raises
+    ------
+    ConfigError
+        For a wrong type or a value out of range (the message of :func:`load_config`).
+    KeyError
+        For an unknown table or key.
+    """
+    fields = {f.name: f for f in dataclasses.fields(_TABLE_CLASSES[table])}
+    return _coerce(table, fields[key], value)
 
 
 def build_config(values: dict[str, Any], source: str = "config") -> Config:
@@ -487,7 +504,7 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
     for table, entries in values.items():
         if table not in _TABLE_CLASSES:
             if not isinstance(entries, dict):  # `threshold = 8` above any [table]
-                raise ConfigError(f"{source}: key {table} = {_shown(entries)} is outside any "
+                raise ConfigError(f"{source}: key {table} = {shown_value(entries)} is outside any "
                                   "table; put it under its table, e.g. [step] threshold = 8 "
                                   "(tables: " + ", ".join(_TABLE_CLASSES) + ")")
             raise ConfigError(f"{source}: unknown table [{table}]; allowed tables: "

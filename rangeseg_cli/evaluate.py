@@ -60,6 +60,9 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from .config import check_value, shown_value
+from .errors import ConfigError
+
 #: Tolerances of the correct-detection curve (Hoover et al. plot 0.5..0.95).
 CURVE_TOLERANCES: tuple[float, ...] = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
 #: Default tolerance T (Hoover et al. report their tables at 0.8).
@@ -131,16 +134,21 @@ class Overlap:
     min_region: int
 
 
+def _check_label_image(name: str, a: np.ndarray) -> None:
+    """A 2-D image of labels 0 (none) to 2^63 - 1, or ``ValueError`` naming ``name``."""
+    if a.ndim != 2 or a.dtype.kind not in "iu":
+        raise ValueError(f"`{name}` (shape {a.shape}, dtype {a.dtype}) must be a 2-D "
+                         "integer label image")
+    if a.size and a.min() < 0:
+        raise ValueError(f"`{name}` has negative labels; allowed: 0 (no region) and up")
+    if a.size and int(a.max()) > np.iinfo(np.int64).max:  # uint64: would wrap below 0
+        raise ValueError(f"`{name}` has label {int(a.max())}; allowed: 0 to 2^63 - 1")
+
+
 def _check_labels(gt: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     gt, pred = np.asarray(gt), np.asarray(pred)
-    for name, a in (("gt", gt), ("pred", pred)):
-        if a.ndim != 2 or a.dtype.kind not in "iu":
-            raise ValueError(f"`{name}` (shape {a.shape}, dtype {a.dtype}) must be a 2-D "
-                             "integer label image")
-        if a.size and a.min() < 0:
-            raise ValueError(f"`{name}` has negative labels; allowed: 0 (no region) and up")
-        if a.size and int(a.max()) > np.iinfo(np.int64).max:  # uint64: would wrap below 0
-            raise ValueError(f"`{name}` has label {int(a.max())}; allowed: 0 to 2^63 - 1")
+    _check_label_image("gt", gt)
+    _check_label_image("pred", pred)
     if gt.shape != pred.shape:
         raise ValueError(f"`pred` (shape {pred.shape}) must have the shape of `gt` "
                          f"({gt.shape})")
@@ -176,9 +184,7 @@ def connected_parts(gt: np.ndarray) -> np.ndarray:
         When ``gt`` is not a 2-D integer array or holds a negative label.
     """
     gt = np.asarray(gt)
-    if gt.ndim != 2 or gt.dtype.kind not in "iu" or (gt.size and gt.min() < 0):
-        raise ValueError(f"`gt` (shape {gt.shape}, dtype {gt.dtype}) must be a 2-D image of "
-                         "labels 0 (no surface) and up")
+    _check_label_image("gt", gt)
     values, inverse = np.unique(gt, return_inverse=True)  # any label values, dense 0..m
     dense = inverse.reshape(gt.shape) + (1 if values.size and values[0] != 0 else 0)
     out = np.zeros(gt.shape, np.int64)
@@ -218,7 +224,7 @@ def overlap_table(gt: np.ndarray, pred: np.ndarray, *,
         ``min_region`` is negative.
     """
     gt, pred = _check_labels(gt, pred)
-    if isinstance(min_region, bool) or not isinstance(min_region, int) or min_region < 0:
+    if not _is_int(min_region) or min_region < 0:
         raise ValueError(f"`min_region` {min_region!r} must be an integer >= 0")
     if gt_parts:
         gt = connected_parts(gt)
@@ -414,9 +420,7 @@ def check_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
     result: dict[str, Any] = {"ok": False, "surface": None, "object": None}
     if holdsite is None:
         return {**result, "reason": "no holdsite reported"}
-    if not all(_is_int(holdsite.get(k)) for k in ("row", "col")):
-        raise ValueError(f"`holdsite` needs integer \"row\" and \"col\", got {dict(holdsite)!r}")
-    problem = _window_problem(holdsite)
+    problem = _holdsite_problem(holdsite)
     if problem:
         raise ValueError(f"`holdsite`: {problem}")
     r, c = _window(holdsite, size)
@@ -520,12 +524,12 @@ def _read_holdsite(path: Path) -> dict[str, Any] | None:
     site = data.get("holdsite", ...) if isinstance(data, dict) else ...
     if site is None:
         return None
-    if not (isinstance(site, dict) and all(_is_int(site.get(k)) for k in ("row", "col"))):
+    if not isinstance(site, dict):
         raise InputError(f"{path}: not a holdsite.json of rangeseg (expected "
                          '{"holdsite": null or {"row": int, "col": int, ...}})')
-    problem = _window_problem(site)
+    problem = _holdsite_problem(site)
     if problem:
-        raise InputError(f"{path}: not a holdsite.json of rangeseg ({problem})")
+        raise InputError(f"{path}: not a holdsite.json of rangeseg (its holdsite has {problem})")
     return site
 
 
@@ -533,22 +537,25 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _window_problem(site: Mapping[str, Any]) -> str | None:
-    """What is wrong with a holdsite's optional ``size``/``window`` and ``angle``, or None.
+def _holdsite_problem(site: Mapping[str, Any]) -> str | None:
+    """What keeps a holdsite from being drawn, or None (:func:`check_holdsite`).
 
-    A window as ``[holdsite] size`` allows it (odd, 1 to 255 pixels a side) and a
-    finite angle in degrees: what :func:`check_holdsite` draws.
+    Integer ``row`` and ``col``; a ``size`` (or ``window``) that ``[holdsite]
+    size`` allows; a finite ``angle`` in degrees.
     """
+    if not all(_is_int(site.get(k)) for k in ("row", "col")):
+        return 'no integer "row" and "col"'
     for key in ("size", "window"):
-        value = site.get(key)
-        if value is not None and not (isinstance(value, list | tuple) and len(value) == 2
-                                      and all(_is_int(v) and 1 <= v <= 255 and v % 2 == 1
-                                              for v in value)):
-            return f'"{key}" is {value!r}, expected [rows, cols] of odd integers 1 to 255'
+        if site.get(key) is not None:
+            try:
+                check_value("holdsite", "size", site[key])
+            except ConfigError as exc:  # "... = [0, 0]: expected a list of two integers ..."
+                allowed = str(exc).rsplit(": expected ", 1)[-1]
+                return f'"{key}" {shown_value(site[key])}, expected {allowed}'
     angle = site.get("angle")
     if angle is not None and not (isinstance(angle, int | float) and not isinstance(angle, bool)
                                   and math.isfinite(angle)):
-        return f'"angle" is {angle!r}, expected a finite number of degrees'
+        return f'"angle" {shown_value(angle)}, expected a finite number of degrees'
     return None
 
 
@@ -617,7 +624,7 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
     tolerances = tuple(tolerances)  # read twice: checked here, then counted
     for t in tolerances:
         _check_tolerance(t)
-    if isinstance(min_region, bool) or not isinstance(min_region, int) or min_region < 0:
+    if not _is_int(min_region) or min_region < 0:
         raise ValueError(f"`min_region` {min_region!r} must be an integer >= 0")
     pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
     images: dict[str, Any] = {}
