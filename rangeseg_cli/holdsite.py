@@ -1125,6 +1125,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     InputError
         When ``labels`` is not an integer array of the shape of ``z`` with
         labels from 0 to its pixel count.
+    ConfigError, TypeError
+        For a configuration value out of range or a table of the wrong class
+        (:func:`~rangeseg_cli.config.check_config`).
     """
     z, labels = _check(z, labels, backend)
     check_config(config)

@@ -246,7 +246,5 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
             continue
         groups.join(a, b, union)
     roots = np.array([groups.root(k) for k in range(n + 1)])
-    roots[np.bincount(lab.ravel(), minlength=n + 1) == 0] = 0  # ids not present
     roots[0] = 0
-    _, dense = np.unique(roots, return_inverse=True)
-    return dense.astype(np.int32)[lab]
+    return consecutive_labels(roots[lab])  # a group's root is its smallest id

@@ -11,7 +11,12 @@ Notes
 
 Each stage is a pure function of the arrays the earlier stages produced, so
 running the stages one by one from files gives the same results as
-:func:`run_pipeline`.
+:func:`run_pipeline`. Each stage function checks its arguments before any
+work: ``ValueError`` for arrays that are not what it takes
+(:func:`~rangeseg_cli.rangeimage.check_stage_arrays`; a label of 2^31 would
+size tables of gigabytes), ``ConfigError`` or ``TypeError`` for a
+configuration value out of range or a table of the wrong class
+(:func:`~rangeseg_cli.config.check_config`: a table built by hand).
 """
 
 from __future__ import annotations
@@ -100,11 +105,6 @@ def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) ->
 
     With ``[input] auto_thresholds`` the thresholds are scaled to the noise of
     ``z``: ``noise`` when the caller has estimated it, computed here otherwise.
-
-    The arguments are checked first: ``ValueError`` for arrays that are not
-    what the stage takes (:func:`~rangeseg_cli.rangeimage.check_stage_arrays`),
-    ``ConfigError`` for a configuration value out of range
-    (:func:`~rangeseg_cli.config.check_config`).
     """
     check_stage_arrays(z)
     check_config(config)
@@ -117,13 +117,7 @@ def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) ->
 
 def stage_link(z: np.ndarray, codes: np.ndarray, config: Config
                ) -> tuple[np.ndarray, np.ndarray]:
-    """Step 3 (Sec. V-3): linked edge codes and connected components.
-
-    The arguments are checked first: ``ValueError`` for arrays that are not
-    what the stage takes (:func:`~rangeseg_cli.rangeimage.check_stage_arrays`),
-    ``ConfigError`` for a configuration value out of range
-    (:func:`~rangeseg_cli.config.check_config`).
-    """
+    """Step 3 (Sec. V-3): linked edge codes and connected components."""
     from .link import link_edges
 
     check_stage_arrays(z, edges=codes)
@@ -257,11 +251,6 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     merged (:func:`~rangeseg_cli.merge.merge_planes`).
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
-
-    The arguments are checked first: ``ValueError`` for arrays that are not
-    what the stage takes (:func:`~rangeseg_cli.rangeimage.check_stage_arrays`),
-    ``ConfigError`` for a configuration value out of range
-    (:func:`~rangeseg_cli.config.check_config`).
     """
     from .grow import component_fits, grow_regions
     from .surfaces import describe_surfaces_and_gaps

@@ -477,6 +477,9 @@ def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config, *,
     ValueError
         When ``z`` is not a 2-D array of numbers, or ``labels`` not integers
         from 0 to the pixel count of its shape.
+    ConfigError, TypeError
+        For a configuration value out of range or a table of the wrong class
+        (:func:`~rangeseg_cli.config.check_config`).
     """
     check_stage_arrays(z, labels=labels)
     check_config(config)
