@@ -552,19 +552,21 @@ def _entry_problem(entry: Any) -> str | None:
     return None
 
 
-def _stage_configs(entry: dict[str, Any], config: Config) -> dict[str, str]:
+def _stage_configs(entry: dict[str, Any], whole: str, digests: dict[str, str]
+                   ) -> dict[str, str]:
     """The entry's current stages and the digests of the tables they were made with.
 
-    ``config`` stands in for a manifest written before per-stage digests
+    ``whole`` and ``digests`` (:meth:`~rangeseg_cli.config.Config.digest` and
+    :meth:`~rangeseg_cli.config.Config.stage_digests` of this run's
+    configuration) stand in for a manifest written before per-stage digests
     (``stage_configs``): there the entry's stages are current under the same
     whole configuration only.
     """
     recorded = entry.get("stage_configs")
     if isinstance(recorded, dict):
         return {s: d for s, d in recorded.items() if s in entry.get("stages", [])}
-    if entry.get("config") != config.digest():
+    if entry.get("config") != whole:
         return {}
-    digests = config.stage_digests()
     return {s: digests[s] for s in entry.get("stages", []) if s in digests}
 
 
@@ -619,10 +621,10 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
                 "or --overwrite to redo all")
         return jobs, refused
     todo, skipped = [], list(refused)
-    digests = config.stage_digests()
+    whole, digests = config.digest(), config.stage_digests()
     for job in jobs:
         entry = images.get(job.rel, {})
-        made = _stage_configs(entry, config)
+        made = _stage_configs(entry, whole, digests)
         complete = (entry.get("status") == "done"
                     and all(made.get(s) == digests[s] for s in stages)
                     and _same_input(job, entry, stages[0])
@@ -664,13 +666,15 @@ def _refuse_stale(jobs: list[Job], images: dict[str, Any], first: str, config: C
     if first == STAGES[0]:
         return jobs, []
     before = STAGES[STAGES.index(first) - 1]
-    wanted = config.stage_digests()[before]
+    whole, digests = config.digest(), config.stage_digests()
+    wanted = digests[before]
     upto = list(STAGE_TABLES)[: STAGES.index(before) + 1]
     tables = ", ".join(f"[{t}]" for stage in upto for t in STAGE_TABLES[stage])
     todo, refused = [], []
     for job in jobs:
         entry = images.get(job.rel)
-        if isinstance(entry, dict) and _stage_configs(entry, config).get(before) != wanted:
+        made = _stage_configs(entry, whole, digests) if isinstance(entry, dict) else {}
+        if isinstance(entry, dict) and made.get(before) != wanted:
             refused.append(Record(rel=job.rel, status="failed", error=(
                 f"{job.rel}: its `{before}` result is missing, failed, older than its "
                 f"earlier stages or made with other settings of {tables} than these; run "
@@ -689,30 +693,33 @@ class _Manifest:
         self.data = read_manifest(out) if out.exists() else {}
         # the configuration the results were last made with: recorded once an image is run
         # (the stage commands' default); a command that runs none leaves it as it was
-        self.header = {"version": __version__, "config": config.to_dict(),
-                       "config_digest": config.digest(), "command": command}
+        self.whole, self.digests = config.digest(), config.stage_digests()
+        self.header: dict[str, Any] = {"version": __version__, "config": config.to_dict(),
+                                       "config_digest": self.whole, "command": command}
         if "config" not in self.data:
             self.data.update(self.header)
         self.data.setdefault("images", {})
-        self.digests = config.stage_digests()
         self.last_write = 0.0
 
     def add(self, record: Record) -> None:
         if record.status == "skipped":
             return
-        self.data.update(self.header)
+        if self.header:  # the first image run: its configuration is the folder's now
+            self.data.update(self.header)
+            self.header = {}
         entry = record.to_dict()
         old = self.data["images"].get(record.rel, {})
         first = STAGES.index(self.stages[0])
         # the stages before these stay current when the tables they read are unchanged;
         # these and the later ones are redone or lost
-        kept = {s: d for s, d in _stage_configs(old, self.config).items()
+        made = _stage_configs(old, self.whole, self.digests)
+        kept = {s: d for s, d in made.items()
                 if s in STAGES and STAGES.index(s) < first and self.digests.get(s) == d}
         if record.status == "done":
             kept.update({s: self.digests[s] for s in self.stages})
         entry["stages"] = [s for s in STAGES if s in kept]
         entry["stage_configs"] = {s: kept[s] for s in entry["stages"]}
-        entry["config"] = self.config.digest()
+        entry["config"] = self.whole
         for key in ("input", "input_stamp", "noise_sigma", "clipped_pixels"):
             if key not in entry and key in old:
                 entry[key] = old[key]
@@ -812,16 +819,15 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
             on_start(len(todo) + len(refused))
         interrupted, terminated, error = False, False, None
 
-        def finish(record: Record) -> None:
+        def finish(record: Record, *, ran: bool = True) -> None:
             records.append(record)
-            manifest.add(record)
+            if ran:  # a refused image: its entry and files stay as they are
+                manifest.add(record)
             if on_result is not None:
                 on_result(record)
 
-        for record in refused:  # nothing was run: their entries and files stay as they are
-            records.append(record)
-            if on_result is not None:
-                on_result(record)
+        for record in refused:
+            finish(record, ran=False)
         try:
             execute(todo, out, config, stages, finish)
         except KeyboardInterrupt as exc:
@@ -899,10 +905,11 @@ class StopFlag:
             signal.signal(signum, handler)
 
     def _handle(self, signum: int, frame: Any) -> None:
-        first = self.requested is None
-        self.requested = signum if first else self.requested
-        if not first or self._waiting:
-            self._raise()
+        if self.requested is None:
+            self.requested = signum
+            if not self._waiting:
+                return  # stop between images
+        self._raise()
 
     def _raise(self) -> None:
         raise Terminated if self.requested == signal.SIGTERM else KeyboardInterrupt

@@ -16,6 +16,7 @@ table, the key, the value and what is allowed.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -563,14 +564,27 @@ def check_config(config: Any) -> None:
     if not isinstance(config, Config):
         raise TypeError(f"config must be a rangeseg_cli.config.Config (load_config() makes "
                         f"one), got {type(config).__name__}")
+    try:
+        _checked(config)  # once per configuration: every stage function asks
+    except TypeError as exc:  # a value that cannot be hashed (a list, built by hand)
+        if "unhashable" not in str(exc):
+            raise
+        _check_tables(config)
+
+
+@functools.lru_cache(maxsize=32)
+def _checked(config: Config) -> None:
+    """:func:`_check_tables`, remembered for configurations that passed (frozen, hashable)."""
+    _check_tables(config)
+
+
+def _check_tables(config: Config) -> None:
     for name, cls in _TABLE_CLASSES.items():
         table = getattr(config, name)
         if not isinstance(table, cls):
             raise TypeError(f"config.{name} must be a {cls.__name__}, got "
                             f"{type(table).__name__}")
-        for f in dataclasses.fields(cls):
-            _coerce(name, f, getattr(table, f.name))
-    _check_consistency(config)
+    build_config(config.to_dict())  # every value and the tables' agreement, as loaded
 
 
 def merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:

@@ -296,3 +296,14 @@ def test_a_key_above_every_table_says_so(tmp_path):
     with pytest.raises(ConfigError, match=r"key threshold = 8 is outside any table; put it "
                                           r"under its table, e\.g\. \[step\] threshold = 8"):
         load_config(path)
+
+
+def test_every_table_counts_in_the_digest_of_some_stage():
+    # a table added later to the config but to no stage would change no stage's digest
+    from rangeseg_cli.config import _TABLE_CLASSES, STAGE_TABLES
+
+    tables = [t for stage in STAGE_TABLES.values() for t in stage]
+    assert sorted(tables) == sorted(_TABLE_CLASSES) and len(set(tables)) == len(tables)
+    digests = load_config().stage_digests()
+    changed = load_config(overrides={"holdsite": {"max_candidates": 3}}).stage_digests()
+    assert [s for s in digests if digests[s] != changed[s]] == ["holdsite"]
