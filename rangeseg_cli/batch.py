@@ -89,7 +89,7 @@ class Record:
     """What happened to one image."""
 
     rel: str
-    status: str  # "done", "failed" or "skipped"
+    status: str  # "done", "failed" or "skipped" ("running" in the manifest until recorded)
     source: str | None = None
     error: str | None = None
     detail: str | None = None
@@ -660,8 +660,9 @@ def _refuse_stale(jobs: list[Job], images: dict[str, Any], first: str, config: C
     lists, per image, the stages whose outputs are current and the digests of
     their settings: running a stage again (``edges --overwrite``) drops the
     later ones, so ``holdsite`` never combines new heights with old labels.
-    Images the manifest does not list are run as they are. A refused image's
-    entry and files are left as they are: nothing was run.
+    An image the manifest does not list (a folder copied without it) is
+    refused too: nothing tells what made its files. A refused image's entry
+    and files are left as they are: nothing was run.
     """
     if first == STAGES[0]:
         return jobs, []
@@ -671,15 +672,17 @@ def _refuse_stale(jobs: list[Job], images: dict[str, Any], first: str, config: C
     upto = list(STAGE_TABLES)[: STAGES.index(before) + 1]
     tables = ", ".join(f"[{t}]" for stage in upto for t in STAGE_TABLES[stage])
     todo, refused = [], []
+    again = (f"`rangeseg {before} IMAGES -o OUT --resume`" if before == STAGES[0]
+             else f"`rangeseg {before} OUT --resume`")
     for job in jobs:
         entry = images.get(job.rel)
         made = _stage_configs(entry, whole, digests) if isinstance(entry, dict) else {}
-        if isinstance(entry, dict) and made.get(before) != wanted:
+        if made.get(before) != wanted:
             refused.append(Record(rel=job.rel, status="failed", error=(
-                f"{job.rel}: its `{before}` result is missing, failed, older than its "
-                f"earlier stages or made with other settings of {tables} than these; run "
-                f"`rangeseg {before}` on this folder first, or give this command the "
-                "--config, --preset and --set that made it")))
+                f"{job.rel}: its `{before}` result is missing, failed, not recorded in the "
+                f"manifest, older than its earlier stages or made with other settings of "
+                f"{tables} than these; run {again} first, or give this command the "
+                "settings that made it")))
         else:
             todo.append(job)
     return todo, refused
@@ -727,8 +730,21 @@ class _Manifest:
         if time.monotonic() - self.last_write > 2.0:
             self.write()
 
-    def start(self) -> None:
-        """Write it before any image: OUT exists then, also on an object store."""
+    def start(self, todo: list[Job]) -> None:
+        """Write it before any image: OUT exists then, also on an object store.
+
+        Every image about to run is recorded ``running``, its stages from the
+        first one run on no longer current: a run killed before it records an
+        image (SIGKILL, power loss) leaves that image to be redone, never its
+        files of the new settings under the entry of the old ones.
+        """
+        first = STAGES.index(self.stages[0])
+        for job in todo:
+            entry = dict(self.data["images"].get(job.rel, {}))
+            entry["status"] = "running"
+            entry["stages"] = [s for s in entry.get("stages", [])
+                               if s in STAGES and STAGES.index(s) < first]
+            self.data["images"][job.rel] = entry
         io.make_folder(self.out)
         io.write_json(self.out / MANIFEST, self.data, digits=MANIFEST_DIGITS)
 
@@ -812,7 +828,7 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
                                   overwrite=overwrite)
         io.make_folder(out)
         manifest = _Manifest(out, config, command, stages)
-        manifest.start()
+        manifest.start(todo)
         refused = [r for r in records if r.status == "failed"]
         records = [r for r in records if r.status != "failed"]
         if on_start is not None:
@@ -984,8 +1000,9 @@ def warm_up(config: Config) -> None:
 def _collect(pending: set[Future[Record]], finish: Callable[[Record], None],
              stop: StopFlag) -> set[Future[Record]]:
     """Finish the images done within a short wait; return those still pending."""
-    done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+    done, _ = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
     for fut in done:
+        pending.discard(fut)  # in place: a stop below must not finish it again
         finish(fut.result())
     stop.check()
     return pending

@@ -116,18 +116,24 @@ def _parse_settings(settings: tuple[str, ...]) -> dict[str, dict[str, Any]]:
 
 def _load_config(config_path: str | None, preset: str | None, settings: tuple[str, ...],
                  fallback_out: Any = None) -> Any:
-    """Config from --preset/--config/--set; for stage commands, else OUT's manifest."""
-    from .config import load_config
+    """Config from --preset/--config/--set; for stage commands OUT's manifest, --set on top.
+
+    A stage command without --config or --preset goes on with the configuration
+    recorded in OUT, its --set changing values of it (``holdsite --set
+    holdsite.size=[9,9]`` keeps the rest as the run had it).
+    """
+    from .config import build_config, load_config, merge
     from .errors import ConfigError, OutputError, StorageError
 
     try:
-        if fallback_out is not None and not (config_path or preset or settings):
+        overrides = _parse_settings(settings)
+        if fallback_out is not None and not (config_path or preset):
             from .batch import manifest_config
 
             recorded = manifest_config(fallback_out)
             if recorded is not None:
-                return recorded
-        return load_config(config_path, preset=preset, overrides=_parse_settings(settings))
+                return build_config(merge(recorded.to_dict(), overrides))
+        return load_config(config_path, preset=preset, overrides=overrides)
     except (ConfigError, OutputError, StorageError) as exc:
         raise UsageProblem(str(exc)) from None
 

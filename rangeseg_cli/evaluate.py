@@ -464,7 +464,9 @@ def _pairs(pred_dir: Path, gt_dir: Path) -> list[tuple[str, Path, Path]]:
 
 
 def _failed_in_run(pred_dir: Path) -> dict[str, str]:
-    """Images the manifest in ``pred_dir`` marks failed before their labels were made.
+    """Images the manifest in ``pred_dir`` marks failed or running before their labels were made.
+
+    ``running``: a run was killed before it recorded the image.
 
     Returns
     -------
@@ -483,10 +485,12 @@ def _failed_in_run(pred_dir: Path) -> dict[str, str]:
         images = read_manifest(pred_dir).get("images", {})
     except OutputError as exc:
         raise InputError(str(exc)) from None
-    return {rel: f"not scored: {pred_dir / MANIFEST} records that it failed "
-                 f"({entry.get('error', 'no reason given')})"
+    why = {"failed": lambda e: f"records that it failed ({e.get('error', 'no reason given')})",
+           "running": lambda e: "records that a run stopped before it was done (killed?); "
+                                "finish it with --resume"}
+    return {rel: f"not scored: {pred_dir / MANIFEST} {why[entry['status']](entry)}"
             for rel, entry in images.items()
-            if entry.get("status") == "failed" and "grow" not in entry.get("stages", [])}
+            if entry.get("status") in why and "grow" not in entry.get("stages", [])}
 
 
 def _one_image(rel: str, gt_path: Path, pred_path: Path, pred_dir: Path, tolerance: float,

@@ -256,9 +256,40 @@ def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path
     manifest = json.loads((out / "rangeseg-run.json").read_text())
     done = [k for k, v in manifest["images"].items() if v["status"] == "done"]
     assert 2 <= len(done) < 30
+    # the count said is the count recorded (with -j 2 an image was finished twice)
+    assert f"{said} {len(done)} images done and kept" in err
     assert all((out / f"{k}.holdsite.json").exists() for k in done)
     res = subprocess.run([*cmd, "-o", str(out), "--resume", "--json"], capture_output=True, text=True)
     assert res.returncode == 0 and json.loads(res.stdout)["resumed"] >= len(done)
+
+
+def test_a_run_killed_with_new_settings_leaves_nothing_certified_under_the_old(
+        tmp_path, write_png):
+    # SIGKILL (an OOM killer, power loss) lands between writing an image's files and the
+    # next write of the manifest: those images used to keep their entries of the old
+    # settings, and --resume with the old settings kept their new files, exit 0.
+    folder = tmp_path / "many"
+    folder.mkdir()
+    for i in range(24):
+        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    out, fresh = tmp_path / "out", tmp_path / "fresh"
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "1", "-q"]
+    assert subprocess.run([*cmd, "-o", str(out)], capture_output=True).returncode == 0
+    before = {p: p.stat().st_mtime_ns for p in out.glob("*.holdsite.json")}
+    proc = subprocess.Popen([*cmd, "-o", str(out), "--overwrite", "--set", "step.threshold=8"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and sum(
+            p.stat().st_mtime_ns != t for p, t in before.items() if p.exists()) < 3:
+        time.sleep(0.01)
+    proc.kill()
+    proc.wait(timeout=30)
+    manifest = json.loads((out / "rangeseg-run.json").read_text())
+    assert any(v["status"] == "running" for v in manifest["images"].values())
+    res = subprocess.run([*cmd, "-o", str(out), "--resume"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert subprocess.run([*cmd, "-o", str(fresh)], capture_output=True).returncode == 0
+    assert tree_bytes(out) == tree_bytes(fresh)
 
 
 def _children(pid: int) -> set[int]:

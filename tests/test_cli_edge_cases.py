@@ -164,9 +164,10 @@ def test_redone_edges_make_later_stages_out_of_date(runner, box_png, tmp_path):
     assert (out / "box.edges.npy").exists()
     res = runner.invoke(main, ["holdsite", str(out), "-j", "1"])
     assert res.exit_code == 1
-    assert "box: its `grow` result is missing, failed, older than its earlier stages or " \
-           "made with other settings of [input], [output], [step], [roof], [link], [grow], " \
-           "[split] than these; run `rangeseg grow` on this folder first" in res.output
+    assert "box: its `grow` result is missing, failed, not recorded in the manifest, older " \
+           "than its earlier stages or made with other settings of [input], [output], [step], " \
+           "[roof], [link], [grow], [split] than these; run `rangeseg grow OUT --resume` " \
+           "first, or give this command the settings that made it" in res.output
     for stage in ("link", "grow", "holdsite"):
         assert runner.invoke(main, [stage, str(out), "-j", "1", "-q"]).exit_code == 0
     manifest = json.loads((out / "rangeseg-run.json").read_text())
@@ -178,7 +179,7 @@ def test_grow_before_link_names_the_stage_to_run(runner, box_png, tmp_path):
     assert runner.invoke(main, ["edges", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
     res = runner.invoke(main, ["grow", str(out), "-j", "1", "-q"])
     assert res.exit_code == 1
-    assert "run `rangeseg link` on this folder first" in one_line_error(res)
+    assert "run `rangeseg link OUT --resume` first" in one_line_error(res)
 
 
 def test_resume_redoes_later_stages_after_edges_were_redone(runner, box_png, tmp_path):
@@ -601,9 +602,9 @@ def test_a_refused_image_keeps_its_entry_and_its_files(runner, box_png, tmp_path
     res = runner.invoke(main, ["holdsite", str(out), "-j", "1",
                                "--set", "link.min_component=50"])
     assert res.exit_code == 1
-    assert "box: its `grow` result is missing, failed, older than its earlier stages or " \
-           "made with other settings of" in res.output
-    assert "give this command the --config, --preset and --set that made it" in res.output
+    assert "box: its `grow` result is missing, failed, not recorded in the manifest, older " \
+           "than its earlier stages or made with other settings of" in res.output
+    assert "give this command the settings that made it" in res.output
     after = _entry(out)
     assert after["status"] == "done" and after["stages"] == before["stages"]
     assert after["stage_configs"] == before["stage_configs"]
@@ -691,3 +692,56 @@ def test_an_out_that_can_only_be_read_is_a_usage_error(runner, box_png, out):
         "URLs can be read, not written; OUT must be a local folder or a store such as "
         "s3://bucket/folder")
     assert "NotImplementedError" not in res.output
+
+
+def test_a_stage_command_refuses_an_image_the_manifest_does_not_list(runner, box_png,
+                                                                     tmp_path):
+    # a folder copied without its manifest: nothing tells which settings made its edges
+    out = tmp_path / "out"
+    res = runner.invoke(main, ["edges", str(box_png), "-o", str(out), "-j", "1",
+                               "--set", "step.threshold=8"])
+    assert res.exit_code == 0
+    (out / "rangeseg-run.json").unlink()
+    res = runner.invoke(main, ["link", str(out), "-j", "1", "-q"])
+    assert res.exit_code == 1
+    assert "box: its `edges` result is missing, failed, not recorded in the manifest" in \
+        one_line_error(res)
+    assert "run `rangeseg edges IMAGES -o OUT --resume` first" in one_line_error(res)
+    assert not (out / "box.components.npy").exists()
+
+
+def test_eval_does_not_score_an_image_a_killed_run_left_running(runner, tmp_path):
+    from rangeseg_cli.synth import write_scenes
+
+    gt = tmp_path / "gt"
+    write_scenes(gt, ["box"], [0], 0, size=(48, 48))
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(gt), "-o", str(out), "-j", "1", "-q"]).exit_code == 0
+    path = out / "rangeseg-run.json"
+    manifest = json.loads(path.read_text())
+    manifest["images"]["box-n0"].update(status="running", stages=["edges"])  # as start() left
+    path.write_text(json.dumps(manifest))
+    res = runner.invoke(main, ["eval", str(out), str(gt), "-q"])
+    assert res.exit_code == 1
+    assert "box-n0: not scored: " in res.output
+    assert "records that a run stopped before it was done (killed?); finish it with " \
+           "--resume" in res.output
+
+
+def test_set_on_a_stage_command_changes_values_of_the_recorded_config(runner, box_png,
+                                                                      tmp_path):
+    toml = tmp_path / "c.toml"
+    toml.write_text("[step]\nthreshold = 7.5\n")
+    out = tmp_path / "out"
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1",
+                               "--config", str(toml)])
+    assert res.exit_code == 0
+    res = runner.invoke(main, ["holdsite", str(out), "-j", "1", "--set", "holdsite.size=[9,9]"])
+    assert res.exit_code == 0, res.output  # was refused: --set started from the defaults
+    manifest = json.loads((out / "rangeseg-run.json").read_text())
+    assert manifest["config"]["step"]["threshold"] == 7.5
+    assert manifest["config"]["holdsite"]["size"] == [9, 9]
+    assert manifest["images"]["box"]["stages"] == ["edges", "link", "grow", "holdsite"]
+    # --preset (or --config) still replaces it: other [step] settings than the labels'
+    res = runner.invoke(main, ["holdsite", str(out), "-j", "1", "--preset", "paper"])
+    assert res.exit_code == 1 and "made with other settings" in res.output
