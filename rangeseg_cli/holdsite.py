@@ -17,10 +17,13 @@ pixels of the image border or of an invalid area that reaches it.
 ``"largest-border"`` the one with the most pixels (only border regions
 with at least :data:`BACKGROUND_MIN_FRACTION` of the segmented pixels are
 eligible, unless none has). Every other region at the same level joins it
-(a table split by an object or a shadow, or seen through a hole): its mean
-height is within ``step.threshold`` of the chosen one's, or the chosen
-one's fit, extended to its centroid, is within ``step.threshold`` of its own
-fit there (a tilted table). ``"none"``: no background.
+(a table split by an object or a shadow, or seen through a hole): the
+chosen one's fit, extended to its centroid, is within ``step.threshold`` of
+its own fit there, or, when the chosen one is level (its fit varies by
+``step.threshold`` or less over its box), its mean height is within
+``step.threshold`` of the chosen one's. Never a region that meets the chosen
+one at a step edge: on a tilted table, a box whose top is as high as the
+table's middle is an object. ``"none"``: no background.
 
 Step 2, objects: non-background regions joined by a non-step boundary
 (roof or smooth, from ``Surface.neighbors`` where listed, else the median
@@ -384,11 +387,28 @@ def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[i
 
 
 def _same_level(base: Surface, other: Surface, tol: float) -> bool:
-    """``other`` continues ``base`` (same mean height, or on base's extended fit)."""
+    """``other`` continues ``base`` (on base's extended fit, or same mean height on a level base).
+
+    Never across a step edge between the two. The mean heights are compared
+    only where ``base`` is level (its fit varies by ``tol`` or less over its
+    box): on a tilted table a box whose top is as high as the table's middle
+    is not the table.
+    """
+    if any(nb.id == other.id and nb.edge == "step" for nb in base.neighbors):
+        return False
     row, col = other.centroid
-    if abs(other.mean_height - base.mean_height) <= tol:
+    if abs(base.height_at(row, col) - other.height_at(row, col)) <= tol:
         return True
-    return bool(abs(base.height_at(row, col) - other.height_at(row, col)) <= tol)
+    return _level(base, tol) and abs(other.mean_height - base.mean_height) <= tol
+
+
+def _level(surface: Surface, tol: float) -> bool:
+    """Whether ``surface``'s fit varies by ``tol`` or less over its box (corners, centre)."""
+    r0, c0, r1, c1 = surface.bbox
+    rows = np.array([r0, r0, r1, r1, (r0 + r1) / 2])
+    cols = np.array([c0, c1, c0, c1, (c0 + c1) / 2])
+    heights = surface.height_at(rows, cols)
+    return bool(np.ptp(heights) <= tol)
 
 
 def find_background(surfaces: dict[int, Surface], border: set[int], rule: str, tol: float

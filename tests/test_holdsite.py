@@ -377,3 +377,24 @@ def test_clipped_invalid_is_a_boolean_key():
     assert load_config().input.clipped_invalid is True
     with pytest.raises(ConfigError, match=r"\[input\] clipped_invalid = 'no': expected true"):
         load_config(overrides={"input": {"clipped_invalid": "no"}})
+
+
+@pytest.mark.parametrize("top", [50.0, 45.0, 55.0])
+def test_a_box_as_high_as_the_middle_of_a_tilted_table_is_an_object(top):
+    # The table rises 0.3 per column (38 over the image): its mean height is 49. A box top
+    # near that height was taken into the background by the mean-height rule: no holdsite.
+    yy, xx = np.mgrid[0:128, 0:128].astype(float)
+    z = 30 + 0.3 * xx
+    z[44:84, 8:48] = top  # 7 to 17 units above the table where it stands
+    result = run_pipeline(z, load_config()).holdsite
+    assert result.holdsite is not None, result.reason
+    assert 44 <= result.holdsite.row < 84 and 8 <= result.holdsite.col < 48
+    assert len(result.background) == 1
+
+
+def test_a_level_table_split_by_a_wall_still_joins_by_mean_height():
+    # a level table divided by a wall is still all background (two regions, one level)
+    z = np.full((96, 96), 20.0)
+    z[:, 44:52] = 90.0  # a wall from top to bottom splits the table
+    result = run_pipeline(z, load_config(overrides={"split": {"join_occluded": False}}))
+    assert len(result.holdsite.background) == 2
