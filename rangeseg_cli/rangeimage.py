@@ -54,8 +54,8 @@ def check_array(raw: Any, *, name: str = "image") -> np.ndarray:
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[:, :, 0]
     if arr.ndim == 3 and arr.shape[2] in (2, 3, 4):
-        raise InputError(f"{name}: has {arr.shape[2]} channels (shape {arr.shape}); a range "
-                         "image has one")
+        raise InputError(f"{name}: has {arr.shape[2]} channels (shape {arr.shape}): a colour "
+                         "or palette image; a range image has one (grey, 8 or 16 bits)")
     if arr.ndim != 2:
         raise InputError(f"{name}: shape {arr.shape} is not a 2-D range image; allowed: "
                          "(H, W) or (H, W, 1)")
