@@ -38,6 +38,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -960,25 +961,59 @@ def _execute(todo: list[Job], out: Location, config: Config, stages: tuple[str, 
 
 def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
                   n_jobs: int, finish: Callable[[Record], None], stop: StopFlag) -> None:
-    # At most 2 images per worker in flight: memory stays bounded for any batch size.
-    pending: set[Future[Record]] = set()
+    """Process ``todo`` on ``n_jobs`` worker processes; a new pool when a worker dies."""
     warm_up(config)
+    left = list(todo)
+    while left:
+        left = _pool_round(left, out, config, stages, n_jobs, finish, stop)
+
+
+def _pool_round(jobs: list[Job], out: Location, config: Config, stages: tuple[str, ...],
+                n_jobs: int, finish: Callable[[Record], None], stop: StopFlag) -> list[Job]:
+    """Run ``jobs`` on one pool; the jobs not yet submitted when a worker died.
+
+    A worker that dies (killed by the OOM killer or by hand) breaks the pool:
+    the images in flight then are recorded failed -- any of them may be the
+    one that took the memory -- with their partial outputs removed, and the
+    rest of the batch goes on in a new pool.
+    """
+    # At most 2 images per worker in flight: memory stays bounded for any batch size.
+    pending: dict[Future[Record], Job] = {}
+    submitted = 0
     with ProcessPoolExecutor(max_workers=n_jobs, initializer=_init_worker,
                              initargs=(parallel.per_process(n_jobs), os.getpid())) as pool:
         try:
-            for job in todo:
+            for job in jobs:
                 stop.check()
-                pending.add(pool.submit(process_image, job, out, config, stages))
+                pending[pool.submit(process_image, job, out, config, stages)] = job
+                submitted += 1
                 while len(pending) >= 2 * n_jobs:
-                    pending = _collect(pending, finish, stop)
+                    _collect(pending, finish, stop)
             while pending:
-                pending = _collect(pending, finish, stop)
+                _collect(pending, finish, stop)
+        except BrokenProcessPool:
+            pool.shutdown(wait=True)  # the other workers are stopped: none writes any more
+            for fut, job in pending.items():
+                finish(_lost(fut, job, out, stages[0]))
+            return jobs[submitted:]
         except KeyboardInterrupt:
             pool.shutdown(wait=True, cancel_futures=True)
             for fut in pending:  # images the workers finished are kept and recorded
-                if fut.done() and not fut.cancelled():
+                if fut.done() and not fut.cancelled() and fut.exception() is None:
                     finish(fut.result())
             raise
+    return []
+
+
+def _lost(fut: Future[Record], job: Job, out: Location, first: str) -> Record:
+    """The record of an image in flight when its pool broke: its result, or failed."""
+    if fut.done() and not fut.cancelled() and fut.exception() is None:
+        return fut.result()
+    record = Record(rel=job.rel, status="failed", source=job.source, error=(
+        f"{job.source or job.rel}: its worker process died (killed, or out of memory?) while "
+        "it was in progress; rerun with --resume, with fewer --jobs if memory is short"))
+    remove_failed_outputs(out, record, first)
+    return record
 
 
 def warm_up(config: Config) -> None:
@@ -997,15 +1032,20 @@ def warm_up(config: Config) -> None:
         log.debug("warm-up failed", exc_info=True)
 
 
-def _collect(pending: set[Future[Record]], finish: Callable[[Record], None],
-             stop: StopFlag) -> set[Future[Record]]:
-    """Finish the images done within a short wait; return those still pending."""
-    done, _ = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+def _collect(pending: dict[Future[Record], Job], finish: Callable[[Record], None],
+             stop: StopFlag) -> None:
+    """Finish the images done within a short wait, taking them out of ``pending``.
+
+    A future whose worker died raises ``BrokenProcessPool`` and stays in
+    ``pending`` (:func:`_pool_round` names its image); a stop raised here
+    leaves only unfinished images in it.
+    """
+    done, _ = wait(list(pending), timeout=0.2, return_when=FIRST_COMPLETED)
     for fut in done:
-        pending.discard(fut)  # in place: a stop below must not finish it again
-        finish(fut.result())
+        record = fut.result()
+        del pending[fut]
+        finish(record)
     stop.check()
-    return pending
 
 
 def _init_worker(threads: int = 1, parent: int | None = None) -> None:
@@ -1016,15 +1056,15 @@ def _init_worker(threads: int = 1, parent: int | None = None) -> None:
     the batch's process, which the worker does not outlive
     (:func:`_exit_with_parent`).
 
-    Workers leave Ctrl-C and SIGTERM to the main process, which stops the batch
-    cleanly.
+    Workers leave Ctrl-C to the main process, which stops the batch cleanly;
+    SIGTERM ends a worker (a broken pool terminates the others with it).
     Each worker keeps its BLAS to one thread: the batch already uses a process
     per core, and OpenBLAS's own threads (one per core in every worker) would
     spin against each other; on 2 cores that took ``--jobs 2`` from about
     1.6x to 1.1x the throughput of ``--jobs 1``.
     """
-    for signum in StopFlag.SIGNALS:  # sent to the whole group: the batch's process decides
-        signal.signal(signum, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the batch's StopFlag, inherited by fork
     if parent is not None:
         _exit_with_parent(parent)
     parallel.set_threads(threads)
@@ -1038,14 +1078,12 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _exit_with_parent(parent: int) -> None:
-    """Linux: end this worker with SIGKILL when the batch's process ``parent`` dies.
+    """Linux: end this worker with SIGTERM when the batch's process ``parent`` dies.
 
     A batch killed with SIGKILL (by an OOM killer, a scheduler's time limit,
     ``kill -9``) cannot stop its pool, and the workers waited for work
     forever, each holding its memory. Elsewhere, or where ``prctl`` cannot
-    be called, nothing changes. SIGKILL, as workers ignore SIGTERM (the
-    batch's process stops them, :class:`StopFlag`); what a worker writes goes
-    through temporary files that the next run removes.
+    be called, nothing changes.
     """
     import ctypes
     import sys
@@ -1054,7 +1092,7 @@ def _exit_with_parent(parent: int) -> None:
         return
     try:
         libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) != 0:
+        if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
             return
     except (OSError, AttributeError):
         return

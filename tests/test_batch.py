@@ -339,6 +339,41 @@ def test_workers_do_not_outlive_a_batch_killed_with_sigkill(tmp_path, write_png)
     assert not left
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc is Linux's")
+def test_a_worker_killed_mid_batch_fails_its_images_and_the_batch_goes_on(tmp_path, write_png):
+    # The OOM killer takes one worker: the pool broke and the batch ended in a
+    # BrokenProcessPool traceback, the images after it never run.
+    folder = tmp_path / "many"
+    folder.mkdir()
+    for i in range(30):
+        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    out, fresh = tmp_path / "out", tmp_path / "fresh"
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "2", "-q"]
+    proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    workers: set[int] = set()
+    while time.monotonic() < deadline and len(workers) < 2:
+        workers = _children(proc.pid)
+        time.sleep(0.02)
+    assert len(workers) == 2
+    time.sleep(0.3)
+    os.kill(min(workers), signal.SIGKILL)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 1, err
+    assert "Traceback" not in err and "BrokenProcessPool" not in err
+    assert "its worker process died (killed, or out of memory?)" in err
+    images = json.loads((out / "rangeseg-run.json").read_text())["images"]
+    assert len(images) == 30 and all(v["status"] in ("done", "failed") for v in images.values())
+    lost = [k for k, v in images.items() if v["status"] == "failed"]
+    assert 1 <= len(lost) <= 4  # the images in flight, at most 2 per worker
+    assert not any((out / f"{k}.holdsite.json").exists() for k in lost)
+    res = subprocess.run([*cmd, "-o", str(out), "--resume"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert subprocess.run([*cmd, "-o", str(fresh)], capture_output=True).returncode == 0
+    assert tree_bytes(out) == tree_bytes(fresh)
+
+
 def _blas_threads() -> list[int]:
     from threadpoolctl import threadpool_info
 
