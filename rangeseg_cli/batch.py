@@ -993,22 +993,34 @@ def _pool_round(jobs: list[Job], out: Location, config: Config, stages: tuple[st
                 _collect(pending, finish, stop)
         except BrokenProcessPool:
             pool.shutdown(wait=True)  # the other workers are stopped: none writes any more
+            if stop.requested is not None:  # a SIGTERM to the whole group ended them too:
+                _keep_finished(pending, finish)  # the others stay `running`, redone later
+                stop.check()
             for fut, job in pending.items():
-                finish(_lost(fut, job, out, stages[0]))
+                finish(fut.result() if _finished(fut) else _lost(job, out, stages[0]))
             return jobs[submitted:]
         except KeyboardInterrupt:
             pool.shutdown(wait=True, cancel_futures=True)
-            for fut in pending:  # images the workers finished are kept and recorded
-                if fut.done() and not fut.cancelled() and fut.exception() is None:
-                    finish(fut.result())
+            _keep_finished(pending, finish)
             raise
     return []
 
 
-def _lost(fut: Future[Record], job: Job, out: Location, first: str) -> Record:
-    """The record of an image in flight when its pool broke: its result, or failed."""
-    if fut.done() and not fut.cancelled() and fut.exception() is None:
-        return fut.result()
+def _finished(fut: Future[Record]) -> bool:
+    """Whether a worker finished ``fut``'s image (its record can be had)."""
+    return fut.done() and not fut.cancelled() and fut.exception() is None
+
+
+def _keep_finished(pending: dict[Future[Record], Job], finish: Callable[[Record], None]
+                   ) -> None:
+    """Record the images of ``pending`` that the workers finished before a stop."""
+    for fut in pending:
+        if _finished(fut):
+            finish(fut.result())
+
+
+def _lost(job: Job, out: Location, first: str) -> Record:
+    """The failed record of an image in flight when a worker died; its outputs removed."""
     record = Record(rel=job.rel, status="failed", source=job.source, error=(
         f"{job.source or job.rel}: its worker process died (killed, or out of memory?) while "
         "it was in progress; rerun with --resume, with fewer --jobs if memory is short"))

@@ -374,6 +374,30 @@ def test_a_worker_killed_mid_batch_fails_its_images_and_the_batch_goes_on(tmp_pa
     assert tree_bytes(out) == tree_bytes(fresh)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc is Linux's")
+def test_sigterm_to_the_whole_group_stops_as_sigterm_to_the_batch(tmp_path, write_png):
+    # systemd or a container runtime signals every process: the workers die with the pool
+    folder = tmp_path / "many"
+    folder.mkdir()
+    for i in range(30):
+        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "2", "-q"]
+    proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 2:
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert "terminated (SIGTERM)" in err and "worker process died" not in err
+    images = json.loads((out / "rangeseg-run.json").read_text())["images"]
+    assert not any(v["status"] == "failed" for v in images.values())
+    res = subprocess.run([*cmd, "-o", str(out), "--resume"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+
+
 def _blas_threads() -> list[int]:
     from threadpoolctl import threadpool_info
 
