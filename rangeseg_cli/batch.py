@@ -965,7 +965,12 @@ def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[
     warm_up(config)
     left = list(todo)
     while left:
-        left = _pool_round(left, out, config, stages, n_jobs, finish, stop)
+        rest = _pool_round(left, out, config, stages, n_jobs, finish, stop)
+        if len(rest) == len(left):  # a pool that broke before taking any image: no retry
+            for job in rest:
+                finish(_lost(job, out, stages[0]))
+            return
+        left = rest
 
 
 def _pool_round(jobs: list[Job], out: Location, config: Config, stages: tuple[str, ...],

@@ -398,6 +398,28 @@ def test_sigterm_to_the_whole_group_stops_as_sigterm_to_the_batch(tmp_path, writ
     assert res.returncode == 0, res.stderr
 
 
+def _die_at_start(*args, **kwargs):
+    os._exit(3)  # a worker that cannot start (fork limits, no memory)
+
+
+def test_workers_that_die_before_any_image_fail_the_batch_instead_of_looping(
+        tmp_path, write_png, monkeypatch):
+    from rangeseg_cli import batch
+    from rangeseg_cli.config import load_config
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for i in range(5):
+        write_png(folder / f"s{i}.png", scene(i, size=48))
+    out = tmp_path / "out"
+    monkeypatch.setattr(batch, "_init_worker", _die_at_start)  # forked workers inherit it
+    jobs, _ = batch.jobs_from_inputs([str(folder)], out)
+    summary = batch.run_batch(jobs, out, load_config(), ("edges",), n_jobs=2)
+    assert summary.count("failed") == 5 and summary.count("done") == 0
+    assert all("its worker process died" in r.error for r in summary.records)
+    assert not list(out.glob("*.npy"))
+
+
 def _blas_threads() -> list[int]:
     from threadpoolctl import threadpool_info
 
