@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import signal
 import threading
@@ -47,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__, io, parallel, render
-from .config import STAGE_TABLES, Config, InputConfig, build_config
+from .config import STAGE_TABLES, Config, InputConfig, build_config, from_json
 from .errors import ClusterLost, InputError, OutputError, RangesegError
 from .io import Location
 from .pipeline import STAGES, stage_edges, stage_grow_and_gaps, stage_holdsite, stage_link
@@ -585,10 +584,7 @@ def manifest_config(out: Location) -> Config | None:
     data = read_manifest(out).get("config")
     if not isinstance(data, dict):
         return None
-    # JSON has no NaN: the manifest writes NaN (``[input] invalid``) as null.
-    data = {t: {k: math.nan if v is None else v for k, v in entries.items()}
-            if isinstance(entries, dict) else entries for t, entries in data.items()}
-    return build_config(data, str(out / MANIFEST))
+    return build_config(from_json(data), str(out / MANIFEST))
 
 
 def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str, ...], *,

@@ -476,6 +476,21 @@ def check_value(table: str, key: str, value: Any) -> Any:
     return _coerce(table, fields[key], value)
 
 
+def from_json(values: dict[str, Any]) -> dict[str, Any]:
+    """Tables read from JSON, with ``null`` as NaN where a key may be NaN.
+
+    JSON has no NaN: :func:`~rangeseg_cli.io.to_jsonable` writes it as
+    ``null``, and the one key that may be NaN is ``[input] invalid`` (no
+    no-data value besides NaN). A ``null`` elsewhere stays ``None``, so that
+    :func:`build_config` names it as it is in the file.
+    """
+    out = {t: dict(e) if isinstance(e, dict) else e for t, e in values.items()}
+    entries = out.get("input")
+    if isinstance(entries, dict) and entries.get("invalid", 0) is None:
+        entries["invalid"] = math.nan
+    return out
+
+
 def build_config(values: dict[str, Any], source: str = "config") -> Config:
     """Build a :class:`Config` from nested ``{table: {key: value}}`` overrides.
 

@@ -745,3 +745,19 @@ def test_set_on_a_stage_command_changes_values_of_the_recorded_config(runner, bo
     # --preset (or --config) still replaces it: other [step] settings than the labels'
     res = runner.invoke(main, ["holdsite", str(out), "-j", "1", "--preset", "paper"])
     assert res.exit_code == 1 and "made with other settings" in res.output
+
+
+def test_a_null_in_the_manifest_config_is_named_as_null(runner, box_png, tmp_path):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1"]).exit_code == 0
+    path = out / "rangeseg-run.json"
+    manifest = json.loads(path.read_text())
+    assert manifest["config"]["input"]["invalid"] is None  # NaN, written as JSON's null
+    manifest["config"]["step"]["threshold"] = None  # a hand edit
+    path.write_text(json.dumps(manifest))
+    res = runner.invoke(main, ["holdsite", str(out), "-j", "1"])
+    assert res.exit_code == 2
+    assert "[step] threshold = None: expected" in one_line_error(res)  # not "= nan"
+    manifest["config"]["step"]["threshold"] = 6.0
+    path.write_text(json.dumps(manifest))
+    assert runner.invoke(main, ["holdsite", str(out), "-j", "1", "-q"]).exit_code == 0
