@@ -105,11 +105,28 @@ def test_inputs_are_never_modified_and_out_inside_input_is_not_reread(good_folde
     assert after == before
 
 
-def test_resume_after_sigkill_completes_with_identical_bytes(tmp_path, write_png):
+def _many(tmp_path, write_png, count: int):
+    """A folder of ``count`` 96x96 scenes, for batches long enough to be signalled."""
     folder = tmp_path / "many"
     folder.mkdir()
-    for i in range(24):
+    for i in range(count):
         write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    return folder
+
+
+def _two_workers(pid: int) -> set[int]:
+    """The two worker processes of the batch ``pid``, once both run (60 s at most)."""
+    deadline = time.monotonic() + 60
+    workers: set[int] = set()
+    while time.monotonic() < deadline and len(workers) < 2:
+        workers = _children(pid)
+        time.sleep(0.02)
+    assert len(workers) == 2
+    return workers
+
+
+def test_resume_after_sigkill_completes_with_identical_bytes(tmp_path, write_png):
+    folder = _many(tmp_path, write_png, 24)
     ref, out = tmp_path / "ref", tmp_path / "out"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "1", "-q"]
     subprocess.run([*cmd, "-o", str(ref)], check=True, capture_output=True)
@@ -238,10 +255,7 @@ def test_random_nan_patterns_never_leak_into_labels(seed, frac):
 def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path, write_png,
                                                                         jobs, signum, code,
                                                                         said):
-    folder = tmp_path / "many"
-    folder.mkdir()
-    for i in range(30):
-        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    folder = _many(tmp_path, write_png, 30)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", jobs, "-q"]
     proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.PIPE,
@@ -268,10 +282,7 @@ def test_a_run_killed_with_new_settings_leaves_nothing_certified_under_the_old(
     # SIGKILL (an OOM killer, power loss) lands between writing an image's files and the
     # next write of the manifest: those images used to keep their entries of the old
     # settings, and --resume with the old settings kept their new files, exit 0.
-    folder = tmp_path / "many"
-    folder.mkdir()
-    for i in range(24):
-        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    folder = _many(tmp_path, write_png, 24)
     out, fresh = tmp_path / "out", tmp_path / "fresh"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "1", "-q"]
     assert subprocess.run([*cmd, "-o", str(out)], capture_output=True).returncode == 0
@@ -314,20 +325,12 @@ def _alive(pid: int) -> bool:
 def test_workers_do_not_outlive_a_batch_killed_with_sigkill(tmp_path, write_png):
     # An OOM killer or a scheduler's time limit sends SIGKILL: the pool cannot be stopped,
     # and the workers used to wait for work for ever, each holding its memory.
-    folder = tmp_path / "many"
-    folder.mkdir()
-    for i in range(40):
-        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    folder = _many(tmp_path, write_png, 40)
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder),
                              "-o", str(out), "-j", "2", "-q"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 60
-    workers: set[int] = set()
-    while time.monotonic() < deadline and len(workers) < 2:
-        workers = _children(proc.pid)
-        time.sleep(0.02)
-    assert len(workers) == 2
+    workers = _two_workers(proc.pid)
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=30)
     deadline = time.monotonic() + 30
@@ -343,20 +346,12 @@ def test_workers_do_not_outlive_a_batch_killed_with_sigkill(tmp_path, write_png)
 def test_a_worker_killed_mid_batch_fails_its_images_and_the_batch_goes_on(tmp_path, write_png):
     # The OOM killer takes one worker: the pool broke and the batch ended in a
     # BrokenProcessPool traceback, the images after it never run.
-    folder = tmp_path / "many"
-    folder.mkdir()
-    for i in range(30):
-        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    folder = _many(tmp_path, write_png, 30)
     out, fresh = tmp_path / "out", tmp_path / "fresh"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "2", "-q"]
     proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
-    workers: set[int] = set()
-    while time.monotonic() < deadline and len(workers) < 2:
-        workers = _children(proc.pid)
-        time.sleep(0.02)
-    assert len(workers) == 2
+    workers = _two_workers(proc.pid)
     time.sleep(0.3)
     os.kill(min(workers), signal.SIGKILL)
     _, err = proc.communicate(timeout=120)
@@ -377,10 +372,7 @@ def test_a_worker_killed_mid_batch_fails_its_images_and_the_batch_goes_on(tmp_pa
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc is Linux's")
 def test_sigterm_to_the_whole_group_stops_as_sigterm_to_the_batch(tmp_path, write_png):
     # systemd or a container runtime signals every process: the workers die with the pool
-    folder = tmp_path / "many"
-    folder.mkdir()
-    for i in range(30):
-        write_png(folder / f"s{i:02d}.png", scene(i, size=96))
+    folder = _many(tmp_path, write_png, 30)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "2", "-q"]
     proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
