@@ -30,6 +30,7 @@ from .errors import ConfigError
 
 Truncation = Literal["symmetric", "one-sided"]
 BackgroundRule = Literal["lowest-border", "largest-border", "none"]
+PoseRule = Literal["local", "surface"]
 
 # Upper limits of the numeric keys: far beyond any useful setting, and small enough
 # that no product or square the stages form overflows (a fit level squared,
@@ -259,6 +260,11 @@ class HoldsiteConfig:
     background: str = _opt("lowest-border", "which regions are background: lowest-border "
                            "(touching the border at the lowest height), largest-border, or "
                            "none", choices=get_args(BackgroundRule))
+    pose: str = _opt("local", "where a site's elevation and normal come from: local (on a "
+                     "curved surface, a quadric of the surface's pixels in the square of side "
+                     "2 x footprint + 1 around the site; a planar surface keeps its plane) or "
+                     "surface (the whole surface's fit, as before 2026-11-27)",
+                     choices=get_args(PoseRule))
 
 
 @dataclass(frozen=True)

@@ -69,8 +69,13 @@ that just fits scores about 0.5 on clearance), ``d`` the distance to the
 object's centre of area and ``rho = sqrt(A / pi)`` the radius of a disc of
 the object's area ``A``.
 
-Step 6, pose: elevation from the fit at the centre; the unit normal
-``n ~ (-dz/dx, -dz/dy, 1)`` (x = col, y = row, z up towards the sensor); the
+Step 6, pose: elevation and gradient at the centre, from the surface's fit
+on a planar surface and, on a curved one (``holdsite.pose = "local"``, the
+default), from a quadric of the surface's pixels within the footprint's
+longer side of the centre (:func:`local_pose`: one quadric of a whole
+curved surface can be off by several depth units and degrees at a given
+point); ``holdsite.pose = "surface"`` always takes the surface's fit. The
+unit normal ``n ~ (-dz/dx, -dz/dy, 1)`` (x = col, y = row, z up towards the sensor); the
 approach vector ``-n`` (the gripper moves against the normal). With camera
 intrinsics and depth input (``larger_is_closer = false``, depth ``d = -z``),
 the point is ``((col - cx) d / fx, (row - cy) d / fy, d)`` (metres when
@@ -987,11 +992,85 @@ def camera_pose(row: float, col: float, height: float, grad: tuple[float, float]
     return point, _unit(-towards)
 
 
+#: Fewest pixels of a local quadric fit (Step 6); fewer: the surface's own fit.
+LOCAL_FIT_MIN_PIXELS = 12
+
+
+def local_pose(z: np.ndarray, labels: np.ndarray, s: Surface, row: int, col: int, reach: int
+               ) -> tuple[float, tuple[float, float]] | None:
+    """Step 6 (``holdsite.pose = "local"``): height and gradient at a site from nearby pixels.
+
+    A least-squares quadric (Sec. V-4's model) of the valid pixels of surface
+    ``s`` within ``reach`` pixels (chessboard) of ``(row, col)``, in
+    coordinates centred on the site, so its constant term is the elevation
+    and its linear terms the gradient there. One quadric of a whole curved
+    surface approximates it everywhere at once, so at a given point it can
+    be off (a noise-free sphere's top by 3.5 depth units); the local fit
+    follows the surface under the gripper.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) final regions (0 = none).
+    s
+        The site's surface.
+    row, col
+        The site (the window's centre).
+    reach
+        Half side of the square of pixels used.
+
+    Returns
+    -------
+    tuple or None
+        ``(elevation, (dz/dx, dz/dy))``, x = col, y = row; ``None`` when fewer
+        than :data:`LOCAL_FIT_MIN_PIXELS` pixels are there or they do not
+        determine a quadric (the caller then keeps the surface's fit).
+    """
+    h, w = z.shape
+    r0, c0 = max(row - reach, 0), max(col - reach, 0)
+    box = (slice(r0, min(row + reach + 1, h)), slice(c0, min(col + reach + 1, w)))
+    mine = (labels[box] == s.id) & np.isfinite(z[box])
+    rows, cols = np.nonzero(mine)
+    if rows.size < LOCAL_FIT_MIN_PIXELS:
+        return None
+    y = (rows + r0 - row).astype(np.float64)
+    x = (cols + c0 - col).astype(np.float64)
+    design = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    coef, _, rank, _ = np.linalg.lstsq(design, z[box][mine], rcond=None)
+    if rank < design.shape[1]:
+        return None
+    return float(coef[0]), (float(coef[1]), float(coef[2]))
+
+
+def site_pose(scene: _Scene, s: Surface, row: int, col: int
+              ) -> tuple[float, tuple[float, float]]:
+    """Step 6: elevation and gradient of a site (:func:`local_pose` or the surface's fit).
+
+    A planar surface keeps its plane (its fit over the whole face is the
+    most precise estimate of a plane); a curved one, with ``holdsite.pose =
+    "local"``, gets the local quadric of the pixels within the footprint's
+    longer side of the site.
+    """
+    if scene.cfg.pose == "local" and s.type != "planar":
+        local = local_pose(scene.z, scene.labels, s, row, col, max(scene.cfg.size))
+        if local is not None:
+            return local
+    return float(s.height_at(row, col)), s.gradient_at(row, col)
+
+
 def make_site(s: Surface, row: int, col: int, *, object_id: int, clearance: float,
-              ar_std: float, angle: float, site_score: float, config: Config) -> Holdsite:
-    """Step 6: a :class:`Holdsite` with elevation, normal and approach from the fit."""
-    gx, gy = s.gradient_at(row, col)
-    elevation = float(s.height_at(row, col))
+              ar_std: float, angle: float, site_score: float, config: Config,
+              pose: tuple[float, tuple[float, float]] | None = None) -> Holdsite:
+    """Step 6: a :class:`Holdsite` with elevation, normal and approach.
+
+    ``pose`` is ``(elevation, (dz/dx, dz/dy))`` at the site
+    (:func:`site_pose`); ``None``: from the surface's fit.
+    """
+    if pose is None:
+        pose = float(s.height_at(row, col)), s.gradient_at(row, col)
+    elevation, (gx, gy) = pose
     normal = _unit(np.array([-gx, -gy, 1.0]))
     point, approach_cam = camera_pose(row, col, elevation, (gx, gy), config.input)
     return Holdsite(
@@ -1042,7 +1121,8 @@ def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
     return make_site(hits.surface, r, c, object_id=obj.id, clearance=hits.clearance[k],
                      ar_std=ar_std, angle=angle,
                      site_score=score(hits.clearance[k], dist, config.holdsite.size,
-                                      obj.pixels), config=config)
+                                      obj.pixels), config=config,
+                     pose=site_pose(scene, hits.surface, r, c))
 
 
 def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hits], list[_Hits]]:

@@ -398,3 +398,67 @@ def test_a_level_table_split_by_a_wall_still_joins_by_mean_height():
     z[:, 44:52] = 90.0  # a wall from top to bottom splits the table
     result = run_pipeline(z, load_config(overrides={"split": {"join_occluded": False}}))
     assert len(result.holdsite.background) == 2
+
+
+# --- Step 6: the pose of a site on a curved surface (holdsite.pose) ------------------
+
+
+def _true_pose_errors(scene, site):
+    """Elevation error and normal angle (degrees) of a site against the noise-free heights."""
+    h, r, c = scene.heights, site.row, site.col
+    true_normal = np.array([-(h[r, c + 1] - h[r, c - 1]) / 2, -(h[r + 1, c] - h[r - 1, c]) / 2, 1])
+    cosine = float(np.dot(site.normal, true_normal) / np.linalg.norm(true_normal))
+    return abs(site.elevation - h[r, c]), math.degrees(math.acos(min(1.0, cosine)))
+
+
+@pytest.mark.parametrize("noise", [0.0, 1.0])
+def test_sites_on_a_sphere_take_the_pose_of_the_sphere_under_the_gripper(noise):
+    from rangeseg_cli.synth import render_scene
+
+    scene = render_scene("sphere", noise=noise, seed=0)
+    errors = {}
+    for pose in ("local", "surface"):
+        result = run(scene.image, pose=pose)
+        sites = (result.holdsite.holdsite, *result.holdsite.candidates)
+        assert len(sites) >= 4 and all(s.surface_type == "curved" for s in sites)
+        errors[pose] = np.array([_true_pose_errors(scene, s) for s in sites])
+    # one quadric of the whole sphere misses its top by ~3.5 units and tilts the sites
+    # away from it by ~11 degrees; the local quadric follows the sphere
+    assert errors["surface"][0, 0] > 2.0 and errors["surface"][:, 1].max() > 8.0
+    assert errors["local"][:, 0].max() < 0.5 and errors["local"][:, 1].max() < 4.0
+
+
+def test_a_site_on_a_plane_keeps_the_plane_of_the_whole_face():
+    z = table()
+    z[12:52, 12:52] = 60.0 + 0.5 * np.arange(64)[None, 12:52]  # a ramp: planar, tilted
+    local, whole = (run(noisy(z, 1.0), pose=p).holdsite for p in ("local", "surface"))
+    assert local.holdsite.surface_type == "planar"
+    assert local.to_dict() == whole.to_dict()
+
+
+def test_local_pose_needs_enough_pixels_and_is_exact_on_a_quadric():
+    from rangeseg_cli.holdsite import LOCAL_FIT_MIN_PIXELS, local_pose
+    from rangeseg_cli.models import Surface
+
+    rows, cols = np.mgrid[0:40, 0:40].astype(float)
+    z = 50.0 + 0.3 * cols - 0.2 * rows + 0.01 * (cols - 20) ** 2 + 0.02 * (rows - 20) * cols
+    labels = np.ones(z.shape, np.int32)
+    s = Surface(1, z.size, (0, 0, 39, 39), (19.5, 19.5), float(z.mean()), (0.0,) * 6, 0.0,
+                "curved", "ridge")
+    elevation, (gx, gy) = local_pose(z, labels, s, 20, 20, 7)
+    assert elevation == pytest.approx(z[20, 20], abs=1e-9)
+    assert gx == pytest.approx(0.3, abs=1e-9)  # dz/dcol: 0.3 + 0.02 (col - 20) + 0.02 (row - 20)
+    assert gy == pytest.approx(-0.2 + 0.02 * 20, abs=1e-9)  # dz/drow: -0.2 + 0.02 col
+    few = np.zeros(z.shape, np.int32)
+    few[20, 20 - LOCAL_FIT_MIN_PIXELS // 2:20 + LOCAL_FIT_MIN_PIXELS // 2 - 1] = 1
+    assert local_pose(z, few, s, 20, 20, 7) is None  # too few pixels
+    line = np.zeros(z.shape, np.int32)
+    line[20, :] = 1
+    assert local_pose(z, line, s, 20, 20, 7) is None  # one row: no quadric
+
+
+def test_pose_setting_is_checked():
+    from rangeseg_cli.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"\[holdsite\] pose = 'plane'.*local.*surface"):
+        load_config(overrides={"holdsite": {"pose": "plane"}})
