@@ -260,6 +260,13 @@ class HoldsiteConfig:
     background: str = _opt("lowest-border", "which regions are background: lowest-border "
                            "(touching the border at the lowest height), largest-border, or "
                            "none", choices=get_args(BackgroundRule))
+    max_tilt: float = _opt(90.0, "largest angle in degrees between a site's surface normal and "
+                           "the sensor's axis (the optical axis with camera intrinsics, else "
+                           "the height axis, which needs units_per_pixel); 90 = any, as the "
+                           "paper", min=0.0, max=90.0)
+    units_per_pixel: float = _opt(0.0, "depth units per pixel of lateral size of a height map "
+                                  "(2 for rangeseg synth at 128x128), for max_tilt without "
+                                  "camera intrinsics; 0 = unknown", min=0.0, max=MAX_DEPTH)
     pose: str = _opt("local", "where a site's elevation and normal come from: local (on a "
                      "curved surface, a quadric of the surface's pixels in the square of side "
                      "2 x footprint + 1 around the site; a planar surface keeps its plane) or "
@@ -559,6 +566,12 @@ def _check_consistency(config: Config) -> None:
             f"[input] fx = {config.input.fx}, larger_is_closer = true: camera intrinsics "
             "need depth along the optical axis (larger_is_closer = false, e.g. --preset "
             "mm-depth); a height map has no camera frame")
+    hold = config.holdsite
+    if hold.max_tilt < 90 and not (config.input.has_intrinsics or hold.units_per_pixel > 0):
+        raise ConfigError(
+            f"[holdsite] max_tilt = {hold.max_tilt}: a tilt needs the lateral scale of the "
+            "image: camera intrinsics ([input] fx, fy with depth input) or [holdsite] "
+            "units_per_pixel > 0 (depth units per pixel of a height map)")
     if config.roof.threshold_b > config.roof.threshold_a:
         raise ConfigError(
             f"[roof] threshold_b = {config.roof.threshold_b}: must be <= threshold_a "

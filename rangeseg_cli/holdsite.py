@@ -47,6 +47,14 @@ the standard deviation of the 2-D AR (:func:`~rangeseg_cli.edges.ar_2d`)
 over the footprint is <= ``holdsite.max_ar_std`` (window means of AR and
 AR^2). The first surface in the order with a candidate holds the site.
 
+Step 4b, tilt (beyond the paper; ``holdsite.max_tilt`` < 90): a candidate
+also needs the normal that a site there would report (Step 6) within
+``max_tilt`` degrees of the sensor's axis: with camera intrinsics the
+camera-frame normal against the optical axis, else the height map's normal
+with ``holdsite.units_per_pixel`` depth units per pixel of lateral size
+against the height axis (:func:`tilts`). The curved surfaces' local poses
+of every candidate come from moment images (:func:`local_poses`).
+
 Step 5, choice: the largest clearance (Euclidean distance transform of the
 surface mask: distance in pixels from the window centre to the nearest pixel
 that is not on the surface -- its border, a hole, an edge, an invalid pixel
@@ -113,7 +121,7 @@ from scipy import ndimage
 from .config import Config, HoldsiteConfig, InputConfig, check_config
 from .edges import Backend, ar_2d, gaussian_taps, select_kernels
 from .errors import InputError
-from .grow import evaluate_quadric, valid_labels
+from .grow import RCOND, evaluate_quadric, valid_labels
 from .models import Surface
 from .rangeimage import check_stage_arrays
 from .surfaces import NEIGHBOUR_REACH, kernel_labels, neighbour_pairs, pair_medians
@@ -705,6 +713,7 @@ class _Scene:
     cfg: HoldsiteConfig
     angles: tuple[float, ...]
     backend: Backend = "auto"
+    camera: InputConfig = field(default_factory=InputConfig)
     _footprints: dict[float, np.ndarray] = field(default_factory=dict)
     _ar_area: int = 0
     _ar_whole: np.ndarray | None = None
@@ -773,6 +782,8 @@ class _Hits:
     max_clearance: float = 0.0
     fitting: int = 0
     min_ar_std: float = math.inf
+    steep: int = 0
+    min_tilt: float = math.inf
 
 
 def _pad1(a: np.ndarray) -> np.ndarray:
@@ -827,6 +838,11 @@ def surface_windows(scene: _Scene, s: Surface) -> _Hits:
         stds, and the largest clearance, number of fitting windows and lowest
         AR std seen (for the reason when nothing is accepted).
     """
+    return _drop_steep(scene, _level_windows(scene, s))
+
+
+def _level_windows(scene: _Scene, s: Surface) -> _Hits:
+    """:func:`surface_windows` before the tilt test."""
     rows, cols = scene.cfg.size
     sl, offset = _crop(scene, s, max(rows, cols) // 2 + 2)
     kernels = scene.compiled_windows()
@@ -892,6 +908,60 @@ def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
         if (margin, -std) > (best[0], -best[1]):
             best = (margin, std, angle)
     return best[2], best[1]
+
+
+# ---------------------------------------------------------------------------
+# Step 4b: tilt (holdsite.max_tilt)
+
+
+def tilts(camera: InputConfig, units_per_pixel: float, rows: Any, cols: Any, heights: Any,
+          gx: Any, gy: Any) -> np.ndarray:
+    """Angles in degrees between surface normals and the sensor's axis (Step 4b).
+
+    Parameters
+    ----------
+    camera
+        ``[input]``: with intrinsics (depth input), the normal of
+        :func:`camera_pose` is taken against the optical axis.
+    units_per_pixel
+        Without intrinsics, depth units per pixel of lateral size: the normal
+        ``(-dz/dx, -dz/dy, 1)`` of the height map scaled to equal units is taken
+        against the height axis, ``atan(|grad| / units_per_pixel)``.
+    rows, cols, heights, gx, gy
+        Positions, heights and gradients (dz/dx, dz/dy; x = col) of the fits.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 angles in [0, 180]; NaN where the depth is not positive.
+    """
+    r, c, h, dx, dy = (np.asarray(a, dtype=np.float64) for a in (rows, cols, heights, gx, gy))
+    if camera.has_intrinsics:
+        d, d_u, d_v = -h, -dx, -dy
+        ax, ay = -camera.fx * d_u, -camera.fy * d_v
+        az = d + (c - camera.cx) * d_u + (r - camera.cy) * d_v
+        cosine = az / np.sqrt(ax * ax + ay * ay + az * az)
+        return np.where(d > 0, np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))), np.nan)
+    return np.degrees(np.arctan(np.hypot(dx, dy) / units_per_pixel))
+
+
+def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
+    """Step 4b: drop the windows whose pose is tilted beyond ``holdsite.max_tilt``.
+
+    The pose is the one a site there would report (:func:`site_poses`), so a
+    site's normal is always within the limit.
+    """
+    if scene.cfg.max_tilt >= 90 or not hits.rows.size:
+        return hits
+    r, c = hits.rows, hits.cols
+    t = tilts(scene.camera, scene.cfg.units_per_pixel, r, c,
+              *site_poses(scene, hits.surface, r, c))
+    keep = t <= scene.cfg.max_tilt  # NaN: not kept
+    hits.steep = int(np.count_nonzero(~keep))
+    if np.isfinite(t).any():
+        hits.min_tilt = float(np.nanmin(t))
+    hits.rows, hits.cols, hits.clearance = r[keep], c[keep], hits.clearance[keep]
+    return hits
 
 
 # ---------------------------------------------------------------------------
@@ -1006,7 +1076,8 @@ def local_pose(z: np.ndarray, labels: np.ndarray, s: Surface, row: int, col: int
     and its linear terms the gradient there. One quadric of a whole curved
     surface approximates it everywhere at once, so at a given point it can
     be off (a noise-free sphere's top by 3.5 depth units); the local fit
-    follows the surface under the gripper.
+    follows the surface under the gripper. The one-site case of
+    :func:`local_poses` (the same bits).
 
     Parameters
     ----------
@@ -1028,36 +1099,94 @@ def local_pose(z: np.ndarray, labels: np.ndarray, s: Surface, row: int, col: int
         than :data:`LOCAL_FIT_MIN_PIXELS` pixels are there or they do not
         determine a quadric (the caller then keeps the surface's fit).
     """
+    height, gx, gy, ok = local_poses(z, labels, s, np.array([row]), np.array([col]), reach)
+    if not ok[0]:
+        return None
+    return float(height[0]), (float(gx[0]), float(gy[0]))
+
+
+#: Powers (x, y) of the quadric's terms 1, x, y, x^2, xy, y^2 (Sec. V-4).
+_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
+
+
+def local_poses(z: np.ndarray, labels: np.ndarray, s: Surface, rows: np.ndarray,
+                cols: np.ndarray, reach: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`local_pose` at many sites of surface ``s`` at once.
+
+    The normal equations of every site's quadric are gathered from moment
+    images: sums of ``m x^a y^b`` (a + b <= 4) and ``m z x^a y^b`` (a + b <= 2)
+    over the square of half side ``reach`` around each pixel, with ``m`` the
+    surface's valid pixels and x, y the offsets divided by ``reach``, by two
+    1-D correlations each (the square's weights are separable). Heights are
+    taken relative to the surface's mean height.
+
+    Returns
+    -------
+    height, gx, gy : numpy.ndarray
+        float64 (N,) elevation and gradient (dz/dx, dz/dy) at each site.
+    ok : numpy.ndarray
+        bool (N,): the site's pixels determine a quadric (at least
+        :data:`LOCAL_FIT_MIN_PIXELS`, normal equations not singular); where
+        False the other values are meaningless.
+    """
     h, w = z.shape
-    r0, c0 = max(row - reach, 0), max(col - reach, 0)
-    box = (slice(r0, min(row + reach + 1, h)), slice(c0, min(col + reach + 1, w)))
+    box = (slice(max(int(rows.min()) - reach, 0), min(int(rows.max()) + reach + 1, h)),
+           slice(max(int(cols.min()) - reach, 0), min(int(cols.max()) + reach + 1, w)))
     mine = (labels[box] == s.id) & np.isfinite(z[box])
-    rows, cols = np.nonzero(mine)
-    if rows.size < LOCAL_FIT_MIN_PIXELS:
-        return None
-    y = (rows + r0 - row).astype(np.float64)
-    x = (cols + c0 - col).astype(np.float64)
-    design = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
-    coef, _, rank, _ = np.linalg.lstsq(design, z[box][mine], rcond=None)
-    if rank < design.shape[1]:
-        return None
-    return float(coef[0]), (float(coef[1]), float(coef[2]))
+    weight = mine.astype(np.float64)
+    rel = np.where(mine, z[box] - s.mean_height, 0.0)
+    taps = np.arange(-reach, reach + 1, dtype=np.float64) / max(reach, 1)
+    at = (rows - box[0].start, cols - box[1].start)
+
+    def moments(image: np.ndarray, degree: int) -> dict[tuple[int, int], np.ndarray]:
+        across = [ndimage.correlate1d(image, taps ** a, axis=1, mode="constant")
+                  for a in range(degree + 1)]
+        return {(a, b): ndimage.correlate1d(across[a], taps ** b, axis=0, mode="constant")[at]
+                for a in range(degree + 1) for b in range(degree + 1 - a)}
+
+    m, mz = moments(weight, 4), moments(rel, 2)
+    gram = np.stack([np.stack([m[(ax + bx, ay + by)] for bx, by in _TERMS], axis=-1)
+                     for ax, ay in _TERMS], axis=-2)
+    rhs = np.stack([mz[t] for t in _TERMS], axis=-1)
+    eig = np.linalg.eigvalsh(gram)
+    ok = (m[(0, 0)] >= LOCAL_FIT_MIN_PIXELS - 0.5) & (eig[:, 0] > RCOND * eig[:, -1])
+    coef = np.zeros(rhs.shape)
+    if ok.any():
+        coef[ok] = np.linalg.solve(gram[ok], rhs[ok][..., None])[..., 0]
+    scale = max(reach, 1)
+    return coef[:, 0] + s.mean_height, coef[:, 1] / scale, coef[:, 2] / scale, ok
+
+
+def _local_pose_used(scene: _Scene, s: Surface) -> bool:
+    """Whether a site on ``s`` takes :func:`local_pose` (curved, ``pose = "local"``)."""
+    return scene.cfg.pose == "local" and s.type != "planar"
+
+
+def site_poses(scene: _Scene, s: Surface, rows: np.ndarray, cols: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 6: elevation and gradient (dz/dx, dz/dy) of sites on ``s``, float64 (N,) each.
+
+    A planar surface keeps its plane (its fit over the whole face is the
+    most precise estimate of a plane); a curved one, with ``holdsite.pose =
+    "local"``, gets the local quadric of its pixels within the footprint's
+    longer side of each site (:func:`local_poses`), or its own fit where
+    those pixels determine none.
+    """
+    height = np.asarray(s.height_at(rows, cols), dtype=np.float64)
+    gx, gy = (np.asarray(g, dtype=np.float64) for g in s.gradient_at(rows, cols))
+    if _local_pose_used(scene, s):
+        lh, lx, ly, ok = local_poses(scene.z, scene.labels, s, rows, cols,
+                                     max(scene.cfg.size))
+        height, gx, gy = np.where(ok, lh, height), np.where(ok, lx, gx), np.where(ok, ly, gy)
+    return height, gx, gy
 
 
 def site_pose(scene: _Scene, s: Surface, row: int, col: int
               ) -> tuple[float, tuple[float, float]]:
-    """Step 6: elevation and gradient of a site (:func:`local_pose` or the surface's fit).
-
-    A planar surface keeps its plane (its fit over the whole face is the
-    most precise estimate of a plane); a curved one, with ``holdsite.pose =
-    "local"``, gets the local quadric of the pixels within the footprint's
-    longer side of the site.
-    """
-    if scene.cfg.pose == "local" and s.type != "planar":
-        local = local_pose(scene.z, scene.labels, s, row, col, max(scene.cfg.size))
-        if local is not None:
-            return local
-    return float(s.height_at(row, col)), s.gradient_at(row, col)
+    """:func:`site_poses` of one site: ``(elevation, (dz/dx, dz/dy))``."""
+    height, gx, gy = site_poses(scene, s, np.array([row]), np.array([col]))
+    return float(height[0]), (float(gx[0]), float(gy[0]))
 
 
 def make_site(s: Surface, row: int, col: int, *, object_id: int, clearance: float,
@@ -1165,6 +1294,13 @@ def _failure(cfg: HoldsiteConfig, missed: list[_Hits], n_surfaces: int) -> str:
     fitting = [h for h in missed if h.fitting]
     if not fitting:
         return f"no surface has a {win} window wholly on its valid pixels; {clear}"
+    steep = [h for h in missed if h.steep]
+    if steep:
+        level = min(steep, key=lambda h: h.min_tilt)
+        return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g} and a tilt "
+                f"<= {cfg.max_tilt:g} degrees; {sum(h.steep for h in steep)} window(s) "
+                f"passed the AR test, least tilt {level.min_tilt:.3g} degrees (surface "
+                f"{level.surface.id}); {clear}")
     calm = min(fitting, key=lambda h: h.min_ar_std)
     return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g}; "
             f"{sum(h.fitting for h in fitting)} window(s) fit, lowest AR std "
@@ -1179,6 +1315,8 @@ def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: Holdsite
     text = (f"surface {site.surface} ({site.surface_type}) of object {obj.id} ({state}) is the "
             f"first in the search order (objects in view, uncovered, highest surface first) "
             f"with a {cfg.size[0]}x{cfg.size[1]} window with AR std <= {cfg.max_ar_std:g}")
+    if cfg.max_tilt < 90:
+        text += f" and a tilt <= {cfg.max_tilt:g} degrees"
     if missed:
         ids = ", ".join(str(h.surface.id) for h in missed[:10])
         more = ", ..." if len(missed) > 10 else ""
@@ -1251,7 +1389,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     order = sorted((by_id[i] for i in object_of), key=lambda s: _preference(
         obj_by_id[object_of[s.id]], s))
     # Step 4: acceptable windows, surface by surface
-    scene = _Scene(labels, valid, z, config.holdsite, _angles(config.holdsite), backend)
+    scene = _Scene(labels, valid, z, config.holdsite, _angles(config.holdsite), backend,
+                   config.input)
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
     bg, objs, camera = tuple(sorted(background)), tuple(objects), config.input.has_intrinsics
     if not found:

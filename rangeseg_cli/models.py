@@ -72,7 +72,7 @@ class Surface:
         x, y = col, row
         return a0 + a1 * x + a2 * y + a3 * x * x + a4 * x * y + a5 * y * y
 
-    def gradient_at(self, row: float, col: float) -> tuple[float, float]:
+    def gradient_at(self, row: float | np.ndarray, col: float | np.ndarray) -> tuple[Any, Any]:
         """(dz/dx, dz/dy) of the fit at (row, col), x = col, y = row."""
         _, a1, a2, a3, a4, a5 = self.coefficients
         return a1 + 2 * a3 * col + a4 * row, a2 + a4 * col + 2 * a5 * row

@@ -275,6 +275,10 @@ def test_pipeline_runs_with_any_key_at_the_end_of_its_range(table, key, value):
         focal = value if key in ("fx", "fy") and value else 500.0
         overrides["input"] = {"fx": focal, "fy": focal, "larger_is_closer": False,
                               **({key: value} if key in ("cx", "cy") else {})}
+    if table == "holdsite" and key in ("max_tilt", "units_per_pixel"):  # a tilt needs a scale
+        overrides["holdsite"] = {"max_tilt": 45.0, "units_per_pixel": 2.0, key: value}
+        if overrides["holdsite"]["units_per_pixel"] == 0:
+            overrides["holdsite"]["max_tilt"] = 90.0
     if table == "roof" and key == "threshold_b":
         overrides["roof"]["threshold_a"] = max(value, 6.0)
     if table == "roof" and key == "threshold_a":

@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -462,3 +463,105 @@ def test_pose_setting_is_checked():
 
     with pytest.raises(ConfigError, match=r"\[holdsite\] pose = 'plane'.*local.*surface"):
         load_config(overrides={"holdsite": {"pose": "plane"}})
+
+
+def test_local_poses_match_a_least_squares_fit_at_every_site_border_and_holes_included():
+    from rangeseg_cli.holdsite import local_pose, local_poses
+    from rangeseg_cli.models import Surface
+
+    rng = np.random.default_rng(3)
+    rows, cols = np.mgrid[0:30, 0:40].astype(float)
+    z = 80.0 + 0.4 * cols - 0.03 * (rows - 12) ** 2 + 0.01 * cols * rows + rng.normal(0, 1, rows.shape)
+    labels = np.ones(z.shape, np.int32)
+    labels[10:14, 5:25] = 2  # another surface inside the square of some sites
+    z[20:23, 30:33] = np.nan  # invalid pixels
+    s = Surface(1, int((labels == 1).sum()), (0, 0, 29, 39), (15.0, 20.0), 85.0, (0.0,) * 6,
+                0.0, "curved", "saddle-ridge")
+    sites = np.array([[0, 0], [15, 20], [29, 39], [21, 31], [5, 37]])
+    height, gx, gy, ok = local_poses(z, labels, s, sites[:, 0], sites[:, 1], 6)
+    assert ok.all()
+    for k, (r, c) in enumerate(sites):
+        box = (slice(max(r - 6, 0), r + 7), slice(max(c - 6, 0), c + 7))
+        rr, cc = np.nonzero((labels[box] == 1) & np.isfinite(z[box]))
+        y, x = rr + box[0].start - r, cc + box[1].start - c
+        design = np.column_stack([np.ones(x.size), x, y, x * x, x * y, y * y]).astype(float)
+        coef = np.linalg.lstsq(design, z[box][rr, cc], rcond=None)[0]
+        assert (height[k], gx[k], gy[k]) == pytest.approx(tuple(coef[:3]), abs=1e-8)
+        assert local_pose(z, labels, s, int(r), int(c), 6) == (height[k], (gx[k], gy[k]))
+
+
+# --- Step 4b: a tilt limit (holdsite.max_tilt) -----------------------------------------
+
+
+def _tilt(site, units_per_pixel=2.0):
+    """A height-map site's tilt in degrees from its reported normal (2 units/px: synth)."""
+    slope = math.hypot(site.normal[0], site.normal[1]) / site.normal[2]
+    return math.degrees(math.atan(slope / units_per_pixel))
+
+
+def _sites(found):
+    return (found.holdsite, *found.candidates) if found.holdsite else ()
+
+
+def test_max_tilt_needs_the_lateral_scale_of_the_image():
+    from rangeseg_cli.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"max_tilt = 45.*units_per_pixel > 0"):
+        load_config(overrides={"holdsite": {"max_tilt": 45}})
+    load_config(overrides={"holdsite": {"max_tilt": 45, "units_per_pixel": 2.0}})
+    load_config("sample_data/arc/suction.toml", overrides={"holdsite": {"max_tilt": 45}})
+    with pytest.raises(ConfigError, match=r"max_tilt = 91.*<= 90"):
+        load_config(overrides={"holdsite": {"max_tilt": 91, "units_per_pixel": 2.0}})
+
+
+@pytest.mark.parametrize("scene_name", ["part1", "cup", "nut"])
+def test_max_tilt_keeps_every_site_within_the_limit(scene_name):
+    from rangeseg_cli.synth import render_scene
+
+    image = render_scene(scene_name, noise=1.0, seed=0).image
+    free = run(image, units_per_pixel=2.0)
+    limited = run(image, max_tilt=45.0, units_per_pixel=2.0)
+    assert max(_tilt(s) for s in _sites(free.holdsite)) > 50  # the paper's rule takes steep faces
+    assert _sites(limited.holdsite)
+    assert all(_tilt(s) <= 45.0 + 1e-9 for s in _sites(limited.holdsite))
+    assert "tilt <= 45 degrees" in limited.holdsite.reason
+    if scene_name == "cup":  # the steep sites were on curved surfaces: local poses tested
+        assert all(s.surface_type == "curved" for s in _sites(free.holdsite) if _tilt(s) > 45)
+
+
+def test_max_tilt_with_no_level_window_says_so():
+    from rangeseg_cli.synth import render_scene
+
+    found = run(render_scene("wedge", noise=0.0, seed=0).image, max_tilt=45.0,
+                units_per_pixel=2.0).holdsite
+    assert found.holdsite is None and not found.candidates
+    assert re.search(r"tilt <= 45 degrees; \d+ window\(s\) passed the AR test, least tilt 56",
+                     found.reason)
+
+
+def test_max_tilt_with_a_camera_takes_the_optical_axis():
+    from rangeseg_cli.io import read_image
+
+    image = read_image("sample_data/arc/suction-scene.depth.png")
+    angles = {}
+    for limit in (90.0, 15.0):
+        config = load_config("sample_data/arc/suction.toml",
+                             overrides={"holdsite": {"max_tilt": limit}})
+        found = run_pipeline(image, config).holdsite
+        angles[limit] = [math.degrees(math.acos(s.approach_camera[2])) for s in _sites(found)]
+    assert max(angles[90.0]) > 30  # the default site itself is 36 degrees off the axis
+    assert len(angles[15.0]) == 6 and max(angles[15.0]) <= 15.0 + 1e-9
+
+
+def test_tilts_of_a_camera_agree_with_the_reported_approach():
+    from rangeseg_cli.holdsite import camera_pose, tilts
+
+    camera = load_config("sample_data/arc/suction.toml").input
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        row, col = rng.uniform(0, 480), rng.uniform(0, 640)
+        height, grad = -rng.uniform(300, 900), tuple(rng.normal(0, 2, 2))
+        _, approach = camera_pose(row, col, height, grad, camera)
+        expected = math.degrees(math.acos(approach[2]))
+        assert float(tilts(camera, 0.0, row, col, height, *grad)) == pytest.approx(expected,
+                                                                                   abs=1e-9)
