@@ -387,28 +387,37 @@ def jobs_from_inputs(inputs: Iterable[str | Path], out: Location
     StorageError
         When an input URL cannot be used (see :func:`rangeseg_cli.io.location`).
     """
+    inputs = list(inputs)
     images, skipped = io.find_images(inputs, exclude=out)
+    named = {_identity(loc) for loc in map(io.location, inputs) if loc.is_file()}
     seen: dict[str, Location] = {}
+    files: set[object] = set()
     jobs = []
     for path, rel in images:
         key = rel.as_posix()
-        if key in seen and _same_file(seen[key], path):
-            continue  # one file named twice (or inside a folder also named) is one image
+        ident = _identity(path)
+        if ident in files and (ident in named or _same_file(seen.get(key), path)):
+            continue  # one file named twice (or inside a folder also named) is one image,
+            # under the name it was first found by; two names of it in a folder are two
         if key in seen:
             hint = ("rename one of them" if seen[key].parent == path.parent
                     else "name their folders instead")
             raise InputError(f"{seen[key]} and {path} would both write {out / key}.*; "
                              f"{hint}, or run them separately")
         seen[key] = path
+        files.add(ident)
         jobs.append(Job(rel=key, source=str(path)))
     return jobs, [str(p) for p in skipped]
 
 
-def _same_file(a: Location, b: Location) -> bool:
+def _identity(path: Location) -> object:
+    """What names one input file: a local path through links, else the URL."""
+    return path.resolve() if isinstance(path, Path) else str(path)
+
+
+def _same_file(a: Location | None, b: Location) -> bool:
     """Whether two inputs name the same file (local paths through links)."""
-    if isinstance(a, Path) and isinstance(b, Path):
-        return a.resolve() == b.resolve()
-    return str(a) == str(b)
+    return a is not None and _identity(a) == _identity(b)
 
 
 def check_inputs_kept(jobs: list[Job], out: Location, stages: tuple[str, ...],

@@ -512,3 +512,21 @@ def test_bad_thread_counts_are_usage_errors(good_folder, tmp_path, monkeypatch):
     res = runner.invoke(main, ["run", str(good_folder), "-o", str(tmp_path / "b")])
     assert res.exit_code == 2 and "RANGESEG_THREADS = 'lots'" in res.output
     assert not (tmp_path / "b").exists()
+
+
+def test_a_file_named_and_inside_a_named_folder_is_one_image(tmp_path, write_png):
+    from rangeseg_cli.batch import jobs_from_inputs
+
+    folder = tmp_path / "in"
+    (folder / "a").mkdir(parents=True)
+    write_png(folder / "a" / "b.png", scene(1, size=32))
+    write_png(folder / "c.png", scene(2, size=32))
+    (folder / "link.png").symlink_to(folder / "c.png")  # two names in a folder: two images
+    out = tmp_path / "out"
+    inner = str(folder / "a" / "b.png")
+    for inputs, expected in (([str(folder), inner], ["a/b", "c", "link"]),
+                             ([inner, str(folder)], ["b", "c", "link"]),
+                             ([inner, inner], ["b"]),
+                             ([str(folder / "a"), inner], ["b"])):
+        jobs, _ = jobs_from_inputs(inputs, out)
+        assert sorted(j.rel for j in jobs) == expected, inputs
