@@ -269,7 +269,8 @@ class HoldsiteConfig:
                                   "camera intrinsics; 0 = unknown", min=0.0, max=MAX_DEPTH)
     pose: str = _opt("local", "where a site's elevation and normal come from: local (on a "
                      "curved surface, a quadric of the surface's pixels in the square of side "
-                     "2 x footprint + 1 around the site; a planar surface keeps its plane) or "
+                     "2 x footprint + 1 (at least 15) around the site; a planar surface keeps "
+                     "its plane) or "
                      "surface (the whole surface's fit, as before 2026-11-27)",
                      choices=get_args(PoseRule))
 

@@ -80,7 +80,8 @@ the object's area ``A``.
 Step 6, pose: elevation and gradient at the centre, from the surface's fit
 on a planar surface and, on a curved one (``holdsite.pose = "local"``, the
 default), from a quadric of the surface's pixels within the footprint's
-longer side of the centre (:func:`local_pose`: one quadric of a whole
+longer side of the centre, and at least :data:`LOCAL_MIN_REACH` pixels
+(:func:`local_reach`; :func:`local_pose`: one quadric of a whole
 curved surface can be off by several depth units and degrees at a given
 point); ``holdsite.pose = "surface"`` always takes the surface's fit. The
 unit normal ``n ~ (-dz/dx, -dz/dy, 1)`` (x = col, y = row, z up towards the sensor); the
@@ -1065,6 +1066,15 @@ def camera_pose(row: float, col: float, height: float, grad: tuple[float, float]
 #: Fewest pixels of a local quadric fit (Step 6); fewer: the surface's own fit.
 LOCAL_FIT_MIN_PIXELS = 12
 
+#: Smallest reach of a local fit (Step 6), the default 7x7 footprint's: a quadric of
+#: 49 pixels (a 3x3 footprint's square) follows the noise, tens of degrees at sigma 2.
+LOCAL_MIN_REACH = 7
+
+
+def local_reach(size: tuple[int, int]) -> int:
+    """Half side of the square of a site's local fit: the footprint's longer side, >= 7."""
+    return max(max(size), LOCAL_MIN_REACH)
+
 
 def local_pose(z: np.ndarray, labels: np.ndarray, s: Surface, row: int, col: int, reach: int
                ) -> tuple[float, tuple[float, float]] | None:
@@ -1169,15 +1179,15 @@ def site_poses(scene: _Scene, s: Surface, rows: np.ndarray, cols: np.ndarray
 
     A planar surface keeps its plane (its fit over the whole face is the
     most precise estimate of a plane); a curved one, with ``holdsite.pose =
-    "local"``, gets the local quadric of its pixels within the footprint's
-    longer side of each site (:func:`local_poses`), or its own fit where
-    those pixels determine none.
+    "local"``, gets the local quadric of its pixels within
+    :func:`local_reach` of each site (:func:`local_poses`), or its own fit
+    where those pixels determine none.
     """
     height = np.asarray(s.height_at(rows, cols), dtype=np.float64)
     gx, gy = (np.asarray(g, dtype=np.float64) for g in s.gradient_at(rows, cols))
     if _local_pose_used(scene, s):
         lh, lx, ly, ok = local_poses(scene.z, scene.labels, s, rows, cols,
-                                     max(scene.cfg.size))
+                                     local_reach(scene.cfg.size))
         height, gx, gy = np.where(ok, lh, height), np.where(ok, lx, gx), np.where(ok, ly, gy)
     return height, gx, gy
 

@@ -565,3 +565,17 @@ def test_tilts_of_a_camera_agree_with_the_reported_approach():
         expected = math.degrees(math.acos(approach[2]))
         assert float(tilts(camera, 0.0, row, col, height, *grad)) == pytest.approx(expected,
                                                                                    abs=1e-9)
+
+
+def test_a_small_footprint_still_takes_its_local_pose_from_enough_pixels():
+    # a 3x3 footprint's own 7x7 square held a quadric of 49 noisy pixels: 16-24 degrees off
+    from rangeseg_cli.holdsite import LOCAL_MIN_REACH, local_reach
+    from rangeseg_cli.synth import render_scene
+
+    assert local_reach((3, 3)) == LOCAL_MIN_REACH == local_reach((7, 1))
+    assert local_reach((21, 7)) == 21
+    for seed in (1, 3):
+        scene = render_scene("cylinder", noise=2.0, seed=seed)
+        found = run(scene.image, size=[3, 3]).holdsite
+        errors = [e for s in _sites(found) if (e := _true_pose_errors(scene, s))]
+        assert len(errors) >= 4 and max(angle for _, angle in errors) < 6.0
