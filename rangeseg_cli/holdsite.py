@@ -52,8 +52,10 @@ also needs the normal that a site there would report (Step 6) within
 ``max_tilt`` degrees of the sensor's axis: with camera intrinsics the
 camera-frame normal against the optical axis, else the height map's normal
 with ``holdsite.units_per_pixel`` depth units per pixel of lateral size
-against the height axis (:func:`tilts`). The curved surfaces' local poses
-of every candidate come from moment images (:func:`local_poses`).
+against the height axis (:func:`tilts`), within :data:`TILT_TOLERANCE`.
+A curved surface's local poses come from moment images
+(:func:`local_poses`), computed for its windows in the order they are
+wanted, a chunk at a time (:func:`_first_level`).
 
 Step 5, choice: the largest clearance (Euclidean distance transform of the
 surface mask: distance in pixels from the window centre to the nearest pixel
@@ -785,6 +787,7 @@ class _Hits:
     min_ar_std: float = math.inf
     steep: int = 0
     min_tilt: float = math.inf
+    tilt_state: np.ndarray | None = None
 
 
 def _pad1(a: np.ndarray) -> np.ndarray:
@@ -946,23 +949,70 @@ def tilts(camera: InputConfig, units_per_pixel: float, rows: Any, cols: Any, hei
     return np.degrees(np.arctan(np.hypot(dx, dy) / units_per_pixel))
 
 
+#: Degrees a site's tilt may exceed ``max_tilt`` by: a level plane's fit is level
+#: only to rounding (a tilt of 1e-14 degrees), and ``max_tilt = 0`` should take it.
+TILT_TOLERANCE = 1e-6
+
+#: Windows whose local pose is computed at once, first (Step 4b); doubled each time.
+TILT_CHUNK = 1024
+
+
 def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
-    """Step 4b: drop the windows whose pose is tilted beyond ``holdsite.max_tilt``.
+    """Step 4b: the windows whose pose is tilted beyond ``holdsite.max_tilt`` do not count.
 
     The pose is the one a site there would report (:func:`site_poses`), so a
-    site's normal is always within the limit.
+    site's normal is always within the limit. Where that pose is the
+    surface's fit (a planar surface, or ``pose = "surface"``) every window
+    is tested here at once and the steep ones dropped. A curved surface's
+    local poses cost a fit each, so they are computed in the order the
+    windows are wanted, a chunk at a time (:func:`_first_level`), and
+    ``hits.tilt_state`` says which are known: 1 level enough, 0 too steep,
+    -1 not yet computed.
     """
     if scene.cfg.max_tilt >= 90 or not hits.rows.size:
         return hits
-    r, c = hits.rows, hits.cols
+    if _local_pose_used(scene, hits.surface):
+        hits.tilt_state = np.full(hits.rows.size, -1, dtype=np.int8)
+        return hits
+    keep = _judge_tilts(scene, hits, np.arange(hits.rows.size))
+    hits.rows, hits.cols, hits.clearance = hits.rows[keep], hits.cols[keep], hits.clearance[keep]
+    return hits
+
+
+def _judge_tilts(scene: _Scene, hits: _Hits, idx: np.ndarray) -> np.ndarray:
+    """Whether windows ``idx`` are level enough (bool); counts the steep ones in ``hits``."""
+    r, c = hits.rows[idx], hits.cols[idx]
     t = tilts(scene.camera, scene.cfg.units_per_pixel, r, c,
               *site_poses(scene, hits.surface, r, c))
-    keep = t <= scene.cfg.max_tilt  # NaN: not kept
-    hits.steep = int(np.count_nonzero(~keep))
-    if np.isfinite(t).any():
-        hits.min_tilt = float(np.nanmin(t))
-    hits.rows, hits.cols, hits.clearance = r[keep], c[keep], hits.clearance[keep]
-    return hits
+    ok = t <= scene.cfg.max_tilt + TILT_TOLERANCE  # NaN (no depth): not level
+    hits.steep += int(np.count_nonzero(~ok))
+    if np.isfinite(t[~ok]).any():
+        hits.min_tilt = min(hits.min_tilt, float(np.nanmin(t[~ok])))
+    if hits.tilt_state is not None:
+        hits.tilt_state[idx] = ok
+    return ok
+
+
+def _first_level(scene: _Scene, hits: _Hits, order: np.ndarray) -> int:
+    """Position in ``order`` of its first window that is level enough, or -1 (Step 4b).
+
+    Unknown tilts are computed a chunk at a time (:data:`TILT_CHUNK`,
+    doubling), so a surface whose best windows are level costs one chunk.
+    """
+    state = hits.tilt_state
+    if state is None:
+        return 0 if order.size else -1
+    start, size = 0, TILT_CHUNK
+    while start < order.size:
+        chunk = order[start:start + size]
+        unknown = chunk[state[chunk] < 0]
+        if unknown.size:
+            _judge_tilts(scene, hits, unknown)
+        level = np.flatnonzero(state[chunk] == 1)
+        if level.size:
+            return start + int(level[0])
+        start, size = start + size, size * 2
+    return -1
 
 
 # ---------------------------------------------------------------------------
@@ -999,16 +1049,36 @@ def _best(hits: _Hits, centre: tuple[float, float]) -> int:
     return int(keep[0])
 
 
-def _spread(hits: _Hits, order: np.ndarray, count: int, gap: float) -> list[int]:
-    """Up to ``count`` indices in ``order`` whose centres are >= ``gap`` apart (greedy)."""
+def _spread(hits: _Hits, order: np.ndarray, count: int, gap: float,
+            scene: _Scene | None = None) -> list[int]:
+    """Up to ``count`` indices in ``order`` whose centres are >= ``gap`` apart (greedy).
+
+    With ``scene``, windows too steep for ``holdsite.max_tilt`` are passed
+    over (their tilts computed as they come up: :func:`_first_level`).
+    """
     picked: list[int] = []
     left = np.ones(order.size, dtype=bool)
     r, c = hits.rows[order], hits.cols[order]
+    state = hits.tilt_state if scene is not None else None
     while len(picked) < count and left.any():
         k = int(np.argmax(left))
+        if state is not None and scene is not None:
+            rest = np.flatnonzero(left)
+            k = int(rest[_first_level(scene, hits, order[rest])]) if rest.size else -1
+            left &= state[order] != 0  # the steep ones found meanwhile
+            if k < 0 or state[order[k]] != 1:
+                break
         picked.append(int(order[k]))
         left &= np.hypot(r - r[k], c - c[k]) >= gap
     return picked
+
+
+def _first(scene: _Scene, hits: _Hits, centre: tuple[float, float]) -> int:
+    """The best window of ``hits`` (:func:`_best`) that is level enough (Step 4b)."""
+    if hits.tilt_state is None:
+        return _best(hits, centre)
+    order = _rank(hits, centre)
+    return int(order[_first_level(scene, hits, order)])
 
 
 def score(clearance: float, distance: float, size: tuple[int, int], area: float) -> float:
@@ -1270,7 +1340,8 @@ def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hi
     missed: list[_Hits] = []
     for s in order:
         hits = surface_windows(scene, s)
-        (found if hits.rows.size else missed).append(hits)
+        widest = np.argsort(-hits.clearance, kind="stable")
+        (found if _first_level(scene, hits, widest) >= 0 else missed).append(hits)
         if len(found) >= wanted:
             break
     return found, missed
@@ -1282,12 +1353,13 @@ def _choose(scene: _Scene, found: list[_Hits], objects: dict[int, ObjectInfo],
     cfg = config.holdsite
     wanted = 1 + cfg.max_candidates
     ranked = [(hits, objects[object_of[hits.surface.id]]) for hits in found]
-    picks = [(h, o, _best(h, o.centroid)) for h, o in ranked]
+    picks = [(h, o, _first(scene, h, o.centroid)) for h, o in ranked]
     gap = math.hypot(*cfg.size)
     for hits, obj in ranked:
         if len(picks) >= wanted:
             break
-        extra = _spread(hits, _rank(hits, obj.centroid), wanted - len(picks) + 1, gap)[1:]
+        extra = _spread(hits, _rank(hits, obj.centroid), wanted - len(picks) + 1, gap,
+                        scene)[1:]
         picks += [(hits, obj, k) for k in extra]
     return [_site_of(scene, h, k, o, config) for h, o, k in picks[:wanted]]
 
@@ -1307,10 +1379,12 @@ def _failure(cfg: HoldsiteConfig, missed: list[_Hits], n_surfaces: int) -> str:
     steep = [h for h in missed if h.steep]
     if steep:
         level = min(steep, key=lambda h: h.min_tilt)
+        least = (f"least tilt {level.min_tilt:.6g} degrees (surface {level.surface.id})"
+                 if math.isfinite(level.min_tilt) else
+                 "none with a tilt (no depth in front of the camera there)")
         return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g} and a tilt "
                 f"<= {cfg.max_tilt:g} degrees; {sum(h.steep for h in steep)} window(s) "
-                f"passed the AR test, least tilt {level.min_tilt:.3g} degrees (surface "
-                f"{level.surface.id}); {clear}")
+                f"passed the AR test, {least}; {clear}")
     calm = min(fitting, key=lambda h: h.min_ar_std)
     return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g}; "
             f"{sum(h.fitting for h in fitting)} window(s) fit, lowest AR std "

@@ -579,3 +579,36 @@ def test_a_small_footprint_still_takes_its_local_pose_from_enough_pixels():
         found = run(scene.image, size=[3, 3]).holdsite
         errors = [e for s in _sites(found) if (e := _true_pose_errors(scene, s))]
         assert len(errors) >= 4 and max(angle for _, angle in errors) < 6.0
+
+
+def test_max_tilt_zero_takes_a_level_top():
+    z = table()
+    z[20:44, 20:44] = 120.0  # level to rounding: its plane's tilt is ~1e-14 degrees
+    found = run(z, max_tilt=0.0, units_per_pixel=2.0).holdsite
+    assert found.holdsite is not None and found.holdsite.elevation == pytest.approx(120.0)
+
+
+def test_max_tilt_without_depth_in_front_of_the_camera_says_so():
+    depth = np.full((64, 64), -800.0)  # a depth map behind the camera: no tilt anywhere
+    depth[20:44, 20:44] = -900.0
+    config = load_config(overrides={
+        "input": {"fx": 500.0, "fy": 500.0, "cx": 32.0, "cy": 32.0, "larger_is_closer": False},
+        "holdsite": {"max_tilt": 45.0}})
+    found = run_pipeline(noisy(depth, 0.3), config).holdsite
+    assert found.holdsite is None
+    assert "none with a tilt (no depth in front of the camera there)" in found.reason
+    assert "inf" not in found.reason
+
+
+def test_tilts_computed_a_chunk_at_a_time_choose_as_all_at_once(monkeypatch):
+    from rangeseg_cli import holdsite
+    from rangeseg_cli.synth import render_scene
+
+    for name in ("cup", "part1", "sphere"):
+        image = render_scene(name, noise=1.0, seed=2).image
+        results = []
+        for chunk in (1, 10**9):
+            monkeypatch.setattr(holdsite, "TILT_CHUNK", chunk)
+            results.append(run(image, max_tilt=40.0, units_per_pixel=2.0).holdsite.to_dict())
+        assert results[0] == results[1]
+        assert results[0]["holdsite"] is not None
