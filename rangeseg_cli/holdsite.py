@@ -1073,6 +1073,13 @@ def _spread(hits: _Hits, order: np.ndarray, count: int, gap: float,
     return picked
 
 
+def _has_level(scene: _Scene, hits: _Hits) -> bool:
+    """Whether ``hits`` holds a window level enough (widest clearance tried first; Step 4b)."""
+    if hits.tilt_state is None:
+        return bool(hits.rows.size)
+    return _first_level(scene, hits, np.argsort(-hits.clearance, kind="stable")) >= 0
+
+
 def _first(scene: _Scene, hits: _Hits, centre: tuple[float, float]) -> int:
     """The best window of ``hits`` (:func:`_best`) that is level enough (Step 4b)."""
     if hits.tilt_state is None:
@@ -1340,8 +1347,7 @@ def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hi
     missed: list[_Hits] = []
     for s in order:
         hits = surface_windows(scene, s)
-        widest = np.argsort(-hits.clearance, kind="stable")
-        (found if _first_level(scene, hits, widest) >= 0 else missed).append(hits)
+        (found if _has_level(scene, hits) else missed).append(hits)
         if len(found) >= wanted:
             break
     return found, missed
