@@ -389,16 +389,20 @@ def jobs_from_inputs(inputs: Iterable[str | Path], out: Location
     """
     inputs = list(inputs)
     images, skipped = io.find_images(inputs, exclude=out)
-    named = {_identity(loc) for loc in map(io.location, inputs) if loc.is_file()}
+    named: set[object] | None = None  # the files named themselves, asked only on a repeat
     seen: dict[str, Location] = {}
     files: set[object] = set()
     jobs = []
     for path, rel in images:
         key = rel.as_posix()
         ident = _identity(path)
-        if ident in files and (ident in named or _same_file(seen.get(key), path)):
-            continue  # one file named twice (or inside a folder also named) is one image,
-            # under the name it was first found by; two names of it in a folder are two
+        if ident in files:
+            if named is None:
+                named = {_identity(loc) for loc in map(io.location, inputs) if loc.is_file()}
+            if ident in named or _same_file(seen.get(key), path):
+                continue  # one file named twice (or inside a folder also named) is one
+                # image, under the name it was first found by; two names of it in a folder
+                # are two
         if key in seen:
             hint = ("rename one of them" if seen[key].parent == path.parent
                     else "name their folders instead")

@@ -941,12 +941,21 @@ def tilts(camera: InputConfig, units_per_pixel: float, rows: Any, cols: Any, hei
     """
     r, c, h, dx, dy = (np.asarray(a, dtype=np.float64) for a in (rows, cols, heights, gx, gy))
     if camera.has_intrinsics:
-        d, d_u, d_v = -h, -dx, -dy
-        ax, ay = -camera.fx * d_u, -camera.fy * d_v
-        az = d + (c - camera.cx) * d_u + (r - camera.cy) * d_v
+        ax, ay, az = _camera_approach(camera, r, c, h, dx, dy)
         cosine = az / np.sqrt(ax * ax + ay * ay + az * az)
-        return np.where(d > 0, np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))), np.nan)
+        return np.where(-h > 0, np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))), np.nan)
     return np.degrees(np.arctan(np.hypot(dx, dy) / units_per_pixel))
+
+
+def _camera_approach(cfg: InputConfig, row: Any, col: Any, height: Any, gx: Any, gy: Any
+                     ) -> tuple[Any, Any, Any]:
+    """Components of the camera-frame approach vector, not normalised (module Notes, step 6).
+
+    ``-(P_u x P_v)`` of ``P(u, v) = d(u, v) r(u, v)`` with ``d = -height``: the
+    normal faces the camera and the gripper moves against it. Scalars or arrays.
+    """
+    d, d_u, d_v = -height, -gx, -gy
+    return (-cfg.fx * d_u, -cfg.fy * d_v, d + (col - cfg.cx) * d_u + (row - cfg.cy) * d_v)
 
 
 #: Degrees a site's tilt may exceed ``max_tilt`` by: a level plane's fit is level
@@ -1000,8 +1009,7 @@ def _first_level(scene: _Scene, hits: _Hits, order: np.ndarray) -> int:
     doubling), so a surface whose best windows are level costs one chunk.
     """
     state = hits.tilt_state
-    if state is None:
-        return 0 if order.size else -1
+    assert state is not None  # callers take the windows as they are without a limit
     start, size = 0, TILT_CHUNK
     while start < order.size:
         chunk = order[start:start + size]
@@ -1061,13 +1069,15 @@ def _spread(hits: _Hits, order: np.ndarray, count: int, gap: float,
     r, c = hits.rows[order], hits.cols[order]
     state = hits.tilt_state if scene is not None else None
     while len(picked) < count and left.any():
-        k = int(np.argmax(left))
-        if state is not None and scene is not None:
+        if state is None or scene is None:
+            k = int(np.argmax(left))
+        else:
             rest = np.flatnonzero(left)
-            k = int(rest[_first_level(scene, hits, order[rest])]) if rest.size else -1
+            pos = _first_level(scene, hits, order[rest])
             left &= state[order] != 0  # the steep ones found meanwhile
-            if k < 0 or state[order[k]] != 1:
+            if pos < 0:
                 break
+            k = int(rest[pos])
         picked.append(int(order[k]))
         left &= np.hypot(r - r[k], c - c[k]) >= gap
     return picked
@@ -1131,13 +1141,10 @@ def camera_pose(row: float, col: float, height: float, grad: tuple[float, float]
     if not cfg.has_intrinsics or cfg.larger_is_closer or -height <= 0:
         return None, None
     d = -height
-    d_u, d_v = -grad[0], -grad[1]
     u0, v0 = col - cfg.cx, row - cfg.cy
     unit = cfg.metres_per_unit if cfg.metres_per_unit > 0 else 1.0
     point = (u0 * d / cfg.fx * unit, v0 * d / cfg.fy * unit, d * unit)
-    # Normal P_u x P_v of P(u, v) = d(u, v) r(u, v), flipped to face the camera.
-    towards = -np.array([-cfg.fx * d_u, -cfg.fy * d_v, d + u0 * d_u + v0 * d_v])
-    return point, _unit(-towards)
+    return point, _unit(np.array(_camera_approach(cfg, row, col, height, *grad)))
 
 
 #: Fewest pixels of a local quadric fit (Step 6); fewer: the surface's own fit.
