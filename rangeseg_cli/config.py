@@ -75,6 +75,10 @@ class InputConfig:
                      max=MAX_PIXELS)
     cy: float = _opt(0.0, "camera principal point y (row) in pixels", min=-MAX_PIXELS,
                      max=MAX_PIXELS)
+    units_per_pixel: float = _opt(0.0, "depth units per pixel of lateral size of a height map "
+                                  "(2 for rangeseg synth at 128x128): the lateral scale "
+                                  "without camera intrinsics; 0 = unknown", min=0.0,
+                                  max=MAX_DEPTH)
     auto_thresholds: bool = _opt(False, "set the step and roof thresholds from the image's "
                                  "estimated noise (false = the paper's fixed thresholds)")
 
@@ -260,19 +264,60 @@ class HoldsiteConfig:
     background: str = _opt("lowest-border", "which regions are background: lowest-border "
                            "(touching the border at the lowest height), largest-border, or "
                            "none", choices=get_args(BackgroundRule))
-    max_tilt: float = _opt(90.0, "largest angle in degrees between a site's surface normal and "
+    max_tilt: float = _opt(45.0, "largest angle in degrees between a site's surface normal and "
                            "the sensor's axis (the optical axis with camera intrinsics, else "
-                           "the height axis, which needs units_per_pixel); 90 = any, as the "
-                           "paper", min=0.0, max=90.0)
-    units_per_pixel: float = _opt(0.0, "depth units per pixel of lateral size of a height map "
-                                  "(2 for rangeseg synth at 128x128), for max_tilt without "
-                                  "camera intrinsics; 0 = unknown", min=0.0, max=MAX_DEPTH)
+                           "the height axis with [input] units_per_pixel); tested only when "
+                           "that lateral scale is known; 90 = any, as the paper", min=0.0,
+                           max=90.0)
+    footprint_mm: tuple[float, float] = _opt(
+        (0.0, 0.0), "gripper footprint [rows, cols] in millimetres, converted to odd pixel "
+        "counts at each surface's depth (needs intrinsics and [input] metres_per_unit); "
+        "[0, 0] = size in pixels", min=0.0, max=1e4, item=float)
+    max_flat_rms: float = _opt(0.0, "largest RMS of a plane fitted to the window's depths, "
+                               "depth units; 0 = auto (2 x the image's noise + 0.5 units, or "
+                               "+ 1 mm with camera depth)", min=0.0, max=MAX_DEPTH)
     pose: str = _opt("local", "where a site's elevation and normal come from: local (on a "
                      "curved surface, a quadric of the surface's pixels in the square of side "
                      "2 x footprint + 1 (at least 15) around the site; a planar surface keeps "
                      "its plane) or "
                      "surface (the whole surface's fit, as before 2026-11-27)",
                      choices=get_args(PoseRule))
+
+
+@dataclass(frozen=True)
+class WorkspaceConfig:
+    """What may be picked: background frame, region of interest, height band, support."""
+
+    background: str = _opt("", "a frame of the empty tote or table (file, read as [input] "
+                           "says); pixels within background_tolerance of it are not picked; "
+                           "\"\" = none")
+    background_tolerance: float = _opt(0.0, "depth units; 0 = auto (4 x the image's noise, "
+                                       "and at least 1 % of the depth with camera depth)",
+                                       min=0.0, max=MAX_DEPTH)
+    roi: str = _opt("", "a mask image of the pixels that may be picked (non-zero = yes; "
+                    "same size as the frames); \"\" = everywhere")
+    roi_box: tuple[int, ...] = _opt((), "[row0, col0, row1, col1]: only pixels with row0 <= "
+                                    "row < row1 and col0 <= col < col1 may be picked; [] = "
+                                    "everywhere", min=0, max=MAX_COUNT, length=4)
+    roi_polygon: tuple[tuple[float, float], ...] = _opt(
+        (), "[[row, col], ...]: only pixels inside this polygon (3 or more vertices) may be "
+        "picked; [] = everywhere", min=-MAX_PIXELS, max=MAX_PIXELS, pairs=True)
+    support: bool = _opt(True, "find the support (table or tote floor) as the dominant plane "
+                         "by consensus; its pixels are never picked, and with nothing on it "
+                         "the answer is 'nothing to pick'")
+    support_tolerance: float = _opt(0.0, "pixels within this height of the support are on it, "
+                                    "depth units; 0 = auto (4 x the image's noise, and at "
+                                    "least 1 % of the depth with camera depth)", min=0.0,
+                                    max=MAX_DEPTH)
+    min_height: float = _opt(0.0, "only pixels at least this high above the support may be "
+                             "picked, depth units (0 = above support_tolerance)", min=0.0,
+                             max=MAX_DEPTH)
+    max_height: float = _opt(0.0, "only pixels at most this high above the support may be "
+                             "picked, depth units; 0 = no upper bound", min=0.0, max=MAX_DEPTH)
+    border_structures: bool = _opt(True, "a structure that touches the image border (or its "
+                                   "invalid margin) and rises far above the pile (the robot's "
+                                   "fingers, a tote wall) is not picked while anything else "
+                                   "may be")
 
 
 @dataclass(frozen=True)
@@ -295,6 +340,7 @@ class Config:
     grow: GrowConfig = field(default_factory=GrowConfig)
     split: SplitConfig = field(default_factory=SplitConfig)
     holdsite: HoldsiteConfig = field(default_factory=HoldsiteConfig)
+    workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
@@ -334,12 +380,17 @@ class Config:
 #: files: heights, camera frame, pictures and digits; the noise-scaled thresholds).
 STAGE_TABLES: dict[str, tuple[str, ...]] = {
     "edges": ("input", "output", "step", "roof"), "link": ("link",), "grow": ("grow", "split"),
-    "holdsite": ("holdsite",),
+    "holdsite": ("holdsite", "workspace"),
 }
 
 _TABLE_CLASSES: dict[str, type] = {
     "input": InputConfig, "step": StepConfig, "roof": RoofConfig, "link": LinkConfig,
-    "grow": GrowConfig, "split": SplitConfig, "holdsite": HoldsiteConfig, "output": OutputConfig,
+    "grow": GrowConfig, "split": SplitConfig, "holdsite": HoldsiteConfig, "workspace": WorkspaceConfig, "output": OutputConfig,
+}
+
+#: Keys that moved: (table, key) -> the new ``table.key``, named when the old one is used.
+MOVED_KEYS: dict[tuple[str, str], str] = {
+    ("holdsite", "units_per_pixel"): "input.units_per_pixel",
 }
 
 #: Named presets: overrides applied before the TOML file and the command line.
@@ -347,6 +398,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut, bridge,
     # chamfers, carve, refine, merge_planes or facets)
     "paper": {"grow": {"planar_noise_test": False},
+              "holdsite": {"max_tilt": 90.0, "max_flat_rms": MAX_DEPTH},
+              "workspace": {"support": False, "border_structures": False},
               "split": {"enabled": False, "recover": False, "fill_edges": False,
                         "merge": False, "recut": False, "bridge": False, "carve": False,
                         "chamfers": False, "refine": False, "merge_planes": False,
@@ -362,7 +415,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
 
 def _plain(value: Any) -> Any:
     if isinstance(value, tuple):
-        return list(value)
+        return [_plain(v) for v in value]
     return value
 
 
@@ -373,7 +426,13 @@ def _describe_allowed(f: dataclasses.Field) -> str:
         return "one of " + ", ".join(repr(c) for c in meta["choices"])
     parts = []
     if kind is tuple:
-        parts.append("a list of two integers")
+        item = "numbers" if meta.get("item") is float else "integers"
+        if meta.get("pairs"):
+            parts.append("a list of [row, col] pairs of numbers (3 or more, or none)")
+        elif "length" in meta:
+            parts.append(f"a list of {meta['length']} {item} (or an empty list)")
+        else:
+            parts.append(f"a list of two {item}")
     else:
         parts.append({bool: "true or false", int: "an integer", float: "a number",
                       str: "a string"}[kind])
@@ -456,9 +515,7 @@ def _coerce(table: str, f: dataclasses.Field, value: Any) -> Any:
     elif kind is str:
         ok = isinstance(value, str) and value in f.metadata.get("choices", (value,))
     elif kind is tuple:
-        ok = (isinstance(value, list | tuple) and len(value) == 2
-              and all(_check_number(v, f, integer=True) for v in value))
-        value = tuple(value) if ok else value
+        ok, value = _coerce_list(f, value)
     else:
         ok = _check_number(value, f, integer=kind is int)
         value = float(value) if ok and kind is float else value
@@ -471,6 +528,25 @@ def _coerce(table: str, f: dataclasses.Field, value: Any) -> Any:
             + (" (this integer is beyond the floating-point range)" if beyond else "")
         )
     return value
+
+
+def _coerce_list(f: dataclasses.Field, value: Any) -> tuple[bool, Any]:
+    """A list key's value checked (its length, items and their limits); as a tuple when ok."""
+    meta = f.metadata
+    if not isinstance(value, list | tuple):
+        return False, value
+    integer = meta.get("item", int) is int
+    if meta.get("pairs"):
+        ok = (len(value) == 0 or len(value) >= 3) and all(
+            isinstance(p, list | tuple) and len(p) == 2
+            and all(_check_number(v, f, integer=False) for v in p) for p in value)
+        return ok, tuple(tuple(float(v) for v in p) for p in value) if ok else value
+    length = meta.get("length", 2)
+    ok = (len(value) == length or ("length" in meta and len(value) == 0)) and all(
+        _check_number(v, f, integer=integer) for v in value)
+    if not ok:
+        return False, value
+    return True, tuple(value) if integer else tuple(float(v) for v in value)
 
 
 def check_value(table: str, key: str, value: Any) -> Any:
@@ -545,6 +621,9 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
         fields = {f.name: f for f in dataclasses.fields(cls)}
         kwargs = {}
         for key, value in entries.items():
+            if (table, key) in MOVED_KEYS:
+                raise ConfigError(f"{source}: [{table}] {key} is now "
+                                  f"{MOVED_KEYS[(table, key)]}; set it there")
             if key not in fields:
                 raise ConfigError(f"{source}: unknown key [{table}] {key}; allowed keys: "
                                   + ", ".join(fields))
@@ -568,11 +647,19 @@ def _check_consistency(config: Config) -> None:
             "need depth along the optical axis (larger_is_closer = false, e.g. --preset "
             "mm-depth); a height map has no camera frame")
     hold = config.holdsite
-    if hold.max_tilt < 90 and not (config.input.has_intrinsics or hold.units_per_pixel > 0):
-        raise ConfigError(
-            f"[holdsite] max_tilt = {hold.max_tilt}: a tilt needs the lateral scale of the "
-            "image: camera intrinsics ([input] fx, fy with depth input) or [holdsite] "
-            "units_per_pixel > 0 (depth units per pixel of a height map)")
+    if any(hold.footprint_mm) and not all(hold.footprint_mm):
+        raise ConfigError(f"[holdsite] footprint_mm = {list(hold.footprint_mm)}: both sides "
+                          "must be > 0 (or both 0: the footprint is size, in pixels)")
+    if any(hold.footprint_mm) and not (config.input.has_intrinsics
+                                       and config.input.metres_per_unit > 0):
+        raise ConfigError(f"[holdsite] footprint_mm = {list(hold.footprint_mm)}: a footprint "
+                          "in millimetres needs camera intrinsics ([input] fx, fy, or "
+                          "--intrinsics FILE) and [input] metres_per_unit (e.g. --preset "
+                          "mm-depth)")
+    box = config.workspace.roi_box
+    if box and not (box[0] < box[2] and box[1] < box[3]):
+        raise ConfigError(f"[workspace] roi_box = {list(box)}: expected [row0, col0, row1, "
+                          "col1] with row0 < row1 and col0 < col1")
     if config.roof.threshold_b > config.roof.threshold_a:
         raise ConfigError(
             f"[roof] threshold_b = {config.roof.threshold_b}: must be <= threshold_a "

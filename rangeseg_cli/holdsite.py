@@ -51,7 +51,7 @@ Step 4b, tilt (beyond the paper; ``holdsite.max_tilt`` < 90): a candidate
 also needs the normal that a site there would report (Step 6) within
 ``max_tilt`` degrees of the sensor's axis: with camera intrinsics the
 camera-frame normal against the optical axis, else the height map's normal
-with ``holdsite.units_per_pixel`` depth units per pixel of lateral size
+with ``[input] units_per_pixel`` depth units per pixel of lateral size
 against the height axis (:func:`tilts`), within :data:`TILT_TOLERANCE`.
 A curved surface's local poses come from moment images
 (:func:`local_poses`), computed for its windows in the order they are
@@ -113,6 +113,7 @@ identical results; ``RANGESEG_PURE_NUMPY=1`` for the reference).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
@@ -991,7 +992,7 @@ def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
 def _judge_tilts(scene: _Scene, hits: _Hits, idx: np.ndarray) -> np.ndarray:
     """Whether windows ``idx`` are level enough (bool); counts the steep ones in ``hits``."""
     r, c = hits.rows[idx], hits.cols[idx]
-    t = tilts(scene.camera, scene.cfg.units_per_pixel, r, c,
+    t = tilts(scene.camera, scene.camera.units_per_pixel, r, c,
               *site_poses(scene, hits.surface, r, c))
     ok = t <= scene.cfg.max_tilt + TILT_TOLERANCE  # NaN (no depth): not level
     hits.steep += int(np.count_nonzero(~ok))
@@ -1316,6 +1317,20 @@ def _angles(cfg: HoldsiteConfig) -> tuple[float, ...]:
     return tuple(float(k * cfg.rotation_step) for k in range(n))
 
 
+def effective_holdsite(config: Config) -> HoldsiteConfig:
+    """``[holdsite]`` as the search applies it: no tilt limit without a lateral scale.
+
+    The tilt of a height map's normal needs its lateral scale: camera
+    intrinsics, or ``[input] units_per_pixel``; without either, ``max_tilt``
+    cannot be tested and is taken as 90 (any), as in the paper.
+    """
+    hold = config.holdsite
+    if hold.max_tilt < 90 and not (config.input.has_intrinsics
+                                   or config.input.units_per_pixel > 0):
+        return dataclasses.replace(hold, max_tilt=90.0)
+    return hold
+
+
 def _preference(obj: ObjectInfo, s: Surface) -> tuple[bool, bool, float, int]:
     """Sort key of step 3: in view, uncovered, highest."""
     return obj.touches_border, obj.covered, -s.mean_height, s.id
@@ -1486,17 +1501,17 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     order = sorted((by_id[i] for i in object_of), key=lambda s: _preference(
         obj_by_id[object_of[s.id]], s))
     # Step 4: acceptable windows, surface by surface
-    scene = _Scene(labels, valid, z, config.holdsite, _angles(config.holdsite), backend,
-                   config.input)
+    hold = effective_holdsite(config)
+    scene = _Scene(labels, valid, z, hold, _angles(hold), backend, config.input)
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
     bg, objs, camera = tuple(sorted(background)), tuple(objects), config.input.has_intrinsics
     if not found:
-        reason = _failure(config.holdsite, missed, len(by_id))
+        reason = _failure(hold, missed, len(by_id))
         return HoldsiteResult(None, reason, (), bg, objs, camera)
     # Step 5: the best window, then the runners-up
     sites = _choose(scene, found, obj_by_id, object_of, config)
     rank = {s.id: k for k, s in enumerate(order)}
     first = rank[found[0].surface.id]
     before = [h for h in missed if rank[h.surface.id] < first]
-    reason = _success(sites[0], obj_by_id[sites[0].object], before, config.holdsite)
+    reason = _success(sites[0], obj_by_id[sites[0].object], before, hold)
     return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera)

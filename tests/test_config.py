@@ -259,8 +259,10 @@ def _at_limits() -> list[tuple[str, str, Any]]:
         if "min_excl" in meta:
             low = 1 if isinstance(f.default, int) else math.nextafter(low, math.inf)
         for value in (low, meta.get("max")):
-            if value is not None and f.name not in ("invalid", "size"):
-                cases.append((table, f.name, value))
+            if value is not None and f.name not in ("invalid", "size", "roi_box",
+                                                    "roi_polygon"):
+                cases.append((table, f.name, [value, value] if f.name == "footprint_mm"
+                              else value))
     return cases
 
 
@@ -275,10 +277,11 @@ def test_pipeline_runs_with_any_key_at_the_end_of_its_range(table, key, value):
         focal = value if key in ("fx", "fy") and value else 500.0
         overrides["input"] = {"fx": focal, "fy": focal, "larger_is_closer": False,
                               **({key: value} if key in ("cx", "cy") else {})}
-    if table == "holdsite" and key in ("max_tilt", "units_per_pixel"):  # a tilt needs a scale
-        overrides["holdsite"] = {"max_tilt": 45.0, "units_per_pixel": 2.0, key: value}
-        if overrides["holdsite"]["units_per_pixel"] == 0:
-            overrides["holdsite"]["max_tilt"] = 90.0
+    if table == "holdsite" and key == "max_tilt":  # a tilt is tested with a lateral scale
+        overrides["input"] = {"units_per_pixel": 2.0}
+    if table == "holdsite" and key == "footprint_mm" and any(value):  # needs a camera
+        overrides["input"] = {"fx": 500.0, "fy": 500.0, "larger_is_closer": False,
+                              "metres_per_unit": 0.001}
     if table == "roof" and key == "threshold_b":
         overrides["roof"]["threshold_a"] = max(value, 6.0)
     if table == "roof" and key == "threshold_a":
