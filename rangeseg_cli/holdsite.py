@@ -122,13 +122,15 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from .config import Config, HoldsiteConfig, InputConfig, check_config
+from .config import MAX_DEPTH, Config, HoldsiteConfig, InputConfig, check_config
 from .edges import Backend, ar_2d, gaussian_taps, select_kernels
 from .errors import InputError
 from .grow import RCOND, evaluate_quadric, valid_labels
 from .models import Surface
+from .noise import estimate_noise
 from .rangeimage import check_stage_arrays
 from .surfaces import NEIGHBOUR_REACH, kernel_labels, neighbour_pairs, pair_medians
+from .workspace import Workspace, assess, top_height
 
 #: Regions whose pixels lie within this chessboard distance are neighbours
 #: (across an edge band one or two pixels thick), as in ``Surface.neighbors``:
@@ -177,6 +179,9 @@ class Holdsite:
     point_camera, approach_camera
         Camera-frame point (metres, or depth units without ``metres_per_unit``)
         and approach vector; ``None`` when not computable.
+    flat_rms
+        RMS residual of the least-squares plane of the heights under the
+        footprint (depth units); ``None`` when not computed.
     """
 
     row: int
@@ -194,6 +199,7 @@ class Holdsite:
     size: tuple[int, int]
     point_camera: Vector | None = None
     approach_camera: Vector | None = None
+    flat_rms: float | None = None
 
     def to_dict(self, *, camera: bool = False) -> dict[str, Any]:
         """Plain dict of ``holdsite.json``; camera-frame keys only when ``camera``."""
@@ -204,6 +210,8 @@ class Holdsite:
             "object": self.object, "clearance": self.clearance, "ar_std": self.ar_std,
             "score": self.score, "angle": self.angle, "size": list(self.size),
         }
+        if self.flat_rms is not None:
+            out["flat_rms"] = self.flat_rms
         if camera:
             out["point_camera"] = _listed(self.point_camera)
             out["approach_camera"] = _listed(self.approach_camera)
@@ -228,7 +236,14 @@ class ObjectInfo:
         Objects higher than this one across a shared step edge.
     touches_border
         Whether a surface lies within :data:`ADJACENCY_RADIUS` of the image
-        frame (a bin wall, or a part cut off by the frame).
+        frame or of an invalid area reaching it (a bin wall, or a part cut
+        off by the frame).
+    structure
+        Whether it is a structure at the border, never picked (the robot's
+        fingers, a tote wall: :func:`mark_structures`).
+    stands
+        Whether it stands on the support, with at least a footprint's area
+        (:func:`mark_structures`).
     """
 
     id: int
@@ -237,6 +252,8 @@ class ObjectInfo:
     centroid: tuple[float, float]
     covered_by: tuple[int, ...] = ()
     touches_border: bool = False
+    structure: bool = False
+    stands: bool = False
 
     @property
     def covered(self) -> bool:
@@ -247,7 +264,8 @@ class ObjectInfo:
         """Plain dict for ``holdsite.json``."""
         return {"id": self.id, "surfaces": list(self.surfaces), "pixels": self.pixels,
                 "centroid": list(self.centroid), "covered": self.covered,
-                "covered_by": list(self.covered_by), "touches_border": self.touches_border}
+                "covered_by": list(self.covered_by), "touches_border": self.touches_border,
+                "structure": self.structure, "stands_on_support": self.stands}
 
 
 @dataclass(frozen=True)
@@ -544,6 +562,140 @@ def _object_info(oid: int, members: list[Surface], covered_by: set[int], framed:
 
 
 # ---------------------------------------------------------------------------
+# Step 0: the workspace (beyond the paper)
+
+#: A region is left out when less than this fraction of its pixels may be picked.
+PICKABLE_FRACTION = 0.5
+
+#: A structure at the border rises above this many times the pile's top (above the support).
+STRUCTURE_RISE = 1.25
+
+
+def _check_workspace_arrays(z: np.ndarray, background: np.ndarray | None,
+                            roi: np.ndarray | None) -> None:
+    """The workspace arrays have the image's shape (:func:`find_holdsite`'s InputError)."""
+    shape = np.shape(z)
+    for name, a in (("background", background), ("roi", roi)):
+        if a is not None and np.shape(a) != shape:
+            raise InputError(f"the {name} frame is {_shape_text(np.shape(a))} but the image "
+                             f"is {_shape_text(shape)}; they must be the same size")
+
+
+def _shape_text(shape: tuple[int, ...]) -> str:
+    return "x".join(str(v) for v in shape[::-1][:2]) if len(shape) >= 2 else str(shape)
+
+
+def unpickable_regions(labels: np.ndarray, pickable: np.ndarray, n: int) -> set[int]:
+    """Labels with less than :data:`PICKABLE_FRACTION` of their pixels pickable."""
+    total = np.bincount(labels.ravel(), minlength=n + 1)
+    good = np.bincount(labels[pickable].ravel(), minlength=n + 1)
+    low = (total > 0) & (good < PICKABLE_FRACTION * total)
+    low[0] = False
+    return set(np.flatnonzero(low).tolist())
+
+
+def region_lift(labels: np.ndarray, space: Workspace, z: np.ndarray, n: int) -> np.ndarray:
+    """Median height of each label's pixels above the support (by label), else of ``z``."""
+    height = space.height if space.height is not None else z
+    out = np.full(n + 1, -np.inf)
+    keep = (labels > 0) & np.isfinite(height)
+    if not keep.any():
+        return out
+    lab, h = labels[keep], height[keep]
+    order = np.lexsort((h, lab))
+    lab, h = lab[order], h[order]
+    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+    counts = np.diff(np.r_[starts, lab.size])
+    out[lab[starts]] = 0.5 * (h[starts + (counts - 1) // 2] + h[starts + counts // 2])
+    return out
+
+
+def border_zone(valid: np.ndarray) -> np.ndarray:
+    """Bool (H, W): pixels within :data:`ADJACENCY_RADIUS` of the frame or its invalid margin."""
+    zone = np.zeros(valid.shape, dtype=bool)
+    k = ADJACENCY_RADIUS + 1
+    zone[:k], zone[-k:], zone[:, :k], zone[:, -k:] = True, True, True, True
+    if not valid.all():
+        blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
+        frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
+        outer = np.isin(blobs, np.unique(frame[frame > 0]))
+        zone |= ndimage.binary_dilation(outer, structure=np.ones((2 * k - 1, 2 * k - 1)))
+    return zone
+
+
+def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.ndarray,
+                    lift: np.ndarray, space: Workspace, footprint_area: int
+                    ) -> list[ObjectInfo]:
+    """Objects at the border that are structures, not things to pick (module Notes, step 0).
+
+    The pile is the objects wholly in view that stand on the support (within
+    :data:`ADJACENCY_RADIUS` + 1 pixels of it) and hold ``footprint_area``
+    pixels or more (pieces of a wall do not). An object touching the border
+    is a structure when its top (95th percentile of its heights above the
+    support) rises above :data:`STRUCTURE_RISE` times the pile's top plus the
+    support's tolerance (fingers, a tote's wall or rim above the pile); with
+    no pile, when it does not stand on the support (a tote's rim) or rises
+    towards the border (its pixels at the border higher than its median: a
+    tote's wall).
+    """
+    height = space.height
+    if height is None or not objects:
+        return objects
+    member = np.zeros(int(lift.size), dtype=np.int64)
+    for o in objects:
+        member[list(o.surfaces)] = o.id
+    owner = member[labels]
+    with np.errstate(invalid="ignore"):
+        support = np.abs(height) <= space.tolerance
+    k = 2 * ADJACENCY_RADIUS + 3
+    near = ndimage.binary_dilation(support, structure=np.ones((k, k), dtype=bool))
+    standing = set(np.unique(owner[near & (owner > 0)]).tolist())
+    tops = {o.id: top_height(height, owner == o.id) for o in objects}
+    pile = [tops[o.id] for o in objects if not o.touches_border and o.id in standing
+            and o.pixels >= footprint_area and np.isfinite(tops[o.id])]
+    zone = border_zone(valid)
+    marked = []
+    for o in objects:
+        if not o.touches_border or not np.isfinite(tops[o.id]):
+            structure = False
+        elif pile:
+            structure = tops[o.id] > STRUCTURE_RISE * max(pile) + space.tolerance
+        else:
+            structure = (o.id not in standing
+                         or _rises_to_border(owner == o.id, height, zone, space.tolerance))
+        stands = o.id in standing and o.pixels >= footprint_area
+        marked.append(dataclasses.replace(o, structure=structure, stands=stands))
+    return marked
+
+
+def _rises_to_border(mine: np.ndarray, height: np.ndarray, zone: np.ndarray, tol: float
+                     ) -> bool:
+    """Whether an object's pixels at the border stand higher than its median (a wall)."""
+    edge = height[mine & zone]
+    edge = edge[np.isfinite(edge)]
+    if not edge.size:
+        return False
+    return float(np.median(edge)) > float(np.nanmedian(height[mine])) + tol
+
+
+def _nothing_to_pick(by_id: dict[int, Surface], objects: list[ObjectInfo],
+                     space: Workspace) -> str:
+    """The reason of an image with no candidate object."""
+    if not by_id:
+        return "nothing to pick: no surfaces in the segmentation"
+    structures = sum(o.structure for o in objects)
+    if space.support is not None:
+        text = ("nothing to pick: nothing of a footprint's area stands on the support (the "
+                f"dominant plane, within {space.tolerance:.3g} depth units)")
+    else:
+        text = "nothing to pick: every surface lies in the background or outside the workspace"
+    if structures:
+        text += (f", besides {structures} structure(s) at the image border (a tote wall, the "
+                 "robot's fingers) that are never picked")
+    return text
+
+
+# ---------------------------------------------------------------------------
 # Step 4: footprints and window statistics
 
 
@@ -694,6 +846,72 @@ def clearance_map(mask: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
     return kernels.distance_transform(np.require(mask, np.bool_, ["C"]))
 
 
+def _window_sums(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """``sum_k kernel[k] a[p + k - centre]`` at each pixel p (zeros outside the image)."""
+    if kernel.size > FFT_FOOTPRINT_PIXELS:
+        from scipy.signal import fftconvolve
+
+        return fftconvolve(a, kernel[::-1, ::-1], mode="same")
+    return ndimage.correlate(a, kernel, mode="constant", cval=0.0)
+
+
+def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """RMS residual of the least-squares plane of ``z`` over the footprint at each pixel.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    fp
+        Boolean footprint (odd sides).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W); NaN where a footprint pixel is invalid or outside.
+
+    Notes
+    -----
+    The normal equations of ``z = a + b x + c y`` over the footprint (x, y
+    the offsets from its centre) have a constant matrix; only the moments
+    ``sum z, sum x z, sum y z, sum z^2`` vary, each a correlation of the
+    image with a fixed kernel. The heights are taken from their median
+    first, so that the squares do not cancel.
+    """
+    valid = np.isfinite(z)
+    base = float(np.median(z[valid])) if valid.any() else 0.0
+    zc = np.where(valid, z - base, 0.0)
+    w = fp.astype(np.float64)
+    y, x = np.indices(fp.shape, dtype=np.float64)
+    y -= fp.shape[0] // 2
+    x -= fp.shape[1] // 2
+    n = w.sum()
+    a = np.array([[n, (w * x).sum(), (w * y).sum()],
+                  [(w * x).sum(), (w * x * x).sum(), (w * x * y).sum()],
+                  [(w * y).sum(), (w * x * y).sum(), (w * y * y).sum()]])
+    moments = [_window_sums(zc, k) for k in (w, w * x, w * y)]
+    b = np.stack(moments, axis=-1)
+    coef = b @ np.linalg.pinv(a).T
+    rss = _window_sums(zc * zc, w) - np.einsum("...i,...i->...", b, coef)
+    full = _window_sums(valid.astype(np.float64), w) >= n - 0.5
+    return np.where(full, np.sqrt(np.maximum(rss, 0.0) / n), np.nan)
+
+
+def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:
+    """``max_flat_rms``, or its default: 2 x noise + 0.5 units (+ 1 mm with metric depth).
+
+    ``max_flat_rms`` at its largest allowed value (``--preset paper``) is no limit: inf.
+    """
+    if cfg.max_flat_rms >= MAX_DEPTH:
+        return math.inf
+    if cfg.max_flat_rms > 0:
+        return cfg.max_flat_rms
+    floor = 0.5
+    if camera.has_intrinsics and camera.metres_per_unit > 0:
+        floor = 0.001 / camera.metres_per_unit
+    return 2.0 * max(noise, 0.0) + floor
+
+
 #: Margin of the heights around a crop for its AR: the 5x5 Gaussian's half-width.
 AR_MARGIN = 2
 
@@ -701,6 +919,24 @@ AR_MARGIN = 2
 def _ar_taps() -> np.ndarray:
     """The 1-D Gaussian of the 2-D AR of Sec. VII (:func:`~rangeseg_cli.edges.ar_2d`'s default)."""
     return gaussian_taps(1.0, 2 * AR_MARGIN + 1)
+
+
+def footprint_pixels(cfg: HoldsiteConfig, camera: InputConfig, depth: float
+                     ) -> tuple[int, int]:
+    """The footprint (rows, cols) in pixels: ``size``, or ``footprint_mm`` at ``depth``.
+
+    A side of ``L`` mm at depth ``d`` mm spans ``L f / d`` pixels (pinhole);
+    rounded to the nearest odd count, 1 to 255. ``depth`` is in depth units.
+    """
+    if not any(cfg.footprint_mm) or not camera.has_intrinsics or depth <= 0:
+        return cfg.size
+    mm = depth * camera.metres_per_unit * 1000.0
+
+    def odd(side: float, focal: float) -> int:
+        k = int(math.floor(side * focal / mm / 2.0 + 0.5)) * 2 + 1
+        return min(max(k, 1), 255)
+
+    return odd(cfg.footprint_mm[0], camera.fy), odd(cfg.footprint_mm[1], camera.fx)
 
 
 @dataclass
@@ -718,7 +954,9 @@ class _Scene:
     angles: tuple[float, ...]
     backend: Backend = "auto"
     camera: InputConfig = field(default_factory=InputConfig)
+    flat_limit: float = math.inf
     _footprints: dict[float, np.ndarray] = field(default_factory=dict)
+    _sized: dict[tuple[int, int], _Scene] = field(default_factory=dict)
     _ar_area: int = 0
     _ar_whole: np.ndarray | None = None
     _kernels: Any = False  # not chosen yet
@@ -737,6 +975,17 @@ class _Scene:
                       and self.footprint(self.angles[0]).all() and _compiled_box_means())
             self._kernels = kernels if usable else None
         return self._kernels
+
+    def for_surface(self, s: Surface) -> _Scene:
+        """The scene with the footprint in pixels at ``s``'s depth (``footprint_mm``)."""
+        size = footprint_pixels(self.cfg, self.camera, -s.mean_height)
+        if size == self.cfg.size:
+            return self
+        if size not in self._sized:
+            cfg = dataclasses.replace(self.cfg, size=size)
+            self._sized[size] = _Scene(self.labels, self.valid, self.z, cfg, _angles(cfg),
+                                       self.backend, self.camera, self.flat_limit)
+        return self._sized[size]
 
     def footprint(self, angle: float) -> np.ndarray:
         if angle not in self._footprints:
@@ -789,6 +1038,9 @@ class _Hits:
     steep: int = 0
     min_tilt: float = math.inf
     tilt_state: np.ndarray | None = None
+    rough: int = 0
+    min_rms: float = math.inf
+    scene: Any = None
 
 
 def _pad1(a: np.ndarray) -> np.ndarray:
@@ -807,8 +1059,8 @@ def _crop(scene: _Scene, s: Surface, reach: int) -> tuple[tuple[slice, slice], t
     return sl, (sl[0].start - 1, sl[1].start - 1)
 
 
-def _accept_angle(scene: _Scene, mask: np.ndarray, ar: np.ndarray, angle: float,
-                  hits: _Hits) -> tuple[np.ndarray, np.ndarray]:
+def _accept_angle(scene: _Scene, mask: np.ndarray, ar: np.ndarray, heights: np.ndarray,
+                  angle: float, hits: _Hits) -> tuple[np.ndarray, np.ndarray]:
     """Step 4 at one angle: (accepted centres, AR std) in the crop.
 
     A window is accepted when the footprint lies wholly on the surface's
@@ -823,7 +1075,26 @@ def _accept_angle(scene: _Scene, mask: np.ndarray, ar: np.ndarray, angle: float,
     std = window_ar_std(ar, fp, backend=scene.backend)
     hits.fitting += int(inside.sum())
     hits.min_ar_std = min(hits.min_ar_std, float(std[inside].min()))
-    return inside & (std <= scene.cfg.max_ar_std), std
+    return _flat_enough(scene, heights, fp, inside & (std <= scene.cfg.max_ar_std), hits), std
+
+
+def _flat_enough(scene: _Scene, heights: np.ndarray, fp: np.ndarray, ok: np.ndarray,
+                 hits: _Hits) -> np.ndarray:
+    """``ok`` less the windows whose plane-fit RMS exceeds the limit (:func:`flat_limit`)."""
+    if not math.isfinite(scene.flat_limit) or not ok.any():
+        return ok
+    rms = window_flat_rms(heights, fp)
+    flat = ok & (rms <= scene.flat_limit)
+    rough = ok & ~flat
+    hits.rough += int(rough.sum())
+    if rough.any():
+        hits.min_rms = min(hits.min_rms, float(np.nanmin(rms[rough])))
+    return flat
+
+
+def _pad_nan(a: np.ndarray) -> np.ndarray:
+    """``a`` with one NaN pixel around it (a crop padded as :func:`_pad1` pads the masks)."""
+    return np.pad(np.asarray(a, dtype=np.float64), 1, constant_values=np.nan)
 
 
 def surface_windows(scene: _Scene, s: Surface) -> _Hits:
@@ -860,7 +1131,8 @@ def _level_windows(scene: _Scene, s: Surface) -> _Hits:
     if hits.max_clearance < (min(rows, cols) + 1) / 2:
         return hits  # not even the footprint's short side fits
     ar = _pad1(scene.ar(sl))
-    accepted = [_accept_angle(scene, mask, ar, angle, hits) for angle in scene.angles]
+    heights = _pad_nan(scene.z[sl])
+    accepted = [_accept_angle(scene, mask, ar, heights, angle, hits) for angle in scene.angles]
     ok = np.stack([a for a, _ in accepted])
     r, c = np.nonzero(ok.any(axis=0))
     hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
@@ -887,9 +1159,13 @@ def _compiled_windows(kernels: Any, scene: _Scene, s: Surface, sl: tuple[slice, 
     ok, std, fitting, lowest = kernels.accept_windows(
         mask, scene.z, sl[0].start, sl[1].start, _ar_taps(), rows, cols,
         float(scene.cfg.max_ar_std))
+    hits = _Hits(s, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), offset, edt,
+                 ok[None], std[None], float(top), fitting, min(math.inf, lowest))
+    ok = _flat_enough(scene, _pad_nan(scene.z[sl]), np.ones((rows, cols), dtype=bool), ok, hits)
     r, c = np.nonzero(ok)
-    return _Hits(s, r + offset[0], c + offset[1], edt[r, c], offset, edt, ok[None], std[None],
-                 float(top), fitting, min(math.inf, lowest))
+    hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
+    hits.ok = ok[None]
+    return hits
 
 
 def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
@@ -1331,9 +1607,9 @@ def effective_holdsite(config: Config) -> HoldsiteConfig:
     return hold
 
 
-def _preference(obj: ObjectInfo, s: Surface) -> tuple[bool, bool, float, int]:
-    """Sort key of step 3: in view, uncovered, highest."""
-    return obj.touches_border, obj.covered, -s.mean_height, s.id
+def _preference(obj: ObjectInfo, s: Surface, lift: np.ndarray) -> tuple[bool, bool, float, int]:
+    """Sort key of step 3: in view, uncovered, highest (above the support when known)."""
+    return obj.touches_border, obj.covered, -float(lift[s.id]), s.id
 
 
 def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto"
@@ -1356,11 +1632,27 @@ def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
     r, c = int(hits.rows[k]), int(hits.cols[k])
     dist = math.hypot(r - obj.centroid[0], c - obj.centroid[1])
     angle, ar_std = window_angle(scene, hits, k)
-    return make_site(hits.surface, r, c, object_id=obj.id, clearance=hits.clearance[k],
+    site = make_site(hits.surface, r, c, object_id=obj.id, clearance=hits.clearance[k],
                      ar_std=ar_std, angle=angle,
-                     site_score=score(hits.clearance[k], dist, config.holdsite.size,
-                                      obj.pixels), config=config,
-                     pose=site_pose(scene, hits.surface, r, c))
+                     site_score=score(hits.clearance[k], dist, scene.cfg.size, obj.pixels),
+                     config=config, pose=site_pose(scene, hits.surface, r, c))
+    return dataclasses.replace(site, size=scene.cfg.size,
+                               flat_rms=site_flat_rms(scene.z, r, c, scene.footprint(angle)))
+
+
+def site_flat_rms(z: np.ndarray, row: int, col: int, fp: np.ndarray) -> float:
+    """RMS residual of the least-squares plane of the heights under a footprint at (row, col)."""
+    fr, fc = np.nonzero(fp)
+    rr, cc = row + fr - fp.shape[0] // 2, col + fc - fp.shape[1] // 2
+    inside = (rr >= 0) & (rr < z.shape[0]) & (cc >= 0) & (cc < z.shape[1])
+    h = z[rr[inside], cc[inside]]
+    ok = np.isfinite(h)
+    if ok.sum() < 3:
+        return math.nan
+    a = np.column_stack([np.ones(ok.sum()), fc[inside][ok], fr[inside][ok]]).astype(np.float64)
+    centred = h[ok] - h[ok].mean()
+    coef, *_ = np.linalg.lstsq(a, centred, rcond=None)
+    return float(np.sqrt(np.mean((centred - a @ coef) ** 2)))
 
 
 def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hits], list[_Hits]]:
@@ -1368,8 +1660,10 @@ def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hi
     found: list[_Hits] = []
     missed: list[_Hits] = []
     for s in order:
-        hits = surface_windows(scene, s)
-        (found if _has_level(scene, hits) else missed).append(hits)
+        sized = scene.for_surface(s)
+        hits = surface_windows(sized, s)
+        hits.scene = sized
+        (found if _has_level(sized, hits) else missed).append(hits)
         if len(found) >= wanted:
             break
     return found, missed
@@ -1378,32 +1672,38 @@ def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hi
 def _choose(scene: _Scene, found: list[_Hits], objects: dict[int, ObjectInfo],
             object_of: dict[int, int], config: Config) -> list[Holdsite]:
     """Step 5: the chosen site first, then the runners-up (module Notes)."""
-    cfg = config.holdsite
-    wanted = 1 + cfg.max_candidates
+    wanted = 1 + config.holdsite.max_candidates
     ranked = [(hits, objects[object_of[hits.surface.id]]) for hits in found]
-    picks = [(h, o, _first(scene, h, o.centroid)) for h, o in ranked]
-    gap = math.hypot(*cfg.size)
+    picks = [(h, o, _first(h.scene, h, o.centroid)) for h, o in ranked]
     for hits, obj in ranked:
         if len(picks) >= wanted:
             break
+        gap = math.hypot(*hits.scene.cfg.size)
         extra = _spread(hits, _rank(hits, obj.centroid), wanted - len(picks) + 1, gap,
-                        scene)[1:]
+                        hits.scene)[1:]
         picks += [(hits, obj, k) for k in extra]
-    return [_site_of(scene, h, k, o, config) for h, o, k in picks[:wanted]]
+    return [_site_of(h.scene, h, k, o, config) for h, o, k in picks[:wanted]]
 
 
-def _failure(cfg: HoldsiteConfig, missed: list[_Hits], n_surfaces: int) -> str:
-    """Why no window was accepted."""
-    if not missed:
-        return ("no surface besides the background" if n_surfaces else
-                "no surfaces in the segmentation")
+def _failure(cfg: HoldsiteConfig, missed: list[_Hits], limit: float) -> str:
+    """Why no window was accepted (``limit``: the plane-fit RMS limit)."""
     win = f"{cfg.size[0]}x{cfg.size[1]}"
+    sizes = {h.scene.cfg.size for h in missed if h.scene is not None}
+    if len(sizes) > 1 or (sizes and cfg.size not in sizes):
+        win = "footprint (" + ", ".join(f"{r}x{c}" for r, c in sorted(sizes)) + " px)"
     widest = max(missed, key=lambda h: h.max_clearance)
     clear = (f"largest clearance found: {widest.max_clearance:.1f} px "
              f"(surface {widest.surface.id})")
     fitting = [h for h in missed if h.fitting]
     if not fitting:
         return f"no surface has a {win} window wholly on its valid pixels; {clear}"
+    rough = [h for h in missed if h.rough]
+    if rough and not any(h.steep for h in missed):
+        flat = min(rough, key=lambda h: h.min_rms)
+        return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g} and a "
+                f"plane-fit RMS <= {limit:.3g}; {sum(h.rough for h in rough)} window(s) passed "
+                f"the AR test, lowest RMS {flat.min_rms:.3g} (surface {flat.surface.id}); "
+                f"{clear}")
     steep = [h for h in missed if h.steep]
     if steep:
         level = min(steep, key=lambda h: h.min_tilt)
@@ -1426,7 +1726,7 @@ def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: Holdsite
         ", covered" if obj.covered else ", uncovered")
     text = (f"surface {site.surface} ({site.surface_type}) of object {obj.id} ({state}) is the "
             f"first in the search order (objects in view, uncovered, highest surface first) "
-            f"with a {cfg.size[0]}x{cfg.size[1]} window with AR std <= {cfg.max_ar_std:g}")
+            f"with a {site.size[0]}x{site.size[1]} window with AR std <= {cfg.max_ar_std:g}")
     if cfg.max_tilt < 90:
         text += f" and a tilt <= {cfg.max_tilt:g} degrees"
     if missed:
@@ -1438,7 +1738,9 @@ def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: Holdsite
 
 def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
                   config: Config, *, backend: Backend = "auto",
-                  gaps: dict[tuple[int, int], float] | None = None) -> HoldsiteResult:
+                  gaps: dict[tuple[int, int], float] | None = None,
+                  background: np.ndarray | None = None,
+                  roi: np.ndarray | None = None) -> HoldsiteResult:
     """Find the vacuum-gripper holdsite of a segmented range image (Sec. VII).
 
     Parameters
@@ -1462,6 +1764,13 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         caller has them
         (:func:`~rangeseg_cli.surfaces.describe_surfaces_and_gaps`, which
         gives them with the surfaces); computed here otherwise.
+    background
+        float64 (H, W) heights of the empty scene (``[workspace]
+        background``, converted as ``z`` is; NaN where it has no reading),
+        or ``None``.
+    roi
+        bool (H, W) mask of the pixels that may be picked (``[workspace]
+        roi``), or ``None``.
 
     Returns
     -------
@@ -1479,6 +1788,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         For a configuration value out of range or a table of the wrong class
         (:func:`~rangeseg_cli.config.check_config`).
     """
+    _check_workspace_arrays(z, background, roi)
     z, labels = _check(z, labels, backend)
     check_config(config)
     valid = np.isfinite(z)
@@ -1488,25 +1798,38 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     known[list(by_id)] = True
     labels = np.where(known[labels], labels, 0)
     tol = config.step.threshold
-    # Step 1: background (lowest border regions)
+    noise = estimate_noise(z, backend=backend)
+    coeffs = _coefficient_table(surfaces, n)
+    # Step 0: the workspace (beyond the paper): what may be picked
+    space = assess(z, labels, coeffs, config, noise, background=background, roi=roi)
+    # Step 1: background (lowest border regions, and regions the workspace leaves out)
     framed = _framed(labels)
-    background = find_background(by_id, framed | _near_outer_invalid(labels, valid),
-                                 config.holdsite.background, tol)
+    border = framed | _near_outer_invalid(labels, valid)
+    left_out = find_background(by_id, border, config.holdsite.background, tol)
+    left_out |= unpickable_regions(labels, space.pickable, n)
     # Step 2: objects, and which are covered by another
     if gaps is None:
-        gaps = _known_gaps(labels, _coefficient_table(surfaces, n), backend)  # known labels
-    object_of, objects = find_objects(by_id, background, gaps, tol, framed)
+        gaps = _known_gaps(labels, coeffs, backend)  # known labels
+    object_of, objects = find_objects(by_id, left_out, gaps, tol, border)
+    lift = region_lift(labels, space, z, n)
+    if config.workspace.border_structures:
+        depth = -float(np.nanmedian(z)) if valid.any() else 0.0
+        area = math.prod(footprint_pixels(config.holdsite, config.input, depth))
+        objects = mark_structures(objects, labels, valid, lift, space, area)
     obj_by_id = {o.id: o for o in objects}
+    candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
     # Step 3: objects wholly in view first, then uncovered ones; each group highest first
-    order = sorted((by_id[i] for i in object_of), key=lambda s: _preference(
-        obj_by_id[object_of[s.id]], s))
+    order = sorted((by_id[i] for i in candidates), key=lambda s: _preference(
+        obj_by_id[object_of[s.id]], s, lift))
     # Step 4: acceptable windows, surface by surface
     hold = effective_holdsite(config)
-    scene = _Scene(labels, valid, z, hold, _angles(hold), backend, config.input)
+    scene = _Scene(labels, valid & space.pickable, z, hold, _angles(hold), backend,
+                   config.input, flat_limit(hold, config.input, noise))
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
-    bg, objs, camera = tuple(sorted(background)), tuple(objects), config.input.has_intrinsics
+    bg, objs, camera = tuple(sorted(left_out)), tuple(objects), config.input.has_intrinsics
     if not found:
-        reason = _failure(hold, missed, len(by_id))
+        reason = ("nothing to pick: " + _failure(hold, missed, scene.flat_limit) if order
+                  else _nothing_to_pick(by_id, objects, space))
         return HoldsiteResult(None, reason, (), bg, objs, camera)
     # Step 5: the best window, then the runners-up
     sites = _choose(scene, found, obj_by_id, object_of, config)

@@ -1,0 +1,343 @@
+"""The workspace: which pixels a gripper may pick (beyond Al-Hujazi & Sood 1990, Sec. VII).
+
+The paper takes the highest surface of the scene (Sec. VII). In a real cell
+the highest things in view are often not to be picked: the robot's own
+fingers, a tote's wall or rim, things outside the tote; and an empty tote
+still has a highest surface. This module says, per pixel, what may be
+picked; :mod:`rangeseg_cli.holdsite` searches only there.
+
+Notes
+-----
+1. Support (``[workspace] support``): the table or tote floor is the
+   dominant plane by consensus (RANSAC, Fischler & Bolles 1981). Points are
+   the camera-frame points ``d ((u - cx)/fx, (v - cy)/fy, 1)`` with camera
+   intrinsics (a 3-D plane, whatever the camera's tilt), else ``(col s, row
+   s, z)`` with ``s`` = ``[input] units_per_pixel`` (1 when unknown).
+   :data:`HYPOTHESES` planes through three points of a fixed sample
+   (:data:`SAMPLE`, seeded: the same image gives the same plane); a plane
+   counts only when at most :data:`MAX_BELOW` of the points lie farther than
+   the tolerance behind it (a plane through the items' tops has the floor
+   behind it) and, with a camera, when it faces the camera within
+   :data:`MAX_SUPPORT_TILT` degrees (a tote wall does not). The plane with
+   the most points within the tolerance wins, refitted to them by least
+   squares (twice). ``height`` is the signed distance from it, towards the
+   camera (or up).
+2. Tolerance: ``support_tolerance``, or by default ``max(4 sigma, 1 unit)``
+   with ``sigma`` the image's noise (:func:`~rangeseg_cli.noise.estimate_noise`),
+   and with metric camera depth at least :data:`DEPTH_FRACTION` of the
+   median depth (depth cameras err by about 0.5-1 % of the depth, more than
+   their fine-grained noise shows; on the SR300 frames the tote floor's
+   residuals from one plane have a 90th percentile of 3-7 mm at 0.65-0.8 m).
+3. Pickable pixels: valid; inside the region of interest (mask, box,
+   polygon); not within ``background_tolerance`` of the background frame nor
+   behind it (Zeng et al., ICRA 2018, subtract the empty tote's frame the
+   same way); higher than the tolerance (and ``min_height``) above the
+   support, and no higher than ``max_height`` when set. Heights are the
+   data's, median-filtered over 3x3 valid pixels (a region's fit would carry
+   its errors into the workspace where growing joined a wall to the floor).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import Config, InputConfig, WorkspaceConfig
+
+#: Points of the consensus sample.
+SAMPLE = 20000
+
+#: Planes tried by the consensus.
+HYPOTHESES = 256
+
+#: Largest fraction of the points that may lie behind (below) the support.
+MAX_BELOW = 0.15
+
+#: Largest angle in degrees between the support's normal and the optical axis.
+MAX_SUPPORT_TILT = 60.0
+
+#: With metric camera depth, the tolerances are at least this fraction of the median depth.
+DEPTH_FRACTION = 0.01
+
+#: Noise levels of the default tolerances.
+NOISE_LEVELS = 4.0
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A plane ``n . p + e = 0`` with ``n`` a unit normal; ``n . p + e`` > 0 towards the sensor."""
+
+    normal: tuple[float, float, float]
+    offset: float
+    inliers: float
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed distances of (..., 3) points, positive towards the sensor."""
+        n = np.asarray(self.normal)
+        return points @ n + self.offset
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """What may be picked in one image.
+
+    Attributes
+    ----------
+    pickable
+        bool (H, W): pixels a gripper's window may lie on.
+    height
+        float64 (H, W) height above the support (depth units; NaN where
+        unknown), or ``None`` without a support.
+    support
+        The support plane, or ``None`` (not searched, or none found).
+    tolerance
+        The support's height tolerance, depth units.
+    """
+
+    pickable: np.ndarray
+    height: np.ndarray | None
+    support: Plane | None
+    tolerance: float
+
+
+def default_tolerance(z: np.ndarray, camera: InputConfig, noise: float) -> float:
+    """``max(4 sigma, 1 unit)``, and with metric camera depth >= 1 % of the median depth."""
+    tol = max(NOISE_LEVELS * max(noise, 0.0), 1.0)
+    if camera.has_intrinsics and camera.metres_per_unit > 0:
+        depth = -z[np.isfinite(z)]
+        if depth.size:
+            tol = max(tol, DEPTH_FRACTION * float(np.median(depth)))
+    return tol
+
+
+def points(z: np.ndarray, camera: InputConfig, rows: np.ndarray | None = None,
+           cols: np.ndarray | None = None) -> np.ndarray:
+    """(..., 3) points of heights ``z`` at ``rows, cols`` (module Notes, 1).
+
+    Camera-frame points with intrinsics (depth ``d = -z``), else ``(col s,
+    row s, z)`` with ``s`` = ``units_per_pixel`` (1 when unknown). Without
+    ``rows``/``cols``, ``z`` is the whole image.
+    """
+    if rows is None or cols is None:
+        grid = np.indices(z.shape, dtype=np.float64)
+        rows, cols = grid[0], grid[1]
+    if camera.has_intrinsics:
+        d = -z
+        return np.stack([(cols - camera.cx) * d / camera.fx,
+                         (rows - camera.cy) * d / camera.fy, d], axis=-1)
+    s = camera.units_per_pixel or 1.0
+    return np.stack([cols * s, rows * s, z], axis=-1)
+
+
+def _oriented(normals: np.ndarray, offsets: np.ndarray, camera: bool
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Normals and offsets turned so that the sensor's side is positive."""
+    # camera frame: the camera (origin) is at distance e; height map: up is +z
+    flip = offsets < 0 if camera else normals[:, 2] < 0
+    sign = np.where(flip, -1.0, 1.0)
+    return normals * sign[:, None], offsets * sign
+
+
+def _hypotheses(sample: np.ndarray, rng: np.random.Generator, camera: bool
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """:data:`HYPOTHESES` planes through three sample points each (unit normals, offsets)."""
+    idx = rng.integers(0, sample.shape[0], size=(HYPOTHESES, 3))
+    a, b, c = sample[idx[:, 0]], sample[idx[:, 1]], sample[idx[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norm = np.linalg.norm(normals, axis=1)
+    keep = norm > 0
+    normals = normals[keep] / norm[keep, None]
+    offsets = -np.einsum("ij,ij->i", normals, a[keep])
+    return _oriented(normals, offsets, camera)
+
+
+def _refit(sample: np.ndarray, normal: np.ndarray, offset: float, tol: float, camera: bool
+           ) -> tuple[np.ndarray, float]:
+    """The least-squares plane (total least squares) of the points within ``tol``."""
+    near = sample[np.abs(sample @ normal + offset) <= tol]
+    if near.shape[0] < 3:
+        return normal, offset
+    centre = near.mean(axis=0)
+    _, _, vt = np.linalg.svd(near - centre, full_matrices=False)
+    n = vt[2]
+    normals, offsets = _oriented(n[None], np.array([-n @ centre]), camera)
+    return normals[0], float(offsets[0])
+
+
+def find_support(z: np.ndarray, camera: InputConfig, tol: float, *, seed: int = 0
+                 ) -> Plane | None:
+    """The support plane by consensus (module Notes, 1), or ``None``.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights (depth ``-z`` with intrinsics), NaN where invalid.
+    camera
+        ``[input]``: intrinsics, ``units_per_pixel``.
+    tol
+        Points within ``tol`` of a plane are on it (depth units).
+    seed
+        Seeds the sample and the hypotheses: the same image, the same plane.
+
+    Returns
+    -------
+    Plane or None
+        ``None`` when fewer than 3 % of the pixels (or 100) are valid, or no
+        plane passes the tests.
+    """
+    valid = np.isfinite(z) & ((-z > 0) if camera.has_intrinsics else True)
+    rows, cols = np.nonzero(valid)
+    if rows.size < max(100, 0.03 * z.size):
+        return None
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(rows.size, size=min(SAMPLE, rows.size), replace=False)
+    pick.sort()
+    sample = points(z[rows[pick], cols[pick]], camera, rows[pick].astype(np.float64),
+                    cols[pick].astype(np.float64))
+    normals, offsets = _hypotheses(sample, rng, camera.has_intrinsics)
+    dist = sample @ normals.T + offsets  # (points, planes)
+    on = (np.abs(dist) <= tol).mean(axis=0)
+    below = (dist < -tol).mean(axis=0)
+    ok = below <= MAX_BELOW
+    if camera.has_intrinsics:
+        ok &= np.degrees(np.arccos(np.clip(np.abs(normals[:, 2]), 0, 1))) <= MAX_SUPPORT_TILT
+    if not ok.any():
+        return None
+    best = int(np.flatnonzero(ok)[np.argmax(on[ok])])
+    normal, offset = normals[best], float(offsets[best])
+    for _ in range(2):
+        normal, offset = _refit(sample, normal, offset, tol, camera.has_intrinsics)
+    share = float((np.abs(sample @ normal + offset) <= tol).mean())
+    nx, ny, nz = (float(v) for v in normal)
+    return Plane((nx, ny, nz), offset, share)
+
+
+def region_heights(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
+    """Heights of each labelled pixel's region fit (``coeffs`` by label), else the data."""
+    out = np.array(z, dtype=np.float64, copy=True)
+    rows, cols = np.nonzero(labels > 0)
+    if rows.size:
+        a = coeffs[labels[rows, cols]]
+        x, y = cols.astype(np.float64), rows.astype(np.float64)
+        fit = (a[:, 0] + a[:, 1] * x + a[:, 2] * y + a[:, 3] * x * x + a[:, 4] * x * y
+               + a[:, 5] * y * y)
+        out[rows, cols] = np.where(np.isfinite(z[rows, cols]), fit, np.nan)
+    return out
+
+
+def polygon_mask(shape: tuple[int, int], vertices: tuple[tuple[float, float], ...]
+                 ) -> np.ndarray:
+    """Bool (H, W): pixel centres inside the polygon of (row, col) vertices (even-odd rule)."""
+    rows, cols = np.indices(shape, dtype=np.float64)
+    inside = np.zeros(shape, dtype=bool)
+    vr = np.array([v[0] for v in vertices])
+    vc = np.array([v[1] for v in vertices])
+    for k in range(len(vertices)):
+        r0, c0, r1, c1 = vr[k - 1], vc[k - 1], vr[k], vc[k]
+        if r0 == r1:
+            continue
+        crosses = (rows >= min(r0, r1)) & (rows < max(r0, r1))
+        at = c0 + (rows - r0) * (c1 - c0) / (r1 - r0)
+        inside ^= crosses & (cols < at)
+    return inside
+
+
+def region_of_interest(shape: tuple[int, int], ws: WorkspaceConfig,
+                       roi: np.ndarray | None = None) -> np.ndarray:
+    """Bool (H, W): the pixels the region of interest allows (mask, box, polygon)."""
+    allowed = np.ones(shape, dtype=bool)
+    if roi is not None:
+        allowed &= np.asarray(roi, dtype=bool)
+    if ws.roi_box:
+        r0, c0, r1, c1 = ws.roi_box
+        box = np.zeros(shape, dtype=bool)
+        box[r0:r1, c0:c1] = True
+        allowed &= box
+    if ws.roi_polygon:
+        allowed &= polygon_mask(shape, ws.roi_polygon)
+    return allowed
+
+
+def matches_background(z: np.ndarray, background: np.ndarray, tol: float) -> np.ndarray:
+    """Bool (H, W): pixels within ``tol`` of the background frame, or behind it.
+
+    Both frames are median-filtered over 3x3 valid pixels first (a pixel's
+    noise should not make it an object). Where the background has no
+    reading, nothing is known: False.
+    """
+    a, b = _median3(z), _median3(background)
+    known = np.isfinite(a) & np.isfinite(b)
+    out = np.zeros(z.shape, dtype=bool)
+    out[known] = a[known] - b[known] <= tol
+    return out
+
+
+def _median3(z: np.ndarray) -> np.ndarray:
+    """3x3 median of the valid values (NaN where the centre is invalid).
+
+    The nine shifted copies stacked: :func:`scipy.ndimage.median_filter`
+    has no NaN-aware mode.
+    """
+    padded = np.pad(z, 1, mode="edge")
+    h, w = z.shape
+    stack = np.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all nine invalid: NaN
+        med = np.nanmedian(stack, axis=0)
+    return np.where(np.isfinite(z), med, np.nan)
+
+
+def assess(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, config: Config,
+           noise: float, *, background: np.ndarray | None = None,
+           roi: np.ndarray | None = None) -> Workspace:
+    """The pickable pixels of one segmented image (module Notes).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) labels, 0 = none.
+    coeffs
+        (K + 1, 6) quadric coefficients by label (row 0 unused).
+    config
+        ``[workspace]`` and ``[input]``.
+    noise
+        The image's noise sigma, depth units.
+    background
+        float64 (H, W) heights of the empty scene (NaN where no reading), or None.
+    roi
+        bool (H, W) mask of the pixels that may be picked, or None.
+
+    Returns
+    -------
+    Workspace
+    """
+    ws = config.workspace
+    valid = np.isfinite(z)
+    pickable = valid & region_of_interest(z.shape, ws, roi)
+    if background is not None:
+        bg_tol = ws.background_tolerance or default_tolerance(z, config.input, noise)
+        pickable &= ~matches_background(z, background, bg_tol)
+    tol = ws.support_tolerance or default_tolerance(z, config.input, noise)
+    plane = find_support(z, config.input, tol) if ws.support else None
+    if plane is None:
+        return Workspace(pickable, None, None, tol)
+    height = plane.distance(points(_median3(z), config.input))
+    with np.errstate(invalid="ignore"):
+        pickable &= height > max(tol, ws.min_height)
+        if ws.max_height > 0:
+            pickable &= height <= ws.max_height
+    return Workspace(pickable, height, plane, tol)
+
+
+def top_height(height: np.ndarray | None, mask: np.ndarray) -> float:
+    """95th percentile of ``height`` over ``mask`` (NaN when unknown)."""
+    if height is None:
+        return math.nan
+    values = height[mask]
+    values = values[np.isfinite(values)]
+    return float(np.percentile(values, 95)) if values.size else math.nan
