@@ -28,6 +28,7 @@ Inputs and the output folder are local paths or URLs (``s3://bucket/out``;
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -48,6 +49,8 @@ import numpy as np
 from . import __version__, io, parallel, render
 from .config import STAGE_TABLES, Config, InputConfig, build_config, from_json
 from .errors import ClusterLost, InputError, OutputError, RangesegError
+from .frames import SharedFrames, check_frame_size, read_workspace_frames
+from .intrinsics import Intrinsics
 from .io import Location
 from .pipeline import STAGES, stage_edges, stage_grow_and_gaps, stage_holdsite, stage_link
 from .rangeimage import MAX_ABS_HEIGHT, MAX_EDGE_CODE, clipped_value, to_heights, value_outside
@@ -165,8 +168,8 @@ def stage_range(first: str, last: str) -> tuple[str, ...]:
 # --------------------------------------------------------------------------- one image
 
 
-def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ...]
-                  ) -> Record:
+def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ...],
+                  frames: SharedFrames | None = None) -> Record:
     """Run ``stages`` on one image and write their artefacts; never raises for bad data.
 
     Parameters
@@ -180,6 +183,9 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
         The configuration.
     stages
         Consecutive stage names from :data:`~rangeseg_cli.pipeline.STAGES`.
+    frames
+        The batch's workspace arrays and intrinsics size
+        (:func:`shared_frames`); an image of another size fails.
 
     Returns
     -------
@@ -191,7 +197,9 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
     record = Record(rel=job.rel, status="done", source=job.source)
     base = out / job.rel
     try:
-        state = _initial_state(job, out, stages[0], config)
+        frames = frames or SharedFrames()
+        state = _initial_state(job, out, stages[0], config, frames)
+        state["frames"] = frames
         state["then_link"] = "link" in stages  # link writes edges.npy; write it once
         with parallel.blas_one_thread():
             for stage in stages:
@@ -243,17 +251,20 @@ def _remove_outputs(base: Location, stages: Iterable[str], *, pictures_only: boo
             io.remove_file(_p(base, name))
 
 
-def _initial_state(job: Job, out: Location, first: str, config: Config) -> dict[str, Any]:
+def _initial_state(job: Job, out: Location, first: str, config: Config,
+                   frames: SharedFrames) -> dict[str, Any]:
     base = out / job.rel
     if first == "edges":
         if job.source is None:
             raise OutputError(f"{job.rel}: no input image")
         stamp = io.input_stamp(job.source)  # before reading: a change meanwhile is redone
         raw = io.read_image(job.source)
+        check_frame_size(raw.shape, frames, job.source)
         top = clipped_value(raw.dtype, config.input)
         return {"z": to_heights(raw, config.input, name=job.source), "input_stamp": stamp,
                 "clipped_pixels": 0 if top is None else int(np.count_nonzero(raw == top))}
     z = _read_map(base, "range.npy", "f")
+    check_frame_size(z.shape, frames, str(_p(base, "range.npy")))
     state: dict[str, Any] = {"z": z}
     if first in ("link", "grow"):
         state["edges"] = _read_map(base, "edges.npy", "u", z)
@@ -349,8 +360,10 @@ def _run_grow(state: dict[str, Any], base: Location, config: Config) -> None:
 
 
 def _run_holdsite(state: dict[str, Any], base: Location, config: Config) -> None:
+    frames = state["frames"]
     result = stage_holdsite(state["z"], state["labels"], state["surfaces"], config,
-                            gaps=state.get("gaps"))
+                            gaps=state.get("gaps"), background=frames.background,
+                            roi=frames.roi)
     io.write_json(_p(base, "holdsite.json"), result.to_dict(), config.output.float_digits)
     if config.output.png:
         io.write_png(_p(base, "overlay.png"),
@@ -601,8 +614,12 @@ def manifest_config(out: Location) -> Config | None:
 
 
 def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str, ...], *,
-              resume: bool, overwrite: bool) -> tuple[list[Job], list[Record]]:
+              resume: bool, overwrite: bool, frames: SharedFrames | None = None
+              ) -> tuple[list[Job], list[Record]]:
     """Split jobs into those to run and records of the others.
+
+    ``frames``: the batch's workspace arrays, whose content counts as the
+    holdsite's settings (:func:`stage_digests`).
 
     Returns
     -------
@@ -631,7 +648,7 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
                 "or --overwrite to redo all")
         return jobs, refused
     todo, skipped = [], list(refused)
-    whole, digests = config.digest(), config.stage_digests()
+    whole, digests = config.digest(), stage_digests(config, frames)
     for job in jobs:
         entry = images.get(job.rel, {})
         made = _stage_configs(entry, whole, digests)
@@ -645,6 +662,19 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         else:
             todo.append(job)
     return todo, skipped
+
+
+def stage_digests(config: Config, frames: SharedFrames | None = None) -> dict[str, str]:
+    """Each stage's settings digest (``Config.stage_digests``), the workspace pixels in holdsite's.
+
+    The config names the background and ROI files; their content counts too,
+    so ``--resume`` redoes the holdsites when a file changed under its name.
+    """
+    digests = config.stage_digests()
+    if frames is not None and frames.digest:
+        both = f"{digests['holdsite']}:{frames.digest}".encode()
+        digests["holdsite"] = hashlib.sha256(both).hexdigest()[:16]
+    return digests
 
 
 def _same_input(job: Job, entry: dict[str, Any], first: str) -> bool:
@@ -701,12 +731,13 @@ def _refuse_stale(jobs: list[Job], images: dict[str, Any], first: str, config: C
 class _Manifest:
     """The batch manifest, updated as images finish and rewritten atomically."""
 
-    def __init__(self, out: Location, config: Config, command: str, stages: tuple[str, ...]):
+    def __init__(self, out: Location, config: Config, command: str, stages: tuple[str, ...],
+                 frames: SharedFrames | None = None):
         self.out, self.config, self.stages = out, config, stages
         self.data = read_manifest(out) if out.exists() else {}
         # the configuration the results were last made with: recorded once an image is run
         # (the stage commands' default); a command that runs none leaves it as it was
-        self.whole, self.digests = config.digest(), config.stage_digests()
+        self.whole, self.digests = config.digest(), stage_digests(config, frames)
         self.header: dict[str, Any] = {"version": __version__, "config": config.to_dict(),
                                        "config_digest": self.whole, "command": command}
         if "config" not in self.data:
@@ -771,7 +802,8 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
               skipped_files: list[str] | None = None, command: str = "run",
               on_result: Callable[[Record], None] | None = None,
               on_start: Callable[[int], None] | None = None,
-              executor: str = "local", scheduler: str | None = None) -> BatchSummary:
+              executor: str = "local", scheduler: str | None = None,
+              intrinsics: Intrinsics | None = None) -> BatchSummary:
     """Process ``jobs`` through ``stages`` and write the manifest.
 
     Parameters
@@ -804,6 +836,9 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         processes of this machine, or ``"dask"``, one task per image on the
         Dask cluster whose scheduler is at ``scheduler`` (``tcp://HOST:PORT``;
         see :mod:`rangeseg_cli.dask_executor` for the storage it needs).
+    intrinsics
+        The camera intrinsics the configuration's ``[input] fx, fy, cx, cy``
+        came from: when they give the image size, an image of another size fails.
 
     Returns
     -------
@@ -818,6 +853,9 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         With ``executor="dask"``, before any work, when the cluster cannot be
         used (dask missing, scheduler unreachable, workers without rangeseg
         or without the shared storage).
+    ConfigError
+        Before any work, when a file ``[workspace]`` names (with the
+        ``holdsite`` stage) cannot be read or used (:func:`shared_frames`).
     OutputError, rangeseg_cli.errors.StorageError
         When ``out`` holds results and neither ``resume`` nor ``overwrite`` is
         set, or its store cannot be written (an https:// URL:
@@ -832,12 +870,13 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         raise ValueError(f"`n_jobs` = {n_jobs!r}: expected 1 to {MAX_JOBS}, or None")
     io.check_output_protocol(out)
     check_inputs_kept(jobs, out, stages, skipped_files or [])
+    frames = shared_frames(config, stages, intrinsics)
     with _executor(executor, scheduler, n_jobs) as execute:  # dask: connect before any work
         remove_stale_temporaries(out)
         todo, records = plan_jobs(jobs, out, config, stages, resume=resume,
-                                  overwrite=overwrite)
+                                  overwrite=overwrite, frames=frames)
         io.make_folder(out)
-        manifest = _Manifest(out, config, command, stages)
+        manifest = _Manifest(out, config, command, stages, frames)
         manifest.start(todo)
         refused = [r for r in records if r.status == "failed"]
         records = [r for r in records if r.status != "failed"]
@@ -855,7 +894,7 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         for record in refused:
             finish(record, ran=False)
         try:
-            execute(todo, out, config, stages, finish)
+            execute(todo, out, config, stages, frames, finish)
         except KeyboardInterrupt as exc:
             interrupted, terminated = True, isinstance(exc, Terminated)
         except ClusterLost as exc:
@@ -868,10 +907,31 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
     return summary
 
 
+def shared_frames(config: Config, stages: tuple[str, ...], intrinsics: Intrinsics | None = None
+                  ) -> SharedFrames:
+    """What every image of the batch is checked against or combined with, read once.
+
+    The files of ``[workspace]`` when the batch runs the ``holdsite`` stage
+    (:func:`~rangeseg_cli.frames.read_workspace_frames`), and the image size
+    of ``intrinsics`` when they give one and the batch reads images.
+
+    Raises
+    ------
+    ConfigError
+        One line naming a ``[workspace]`` file that cannot be read or used.
+    """
+    frames = read_workspace_frames(config) if "holdsite" in stages else SharedFrames()
+    if intrinsics is not None and intrinsics.width and intrinsics.height and (
+            stages[0] == STAGES[0]):
+        frames = replace(frames, size=(intrinsics.height, intrinsics.width),
+                         size_name=intrinsics.source)
+    return frames
+
+
 #: Where a batch can run: this machine's process pool, or an existing Dask cluster.
 EXECUTORS = ("local", "dask")
-_Execute = Callable[[list[Job], Location, Config, tuple[str, ...], Callable[[Record], None]],
-                    None]
+_Execute = Callable[[list[Job], Location, Config, tuple[str, ...], SharedFrames,
+                     Callable[[Record], None]], None]
 
 
 @contextmanager
@@ -879,8 +939,8 @@ def _executor(executor: str, scheduler: str | None, n_jobs: int | None
               ) -> Iterator[_Execute]:
     """The function that processes the planned jobs; a Dask client connects first."""
     if executor == "local":
-        yield lambda todo, out, config, stages, finish: _execute(
-            todo, out, config, stages, n_jobs or 1, finish)
+        yield lambda todo, out, config, stages, frames, finish: _execute(
+            todo, out, config, stages, frames, n_jobs or 1, finish)
     elif executor == "dask":
         if not scheduler:
             raise ValueError("executor='dask' needs `scheduler`, the address of a Dask "
@@ -888,8 +948,8 @@ def _executor(executor: str, scheduler: str | None, n_jobs: int | None
         from .dask_executor import connect, execute_on_dask
 
         with connect(scheduler) as client:
-            yield lambda todo, out, config, stages, finish: execute_on_dask(
-                todo, out, config, stages, client, finish, limit=n_jobs)
+            yield lambda todo, out, config, stages, frames, finish: execute_on_dask(
+                todo, out, config, stages, client, finish, limit=n_jobs, frames=frames)
     else:
         raise ValueError(f"`executor` = {executor!r}: expected one of {', '.join(EXECUTORS)}")
 
@@ -957,24 +1017,25 @@ class StopFlag:
 
 
 def _execute(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
-             n_jobs: int, finish: Callable[[Record], None]) -> None:
+             frames: SharedFrames, n_jobs: int, finish: Callable[[Record], None]) -> None:
     workers = min(n_jobs, len(todo))  # a worker more than images would only start up
     with StopFlag() as stop:
         if workers <= 1:
             for job in todo:
                 stop.check()
-                finish(process_image(job, out, config, stages))
+                finish(process_image(job, out, config, stages, frames))
             return
-        _execute_pool(todo, out, config, stages, workers, finish, stop)
+        _execute_pool(todo, out, config, stages, frames, workers, finish, stop)
 
 
 def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
-                  n_jobs: int, finish: Callable[[Record], None], stop: StopFlag) -> None:
+                  frames: SharedFrames, n_jobs: int, finish: Callable[[Record], None],
+                  stop: StopFlag) -> None:
     """Process ``todo`` on ``n_jobs`` worker processes; a new pool when a worker dies."""
     warm_up(config)
     left = list(todo)
     while left:
-        rest = _pool_round(left, out, config, stages, n_jobs, finish, stop)
+        rest = _pool_round(left, out, config, stages, frames, n_jobs, finish, stop)
         if len(rest) == len(left):  # a pool that broke before taking any image: no retry
             for job in rest:
                 finish(_lost(job, out, stages[0]))
@@ -983,7 +1044,8 @@ def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[
 
 
 def _pool_round(jobs: list[Job], out: Location, config: Config, stages: tuple[str, ...],
-                n_jobs: int, finish: Callable[[Record], None], stop: StopFlag) -> list[Job]:
+                frames: SharedFrames, n_jobs: int, finish: Callable[[Record], None],
+                stop: StopFlag) -> list[Job]:
     """Run ``jobs`` on one pool; the jobs not yet submitted when a worker died.
 
     A worker that dies (killed by the OOM killer or by hand) breaks the pool:
@@ -999,7 +1061,7 @@ def _pool_round(jobs: list[Job], out: Location, config: Config, stages: tuple[st
         try:
             for job in jobs:
                 stop.check()
-                pending[pool.submit(process_image, job, out, config, stages)] = job
+                pending[pool.submit(process_image, job, out, config, stages, frames)] = job
                 submitted += 1
                 while len(pending) >= 2 * n_jobs:
                     _collect(pending, finish, stop)
@@ -1052,8 +1114,10 @@ def warm_up(config: Config) -> None:
 
     yy, xx = np.mgrid[0:32, 0:32]
     scene = 20.0 + 0.5 * xx + np.where((abs(yy - 16) < 8) & (abs(xx - 16) < 8), 60.0, 0.0)
+    plain = replace(config, input=InputConfig(),  # not the workspace files of other frames
+                    workspace=replace(config.workspace, background="", roi=""))
     try:
-        run_pipeline(scene, replace(config, input=InputConfig()))
+        run_pipeline(scene, plain)
     except Exception:  # noqa: BLE001 - a warm-up never stops a batch; the real run reports
         log.debug("warm-up failed", exc_info=True)
 

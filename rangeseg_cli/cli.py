@@ -377,13 +377,15 @@ def _split_csv(value: str, param: str) -> list[str]:
 
 
 def _parse_scenes(ctx: click.Context, param: click.Parameter, value: str | None
-                  ) -> list[str] | None:
-    from .synth import parse_scenes
+                  ) -> tuple[list[str], list[str]] | None:
+    """``--scenes``: the range-image scenes of :mod:`synth` and the camera scenes, apart."""
+    from .synth import SCENES
+    from .synth_camera import split_scene_names
 
     if value is None:
         return None
     try:
-        return parse_scenes(value)
+        return split_scene_names(value, SCENES)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--scenes") from None
 
@@ -404,49 +406,83 @@ def _parse_noise(ctx: click.Context, param: click.Parameter, value: str) -> list
     return out
 
 
-def _parse_size(ctx: click.Context, param: click.Parameter, value: str) -> tuple[int, int]:
+def _parse_size(ctx: click.Context, param: click.Parameter, value: str | None
+                ) -> tuple[int, int] | None:
     from .synth import parse_size
 
+    if value is None:
+        return None
     try:
         return parse_size(value)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--size") from None
 
 
+#: Cameras and depth units of ``synth`` (rangeseg_cli.synth_camera.CAMERAS and DEPTH_UNITS,
+#: not imported: fast --help).
+CAMERA_NAMES = ("sr300", "ideal")
+DEPTH_UNIT_NAMES = ("0.1mm", "1mm", "m")
+
+
 @main.command(name="synth")
 @outdir_arg
 @click.option("--scenes", callback=_parse_scenes, metavar="A,B",
-              help="Scenes to render (default: all; the paper's test objects are part1, cup, "
-                   "part2, cube-holes).")
+              help="Scenes to render (default: all range-image scenes; the paper's test "
+                   "objects are part1, cup, part2, cube-holes; depth-camera scenes: "
+                   "cam-pile, cam-tote, cam-gripper, cam-empty-tote).")
 @click.option("--noise", default="0,1,2", show_default=True, callback=_parse_noise,
-              metavar="S1,S2", help="Gaussian noise levels in depth units; one image each.")
+              metavar="S1,S2", help="Gaussian noise levels in depth units; one image each "
+                                    "(range-image scenes).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Seeds the noise and the pile layout; same seed, same bytes.")
-@click.option("--size", default="128x128", show_default=True, callback=_parse_size,
-              metavar="ROWSxCOLS", help="Image size.")
+@click.option("--size", default=None, callback=_parse_size, metavar="ROWSxCOLS",
+              help="Image size [default: 128x128; 480x640 for the cam-* scenes].")
 @click.option("--bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
-              help="8-bit (depth units) or 16-bit (1/256 depth units) PNG.")
+              help="8-bit (depth units) or 16-bit (1/256 depth units) PNG (range-image "
+                   "scenes).")
+@click.option("--camera", type=click.Choice(CAMERA_NAMES), default="sr300", show_default=True,
+              help="cam-* scenes: the depth camera, with its intrinsics and defects (ideal: "
+                   "none).")
+@click.option("--depth-unit", type=click.Choice(DEPTH_UNIT_NAMES), default="0.1mm",
+              show_default=True, help="cam-* scenes: uint16 PNG in 0.1 mm or 1 mm, or "
+                                      "float32 metres as .npy (read with --preset "
+                                      "tenth-mm-depth, mm-depth, metre-depth).")
+@click.option("--frames", type=click.IntRange(1, 100000), default=1, show_default=True,
+              help="cam-* scenes: frames of each, with seeds SEED, SEED+1, ...")
 @verbosity_opts
-def synth_cmd(out: str, scenes: list[str] | None, noise: list[float], seed: int,
-              size: tuple[int, int], bits: str, verbose: int, quiet: int) -> None:
+def synth_cmd(out: str, scenes: tuple[list[str], list[str]] | None, noise: list[float],
+              seed: int, size: tuple[int, int] | None, bits: str, camera: str,
+              depth_unit: str, frames: int, verbose: int, quiet: int) -> None:
     """Render synthetic range images with ground truth into OUT.
 
     Writes OUT/<scene>-n<noise>.png, .gt.npy (int32 surface labels) and
     .gt.json (surfaces, objects, uncovered parts) for `rangeseg eval`.
+    A depth-camera scene (cam-*) is written as OUT/<scene>-s<seed>.png
+    (or .npy) with .gt.npy, .gt.json (objects marked pickable, the camera),
+    .intrinsics.txt (3x3 matrix) and .gt.background.png (the empty support,
+    for --background); `rangeseg run OUT` reads only the frames.
     """
     from .errors import OutputError
     from .synth import SCENES, write_scenes
+    from .synth_camera import MODEL_SIZE, write_camera_scenes
 
-    names = scenes or list(SCENES)
+    classic, cams = scenes or (list(SCENES), [])
     try:
-        written = write_scenes(Path(out), names, noise, seed, size, int(bits))
+        written = write_scenes(Path(out), classic, noise, seed, size or (128, 128),
+                               int(bits)) if classic else []
+        count = len(written) // 3
+        if cams:
+            cam_files = write_camera_scenes(Path(out), cams, range(seed, seed + frames),
+                                            size=size or MODEL_SIZE, camera=camera,
+                                            depth_unit=depth_unit)
+            written += cam_files
+            count += len(cam_files) // 5
     except ValueError as exc:  # the options are checked; two noise levels with one name
         raise click.BadParameter(str(exc), param_hint="--noise") from None
     except OutputError as exc:  # OUT cannot be written
         raise UsageProblem(str(exc)) from None
     if not quiet:
-        click.echo(f"wrote {len(written) // 3} scenes ({len(written)} files) to {out}",
-                   err=True)
+        click.echo(f"wrote {count} scenes ({len(written)} files) to {out}", err=True)
 
 
 @main.command(name="eval")

@@ -59,6 +59,7 @@ from .batch import (
 )
 from .config import Config
 from .errors import ClusterError, ClusterLost, RangesegError
+from .frames import SharedFrames
 from .io import Location
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -116,9 +117,11 @@ def connect(scheduler: str, *, timeout: float | None = None) -> Iterator[Client]
         client.close()
 
 
-def task_key(job: Job, out: Location, config: Config, stages: tuple[str, ...]) -> str:
+def task_key(job: Job, out: Location, config: Config, stages: tuple[str, ...],
+             frames: SharedFrames | None = None) -> str:
     """Dask key of one image's task: the same work always gets the same key."""
-    what = json.dumps([job.rel, job.source, str(out), list(stages), config.digest()])
+    shared = "" if frames is None else f"{frames.digest}:{frames.size}"
+    what = json.dumps([job.rel, job.source, str(out), list(stages), config.digest(), shared])
     return "rangeseg-" + hashlib.sha256(what.encode()).hexdigest()[:32]
 
 
@@ -140,7 +143,7 @@ def _sees(name: str) -> bool | str:
 
 def execute_on_dask(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
                     scheduler: str | Client, finish: Callable[[Record], None], *,
-                    limit: int | None = None) -> None:
+                    limit: int | None = None, frames: SharedFrames | None = None) -> None:
     """Process ``todo`` on a Dask cluster, calling ``finish(record)`` as images complete.
 
     Parameters
@@ -161,6 +164,9 @@ def execute_on_dask(todo: list[Job], out: Location, config: Config, stages: tupl
         Called in this process with each image's record, in completion order.
     limit
         At most this many images in flight at once; ``None``: submit them all.
+    frames
+        The batch's workspace arrays and intrinsics size
+        (:func:`~rangeseg_cli.batch.shared_frames`), sent to the workers once.
 
     Raises
     ------
@@ -175,11 +181,12 @@ def execute_on_dask(todo: list[Job], out: Location, config: Config, stages: tupl
         After cancelling the tasks that have not finished (those that have are
         passed to ``finish``).
     """
+    frames = frames or SharedFrames()
     if isinstance(scheduler, str):
         with connect(scheduler) as client:
-            _run_tasks(client, todo, out, config, stages, finish, limit)
+            _run_tasks(client, todo, out, config, stages, frames, finish, limit)
     else:
-        _run_tasks(scheduler, todo, out, config, stages, finish, limit)
+        _run_tasks(scheduler, todo, out, config, stages, frames, finish, limit)
 
 
 @dataclass
@@ -192,13 +199,15 @@ class _Batch:
     out: Location
     config: Config
     stages: tuple[str, ...]
+    frames: SharedFrames = field(default_factory=SharedFrames)
+    shared: Any = None  # ``frames`` on the cluster (scattered once), or ``frames``
     pending: dict[Future, tuple[Job, Job]] = field(default_factory=dict)
 
     def submit(self, job: Job, sent: Job) -> Future:
         """Submit one image (``sent``: with absolute paths); remember the user's job."""
+        key = task_key(sent, self.out, self.config, self.stages, self.frames)
         future = self.client.submit(process_image, sent, self.out, self.config, self.stages,
-                                    retries=RETRIES,
-                                    key=task_key(sent, self.out, self.config, self.stages))
+                                    self.shared, retries=RETRIES, key=key)
         self.pending[future] = (job, sent)
         return future
 
@@ -252,13 +261,16 @@ class _Batch:
 
 
 def _run_tasks(client: Client, todo: list[Job], out: Location, config: Config,
-               stages: tuple[str, ...], finish: Callable[[Record], None],
-               limit: int | None) -> None:
+               stages: tuple[str, ...], frames: SharedFrames,
+               finish: Callable[[Record], None], limit: int | None) -> None:
     out = io.absolute(out)
     sent = [Job(rel=j.rel, source=None if j.source is None else io.absolute_name(j.source))
             for j in todo]
     _check_workers(client, [str(out)] + [j.source for j in sent[:1] if j.source])
-    batch = _Batch(client, _distributed(), client.scheduler.address, out, config, stages)
+    # the workspace arrays go to the workers once, not with every task
+    shared = client.scatter(frames, broadcast=True) if frames.digest and todo else frames
+    batch = _Batch(client, _distributed(), client.scheduler.address, out, config, stages,
+                   frames, shared)
     with StopFlag() as stop:
         _drive(batch, iter(zip(todo, sent, strict=True)), limit or max(1, len(todo)),
                finish, stop)

@@ -23,17 +23,18 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from .config import Config, check_config, load_config
 from .edges import EdgeMaps, detect_edges
+from .frames import SharedFrames, check_frame_size, read_workspace_frames, roi_mask
 from .models import Surface
 from .noise import estimate_noise
 from .parallel import blas_one_thread, row_bands
-from .rangeimage import check_stage_arrays, to_heights
+from .rangeimage import check_array, check_stage_arrays, require_shape_of_z, to_heights
 
 #: Stage names in order.
 STAGES = ("edges", "link", "grow", "holdsite")
@@ -284,20 +285,48 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
 
 
 def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
-                   config: Config, *, gaps: dict[tuple[int, int], float] | None = None
-                   ) -> Any:
+                   config: Config, *, gaps: dict[tuple[int, int], float] | None = None,
+                   background: Any = None, roi: Any = None) -> Any:
     """Sec. VII: the holdsite on the highest usable surface.
 
-    ``gaps``: the step gaps of :func:`stage_grow_and_gaps` when the caller
-    has them (computed here otherwise).
+    Parameters
+    ----------
+    z, labels, surfaces, config
+        Heights, final labels and their surfaces, and the configuration.
+    gaps
+        The step gaps of :func:`stage_grow_and_gaps` when the caller has them
+        (computed here otherwise).
+    background
+        The raw (H, W) frame of the empty workspace, in the units of the image
+        ``z`` was made from: converted to heights by ``[input]`` as the image
+        was (:func:`~rangeseg_cli.rangeimage.to_heights`); ``None``: none.
+    roi
+        (H, W) mask, non-zero where a site may be (integers or booleans);
+        ``None``: everywhere.
+
+    Raises
+    ------
+    ValueError
+        When ``background`` or ``roi`` is not of the shape of ``z``.
+    InputError
+        When ``background`` is no usable range image, or ``roi`` no mask
+        (:func:`~rangeseg_cli.frames.roi_mask`).
     """
     from .holdsite import find_holdsite
 
-    return find_holdsite(z, labels, surfaces, config, gaps=gaps)
+    bg_heights = roi_bool = None
+    if background is not None:
+        bg_heights = to_heights(background, config.input, name="`background`")
+        require_shape_of_z(z, background=bg_heights)
+    if roi is not None:
+        roi_bool = roi_mask(roi)
+        require_shape_of_z(z, roi=roi_bool)
+    return find_holdsite(z, labels, surfaces, config, gaps=gaps, background=bg_heights,
+                         roi=roi_bool)
 
 
 def _finish(result: PipelineResult, z: np.ndarray, edges: np.ndarray, components: np.ndarray,
-            config: Config, stages: int) -> None:
+            config: Config, stages: int, frames: SharedFrames) -> None:
     """Stages 3 and 4 of :func:`run_pipeline`, into ``result``."""
     t0 = time.perf_counter()
     labels, surfaces, gaps = stage_grow_and_gaps(z, edges, components, config,
@@ -306,12 +335,14 @@ def _finish(result: PipelineResult, z: np.ndarray, edges: np.ndarray, components
     result.timings["grow"] = time.perf_counter() - t0
     if stages >= 4:
         t0 = time.perf_counter()
-        result.holdsite = stage_holdsite(z, labels, surfaces, config, gaps=gaps)
+        result.holdsite = stage_holdsite(z, labels, surfaces, config, gaps=gaps,
+                                         background=frames.background, roi=frames.roi)
         result.timings["holdsite"] = time.perf_counter() - t0
 
 
 def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(STAGES),
-                 name: str = "image") -> PipelineResult:
+                 name: str = "image", background: Any = None, roi: Any = None
+                 ) -> PipelineResult:
     """Segment one range image and find its holdsite.
 
     Parameters
@@ -325,6 +356,14 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
         How many stages of :data:`STAGES` to run, 1 to 4 (4 = all).
     name
         Named in error messages.
+    background
+        The raw (H, W) frame of the empty tote or table, in the units of
+        ``image`` (converted to heights by ``[input]`` as ``image`` is);
+        ``None``: the file ``[workspace] background`` names, read through
+        :mod:`rangeseg_cli.io`, if any. Used by the holdsite stage only.
+    roi
+        (H, W) mask, non-zero where a site may be (integers or booleans);
+        ``None``: the file ``[workspace] roi`` names, if any.
 
     Returns
     -------
@@ -334,12 +373,16 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
     Raises
     ------
     InputError
-        When ``image`` is not a usable range image.
+        When ``image`` is not a usable range image, or ``background`` or
+        ``roi`` (given, or read from the files of ``[workspace]``) is not
+        usable or not of its size.
     TypeError
         When ``config`` is not a :class:`~rangeseg_cli.config.Config`.
     ConfigError
         When a value of ``config`` is of the wrong type or out of range (a
-        table built by hand: :func:`~rangeseg_cli.config.check_config`).
+        table built by hand: :func:`~rangeseg_cli.config.check_config`), or
+        a file ``[workspace]`` names cannot be read or used
+        (:func:`~rangeseg_cli.frames.read_workspace_frames`).
     ValueError
         When ``stages`` is not an integer from 1 to 4.
     """
@@ -350,8 +393,27 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
         config = load_config()
     else:
         check_config(config)  # a table built by hand skips load_config's checks
+    frames = _workspace_frames(config, stages, background, roi)
     with blas_one_thread(shares_threads(getattr(image, "shape", None), config)):
-        return _run(image, config, stages, name)
+        return _run(image, config, stages, name, frames)
+
+
+def _workspace_frames(config: Config, stages: int, background: Any, roi: Any
+                      ) -> SharedFrames:
+    """The background and ROI of :func:`run_pipeline`: as given, else the configured files."""
+    if stages < len(STAGES):
+        return SharedFrames()
+    ws = config.workspace
+    if (background is None and ws.background) or (roi is None and ws.roi):
+        files = read_workspace_frames(config)
+    else:
+        files = SharedFrames()
+    if background is not None:
+        files = replace(files, background=check_array(background, name="`background`"),
+                        background_name="`background`")
+    if roi is not None:
+        files = replace(files, roi=roi_mask(roi), roi_name="`roi`")
+    return files
 
 
 def shares_threads(shape: tuple[int, ...] | None, config: Config) -> bool:
@@ -369,11 +431,13 @@ def shares_threads(shape: tuple[int, ...] | None, config: Config) -> bool:
     return len(row_bands(int(shape[0]), int(shape[1]), 0)) > 1
 
 
-def _run(image: Any, config: Config, stages: int, name: str) -> PipelineResult:
+def _run(image: Any, config: Config, stages: int, name: str, frames: SharedFrames
+         ) -> PipelineResult:
     """:func:`run_pipeline` after its checks."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     z = to_heights(image, config.input, name=name)
+    check_frame_size(z.shape, frames, name)
     noise = estimate_noise(z) if uses_noise(config) else None  # else when asked for
     maps = stage_edges(z, config, noise=noise)
     timings["edges"] = time.perf_counter() - t0
@@ -385,5 +449,5 @@ def _run(image: Any, config: Config, stages: int, name: str) -> PipelineResult:
         result.edges, result.components = edges, components
         timings["link"] = time.perf_counter() - t0
         if stages >= 3:
-            _finish(result, z, edges, components, config, stages)
+            _finish(result, z, edges, components, config, stages, frames)
     return result

@@ -1,0 +1,192 @@
+"""--background, --roi and the frame size of --intrinsics in batches (issue 32, parts 2-3)."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import box_scene, tree_bytes
+from rangeseg_cli import holdsite as holdsite_module
+from rangeseg_cli import run_pipeline
+from rangeseg_cli.cli import main
+from rangeseg_cli.config import load_config
+from rangeseg_cli.errors import ConfigError, InputError
+from rangeseg_cli.rangeimage import to_heights
+
+
+def two_boxes(size: int = 48) -> np.ndarray:
+    """A table at 20 with a box of 120 (left) and one of 100 (right): 8-bit heights."""
+    z = np.full((size, size), 20.0)
+    z[12:36, 4:20] = 120.0
+    z[12:36, 28:44] = 100.0
+    return z.astype(np.uint8)
+
+
+def table(size: int = 48) -> np.ndarray:
+    return np.full((size, size), 20, np.uint8)
+
+
+def invoke(*args: str):
+    res = CliRunner().invoke(main, [*args, "-j", "1", "-q"])
+    return res.exit_code, res.output
+
+
+@pytest.fixture
+def scene(tmp_path, write_png):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    write_png(folder / "a.png", two_boxes())
+    write_png(folder / "b.png", box_scene(48).astype(np.uint8))
+    write_png(tmp_path / "bg.png", table())
+    roi = np.zeros((48, 48), np.uint8)
+    roi[:, 24:] = 255  # the right half: the lower box only
+    write_png(tmp_path / "roi.png", roi)
+    return tmp_path
+
+
+def test_background_and_roi_reach_find_holdsite_as_heights_and_bool(scene, monkeypatch):
+    seen = []
+    real = holdsite_module.find_holdsite
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(holdsite_module, "find_holdsite", spy)
+    code, out = invoke("run", str(scene / "in" / "a.png"), "-o", str(scene / "out"),
+                       "--background", str(scene / "bg.png"), "--roi", str(scene / "roi.png"))
+    assert code == 0, out
+    (kwargs,) = seen
+    expected = to_heights(table(), load_config().input)
+    assert kwargs["background"].dtype == np.float64
+    np.testing.assert_array_equal(kwargs["background"], expected)
+    assert kwargs["roi"].dtype == bool and kwargs["roi"][:, 24:].all()
+    assert not kwargs["roi"][:, :24].any()
+
+
+def test_an_roi_over_one_of_two_boxes_puts_the_site_on_that_box(scene):
+    out = scene / "out"
+    code, output = invoke("run", str(scene / "in" / "a.png"), "-o", str(out))
+    assert code == 0, output
+    site = json.loads((out / "a.holdsite.json").read_text())["holdsite"]
+    assert site["col"] < 24  # without an ROI: the higher box, on the left
+    code, output = invoke("run", str(scene / "in" / "a.png"), "-o", str(out), "--overwrite",
+                          "--roi", str(scene / "roi.png"))
+    assert code == 0, output
+    site = json.loads((out / "a.holdsite.json").read_text())["holdsite"]
+    assert site is not None and 28 <= site["col"] < 44 and 12 <= site["row"] < 36
+
+
+def test_the_workspace_files_are_recorded_as_absolute_paths(scene, monkeypatch):
+    monkeypatch.chdir(scene)
+    code, output = invoke("run", "in/a.png", "-o", "out", "--background", "bg.png",
+                          "--roi", "roi.png")
+    assert code == 0, output
+    recorded = json.loads((scene / "out" / "rangeseg-run.json").read_text())["config"]
+    assert recorded["workspace"]["background"] == str(scene / "bg.png")
+    assert recorded["workspace"]["roi"] == str(scene / "roi.png")
+
+
+def test_stage_commands_read_the_recorded_files_and_give_the_bytes_of_run(scene, monkeypatch):
+    monkeypatch.chdir(scene)
+    files = ["--background", "bg.png", "--roi", "roi.png"]
+    assert invoke("run", "in", "-o", "whole", *files)[0] == 0
+    assert invoke("edges", "in", "-o", "staged", *files)[0] == 0
+    monkeypatch.chdir(scene / "in")  # the stage commands run from elsewhere
+    for stage in ("link", "grow", "holdsite"):
+        code, output = invoke(stage, str(scene / "staged"))
+        assert code == 0, (stage, output)
+    whole, staged = tree_bytes(scene / "whole"), tree_bytes(scene / "staged")
+    assert whole.keys() == staged.keys() and "a.holdsite.json" in whole
+    assert all(whole[k] == staged[k] for k in whole)
+
+
+def test_a_frame_of_another_size_fails_that_image_only(scene, write_png):
+    write_png(scene / "in" / "big.png", box_scene(64).astype(np.uint8))
+    out = scene / "out"
+    code, output = invoke("run", str(scene / "in"), "-o", str(out),
+                          "--background", str(scene / "bg.png"))
+    assert code == 1
+    lines = [line for line in output.splitlines() if "big.png" in line]
+    assert len(lines) == 1
+    assert (f"size 64x64 differs from [workspace] background {scene / 'bg.png'} (48x48)"
+            in lines[0])
+    assert (out / "a.holdsite.json").exists() and (out / "b.holdsite.json").exists()
+    assert not (out / "big.holdsite.json").exists()
+    images = json.loads((out / "rangeseg-run.json").read_text())["images"]
+    assert images["big"]["status"] == "failed" and images["a"]["status"] == "done"
+
+
+@pytest.mark.parametrize("option, make, message", [
+    ("--background", None, "[workspace] background: {path}: file not found"),
+    ("--roi", None, "[workspace] roi: {path}: file not found"),
+    ("--roi", np.zeros((48, 48, 3), np.uint8), "[workspace] roi: {path}: has 3 channels"),
+    ("--roi", np.zeros((48, 48), np.float32), "[workspace] roi: {path}: pixel type float32 "
+                                              "is not a mask"),
+    ("--background", np.zeros((48, 48), np.float32),
+     "[workspace] background: {path}: no valid"),
+])
+def test_an_unusable_workspace_file_is_exit_2_before_any_work(scene, option, make, message):
+    path = scene / ("w.npy" if make is not None else "missing.png")
+    if make is not None:
+        np.save(path, make)
+    bad_args = ["--set", "input.invalid=0"] if option == "--background" else []
+    code, output = invoke("run", str(scene / "in"), "-o", str(scene / "out"), option,
+                          str(path), *bad_args)
+    assert code == 2, output
+    last = output.strip().splitlines()[-1]
+    assert last.startswith("Error: " + message.format(path=path)), last
+    assert not (scene / "out").exists()
+
+
+def test_resume_redoes_the_holdsites_when_the_background_file_changed(scene, write_png):
+    out = scene / "out"
+    args = ["run", str(scene / "in"), "-o", str(out), "--background", str(scene / "bg.png"),
+            "--json"]
+    assert invoke(*args)[0] == 0
+    code, output = invoke(*args, "--resume")
+    assert code == 0 and json.loads(output)["resumed"] == 2
+    write_png(scene / "bg.png", table() + 1)  # another frame under the same name
+    code, output = invoke(*args, "--resume")
+    assert code == 0 and json.loads(output)["done"] == 2
+
+
+def intrinsics_yaml(tmp_path, width, height):
+    path = tmp_path / "camera.yaml"
+    path.write_text(f"image_width: {width}\nimage_height: {height}\ncamera_matrix:\n"
+                    "  rows: 3\n  cols: 3\n  data: [60.0, 0, 24.0, 0, 60.0, 24.0, 0, 0, 1]\n")
+    return path
+
+
+def test_an_image_of_another_size_than_the_intrinsics_fails_with_both_sizes(tmp_path,
+                                                                             write_png):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    depth = (1000 - box_scene(48)).astype(np.uint16)
+    write_png(folder / "good.png", depth)
+    write_png(folder / "wide.png", np.tile(depth, (1, 2)))
+    cam = intrinsics_yaml(tmp_path, 48, 48)
+    code, output = invoke("run", str(folder), "-o", str(tmp_path / "out"), "--preset",
+                          "mm-depth", "--intrinsics", str(cam))
+    assert code == 1
+    (line,) = [line for line in output.splitlines() if "wide.png" in line]
+    assert f"the image is 96x48 pixels (width x height), the camera intrinsics {cam} are " \
+           "for 48x48" in line
+    site = json.loads((tmp_path / "out" / "good.holdsite.json").read_text())["holdsite"]
+    assert site is not None and len(site["point_camera"]) == 3
+
+
+def test_run_pipeline_reads_the_configured_files_or_takes_arrays(scene):
+    config = load_config(overrides={"workspace": {"roi": str(scene / "roi.png")}})
+    from_file = run_pipeline(two_boxes(), config).holdsite.to_dict()["holdsite"]
+    roi = np.zeros((48, 48), bool)
+    roi[:, 24:] = True
+    given = run_pipeline(two_boxes(), roi=roi).holdsite.to_dict()["holdsite"]
+    assert from_file == given and from_file["col"] >= 28
+    with pytest.raises(InputError, match=r"image: size 48x48 differs from `background` "
+                                         r"\(32x32\)"):
+        run_pipeline(two_boxes(), background=table(32))
+    missing = load_config(overrides={"workspace": {"background": str(scene / "no.png")}})
+    with pytest.raises(ConfigError, match=r"\[workspace\] background: .*no.png: file not"):
+        run_pipeline(two_boxes(), missing)
