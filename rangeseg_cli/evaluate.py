@@ -46,7 +46,12 @@ Rules chosen where the paper leaves room:
 
 The holdsite check (Sec. VII of Al-Hujazi & Sood) asks whether a reported
 gripper window lies wholly inside one GT surface of an uncovered part that is
-not the background (the table).
+not the background (the table). The object-level check
+(:func:`check_object_holdsite`, for the depth-camera scenes of
+:mod:`rangeseg_cli.synth_camera`) asks what a robot cell needs: the window
+wholly on valid pixels of one pickable object, any of its surfaces, and the
+approach within a tilt limit of the optical axis; no holdsite is right when
+nothing can be picked.
 """
 
 from __future__ import annotations
@@ -443,6 +448,140 @@ def check_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
             f"object {obj}"}
 
 
+#: Default largest tilt of a usable holdsite's approach from the optical axis, degrees.
+DEFAULT_MAX_TILT = 45.0
+
+
+def pickable_objects(info: Mapping[str, Any]) -> set[int]:
+    """Ids of the objects a gripper may take: ``pickable`` in ``gt.json``, else not background."""
+    return {int(o["id"]) for o in info["objects"]
+            if o.get("pickable", not o.get("background", False))}
+
+
+def approach_tilt(approach: Sequence[float] | None) -> float | None:
+    """Degrees between a camera-frame approach vector and the optical axis (0, 0, 1).
+
+    None when ``approach`` is missing, not three finite numbers, or zero.
+    """
+    if approach is None or len(approach) != 3:
+        return None
+    try:
+        a = np.array(approach, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    norm = float(np.linalg.norm(a))
+    if not np.all(np.isfinite(a)) or norm == 0:
+        return None
+    return math.degrees(math.acos(max(-1.0, min(1.0, a[2] / norm))))
+
+
+def _fits_somewhere(gt: np.ndarray, surfaces: Sequence[Mapping[str, Any]], objects: set[int],
+                    size: tuple[int, int]) -> list[int]:
+    """Objects of ``objects`` on whose GT pixels a ``size`` window fits somewhere (unrotated)."""
+    owner = np.full(int(gt.max(initial=0)) + 1, -1, np.int64)
+    for s in surfaces:
+        if 0 < int(s["id"]) < owner.size:
+            owner[int(s["id"])] = int(s["object"])
+    obj = owner[gt]
+    fits = []
+    for o in sorted(objects):
+        if ndimage.binary_erosion(obj == o, np.ones(size, bool)).any():
+            fits.append(o)
+    return fits
+
+
+def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
+                          info: Mapping[str, Any], *, max_tilt: float = DEFAULT_MAX_TILT,
+                          size: tuple[int, int] = (7, 7)) -> dict[str, Any]:
+    """Whether a holdsite is usable by a suction gripper: the object-level check.
+
+    Usable: the gripper window (``row``, ``col``, ``size``, ``angle``) lies
+    wholly on GT pixels of one pickable object (any of its surfaces; GT is 0
+    where the sensor gives no reading, so every pixel under the window is
+    valid), and the approach is within ``max_tilt`` degrees of the optical
+    axis: the angle between ``approach_camera`` and (0, 0, 1). When the
+    scene has a ``camera`` and the holdsite no ``approach_camera``, the site
+    is not usable (its tilt cannot be judged); in a scene without a camera
+    the tilt is not checked. No holdsite is correct when no pickable object
+    holds a ``size`` window anywhere (an empty tote), and wrong otherwise.
+
+    Parameters
+    ----------
+    holdsite
+        The ``"holdsite"`` of ``holdsite.json``, or ``None``.
+    gt
+        (H, W) ground-truth surface labels, 0 = no surface or no reading.
+    info
+        The scene's ``gt.json``: ``surfaces`` (``id``, ``object``),
+        ``objects`` (``id``, ``pickable`` or ``background``), optional ``camera``.
+    max_tilt
+        Largest tilt of the approach from the optical axis, degrees.
+    size
+        Window when the holdsite gives none, and the window a null holdsite
+        is judged with.
+
+    Returns
+    -------
+    dict
+        ``ok`` (bool), ``reason``, ``object`` (GT id or None), ``surfaces``
+        (GT ids under the window), ``tilt`` (degrees or None) and
+        ``pickable_in_view`` (ids of the pickable objects that hold a window).
+
+    Raises
+    ------
+    ValueError
+        For a holdsite :func:`check_holdsite` cannot draw, or ``max_tilt``
+        outside 0..90.
+    """
+    if not (isinstance(max_tilt, int | float) and 0 <= max_tilt <= 90):
+        raise ValueError(f"`max_tilt` {max_tilt!r} must be a number of degrees from 0 to 90")
+    pickable = pickable_objects(info)
+    in_view = _fits_somewhere(gt, info["surfaces"], pickable, size)
+    result: dict[str, Any] = {"ok": False, "object": None, "surfaces": [], "tilt": None,
+                              "pickable_in_view": in_view}
+    if holdsite is None:
+        if in_view:
+            return {**result, "reason": f"no holdsite, but objects {in_view} can be picked"}
+        return {**result, "ok": True, "reason": "no holdsite, and nothing to pick"}
+    problem = _holdsite_problem(holdsite)
+    if problem:
+        raise ValueError(f"`holdsite`: {problem}")
+    r, c = _window(holdsite, size)
+    h, w = gt.shape
+    if r.min() < 0 or c.min() < 0 or r.max() >= h or c.max() >= w:
+        return {**result, "reason": "window leaves the image"}
+    labels = gt[r, c]
+    result["surfaces"] = [int(v) for v in np.unique(labels)]
+    return _judge_window(holdsite, labels, info, pickable, max_tilt, result)
+
+
+def _judge_window(holdsite: Mapping[str, Any], labels: np.ndarray, info: Mapping[str, Any],
+                  pickable: set[int], max_tilt: float, result: dict[str, Any]
+                  ) -> dict[str, Any]:
+    """The object, validity and tilt tests of :func:`check_object_holdsite`."""
+    unseen = int(np.count_nonzero(labels == 0))
+    if unseen:
+        return {**result, "reason": f"{unseen} window pixels have no valid reading or no "
+                "surface"}
+    owner = {int(s["id"]): int(s["object"]) for s in info["surfaces"]}
+    objs = sorted({owner.get(int(v), -1) for v in np.unique(labels)})
+    if len(objs) != 1:
+        return {**result, "reason": f"window straddles objects {objs}"}
+    obj = objs[0]
+    result["object"] = obj
+    if obj not in pickable:
+        return {**result, "reason": f"object {obj} cannot be picked"}
+    tilt = approach_tilt(holdsite.get("approach_camera"))
+    result["tilt"] = tilt
+    if tilt is None and info.get("camera"):
+        return {**result, "reason": "no approach_camera to judge the tilt by (run with "
+                "camera intrinsics)"}
+    if tilt is not None and tilt > max_tilt:
+        return {**result, "reason": f"approach tilted {tilt:.1f} degrees, more than "
+                f"{max_tilt:g}"}
+    return {**result, "ok": True, "reason": f"on pickable object {obj}"}
+
+
 # --------------------------------------------------------------------------- folders
 
 
@@ -494,8 +633,8 @@ def _failed_in_run(pred_dir: Path) -> dict[str, str]:
 
 
 def _one_image(rel: str, gt_path: Path, pred_path: Path, pred_dir: Path, tolerance: float,
-               min_region: int, tolerances: Sequence[float], gt_parts: bool
-               ) -> dict[str, Any]:
+               min_region: int, tolerances: Sequence[float], gt_parts: bool,
+               max_tilt: float = DEFAULT_MAX_TILT) -> dict[str, Any]:
     from .errors import InputError
     from .io import read_npy
 
@@ -515,7 +654,9 @@ def _one_image(rel: str, gt_path: Path, pred_path: Path, pred_dir: Path, toleran
     hs_path = pred_dir / f"{rel}.holdsite.json"
     if hs_path.exists():
         info_path = gt_path.with_name(gt_path.name[: -len(".npy")] + ".json")
-        out["holdsite"] = check_holdsite(_read_holdsite(hs_path), gt, _read_gt_info(info_path))
+        site, info = _read_holdsite(hs_path), _read_gt_info(info_path)
+        out["holdsite"] = check_holdsite(site, gt, info)
+        out["holdsite_object"] = check_object_holdsite(site, gt, info, max_tilt=max_tilt)
     return out
 
 
@@ -584,7 +725,8 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
                     tolerance: float = DEFAULT_TOLERANCE,
                     min_region: int = DEFAULT_MIN_REGION,
                     tolerances: Sequence[float] = CURVE_TOLERANCES,
-                    gt_parts: bool = False) -> dict[str, Any]:
+                    gt_parts: bool = False, max_tilt: float = DEFAULT_MAX_TILT
+                    ) -> dict[str, Any]:
     """Score every ``GT/<stem>.gt.npy`` against ``PRED/<stem>.labels.npy``.
 
     Parameters
@@ -605,13 +747,16 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
         4); the instances' and ``missed_labels``' GT labels are then those of
         :func:`connected_parts`. The holdsite check uses the GT labels as
         they are.
+    max_tilt
+        Largest tilt of a usable holdsite's approach (:func:`check_object_holdsite`).
 
     Returns
     -------
     dict
         ``{"total": {gt_regions, correct, over, under, missed, noise, ...,
         "curve": {"tolerance": [...], "correct": [...]}, "holdsite":
-        {"checked", "ok"}}, "images": {stem: {...} or {"error": ...}},
+        {"checked", "ok"}, "holdsite_object": {"checked", "ok"}}, "images":
+        {stem: {...} or {"error": ...}},
         "errors": [...], "tolerance", "min_region", "gt_parts"}``.
 
     Raises
@@ -630,6 +775,8 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
         _check_tolerance(t)
     if not _is_int(min_region) or min_region < 0:
         raise ValueError(f"`min_region` {min_region!r} must be an integer >= 0")
+    if not (isinstance(max_tilt, int | float) and 0 <= max_tilt <= 90):
+        raise ValueError(f"`max_tilt` {max_tilt!r} must be a number of degrees from 0 to 90")
     pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
     images: dict[str, Any] = {}
     errors: list[str] = []
@@ -640,7 +787,7 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
             if rel in failed:
                 raise InputError(failed[rel])
             images[rel] = _one_image(rel, gt_path, pred_path, pred_dir, tolerance,
-                                     min_region, tolerances, bool(gt_parts))
+                                     min_region, tolerances, bool(gt_parts), max_tilt)
         except (RangesegError, ValueError, KeyError, TypeError) as exc:
             reason = f"{rel}: {exc}"
             images[rel] = {"error": reason}
@@ -658,6 +805,8 @@ def _totals(images: Mapping[str, Any], tolerances: Sequence[float]) -> dict[str,
                                   for i in range(len(tolerances))]}
     checks = [v["holdsite"] for v in done if "holdsite" in v]
     total["holdsite"] = {"checked": len(checks), "ok": sum(c["ok"] for c in checks)}
+    objects = [v["holdsite_object"] for v in done if "holdsite_object" in v]
+    total["holdsite_object"] = {"checked": len(objects), "ok": sum(c["ok"] for c in objects)}
     return total
 
 

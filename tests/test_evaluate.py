@@ -9,6 +9,7 @@ from click.testing import CliRunner
 from rangeseg_cli.evaluate import (
     CURVE_TOLERANCES,
     check_holdsite,
+    check_object_holdsite,
     connected_parts,
     correct_curve,
     evaluate_folder,
@@ -18,6 +19,7 @@ from rangeseg_cli.evaluate import (
 )
 from rangeseg_cli.io import write_json, write_npy
 from rangeseg_cli.synth import render_scene, write_scenes
+from rangeseg_cli.synth_camera import write_camera_scenes
 
 
 def counts(gt, pred, **kw):
@@ -395,3 +397,97 @@ def test_labels_beyond_int64_and_negative_gt_parts_are_refused():
         connected_parts(np.array([[-1, 0], [0, 0]]))  # the background became a region
     with pytest.raises(ValueError, match="must be a 2-D integer label image"):
         connected_parts(np.zeros(4, np.int32))
+
+
+# --------------------------------------------------------------------------- object-level holdsite
+
+
+def cell_scene():
+    """40x40 GT: item 1 (surfaces 1 and 2) left, item 2 (surface 3) right, tote wall (4) below."""
+    gt = np.zeros((40, 40), np.int32)
+    gt[:30, :10] = 1
+    gt[:30, 10:20] = 2
+    gt[:30, 20:] = 3
+    gt[30:, :] = 4
+    info = {"surfaces": [{"id": 1, "object": 1}, {"id": 2, "object": 1},
+                         {"id": 3, "object": 2}, {"id": 4, "object": 0}],
+            "objects": [{"id": 0, "name": "tote", "background": True, "pickable": False},
+                        {"id": 1, "name": "box 1", "background": False, "pickable": True},
+                        {"id": 2, "name": "box 2", "background": False, "pickable": True}],
+            "uncovered": [1, 2], "camera": {"fx": 600.0}}
+    return gt, info
+
+
+def site(row, col, approach=(0.0, 0.0, 1.0)):
+    return {"row": row, "col": col, "size": [7, 7], "angle": 0.0,
+            "approach_camera": list(approach)}
+
+
+def test_object_check_accepts_a_window_over_two_surfaces_of_one_item():
+    gt, info = cell_scene()
+    res = check_object_holdsite(site(10, 10), gt, info)  # columns 7..13: surfaces 1 and 2
+    assert res["ok"] and res["object"] == 1 and res["surfaces"] == [1, 2]
+    assert res["tilt"] == pytest.approx(0.0)
+    assert not check_holdsite(site(10, 10), gt, info)["ok"]  # the surface-level check refuses
+
+
+def test_object_check_rejects_straddling_wall_invalid_and_tilted_sites():
+    gt, info = cell_scene()
+    straddle = check_object_holdsite(site(10, 20), gt, info)
+    assert not straddle["ok"] and "straddles objects [1, 2]" in straddle["reason"]
+    wall = check_object_holdsite(site(35, 20), gt, info)
+    assert not wall["ok"] and wall["object"] == 0 and "cannot be picked" in wall["reason"]
+    gt_hole = gt.copy()
+    gt_hole[12, 26] = 0  # one pixel without a reading under the window
+    hole = check_object_holdsite(site(10, 26), gt_hole, info)
+    assert not hole["ok"] and "1 window pixels have no valid reading" in hole["reason"]
+    assert check_object_holdsite(site(10, 26), gt, info)["ok"]
+    tilted = (0.0, np.sin(np.radians(50)), np.cos(np.radians(50)))
+    res = check_object_holdsite(site(10, 26, tilted), gt, info)
+    assert not res["ok"] and res["tilt"] == pytest.approx(50.0) and "50.0 degrees" in res["reason"]
+    assert check_object_holdsite(site(10, 26, tilted), gt, info, max_tilt=55)["ok"]
+
+
+def test_object_check_needs_the_approach_in_a_camera_scene():
+    gt, info = cell_scene()
+    bare = {"row": 10, "col": 26}
+    res = check_object_holdsite(bare, gt, info)
+    assert not res["ok"] and "approach_camera" in res["reason"]
+    no_camera = {k: v for k, v in info.items() if k != "camera"}
+    assert check_object_holdsite(bare, gt, no_camera)["ok"]
+
+
+def test_null_holdsite_is_right_only_when_nothing_can_be_picked():
+    gt, info = cell_scene()
+    res = check_object_holdsite(None, gt, info)
+    assert not res["ok"] and res["pickable_in_view"] == [1, 2]
+    empty = np.where(gt == 4, 4, 0).astype(np.int32)  # an empty tote: the wall alone
+    res = check_object_holdsite(None, empty, info)
+    assert res["ok"] and res["reason"] == "no holdsite, and nothing to pick"
+    assert not check_object_holdsite(site(35, 20), empty, info)["ok"]
+
+
+def test_object_check_on_a_rendered_empty_tote_takes_no_site(tmp_path):
+    write_camera_scenes(tmp_path, ["cam-empty-tote"], [2], size=(120, 160))
+    gt = np.load(tmp_path / "cam-empty-tote-s2.gt.npy")
+    info = json.loads((tmp_path / "cam-empty-tote-s2.gt.json").read_text())
+    assert check_object_holdsite(None, gt, info)["ok"]
+    rows, cols = np.nonzero(gt > 0)
+    assert not check_object_holdsite(site(int(rows.mean()), int(cols.mean())), gt, info)["ok"]
+
+
+def test_evaluate_folder_reports_the_object_check(tmp_path):
+    gt, info = cell_scene()
+    gt_dir, pred_dir = tmp_path / "gt", tmp_path / "pred"
+    write_npy(gt_dir / "a.gt.npy", gt)
+    write_json(gt_dir / "a.gt.json", info)
+    write_npy(pred_dir / "a.labels.npy", gt)
+    write_json(pred_dir / "a.holdsite.json", {"holdsite": site(10, 10), "reason": ""})
+    res = evaluate_folder(pred_dir, gt_dir)
+    assert res["total"]["holdsite_object"] == {"checked": 1, "ok": 1}
+    assert res["total"]["holdsite"] == {"checked": 1, "ok": 0}  # the old key, unchanged
+    assert res["images"]["a"]["holdsite_object"]["object"] == 1
+    straight = evaluate_folder(pred_dir, gt_dir, max_tilt=0.0)  # the approach is the axis
+    assert straight["total"]["holdsite_object"]["ok"] == 1
+    with pytest.raises(ValueError, match="`max_tilt` 91 must be"):
+        evaluate_folder(pred_dir, gt_dir, max_tilt=91)
