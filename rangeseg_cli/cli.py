@@ -34,7 +34,20 @@ preset_opt = click.option("--preset", type=click.Choice(PRESET_NAMES),
                                "--config (e.g. tenth-mm-depth for depth PNGs in 0.1 mm).")
 set_opt = click.option("--set", "settings", multiple=True, metavar="TABLE.KEY=VALUE",
                        help="Override one config value (TOML syntax), e.g. "
-                            "--set step.threshold=8. Repeatable.")
+                            "--set step.threshold=8. Repeatable; applied last.")
+intrinsics_opt = click.option(
+    "--intrinsics", "intrinsics_path", metavar="FILE",
+    help="Camera intrinsics: a 3x3 matrix as text, a ROS CameraInfo YAML or an Open3D "
+         "PinholeCameraIntrinsic JSON. Sets [input] fx, fy, cx, cy after --preset/--config, "
+         "before --set (which wins); an image of another size than the file gives fails.")
+background_opt = click.option(
+    "--background", "background_path", metavar="FILE",
+    help="Frame of the empty tote or table, read as the images are: sets [workspace] "
+         "background (after --preset/--config, before --set).")
+roi_opt = click.option(
+    "--roi", "roi_path", metavar="FILE",
+    help="Mask image of where a site may be (non-zero = yes): sets [workspace] roi "
+         "(after --preset/--config, before --set).")
 jobs_opt = click.option("--jobs", "-j", type=click.IntRange(min=1, max=MAX_JOBS), default=None,
                         help="Worker processes (default: all cores; at most one per image); "
                              "with --executor dask, at most N images on the cluster at once "
@@ -88,11 +101,18 @@ def verbosity_opts(f: Callable[..., Any]) -> Callable[..., Any]:
                         help="No progress bar or summary table.")(f)
 
 
+def _config_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    """--config, --preset, the shorthands --intrinsics, --background, --roi, and --set."""
+    for opt in (set_opt, roi_opt, background_opt, intrinsics_opt, preset_opt, config_opt):
+        f = opt(f)
+    return f
+
+
 def _batch_options(f: Callable[..., Any]) -> Callable[..., Any]:
     for opt in (json_opt, overwrite_opt, resume_opt, scheduler_opt, executor_opt, threads_opt,
-                jobs_opt, set_opt, preset_opt, config_opt):
+                jobs_opt):
         f = opt(f)
-    return verbosity_opts(f)
+    return verbosity_opts(_config_options(f))
 
 
 # --------------------------------------------------------------------------- helpers
@@ -114,19 +134,49 @@ def _parse_settings(settings: tuple[str, ...]) -> dict[str, dict[str, Any]]:
         raise click.BadParameter(str(exc), param_hint="--set") from None
 
 
+def _shorthands(opts: dict[str, Any]) -> tuple[dict[str, dict[str, Any]], Any]:
+    """The tables --intrinsics, --background and --roi set, and the intrinsics read.
+
+    The workspace files are recorded as absolute paths (URLs as given), so the
+    stage commands, which read the configuration from OUT's manifest, find
+    them from any folder; "" (``--background ""``) sets none.
+    """
+    from .errors import ConfigError
+    from .intrinsics import read_intrinsics
+    from .io import absolute_name, is_empty_path
+
+    tables: dict[str, dict[str, Any]] = {}
+    intrinsics = None
+    if opts.get("intrinsics_path") is not None:
+        if is_empty_path(opts["intrinsics_path"]):
+            raise click.BadParameter("an empty path (an unset shell variable?)",
+                                     param_hint="--intrinsics")
+        try:
+            intrinsics = read_intrinsics(opts["intrinsics_path"])
+        except ConfigError as exc:
+            raise UsageProblem(str(exc)) from None
+        tables.update(intrinsics.settings())
+    for key in ("background", "roi"):
+        name = opts.get(f"{key}_path")
+        if name is not None:
+            tables.setdefault("workspace", {})[key] = absolute_name(name) if name else ""
+    return tables, intrinsics
+
+
 def _load_config(config_path: str | None, preset: str | None, settings: tuple[str, ...],
-                 fallback_out: Any = None) -> Any:
+                 fallback_out: Any = None, shorthands: dict[str, Any] | None = None) -> Any:
     """Config from --preset/--config/--set; for stage commands OUT's manifest, --set on top.
 
     A stage command without --config or --preset goes on with the configuration
     recorded in OUT, its --set changing values of it (``holdsite --set
-    holdsite.size=[9,9]`` keeps the rest as the run had it).
+    holdsite.size=[9,9]`` keeps the rest as the run had it). ``shorthands``
+    (:func:`_shorthands`) come after the file and before ``--set``.
     """
     from .config import build_config, load_config, merge
     from .errors import ConfigError, OutputError, StorageError
 
     try:
-        overrides = _parse_settings(settings)
+        overrides = merge(shorthands or {}, _parse_settings(settings))
         if fallback_out is not None and not (config_path or preset):
             from .batch import manifest_config
 
@@ -149,7 +199,7 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
     """Run a batch with progress and summary, then exit with the batch's code."""
     from .batch import default_jobs, run_batch
     from .cli_report import BatchReporter
-    from .errors import ClusterError, OutputError, StorageError
+    from .errors import ClusterError, ConfigError, OutputError, StorageError
 
     _check_executor(opts["executor"], opts["scheduler"])
     if opts["resume"] and opts["overwrite"]:
@@ -166,8 +216,9 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
                 resume=opts.get("resume", False), overwrite=opts.get("overwrite", False),
                 skipped_files=skipped_files, command=ctx.info_name or "run",
                 on_result=reporter.result, on_start=reporter.start,
-                executor=opts["executor"], scheduler=opts["scheduler"])
-    except (OutputError, ClusterError, StorageError) as exc:
+                executor=opts["executor"], scheduler=opts["scheduler"],
+                intrinsics=opts.get("intrinsics"))
+    except (ConfigError, OutputError, ClusterError, StorageError) as exc:
         raise UsageProblem(str(exc)) from None
     finally:
         reporter.stop()
@@ -302,7 +353,9 @@ def _input_command(name: str, last: str, help_text: str) -> None:
     @click.pass_context
     def command(ctx: click.Context, inputs: tuple[str, ...], out: str, **opts: Any) -> None:
         _setup_logging(opts["verbose"], opts["quiet"])
-        config = _load_config(opts["config_path"], opts["preset"], opts["settings"])
+        shorthands, opts["intrinsics"] = _shorthands(opts)
+        config = _load_config(opts["config_path"], opts["preset"], opts["settings"],
+                              shorthands=shorthands)
         out_path = _location(out)
         jobs, skipped = _input_jobs(inputs, out_path)
         from .batch import stage_range
@@ -318,8 +371,9 @@ def _stage_command(name: str, help_text: str) -> None:
     def command(ctx: click.Context, out: str, **opts: Any) -> None:
         _setup_logging(opts["verbose"], opts["quiet"])
         out_path = _location(out)
+        shorthands, _ = _shorthands(opts)  # no image read: the intrinsics' size is not checked
         config = _load_config(opts["config_path"], opts["preset"], opts["settings"],
-                              fallback_out=out_path)
+                              fallback_out=out_path, shorthands=shorthands)
         if not (opts["resume"] or opts["overwrite"]):
             opts["overwrite"] = True  # a stage command redoes its stage unless --resume
         _run(ctx, _output_jobs(out_path), out_path, config, (name,), opts)
@@ -354,16 +408,16 @@ _stage_command("holdsite", """Holdsites for a vacuum gripper on the images in OU
 
 
 @main.command(name="config")
-@config_opt
-@preset_opt
-@set_opt
+@_config_options
 @verbosity_opts
 def config_cmd(config_path: str | None, preset: str | None, settings: tuple[str, ...],
-               verbose: int, quiet: int) -> None:
+               verbose: int, quiet: int, **paths: str | None) -> None:
     """Print the configuration as commented TOML (the defaults unless options say more)."""
     from .config import default_toml
 
-    click.echo(default_toml(_load_config(config_path, preset, settings)), nl=False)
+    shorthands, _ = _shorthands(paths)
+    click.echo(default_toml(_load_config(config_path, preset, settings, shorthands=shorthands)),
+               nl=False)
 
 
 # --------------------------------------------------------------------------- synth and eval
