@@ -1,9 +1,10 @@
 """Segmentation quality over all synthetic scenes, in one process.
 
-Renders every scene of ``rangeseg_cli.synth.SCENES`` at noise 0, 1, 2 for
-seeds 0, 1, 2 (the same images ``rangeseg synth OUT --noise 0,1,2 --seed S``
-writes), runs ``run_pipeline`` with the given configuration and scores the
-labels with Hoover et al. (1996) at T = 0.8 on GT regions of >= 50 pixels.
+Renders every scene of ``rangeseg_cli.synth.SCENES`` at noise 0, 1, 2 (or
+the levels of ``--noises``) for seeds 0, 1, 2 (the same images ``rangeseg
+synth OUT --noise 0,1,2 --seed S`` writes), runs ``run_pipeline`` up to the
+labels with the given configuration and scores them with Hoover et al.
+(1996) at T = 0.8 on GT regions of >= 50 pixels.
 Prints one row per noise level (the table of ``docs/QUALITY.md``), with
 ``--widths`` the same counts by the width of the GT face (:func:`face_width`:
 where the narrow faces are lost) and, with ``--misses``, every GT region that
@@ -16,6 +17,7 @@ Usage::
     .venv/bin/python benchmarks/quality.py --preset paper
     .venv/bin/python benchmarks/quality.py --set split.merge=false --misses
     .venv/bin/python benchmarks/quality.py --seeds 0,1,2 --widths
+    .venv/bin/python benchmarks/quality.py --seeds 9,10,11 --noises 0,1,2,3
     .venv/bin/python benchmarks/quality.py --gt-parts   # each patch of a GT surface judged alone
     .venv/bin/python benchmarks/quality.py --json out/quality.json --labels out/labels.npz
 
@@ -107,6 +109,18 @@ def seed_list(text: str) -> tuple[int, ...]:
     return seeds
 
 
+def noise_list(text: str) -> tuple[float, ...]:
+    """``--noises``: comma-separated noise sigmas >= 0, depth units (an argparse ``type``)."""
+    try:
+        noises = tuple(float(s) for s in text.split(","))
+    except ValueError:
+        noises = ()
+    if not noises or not all(0.0 <= n < 1e3 for n in noises):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: allowed comma-separated numbers >= 0, e.g. 0,1,2,3")
+    return noises
+
+
 def scene_list(text: str) -> list[str]:
     """``--scenes`` as ``rangeseg synth --scenes`` takes it (an argparse ``type``)."""
     try:
@@ -133,9 +147,10 @@ def set_item(text: str) -> str:
 
 
 def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool,
-            size: tuple[int, int] = (128, 128), gt_parts: bool = False
+            size: tuple[int, int] = (128, 128), gt_parts: bool = False,
+            noises: tuple[float, ...] = NOISES
             ) -> tuple[dict[float, dict[str, Any]], dict[str, np.ndarray], list[str]]:
-    """Per noise level: summed counts and curve; the label images; the misses."""
+    """Per noise level of ``noises``: summed counts and curve; the label images; the misses."""
     rows: dict[float, dict[str, Any]] = defaultdict(
         lambda: {**{k: 0 for k in KEYS}, "curve": [0] * len(CURVE_TOLERANCES),
                  "widths": defaultdict(lambda: [0, 0])})
@@ -143,9 +158,9 @@ def measure(config: Any, scenes: list[str], seeds: tuple[int, ...], misses: bool
     missed: list[str] = []
     for seed in seeds:
         for name in scenes:
-            for noise in NOISES:
+            for noise in noises:
                 scene = render_scene(name, size=size, noise=noise, seed=seed)
-                pred = run_pipeline(scene.image, config).labels
+                pred = run_pipeline(scene.image, config, stages=3).labels  # no holdsite
                 key = f"{name}-n{noise:g}-s{seed}"
                 labels[key] = pred
                 gt = connected_parts(scene.gt) if gt_parts else scene.gt
@@ -221,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", default=list(SCENES), type=scene_list,
                    help="comma-separated scene names")
     p.add_argument("--seeds", default=SEEDS, type=seed_list)
+    p.add_argument("--noises", default=NOISES, type=noise_list,
+                   help="comma-separated noise sigmas of the rendered scenes (default 0,1,2)")
     p.add_argument("--size", default=(128, 128), type=frame_size,
                    help="ROWSxCOLS of the rendered scenes")
     p.add_argument("--misses", action="store_true", help="list GT regions not correctly detected")
@@ -239,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         p.error(str(exc))  # one line and exit code 2, as for a bad option
     rows, labels, missed = measure(config, args.scenes, args.seeds, args.misses, args.size,
-                                   args.gt_parts)
+                                   args.gt_parts, args.noises)
     _print(rows)
     if args.widths:
         _print_widths(rows)

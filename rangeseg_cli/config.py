@@ -79,8 +79,10 @@ class InputConfig:
                                   "(2 for rangeseg synth at 128x128): the lateral scale "
                                   "without camera intrinsics; 0 = unknown", min=0.0,
                                   max=MAX_DEPTH)
-    auto_thresholds: bool = _opt(False, "set the step and roof thresholds from the image's "
-                                 "estimated noise (false = the paper's fixed thresholds)")
+    auto_thresholds: bool = _opt(True, "scale the step and roof thresholds from the paper's "
+                                 "3 depth units per pixel to the image's lateral scale (fx, fy "
+                                 "or units_per_pixel) and raise them above its noise sigma 2 "
+                                 "(false = the thresholds as given, in depth units)")
 
     @property
     def has_intrinsics(self) -> bool:
@@ -96,7 +98,8 @@ class StepConfig:
                         max=10.0)
     taps: int = _opt(5, "length of the 1-D Gaussian mask (odd)", min=3, max=41, odd=True)
     threshold: float = _opt(6.0, "minimum absolute residual (AR, eq. 3) of a step edge, "
-                            "depth units", min_excl=0.0, max=MAX_DEPTH)
+                            "depth units (at 3 units per pixel with [input] auto_thresholds)",
+                            min_excl=0.0, max=MAX_DEPTH)
 
 
 @dataclass(frozen=True)
@@ -106,7 +109,8 @@ class RoofConfig:
     sigma: float = _opt(4.0, "standard deviation of the 1-D Gaussian, pixels", min=0.5,
                         max=20.0)
     taps: int = _opt(17, "length of the 1-D Gaussian mask (odd)", min=3, max=81, odd=True)
-    threshold_a: float = _opt(6.0, "AR threshold of pass 2a (step edges excluded)",
+    threshold_a: float = _opt(6.0, "AR threshold of pass 2a (step edges excluded), units as "
+                              "[step] threshold",
                               min_excl=0.0, max=MAX_DEPTH)
     threshold_b: float = _opt(4.0, "AR threshold of pass 2b (step and 2a roof edges excluded)",
                               min_excl=0.0, max=MAX_DEPTH)
@@ -397,7 +401,8 @@ MOVED_KEYS: dict[tuple[str, str], str] = {
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut, bridge,
     # chamfers, carve, refine, merge_planes or facets)
-    "paper": {"grow": {"planar_noise_test": False},
+    "paper": {"input": {"auto_thresholds": False},
+              "grow": {"planar_noise_test": False},
               "holdsite": {"max_tilt": 90.0, "max_flat_rms": MAX_DEPTH},
               "workspace": {"support": False, "border_structures": False},
               "split": {"enabled": False, "recover": False, "fill_edges": False,
@@ -405,11 +410,11 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
                         "chamfers": False, "refine": False, "merge_planes": False,
                         "facets": False, "join_occluded": False}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
-                           "metres_per_unit": 0.001}},
+                           "metres_per_unit": 0.001, "auto_thresholds": True}},
     "tenth-mm-depth": {"input": {"scale": 0.1, "larger_is_closer": False, "invalid": 0.0,
-                                 "metres_per_unit": 0.001}},
+                                 "metres_per_unit": 0.001, "auto_thresholds": True}},
     "metre-depth": {"input": {"scale": 1000.0, "larger_is_closer": False, "invalid": 0.0,
-                              "metres_per_unit": 0.001}},
+                              "metres_per_unit": 0.001, "auto_thresholds": True}},
 }
 
 

@@ -91,7 +91,7 @@ class PipelineResult:
 def uses_noise(config: Config) -> bool:
     """Whether a stage of ``config`` uses the image's noise estimate.
 
-    The noise-scaled thresholds (``[input] auto_thresholds``, Sec. V-1, V-2)
+    The thresholds that follow the sensor (``[input] auto_thresholds``, Sec. V-1, V-2)
     and the split, recovery, merges, recut, chamfers, carving and boundary refinement of
     ``[split]`` (beyond the paper; the fill and the bridge do not).
     """
@@ -104,15 +104,16 @@ def uses_noise(config: Config) -> bool:
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
     """Steps 1 and 2 (Sec. V-1, V-2) on heights ``z``.
 
-    With ``[input] auto_thresholds`` the thresholds are scaled to the noise of
-    ``z``: ``noise`` when the caller has estimated it, computed here otherwise.
+    With ``[input] auto_thresholds`` the thresholds follow the lateral scale
+    and the noise of ``z`` (:func:`~rangeseg_cli.noise.sensor_config`):
+    ``noise`` when the caller has estimated it, computed here otherwise.
     """
     check_stage_arrays(z)
     check_config(config)
     if config.input.auto_thresholds:
-        from .noise import noise_scaled_config
+        from .noise import sensor_config
 
-        config = noise_scaled_config(config, estimate_noise(z) if noise is None else noise)
+        config = sensor_config(config, z, estimate_noise(z) if noise is None else noise)
     return detect_edges(z, config)
 
 
