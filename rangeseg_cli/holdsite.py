@@ -610,8 +610,13 @@ def region_lift(labels: np.ndarray, space: Workspace, z: np.ndarray, n: int) -> 
     return out
 
 
-def border_zone(valid: np.ndarray) -> np.ndarray:
-    """Bool (H, W): pixels within :data:`ADJACENCY_RADIUS` of the frame or its invalid margin."""
+def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarray:
+    """Bool (H, W): pixels within :data:`ADJACENCY_RADIUS` of the frame or its invalid margin.
+
+    With ``extent`` (the support's, :class:`~rangeseg_cli.workspace.Workspace`),
+    only the invalid pixels outside it count: the shadows among the items of a
+    tote are no border, though a depth camera's holes join them to the frame.
+    """
     zone = np.zeros(valid.shape, dtype=bool)
     k = ADJACENCY_RADIUS + 1
     zone[:k], zone[-k:], zone[:, :k], zone[:, -k:] = True, True, True, True
@@ -619,6 +624,8 @@ def border_zone(valid: np.ndarray) -> np.ndarray:
         blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
         frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
         outer = np.isin(blobs, np.unique(frame[frame > 0]))
+        if extent is not None:
+            outer &= ~extent
         zone |= ndimage.binary_dilation(outer, structure=np.ones((2 * k - 1, 2 * k - 1)))
     return zone
 
@@ -628,15 +635,16 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
                     ) -> list[ObjectInfo]:
     """Objects at the border that are structures, not things to pick (module Notes, step 0).
 
-    The pile is the objects wholly in view that stand on the support (within
-    :data:`ADJACENCY_RADIUS` + 1 pixels of it) and hold ``footprint_area``
-    pixels or more (pieces of a wall do not). An object touching the border
-    is a structure when its top (95th percentile of its heights above the
-    support) rises above :data:`STRUCTURE_RISE` times the pile's top plus the
-    support's tolerance (fingers, a tote's wall or rim above the pile); with
-    no pile, when it does not stand on the support (a tote's rim) or rises
-    towards the border (its pixels at the border higher than its median: a
-    tote's wall).
+    The border is the image frame and the invalid pixels joined to it outside
+    the support's extent (:func:`border_zone`). The pile is the objects away
+    from it that stand on the support (within :data:`ADJACENCY_RADIUS` + 1
+    pixels of it) and hold ``footprint_area`` pixels or more (pieces of a
+    wall do not). An object touching the border is a structure when its top
+    (95th percentile of its heights above the support) rises above
+    :data:`STRUCTURE_RISE` times the pile's top plus the support's tolerance
+    (fingers, a tote's wall or rim above the pile); with no pile, when it
+    does not stand on the support (a tote's rim) or rises towards the border
+    (its pixels at the border higher than its median: a tote's wall).
     """
     height = space.height
     if height is None or not objects:
@@ -651,12 +659,13 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     near = ndimage.binary_dilation(support, structure=np.ones((k, k), dtype=bool))
     standing = set(np.unique(owner[near & (owner > 0)]).tolist())
     tops = {o.id: top_height(height, owner == o.id) for o in objects}
-    pile = [tops[o.id] for o in objects if not o.touches_border and o.id in standing
+    zone = border_zone(valid, space.extent)
+    bordering = set(np.unique(owner[zone & (owner > 0)]).tolist())
+    pile = [tops[o.id] for o in objects if o.id not in bordering and o.id in standing
             and o.pixels >= footprint_area and np.isfinite(tops[o.id])]
-    zone = border_zone(valid)
     marked = []
     for o in objects:
-        if not o.touches_border or not np.isfinite(tops[o.id]):
+        if o.id not in bordering or not np.isfinite(tops[o.id]):
             structure = False
         elif pile:
             structure = tops[o.id] > STRUCTURE_RISE * max(pile) + space.tolerance

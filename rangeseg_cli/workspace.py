@@ -9,7 +9,9 @@ picked; :mod:`rangeseg_cli.holdsite` searches only there.
 Notes
 -----
 1. Support (``[workspace] support``): the table or tote floor is the
-   dominant plane by consensus (RANSAC, Fischler & Bolles 1981). Points are
+   dominant plane of the background frame when there is one (the empty
+   scene shows all of it), else of the image, by consensus (RANSAC,
+   Fischler & Bolles 1981). Points are
    the camera-frame points ``d ((u - cx)/fx, (v - cy)/fy, 1)`` with camera
    intrinsics (a 3-D plane, whatever the camera's tilt), else ``(col s, row
    s, z)`` with ``s`` = ``[input] units_per_pixel`` (1 when unknown).
@@ -32,7 +34,9 @@ Notes
    polygon); not within ``background_tolerance`` of the background frame nor
    behind it (Zeng et al., ICRA 2018, subtract the empty tote's frame the
    same way); higher than the tolerance (and ``min_height``) above the
-   support, and no higher than ``max_height`` when set. Heights are the
+   support, and no higher than ``max_height`` when set; standing over the
+   support's extent (:func:`over_support`: things outside a tote stand over
+   no floor of it). Heights are the
    data's, median-filtered over 3x3 valid pixels (a region's fit would carry
    its errors into the workspace where growing joined a wall to the floor).
 """
@@ -44,6 +48,8 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
+from scipy.spatial import ConvexHull
 
 from .config import Config, InputConfig, WorkspaceConfig
 
@@ -61,6 +67,9 @@ MAX_SUPPORT_TILT = 60.0
 
 #: With metric camera depth, the tolerances are at least this fraction of the median depth.
 DEPTH_FRACTION = 0.01
+
+#: Pixels a background frame's nearest reading may stand in for a pixel it has none of.
+BACKGROUND_REACH = 10
 
 #: Noise levels of the default tolerances.
 NOISE_LEVELS = 4.0
@@ -95,12 +104,16 @@ class Workspace:
         The support plane, or ``None`` (not searched, or none found).
     tolerance
         The support's height tolerance, depth units.
+    extent
+        bool (H, W): pixels inside the support's extent in the image (the
+        convex hull of its largest piece), or ``None`` without a support.
     """
 
     pickable: np.ndarray
     height: np.ndarray | None
     support: Plane | None
     tolerance: float
+    extent: np.ndarray | None = None
 
 
 def default_tolerance(z: np.ndarray, camera: InputConfig, noise: float) -> float:
@@ -266,13 +279,25 @@ def matches_background(z: np.ndarray, background: np.ndarray, tol: float) -> np.
 
     Both frames are median-filtered over 3x3 valid pixels first (a pixel's
     noise should not make it an object). Where the background has no
-    reading, nothing is known: False.
+    reading, its nearest reading within :data:`BACKGROUND_REACH` pixels
+    stands in (a depth camera's holes move from frame to frame, most of all
+    along a tote's rim); farther away nothing is known: False.
     """
-    a, b = _median3(z), _median3(background)
+    a, b = _median3(z), _filled(_median3(background), BACKGROUND_REACH)
     known = np.isfinite(a) & np.isfinite(b)
     out = np.zeros(z.shape, dtype=bool)
     out[known] = a[known] - b[known] <= tol
     return out
+
+
+def _filled(z: np.ndarray, reach: int) -> np.ndarray:
+    """``z`` with each NaN replaced by its nearest finite value within ``reach`` pixels."""
+    hole = ~np.isfinite(z)
+    if not hole.any() or hole.all():
+        return z
+    dist, (rows, cols) = ndimage.distance_transform_edt(hole, return_indices=True)
+    out = z[rows, cols]
+    return np.where(dist <= reach, out, np.nan)
 
 
 def _median3(z: np.ndarray) -> np.ndarray:
@@ -323,15 +348,74 @@ def assess(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, config: Config
         bg_tol = ws.background_tolerance or default_tolerance(z, config.input, noise)
         pickable &= ~matches_background(z, background, bg_tol)
     tol = ws.support_tolerance or default_tolerance(z, config.input, noise)
-    plane = find_support(z, config.input, tol) if ws.support else None
+    # the empty scene shows the whole support: found there when given
+    ref = _median3(background) if background is not None else _median3(z)
+    plane = find_support(ref, config.input, tol) if ws.support else None
     if plane is None:
         return Workspace(pickable, None, None, tol)
-    height = plane.distance(points(_median3(z), config.input))
+    pts = points(_median3(z), config.input)
+    height = plane.distance(pts)
     with np.errstate(invalid="ignore"):
+        on = np.abs(plane.distance(points(ref, config.input))) <= tol
         pickable &= height > max(tol, ws.min_height)
         if ws.max_height > 0:
             pickable &= height <= ws.max_height
-    return Workspace(pickable, height, plane, tol)
+    hull = support_hull(on)
+    pickable &= over_support(pts, height, hull, plane, config.input)
+    return Workspace(pickable, height, plane, tol, inside_hull(hull, *np.indices(z.shape)))
+
+
+def support_hull(on: np.ndarray) -> np.ndarray | None:
+    """Half-planes ``(a, b, c)`` (``a col + b row + c <= 0`` inside) of the support's extent.
+
+    The convex hull, in the image, of the largest 8-connected piece of the
+    support's pixels ``on`` (a tote's floor); ``None`` when it has no area.
+    """
+    pieces, count = ndimage.label(on, structure=np.ones((3, 3), dtype=bool))
+    if count == 0:
+        return None
+    largest = np.argmax(np.bincount(pieces.ravel())[1:]) + 1
+    rows, cols = np.nonzero(pieces == largest)
+    if rows.size < 3 or np.ptp(rows) == 0 or np.ptp(cols) == 0:
+        return None
+    return np.asarray(ConvexHull(np.column_stack([cols, rows]).astype(np.float64)).equations)
+
+
+def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Whether image positions lie in the hull, within a pixel (all True without a hull)."""
+    inside = np.ones(np.shape(rows), dtype=bool)
+    if hull is None:
+        return inside
+    for a, b, c in hull:
+        with np.errstate(invalid="ignore"):
+            inside &= ~(a * cols + b * rows + c > 1.0)  # the hull runs through pixel centres
+    return inside
+
+
+def over_support(pts: np.ndarray, height: np.ndarray, hull: np.ndarray | None, plane: Plane,
+                 camera: InputConfig) -> np.ndarray:
+    """Bool (H, W): pixels whose foot on the support lies within the support's extent.
+
+    A pixel's foot is its point moved down the support's normal by its
+    height, projected into the image (with intrinsics; a height map's foot is
+    the pixel itself); the extent is :func:`support_hull`. Things outside a
+    tote stand over no floor of it.
+    """
+    fr, fc = _feet(pts, height, plane, camera)
+    return inside_hull(hull, fr, fc)
+
+
+def _feet(pts: np.ndarray, height: np.ndarray, plane: Plane, camera: InputConfig
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Image (row, col) of each point's foot on the support plane (NaN where unknown)."""
+    if not camera.has_intrinsics:
+        grid = np.indices(height.shape, dtype=np.float64)
+        return grid[0], grid[1]
+    foot = pts - height[..., None] * np.asarray(plane.normal)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        col = camera.fx * foot[..., 0] / foot[..., 2] + camera.cx
+        row = camera.fy * foot[..., 1] / foot[..., 2] + camera.cy
+    return row, col
 
 
 def top_height(height: np.ndarray | None, mask: np.ndarray) -> float:
