@@ -1,0 +1,175 @@
+"""Usable holdsites on synthetic depth-camera frames of bin-picking cells (issue 32).
+
+Renders held-out seeds of the camera scenes of ``rangeseg synth`` (an
+SR300-like camera over piles on a table, in totes, with a gripper in view,
+and empty totes) at 640x480 into a temporary folder, reads each frame back
+from its PNG and runs the library's pipeline on it with ``--preset
+tenth-mm-depth`` and the frame's intrinsics (``[input] fx, fy, cx, cy``),
+plus any ``--set`` given here; with ``--background`` the frame of the empty
+tote or table is passed too. Each holdsite is scored by the object-level
+check of ``rangeseg eval`` (:func:`rangeseg_cli.evaluate.check_object_holdsite`):
+usable = the gripper window wholly on valid pixels of one pickable object
+and the approach within the tilt limit of the optical axis; on an empty
+tote, no holdsite is the right answer.
+
+Prints a table per scene kind (usable / frames and %) and writes
+``benchmarks/results/real_cells.json`` and ``.md``.
+
+Usage::
+
+    .venv/bin/python benchmarks/real_cells.py                    # seeds 100-119
+    .venv/bin/python benchmarks/real_cells.py --background
+    .venv/bin/python benchmarks/real_cells.py --seeds 100-104 --set holdsite.size=[21,21]
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import os
+import sys
+import tempfile
+import time
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rangeseg_cli import __version__
+from rangeseg_cli.config import load_config, parse_settings
+from rangeseg_cli.evaluate import DEFAULT_MAX_TILT, check_object_holdsite
+from rangeseg_cli.io import read_image, read_json
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.synth_camera import CAMERA_SCENES, camera_stem, write_camera_scenes
+
+RESULTS = Path(__file__).parent / "results"
+PRESET = "tenth-mm-depth"
+DEFAULT_SEEDS = "100-119"
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"100-119"`` or ``"1,2,5"`` (or both, comma-separated) as a list of seeds."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.strip().partition("-")
+        seeds.extend(range(int(lo), int(hi or lo) + 1))
+    return seeds
+
+
+def frame_settings(info: dict[str, Any], extra: list[str]) -> list[str]:
+    """The frame's intrinsics as ``--set`` items, then the extra ones (which win)."""
+    cam = info["camera"]
+    return [f"input.{k}={float(cam[k])!r}" for k in ("fx", "fy", "cx", "cy")] + extra
+
+
+def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str]
+              ) -> dict[str, Any]:
+    """Render, run and score one frame (in a worker process)."""
+    name, seed, size, extra, background, max_tilt, tmp = job
+    folder = Path(tmp) / camera_stem(name, seed)
+    write_camera_scenes(folder, [name], [seed], size=size)
+    stem = folder / camera_stem(name, seed)
+    info = read_json(stem.with_name(stem.name + ".gt.json"))
+    gt = np.load(stem.with_name(stem.name + ".gt.npy"))
+    config = load_config(preset=PRESET, overrides=parse_settings(frame_settings(info, extra)))
+    kwargs: dict[str, Any] = {}
+    if background and "background" in inspect.signature(run_pipeline).parameters:
+        kwargs["background"] = read_image(stem.with_name(stem.name + ".gt.background.png"))
+    start = time.perf_counter()
+    result = run_pipeline(read_image(stem.with_name(stem.name + ".png")), config, **kwargs)
+    seconds = time.perf_counter() - start
+    doc = result.holdsite.to_dict()
+    check = check_object_holdsite(doc["holdsite"], gt, info, max_tilt=max_tilt,
+                                  size=tuple(config.holdsite.size))
+    return {"scene": name, "seed": seed, "ok": check["ok"], "reason": check["reason"],
+            "object": check["object"], "tilt": check["tilt"], "seconds": seconds,
+            "holdsite": None if doc["holdsite"] is None else
+            {k: doc["holdsite"][k] for k in ("row", "col", "size", "angle")},
+            "pipeline_reason": doc.get("reason", "")}
+
+
+def summarise(frames: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
+    """Usable / total and % per scene kind and over all, with the commonest failures."""
+    kinds = {}
+    for name in [*names, "all"]:
+        these = [f for f in frames if name in (f["scene"], "all")]
+        usable = sum(f["ok"] for f in these)
+        kinds[name] = {"usable": usable, "total": len(these),
+                       "percent": round(100.0 * usable / len(these), 1) if these else None}
+    failures = Counter(_reason_kind(f["reason"]) for f in frames if not f["ok"])
+    return {"kinds": kinds, "failures": dict(failures.most_common())}
+
+
+def _reason_kind(reason: str) -> str:
+    """A failure's reason without its numbers, to count alike failures together."""
+    return "".join("#" if ch.isdigit() else ch for ch in reason).split("[")[0].strip()
+
+
+def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
+    """The results as a Markdown page."""
+    lines = ["# Usable holdsites on synthetic camera cells (benchmarks/real_cells.py)", "",
+             f"rangeseg {meta['version']}; seeds {meta['seeds']}; {meta['size'][1]}x"
+             f"{meta['size'][0]}; --preset {PRESET} + intrinsics; background: "
+             f"{meta['background']}; settings: {' '.join(meta['settings']) or 'none'}; "
+             f"tilt limit {meta['max_tilt']:g} degrees; {meta['seconds']:.0f} s on "
+             f"{meta['jobs']} processes.", "",
+             "| scene | usable | frames | % |", "|---|---|---|---|"]
+    for name, k in summary["kinds"].items():
+        lines.append(f"| {name} | {k['usable']} | {k['total']} | {k['percent']} |")
+    if summary["failures"]:
+        lines += ["", "| failure | frames |", "|---|---|"]
+        lines += [f"| {r} | {n} |" for r, n in summary["failures"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", default=DEFAULT_SEEDS,
+                        help=f"held-out seeds, e.g. 100-119 or 1,2,5 (default {DEFAULT_SEEDS})")
+    parser.add_argument("--scenes", default=",".join(CAMERA_SCENES),
+                        help="camera scenes (default: all)")
+    parser.add_argument("--size", default="480x640", help="ROWSxCOLS (default 480x640)")
+    parser.add_argument("--set", dest="settings", action="append", default=[],
+                        metavar="TABLE.KEY=VALUE", help="extra config value (repeatable)")
+    parser.add_argument("--background", action="store_true",
+                        help="pass each frame's empty-support frame as the background")
+    parser.add_argument("--max-tilt", type=float, default=DEFAULT_MAX_TILT,
+                        help="tilt limit of a usable approach, degrees (default 45)")
+    parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
+    parser.add_argument("--out", type=Path, default=RESULTS / "real_cells",
+                        help="results stem (default benchmarks/results/real_cells)")
+    args = parser.parse_args(argv)
+    names = [n.strip() for n in args.scenes.split(",") if n.strip()]
+    unknown = [n for n in names if n not in CAMERA_SCENES]
+    if unknown:
+        parser.error(f"--scenes: unknown {', '.join(unknown)}; allowed: "
+                     + ", ".join(CAMERA_SCENES))
+    rows, _, cols = args.size.partition("x")
+    size = (int(rows), int(cols))
+    seeds = parse_seeds(args.seeds)
+    load_config(preset=PRESET, overrides=parse_settings(args.settings))  # fail early
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="real_cells-") as tmp:
+        jobs = [(n, s, size, args.settings, args.background, args.max_tilt, tmp)
+                for n in names for s in seeds]
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            frames = list(pool.map(one_frame, jobs))
+    meta = {"version": __version__, "seeds": args.seeds, "size": list(size),
+            "settings": args.settings, "background": args.background,
+            "max_tilt": args.max_tilt, "jobs": args.jobs,
+            "seconds": time.perf_counter() - start}
+    summary = summarise(frames, names)
+    page = markdown(summary, meta)
+    print(page, end="")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps(
+        {**meta, **summary, "frames": frames}, sort_keys=True, indent=2) + "\n")
+    args.out.with_suffix(".md").write_text(page)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
