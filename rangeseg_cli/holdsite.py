@@ -273,7 +273,9 @@ class HoldsiteResult:
     """The holdsite of one image, its runners-up and the scene's reading.
 
     ``holdsite`` is ``None`` when no surface has an acceptable window;
-    ``reason`` then says why (never an error).
+    ``reason`` then says why (never an error). ``background`` holds the
+    regions of step 1's rule, ``outside`` the other regions the workspace
+    leaves out (step 0).
     """
 
     holdsite: Holdsite | None
@@ -282,6 +284,7 @@ class HoldsiteResult:
     background: tuple[int, ...] = ()
     objects: tuple[ObjectInfo, ...] = ()
     camera: bool = False
+    outside: tuple[int, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The ``holdsite.json`` document (SPEC file contract)."""
@@ -289,6 +292,7 @@ class HoldsiteResult:
         return {"holdsite": site, "reason": self.reason,
                 "candidates": [c.to_dict(camera=self.camera) for c in self.candidates],
                 "background": list(self.background),
+                "outside_workspace": list(self.outside),
                 "objects": [o.to_dict() for o in self.objects]}
 
 
@@ -1814,8 +1818,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     # Step 1: background (lowest border regions, and regions the workspace leaves out)
     framed = _framed(labels)
     border = framed | _near_outer_invalid(labels, valid)
-    left_out = find_background(by_id, border, config.holdsite.background, tol)
-    left_out |= unpickable_regions(labels, space.pickable, n)
+    background_ids = find_background(by_id, border, config.holdsite.background, tol)
+    excluded = unpickable_regions(labels, space.pickable, n) - background_ids
+    left_out = background_ids | excluded
     # Step 2: objects, and which are covered by another
     if gaps is None:
         gaps = _known_gaps(labels, coeffs, backend)  # known labels
@@ -1835,15 +1840,16 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     scene = _Scene(labels, valid & space.pickable, z, hold, _angles(hold), backend,
                    config.input, flat_limit(hold, config.input, noise))
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
-    bg, objs, camera = tuple(sorted(left_out)), tuple(objects), config.input.has_intrinsics
+    bg, objs, camera = tuple(sorted(background_ids)), tuple(objects), config.input.has_intrinsics
+    out = tuple(sorted(excluded))
     if not found:
         reason = ("nothing to pick: " + _failure(hold, missed, scene.flat_limit) if order
                   else _nothing_to_pick(by_id, objects, space))
-        return HoldsiteResult(None, reason, (), bg, objs, camera)
+        return HoldsiteResult(None, reason, (), bg, objs, camera, out)
     # Step 5: the best window, then the runners-up
     sites = _choose(scene, found, obj_by_id, object_of, config)
     rank = {s.id: k for k, s in enumerate(order)}
     first = rank[found[0].surface.id]
     before = [h for h in missed if rank[h.surface.id] < first]
     reason = _success(sites[0], obj_by_id[sites[0].object], before, hold)
-    return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera)
+    return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera, out)

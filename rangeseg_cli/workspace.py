@@ -71,6 +71,9 @@ DEPTH_FRACTION = 0.01
 #: Pixels a background frame's nearest reading may stand in for a pixel it has none of.
 BACKGROUND_REACH = 10
 
+#: Pieces of the support of at least this fraction of the largest one make its extent.
+HULL_PIECE = 0.1
+
 #: Noise levels of the default tolerances.
 NOISE_LEVELS = 4.0
 
@@ -106,7 +109,7 @@ class Workspace:
         The support's height tolerance, depth units.
     extent
         bool (H, W): pixels inside the support's extent in the image (the
-        convex hull of its largest piece), or ``None`` without a support.
+        convex hull of its large pieces), or ``None`` without a support.
     """
 
     pickable: np.ndarray
@@ -368,14 +371,17 @@ def assess(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, config: Config
 def support_hull(on: np.ndarray) -> np.ndarray | None:
     """Half-planes ``(a, b, c)`` (``a col + b row + c <= 0`` inside) of the support's extent.
 
-    The convex hull, in the image, of the largest 8-connected piece of the
-    support's pixels ``on`` (a tote's floor); ``None`` when it has no area.
+    The convex hull, in the image, of the 8-connected pieces of the
+    support's pixels ``on`` with at least :data:`HULL_PIECE` of the largest
+    one's pixels (a tote's floor; a table seen on both sides of a wall);
+    ``None`` when it has no area.
     """
     pieces, count = ndimage.label(on, structure=np.ones((3, 3), dtype=bool))
     if count == 0:
         return None
-    largest = np.argmax(np.bincount(pieces.ravel())[1:]) + 1
-    rows, cols = np.nonzero(pieces == largest)
+    sizes = np.bincount(pieces.ravel())
+    sizes[0] = 0
+    rows, cols = np.nonzero(sizes[pieces] >= HULL_PIECE * sizes.max())
     if rows.size < 3 or np.ptp(rows) == 0 or np.ptp(cols) == 0:
         return None
     return np.asarray(ConvexHull(np.column_stack([cols, rows]).astype(np.float64)).equations)

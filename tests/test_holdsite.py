@@ -146,7 +146,11 @@ def test_bin_wall_on_image_border_is_tried_after_a_box_in_view():
     z[24:44, 30:50] = 90.0
     result = run(noisy(z))
     assert result.holdsite.holdsite.surface == result.labels[34, 40]
-    wall = next(o for o in result.holdsite.objects if result.labels[30, 4] in o.surfaces)
+    # the wall stands over no part of the table (the support): outside the workspace
+    assert result.labels[30, 4] in result.holdsite.outside
+    paper = run_pipeline(noisy(z), load_config(preset="paper"))
+    assert paper.holdsite.holdsite.surface == paper.labels[34, 40]
+    wall = next(o for o in paper.holdsite.objects if paper.labels[30, 4] in o.surfaces)
     assert wall.touches_border
 
 
@@ -240,7 +244,7 @@ def test_background_rules_lowest_largest_and_none():
                                      "workspace": {"support": False}})
     free = run_pipeline(z, no_rule).holdsite
     assert free.background == () and free.holdsite.surface != table_id  # box in view first
-    assert run(z, background="none").holdsite.background == (table_id,)  # the support
+    assert run(z, background="none").holdsite.outside == (table_id,)  # the support
 
 
 def test_split_table_at_the_same_level_is_all_background():
@@ -260,7 +264,8 @@ def test_result_dict_follows_the_file_contract_and_is_json_ready():
     z = table()
     z[20:44, 20:44] = 120.0
     doc = run(noisy(z)).holdsite.to_dict()
-    assert set(doc) == {"holdsite", "reason", "candidates", "background", "objects"}
+    assert set(doc) == {"holdsite", "reason", "candidates", "background", "objects",
+                        "outside_workspace"}
     assert set(doc["holdsite"]) == CONTRACT_KEYS
     json.dumps(to_jsonable(doc))
     raw = np.full((64, 64), 6000, dtype=np.uint16)
@@ -555,8 +560,9 @@ def test_max_tilt_with_a_camera_takes_the_optical_axis():
     image = read_image("sample_data/arc/suction-scene.depth.png")
     angles = {}
     for limit in (90.0, 15.0):
-        config = load_config("sample_data/arc/suction.toml",
-                             overrides={"holdsite": {"max_tilt": limit}})
+        config = load_config("sample_data/arc/suction.toml",  # the tilt alone: no workspace
+                             overrides={"holdsite": {"max_tilt": limit},
+                                        "workspace": {"support": False}})
         found = run_pipeline(image, config).holdsite
         angles[limit] = [math.degrees(math.acos(s.approach_camera[2])) for s in _sites(found)]
     assert max(angles[90.0]) > 30  # the default site itself is 36 degrees off the axis
