@@ -278,12 +278,12 @@ def _quadric_interval(body: Convex, o: np.ndarray, d: np.ndarray
     return q0, q1
 
 
-def bounding_sphere(body: Convex) -> tuple[np.ndarray, float] | None:
-    """A sphere (world centre, radius) holding ``body``, or None for an unbounded body.
+def body_corners(body: Convex) -> np.ndarray | None:
+    """(K, 3) world points whose convex hull holds ``body``; None for an unbounded body.
 
     The corners of the body's half-spaces (with, for a quadric, the box
-    around its sphere or cylinder) bound it; they are found by intersecting
-    every three planes and keeping the points inside all of them.
+    around its sphere or cylinder), found by intersecting every three planes
+    and keeping the points inside all of them.
     """
     planes = body.planes
     if body.quadric is not None:
@@ -300,14 +300,18 @@ def bounding_sphere(body: Convex) -> tuple[np.ndarray, float] | None:
         p = np.linalg.solve(a, planes[[i, j, k], 3])
         if np.all(planes[:, :3] @ p <= planes[:, 3] + 1e-6):
             corners.append(p)
-    if len(corners) < 4:
+    if len(corners) < 4 or np.max(np.abs(corners)) > 1e5:
         return None
-    pts = np.array(corners)
+    return body.pose.apply(np.array(corners))
+
+
+def bounding_sphere(body: Convex) -> tuple[np.ndarray, float] | None:
+    """A sphere (world centre, radius) holding ``body``, or None for an unbounded body."""
+    pts = body_corners(body)
+    if pts is None:
+        return None
     centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
-    radius = float(np.max(np.linalg.norm(pts - centre, axis=1)))
-    if radius > 1e5:
-        return None
-    return body.pose.apply(centre[None])[0], radius
+    return centre, float(np.max(np.linalg.norm(pts - centre, axis=1)))
 
 
 def face_normals(body: Convex, face: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -365,23 +369,19 @@ class Render:
 def pixels_near(camera: Camera, body: Convex) -> np.ndarray | None:
     """Flat indices of the pixels whose rays may meet ``body``; None = all of them.
 
-    The box of the image around the projection of the body's
-    :func:`bounding_sphere` (all pixels for an unbounded body or one
-    reaching behind the camera).
+    The box of the image around the projections of the body's
+    :func:`body_corners` (all pixels for an unbounded body or one reaching
+    behind the camera).
     """
-    bound = bounding_sphere(body)
-    if bound is None:
+    pts = body_corners(body)
+    if pts is None:
         return None
-    centre, r = bound
-    x, y, z = camera.R.T @ (centre - camera.t)
-    if z - r <= 1.0:
+    cam = (pts - camera.t) @ camera.R
+    if np.min(cam[:, 2]) <= 1.0:
         return None
+    us = camera.cx + camera.fx * cam[:, 0] / cam[:, 2]
+    vs = camera.cy + camera.fy * cam[:, 1] / cam[:, 2]
     h, w = camera.shape
-    near, far = 1.0 / (z - r), 1.0 / (z + r)
-    us = camera.cx + camera.fx * np.array([(x - r) * near, (x - r) * far, (x + r) * near,
-                                           (x + r) * far])
-    vs = camera.cy + camera.fy * np.array([(y - r) * near, (y - r) * far, (y + r) * near,
-                                           (y + r) * far])
     u0, u1 = max(math.floor(us.min()), 0), min(math.ceil(us.max()), w - 1)
     v0, v1 = max(math.floor(vs.min()), 0), min(math.ceil(vs.max()), h - 1)
     if u0 > u1 or v0 > v1:
@@ -722,29 +722,41 @@ def _pile_items(camera: Camera, rng: np.random.Generator, count: int,
 
 def _tote(rng: np.random.Generator, inner: tuple[float, float, float, float]
           ) -> tuple[Item, Item]:
-    """The tote's floor and its walls with a rim; the floor is 10 mm above the table."""
+    """The tote's floor and its walls, flaring outward by a draft angle, with a rim on top.
+
+    ``inner`` is the floor inside the walls (x0, x1, y0, y1); the floor is 10 mm
+    thick and stands on the table.
+    """
     x0, x1, y0, y1 = inner
-    height, t = rng.uniform(140, 260), 6.0
+    height, t, draft = rng.uniform(140, 260), 6.0, rng.uniform(3, 12)
     rim_w, rim_t = rng.uniform(18, 30), 8.0
-    cx, cy, lx, ly = (x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0
-    walls = [box(t, ly, height, "tote wall x").moved(pose(x0 - t / 2, cy)),
-             box(t, ly, height, "tote wall x").moved(pose(x1 + t / 2, cy)),
-             box(lx + 2 * t, t, height, "tote wall y").moved(pose(cx, y0 - t / 2)),
-             box(lx + 2 * t, t, height, "tote wall y").moved(pose(cx, y1 + t / 2))]
-    rims = [box(rim_w, ly, rim_t, "tote rim").moved(pose(x0 - rim_w / 2 + 2, cy, height)),
-            box(rim_w, ly, rim_t, "tote rim").moved(pose(x1 + rim_w / 2 - 2, cy, height)),
-            box(lx + 2 * rim_w - 4, rim_w, rim_t, "tote rim").moved(
-                pose(cx, y0 - rim_w / 2 + 2, height)),
-            box(lx + 2 * rim_w - 4, rim_w, rim_t, "tote rim").moved(
-                pose(cx, y1 + rim_w / 2 - 2, height))]
-    floor = box(lx + 2 * rim_w, ly + 2 * rim_w, 10.0, "tote floor").moved(pose(cx, cy, -10.0))
+    flare = height * math.tan(math.radians(draft))  # how far the top edge moves out
+    slant = height / math.cos(math.radians(draft))
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    lx, ly = x1 - x0 + 2 * flare + 2 * t, y1 - y0 + 2 * flare + 2 * t
+    walls = [box(t, ly, slant, "tote wall x").moved(pose(-t / 2)).moved(
+                 pose(x0, cy, pitch=-draft)),
+             box(t, ly, slant, "tote wall x").moved(pose(t / 2)).moved(
+                 pose(x1, cy, pitch=draft)),
+             box(lx, t, slant, "tote wall y").moved(pose(0, -t / 2)).moved(
+                 pose(cx, y0, roll=draft)),
+             box(lx, t, slant, "tote wall y").moved(pose(0, t / 2)).moved(
+                 pose(cx, y1, roll=-draft))]
+    ox0, ox1, oy0, oy1 = x0 - flare, x1 + flare, y0 - flare, y1 + flare  # the opening
+    oly = oy1 - oy0
+    olx = ox1 - ox0 + 2 * rim_w - 4
+    rims = [box(rim_w, oly, rim_t, "tote rim").moved(pose(ox0 - rim_w / 2 + 2, cy, height)),
+            box(rim_w, oly, rim_t, "tote rim").moved(pose(ox1 + rim_w / 2 - 2, cy, height)),
+            box(olx, rim_w, rim_t, "tote rim").moved(pose(cx, oy0 - rim_w / 2 + 2, height)),
+            box(olx, rim_w, rim_t, "tote rim").moved(pose(cx, oy1 + rim_w / 2 - 2, height))]
+    floor = box(x1 - x0 + 2 * t, y1 - y0 + 2 * t, 10.0, "tote floor").moved(pose(cx, cy, -10.0))
     return Item("tote floor", (floor,), False, "support"), Item(
         "tote", tuple(walls + rims), False, "tote")
 
 
 def _camera(model: CameraModel, shape: tuple[int, int], rng: np.random.Generator,
             heights: tuple[float, float]) -> Camera:
-    tilt = rng.uniform(-8, 8, 2)
+    tilt = rng.uniform(-12, 12, 2)
     return camera_for(model, shape, height=rng.uniform(*heights), tilt=(tilt[0], tilt[1]))
 
 
