@@ -17,11 +17,13 @@ from rangeseg_cli.synth_camera import (
     SensorModel,
     camera_for,
     depth_noise,
+    flying_pixels,
     projector_shadow,
     quantise_disparity,
     render_camera_scene,
     render_items,
     sense,
+    smooth_jumps,
     split_scene_names,
     steep_holes,
     support_plane,
@@ -105,6 +107,33 @@ def test_projector_shadow_lies_on_the_far_side_away_from_the_projector():
     depth[:, 60:] = 600.0
     mirrored = projector_shadow(depth, fx=600.0, baseline_mm=-50.0)
     assert np.flatnonzero(mirrored[0]).min() == 20 and not mirrored[:, :20].any()
+
+
+def step_depth():
+    depth = np.full((6, 40), 600.0)
+    depth[:, 20:] = 500.0
+    return depth
+
+
+def test_jumps_are_smoothed_into_ramps_and_flat_parts_kept():
+    depth = step_depth()
+    smooth = smooth_jumps(depth, blur_px=1.5, jump_mm=10.0)
+    row = smooth[0]
+    assert np.all(np.diff(row) <= 1e-9)  # a monotone ramp from 600 down to 500
+    between = np.flatnonzero((row < 599.0) & (row > 501.0))
+    assert 3 <= between.size <= 8 and between.min() >= 14 and between.max() <= 25
+    np.testing.assert_array_equal(smooth[:, :12], 600.0)
+    np.testing.assert_array_equal(smooth_jumps(depth, blur_px=0, jump_mm=10.0), depth)
+
+
+def test_flying_pixels_fall_between_both_sides_of_a_jump_only():
+    depth = step_depth()
+    out = flying_pixels(depth, np.random.default_rng(3), fraction=1.0, jump_mm=10.0)
+    moved = out != depth
+    assert moved[:, 19:21].all() and not moved[:, :19].any() and not moved[:, 21:].any()
+    assert np.all((out[moved] > 500.0) & (out[moved] < 600.0))
+    same = flying_pixels(depth, np.random.default_rng(3), fraction=1.0, jump_mm=10.0)
+    np.testing.assert_array_equal(out, same)
 
 
 def test_steep_faces_lose_pixels_and_facing_ones_keep_them():
