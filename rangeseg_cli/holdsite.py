@@ -911,7 +911,7 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
 
 
 def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:
-    """``max_flat_rms``, or its default: 2 x noise + 0.5 units (+ 1 mm with metric depth).
+    """``max_flat_rms``, or its default: 2 x noise + 1 unit (+ 1 mm with metric depth).
 
     ``max_flat_rms`` at its largest allowed value (``--preset paper``) is no limit: inf.
     """
@@ -919,7 +919,7 @@ def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:
         return math.inf
     if cfg.max_flat_rms > 0:
         return cfg.max_flat_rms
-    floor = 0.5
+    floor = 1.0
     if camera.has_intrinsics and camera.metres_per_unit > 0:
         floor = 0.001 / camera.metres_per_unit
     return 2.0 * max(noise, 0.0) + floor
