@@ -278,7 +278,7 @@ class HoldsiteConfig:
         "counts at each surface's depth (needs intrinsics and [input] metres_per_unit); "
         "[0, 0] = size in pixels", min=0.0, max=1e4, item=float)
     max_flat_rms: float = _opt(0.0, "largest RMS of a plane fitted to the window's depths, "
-                               "depth units; 0 = auto (2 x the image's noise + 0.5 units, or "
+                               "depth units; 0 = auto (2 x the image's noise + 1 unit, or "
                                "+ 1 mm with camera depth)", min=0.0, max=MAX_DEPTH)
     pose: str = _opt("local", "where a site's elevation and normal come from: local (on a "
                      "curved surface, a quadric of the surface's pixels in the square of side "
