@@ -691,6 +691,15 @@ def _rises_to_border(mine: np.ndarray, height: np.ndarray, zone: np.ndarray, tol
     return float(np.median(edge)) > float(np.nanmedian(height[mine])) + tol
 
 
+def _unit_note(config: Config) -> str:
+    """What the reason says when ``footprint_mm`` cannot apply (no intrinsics or metric depth)."""
+    hold = config.holdsite
+    if not any(hold.footprint_mm) or footprint_in_mm(hold, config.input):
+        return ""
+    return (f" (footprint_mm needs camera intrinsics and metric depth: the footprint is "
+            f"size, {hold.size[0]}x{hold.size[1]} px)")
+
+
 def _nothing_to_pick(by_id: dict[int, Surface], objects: list[ObjectInfo],
                      space: Workspace) -> str:
     """The reason of an image with no candidate object."""
@@ -934,6 +943,12 @@ def _ar_taps() -> np.ndarray:
     return gaussian_taps(1.0, 2 * AR_MARGIN + 1)
 
 
+def footprint_in_mm(cfg: HoldsiteConfig, camera: InputConfig) -> bool:
+    """Whether ``footprint_mm`` applies: set, with intrinsics and metric depth."""
+    return (any(cfg.footprint_mm) and camera.has_intrinsics and camera.metres_per_unit > 0
+            and not camera.larger_is_closer)
+
+
 def footprint_pixels(cfg: HoldsiteConfig, camera: InputConfig, depth: float
                      ) -> tuple[int, int]:
     """The footprint (rows, cols) in pixels: ``size``, or ``footprint_mm`` at ``depth``.
@@ -941,7 +956,7 @@ def footprint_pixels(cfg: HoldsiteConfig, camera: InputConfig, depth: float
     A side of ``L`` mm at depth ``d`` mm spans ``L f / d`` pixels (pinhole);
     rounded to the nearest odd count, 1 to 255. ``depth`` is in depth units.
     """
-    if not any(cfg.footprint_mm) or not camera.has_intrinsics or depth <= 0:
+    if not footprint_in_mm(cfg, camera) or depth <= 0:
         return cfg.size
     mm = depth * camera.metres_per_unit * 1000.0
 
@@ -1844,12 +1859,12 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     out = tuple(sorted(excluded))
     if not found:
         reason = ("nothing to pick: " + _failure(hold, missed, scene.flat_limit) if order
-                  else _nothing_to_pick(by_id, objects, space))
+                  else _nothing_to_pick(by_id, objects, space)) + _unit_note(config)
         return HoldsiteResult(None, reason, (), bg, objs, camera, out)
     # Step 5: the best window, then the runners-up
     sites = _choose(scene, found, obj_by_id, object_of, config)
     rank = {s.id: k for k, s in enumerate(order)}
     first = rank[found[0].surface.id]
     before = [h for h in missed if rank[h.surface.id] < first]
-    reason = _success(sites[0], obj_by_id[sites[0].object], before, hold)
+    reason = _success(sites[0], obj_by_id[sites[0].object], before, hold) + _unit_note(config)
     return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera, out)
