@@ -44,7 +44,6 @@ Notes
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -280,13 +279,13 @@ def region_of_interest(shape: tuple[int, int], ws: WorkspaceConfig,
 def matches_background(z: np.ndarray, background: np.ndarray, tol: float) -> np.ndarray:
     """Bool (H, W): pixels within ``tol`` of the background frame, or behind it.
 
-    Both frames are median-filtered over 3x3 valid pixels first (a pixel's
-    noise should not make it an object). Where the background has no
-    reading, its nearest reading within :data:`BACKGROUND_REACH` pixels
+    Both frames come median-filtered over 3x3 valid pixels (:func:`assess`:
+    a pixel's noise should not make it an object). Where the background has
+    no reading, its nearest reading within :data:`BACKGROUND_REACH` pixels
     stands in (a depth camera's holes move from frame to frame, most of all
     along a tote's rim); farther away nothing is known: False.
     """
-    a, b = _median3(z), _filled(_median3(background), BACKGROUND_REACH)
+    a, b = z, _filled(background, BACKGROUND_REACH)
     known = np.isfinite(a) & np.isfinite(b)
     out = np.zeros(z.shape, dtype=bool)
     out[known] = a[known] - b[known] <= tol
@@ -306,16 +305,18 @@ def _filled(z: np.ndarray, reach: int) -> np.ndarray:
 def _median3(z: np.ndarray) -> np.ndarray:
     """3x3 median of the valid values (NaN where the centre is invalid).
 
-    The nine shifted copies stacked: :func:`scipy.ndimage.median_filter`
-    has no NaN-aware mode.
+    The nine shifted copies sorted along the stack (NaN sorts last), and the
+    middle of each pixel's valid ones taken: :func:`scipy.ndimage.median_filter`
+    has no NaN-aware mode, and :func:`numpy.nanmedian` is several times slower.
     """
-    padded = np.pad(z, 1, mode="edge")
+    padded = np.pad(z, 1, mode="constant", constant_values=np.nan)
     h, w = z.shape
-    stack = np.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all nine invalid: NaN
-        med = np.nanmedian(stack, axis=0)
-    return np.where(np.isfinite(z), med, np.nan)
+    stack = np.sort(np.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)]),
+                    axis=0)
+    count = np.isfinite(stack).sum(axis=0)
+    low = np.take_along_axis(stack, np.maximum(count - 1, 0)[None] // 2, axis=0)[0]
+    high = np.take_along_axis(stack, (count // 2)[None], axis=0)[0]
+    return np.where(np.isfinite(z), 0.5 * (low + high), np.nan)
 
 
 def assess(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, config: Config,
@@ -347,16 +348,17 @@ def assess(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, config: Config
     ws = config.workspace
     valid = np.isfinite(z)
     pickable = valid & region_of_interest(z.shape, ws, roi)
+    smooth = _median3(z)
+    # the empty scene shows the whole support: found there when given
+    ref = _median3(background) if background is not None else smooth
     if background is not None:
         bg_tol = ws.background_tolerance or default_tolerance(z, config.input, noise)
-        pickable &= ~matches_background(z, background, bg_tol)
+        pickable &= ~matches_background(smooth, ref, bg_tol)
     tol = ws.support_tolerance or default_tolerance(z, config.input, noise)
-    # the empty scene shows the whole support: found there when given
-    ref = _median3(background) if background is not None else _median3(z)
     plane = find_support(ref, config.input, tol) if ws.support else None
     if plane is None:
         return Workspace(pickable, None, None, tol)
-    pts = points(_median3(z), config.input)
+    pts = points(smooth, config.input)
     height = plane.distance(pts)
     with np.errstate(invalid="ignore"):
         on = np.abs(plane.distance(points(ref, config.input))) <= tol
