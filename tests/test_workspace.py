@@ -1,0 +1,528 @@
+"""The workspace (support plane, pickable pixels), structures, footprint_mm and flatness.
+
+Constructed scenes with known answers: height maps (larger = closer) and depth
+images rendered by a pinhole camera (fx = fy = 200, depth in mm).
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from rangeseg_cli import load_config, run_pipeline
+from rangeseg_cli.config import ConfigError, HoldsiteConfig, InputConfig, WorkspaceConfig
+from rangeseg_cli.holdsite import (
+    effective_holdsite,
+    flat_limit,
+    footprint,
+    footprint_pixels,
+    site_flat_rms,
+    window_flat_rms,
+)
+from rangeseg_cli.workspace import (
+    BACKGROUND_REACH,
+    MAX_BELOW,
+    assess,
+    find_support,
+    matches_background,
+    points,
+    polygon_mask,
+    region_of_interest,
+)
+
+# --- helpers ---------------------------------------------------------------------------
+
+FX = 200.0
+SHAPE = (120, 160)
+CX, CY = (SHAPE[1] - 1) / 2, (SHAPE[0] - 1) / 2
+
+
+def noisy(z, sigma=0.5, seed=0):
+    return z + np.random.default_rng(seed).normal(0.0, sigma, z.shape)
+
+
+def camera(**kw):
+    return InputConfig(fx=FX, fy=FX, cx=CX, cy=CY, larger_is_closer=False, invalid=0.0,
+                       metres_per_unit=0.001, **kw)
+
+
+def cam_config(**tables):
+    over: dict = {"input": {"fx": FX, "fy": FX, "cx": CX, "cy": CY}}
+    for table, values in tables.items():
+        over.setdefault(table, {}).update(values)
+    return load_config(preset="mm-depth", overrides=over)
+
+
+def floor_frame(tilt_deg, dist=600.0):
+    """Origin and rows (x, y, normal) of a floor through (0, 0, dist), normal tilted about x."""
+    t = math.radians(tilt_deg)
+    n = np.array([0.0, -math.sin(t), -math.cos(t)])  # towards the camera
+    e1 = np.array([1.0, 0.0, 0.0])
+    return np.array([0.0, 0.0, dist]), np.stack([e1, np.cross(n, e1), n])
+
+
+def rays(shape=SHAPE):
+    h, w = shape
+    v, u = np.indices(shape, dtype=np.float64)
+    return np.stack([(u - (w - 1) / 2) / FX, (v - (h - 1) / 2) / FX, np.ones(shape)], axis=-1)
+
+
+def render(tilt_deg=30.0, boxes=(), dist=600.0, shape=SHAPE):
+    """Depth (mm) of the floor of :func:`floor_frame` with boxes (x0, x1, y0, y1, h) on it."""
+    d = rays(shape)
+    origin, rot = floor_frame(tilt_deg, dist)
+    n = rot[2]
+    depth = (n @ origin) / (d @ n)
+    o, dq = rot @ (-origin), d @ rot.T  # the camera and the rays in floor coordinates
+    for x0, x1, y0, y1, bh in boxes:
+        lo, hi = np.array([x0, y0, 0.0]), np.array([x1, y1, bh])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - o) / dq, (hi - o) / dq
+        near = np.nanmax(np.minimum(t1, t2), axis=-1)
+        far = np.nanmin(np.maximum(t1, t2), axis=-1)
+        hit = (near <= far) & (near > 0) & (near < depth)
+        depth = np.where(hit, near, depth)
+    return depth
+
+
+def plane_depth(tilt_deg, point, shape=SHAPE):
+    """Depth of the 3-D plane through ``point`` with its normal tilted about the x axis."""
+    t = math.radians(tilt_deg)
+    n = np.array([0.0, -math.sin(t), -math.cos(t)])
+    return (n @ np.asarray(point, dtype=np.float64)) / (rays(shape) @ n)
+
+
+def to_pixel(p):
+    return int(round(FX * p[1] / p[2] + CY)), int(round(FX * p[0] / p[2] + CX))
+
+
+def site_of(result):
+    return result.holdsite.holdsite
+
+
+def label_at(result, row, col):
+    return int(result.labels[row, col])
+
+
+def run_assess(z, config, noise=0.5, **frames):
+    labels = np.zeros(z.shape, dtype=np.int32)
+    coeffs = np.zeros((1, 6))
+    return assess(z, labels, coeffs, config, noise, **frames)
+
+
+def tote(shape=(96, 128), floor=20.0, rim=120.0, wall=12, right_margin=0):
+    """A tote's floor with four walls rising to its rim towards the image border."""
+    h, w = shape
+    v, u = np.indices(shape, dtype=np.float64)
+    inner = np.minimum.reduce([v, h - 1 - v, u, w - right_margin - 1 - u])
+    return floor + np.clip((wall - inner) / wall, 0, 1) * (rim - floor)
+
+
+# --- 1. the support plane --------------------------------------------------------------
+
+
+def test_support_of_a_tilted_table_with_boxes_is_the_table_and_boxes_are_off_it():
+    a, b, c = 20.0, 0.3, -0.2
+    v, u = np.indices((96, 96), dtype=np.float64)
+    table = a + b * u + c * v
+    z = table.copy()
+    boxes = np.zeros(z.shape, dtype=bool)
+    boxes[8:40, 8:60] = boxes[52:88, 30:80] = True  # ~40 % of the image
+    assert 0.35 < boxes.mean() < 0.45
+    z[boxes] += 40.0
+    plane = find_support(z, InputConfig(), 1.0)
+    norm = math.sqrt(b * b + c * c + 1)
+    np.testing.assert_allclose(plane.normal, (-b / norm, -c / norm, 1 / norm), atol=1e-6)
+    assert plane.offset == pytest.approx(-a / norm, abs=1e-4)
+    assert plane.inliers == pytest.approx(1 - boxes.mean(), abs=0.02)
+    dist = plane.distance(points(z, InputConfig()))
+    assert np.all(dist[boxes] > 30) and np.all(np.abs(dist[~boxes]) < 1e-4)
+
+
+def test_support_of_a_camera_floor_tilted_30_degrees_and_box_heights_above_it():
+    boxes = [(-120, -40, -60, 40, 50.0), (30, 110, -10, 70, 30.0)]
+    depth = render(30.0, boxes)
+    cam = camera()
+    plane = find_support(-depth, cam, 6.0)
+    origin, rot = floor_frame(30.0)
+    cos = float(np.dot(plane.normal, rot[2]))
+    assert math.degrees(math.acos(min(cos, 1.0))) < 1.0
+    assert plane.offset == pytest.approx(-rot[2] @ origin, abs=2.0)
+    pts = points(-depth, cam)
+    for x0, x1, y0, y1, h in boxes:
+        top = origin + rot.T @ np.array([(x0 + x1) / 2, (y0 + y1) / 2, h])
+        row, col = to_pixel(top)
+        assert depth[row, col] < render(30.0)[row, col] - 10  # on the box
+        assert plane.distance(pts[row, col]) == pytest.approx(h, abs=3.0)
+
+
+def test_support_is_deterministic():
+    depth = noisy(render(30.0, [(-60, 20, -40, 40, 40.0)]), 1.0)
+    cam = camera()
+    first, second = (find_support(-depth, cam, 6.0) for _ in range(2))
+    assert first == second
+    assert find_support(-depth, cam, 6.0, seed=3).normal == pytest.approx(first.normal, abs=0.01)
+
+
+def test_a_plane_with_the_floor_behind_it_is_not_the_support():
+    z = np.zeros((100, 100))
+    z[:, :60] = 30.0  # a flat slab over 60 %: the floor, 40 %, lies behind its plane
+    plane = find_support(noisy(z, 0.2), InputConfig(), 1.0)
+    np.testing.assert_allclose(plane.normal, (0, 0, 1), atol=0.01)
+    assert plane.offset == pytest.approx(0.0, abs=0.2)
+    assert plane.inliers == pytest.approx(0.4, abs=0.02)
+    # with less than MAX_BELOW of the points behind it, the slab's plane is the support
+    z[:, :92] = 30.0
+    assert 1 - 0.92 < MAX_BELOW
+    plane = find_support(noisy(z, 0.2), InputConfig(), 1.0)
+    assert plane.offset == pytest.approx(-30.0, abs=0.2)
+
+
+def test_no_support_without_enough_valid_pixels():
+    z = np.full((64, 64), np.nan)
+    z[:5, :5] = 1.0
+    assert find_support(z, InputConfig(), 1.0) is None
+
+
+# --- 2. pickable pixels ----------------------------------------------------------------
+
+
+def test_roi_box_mask_and_triangle_polygon():
+    shape = (40, 50)
+    box = region_of_interest(shape, WorkspaceConfig(roi_box=(5, 10, 20, 30)))
+    expected = np.zeros(shape, dtype=bool)
+    expected[5:20, 10:30] = True
+    np.testing.assert_array_equal(box, expected)
+    mask = np.zeros(shape, dtype=bool)
+    mask[:, 20:] = True
+    both = region_of_interest(shape, WorkspaceConfig(roi_box=(5, 10, 20, 30)), mask)
+    np.testing.assert_array_equal(both, expected & mask)
+    tri = ((2.3, 3.1), (35.7, 12.2), (10.4, 46.9))
+    inside = polygon_mask(shape, tri)
+    assert inside[10, 15] and not inside[30, 40] and not inside[0, 0]
+    (r0, c0), (r1, c1), (r2, c2) = tri
+    rows, cols = np.indices(shape, dtype=np.float64)
+
+    def side(ra, ca, rb, cb):
+        return (cb - ca) * (rows - ra) - (rb - ra) * (cols - ca)
+
+    s0, s1, s2 = side(r0, c0, r1, c1), side(r1, c1, r2, c2), side(r2, c2, r0, c0)
+    brute = ((s0 > 0) & (s1 > 0) & (s2 > 0)) | ((s0 < 0) & (s1 < 0) & (s2 < 0))
+    np.testing.assert_array_equal(inside, brute)
+    np.testing.assert_array_equal(
+        region_of_interest(shape, WorkspaceConfig(roi_polygon=tri)), brute)
+
+
+def test_height_band_keeps_only_the_box_between_min_and_max_height():
+    z = np.full((64, 96), 20.0)
+    z[10:30, 8:28] = 30.0    # 10 above the table
+    z[10:30, 38:58] = 60.0   # 40 above
+    z[10:30, 68:88] = 100.0  # 80 above
+    config = load_config(overrides={"workspace": {"min_height": 20, "max_height": 60}})
+    space = run_assess(z, config)
+    assert space.support is not None
+    np.testing.assert_array_equal(np.argwhere(space.pickable).min(axis=0), (10, 38))
+    np.testing.assert_array_equal(np.argwhere(space.pickable).max(axis=0), (29, 57))
+    assert space.pickable[11:29, 39:57].all()  # the corners go to the 3x3 median
+    open_band = run_assess(z, load_config()).pickable
+    assert open_band[11:29, 9:27].all() and open_band[11:29, 69:87].all()
+    assert not open_band[40:, :].any()  # the table itself
+
+
+def test_background_frame_leaves_only_the_new_box_pickable():
+    v, u = np.indices((64, 64), dtype=np.float64)
+    bg = 20.0 + 0.1 * u
+    bg[5:20, 40:60] += 50.0  # a fixture present in the empty scene too
+    scene = bg.copy()
+    scene[30:50, 10:30] += 25.0
+    box = np.zeros(scene.shape, dtype=bool)
+    box[30:50, 10:30] = True
+    space = run_assess(noisy(scene, 0.3), load_config(), noise=0.3,
+                       background=noisy(bg, 0.3, seed=1))
+    assert not space.pickable[~box].any()
+    assert space.pickable[31:49, 11:29].all()
+    without = run_assess(noisy(scene, 0.3), load_config(), noise=0.3).pickable
+    assert without[8:17, 43:57].all()  # the fixture, without the background frame
+
+
+def test_background_holes_are_filled_from_their_neighbours_within_reach():
+    bg = np.full((64, 64), 20.0)
+    bg[10:18, 10:18] = np.nan  # a small hole: every pixel within reach of a reading
+    bg[30:64, 30:64] = np.nan  # a large one at the corner
+    scene = np.full((64, 64), 20.0)
+    match = matches_background(scene, bg, 1.0)
+    assert match[10:18, 10:18].all()
+    assert match[30:30 + BACKGROUND_REACH, 30:].all()
+    assert not match[30 + BACKGROUND_REACH + 2:, 30 + BACKGROUND_REACH + 2:].any()
+    config = load_config(overrides={"workspace": {"support": False}})
+    space = run_assess(scene, config, background=bg)
+    assert not space.pickable[10:18, 10:18].any()
+    assert space.pickable[50:, 50:].all()  # farther than the reach: nothing known
+
+
+def test_a_scene_behind_the_background_is_not_pickable():
+    bg = np.full((64, 64), 20.0)
+    scene = bg.copy()
+    scene[10:30, 10:30] = -10.0  # farther than the empty scene (a hole dug, a lid gone)
+    scene[40:60, 40:60] = 50.0
+    assert matches_background(scene, bg, 1.0)[10:30, 10:30].all()
+    config = load_config(overrides={"workspace": {"support": False}})
+    pickable = run_assess(scene, config, background=bg).pickable
+    assert not pickable[10:30, 10:30].any()
+    assert pickable[41:59, 41:59].all()
+    assert not pickable[:, :38].any()
+
+
+# --- 3. holdsites in the workspace -----------------------------------------------------
+
+
+def test_roi_mask_over_one_of_two_equal_boxes_puts_the_site_on_that_box():
+    z = np.full((64, 96), 20.0)
+    z[20:44, 10:40] = 80.0
+    z[20:44, 56:86] = 80.0
+    free = site_of(run_pipeline(noisy(z), load_config()))
+    assert 56 <= free.col < 86  # the tie goes to the right-hand box
+    roi = np.zeros(z.shape, dtype=bool)
+    roi[:, :48] = True
+    result = run_pipeline(noisy(z), load_config(), roi=roi)
+    site = site_of(result)
+    assert 20 <= site.row < 44 and 10 <= site.col < 40
+    assert label_at(result, 30, 70) in result.holdsite.outside
+    assert result.holdsite.to_dict()["outside_workspace"] == list(result.holdsite.outside)
+
+
+def test_a_tall_bar_from_the_border_is_a_structure_and_the_box_is_picked():
+    z = np.full((80, 80), 20.0)
+    z[44:64, 40:64] = 50.0  # a low box
+    z[0:30, 10:22] = 200.0  # a finger entering from the top border
+    result = run_pipeline(noisy(z), load_config())
+    site = site_of(result)
+    assert 44 <= site.row < 64 and 40 <= site.col < 64
+    objects = {tuple(o["surfaces"]): o for o in result.holdsite.to_dict()["objects"]}
+    bar = objects[(label_at(result, 10, 15),)]
+    box = objects[(label_at(result, 54, 52),)]
+    assert bar["structure"] and bar["touches_border"]
+    assert not box["structure"] and box["stands_on_support"]
+
+
+def test_an_empty_tote_has_nothing_to_pick_and_one_box_in_it_is_picked():
+    z = tote()
+    result = run_pipeline(noisy(z), load_config())
+    assert site_of(result) is None
+    assert result.holdsite.reason.startswith("nothing to pick")
+    assert result.holdsite.to_dict()["holdsite"] is None
+    z[36:60, 50:80] = 60.0
+    result = run_pipeline(noisy(z), load_config())
+    site = site_of(result)
+    assert 36 <= site.row < 60 and 50 <= site.col < 80
+    assert site.surface == label_at(result, 48, 65)
+
+
+def test_a_box_outside_the_tote_is_never_the_site():
+    z = tote(right_margin=20)
+    z[:, 108:] = 10.0          # the table outside the tote, below its floor
+    z[30:60, 112:126] = 70.0   # a box out there: the highest thing in view
+    z[36:60, 40:70] = 45.0     # a lower box in the tote
+    result = run_pipeline(noisy(z), load_config())
+    site = site_of(result)
+    assert 36 <= site.row < 60 and 40 <= site.col < 70
+    outside = label_at(result, 45, 119)
+    assert outside in result.holdsite.outside
+    assert all(c.surface != outside for c in result.holdsite.candidates)
+    z[36:60, 40:70] = 20.0     # nothing in the tote
+    result = run_pipeline(noisy(z), load_config())
+    assert site_of(result) is None and result.holdsite.reason.startswith("nothing to pick")
+    assert label_at(result, 45, 119) in result.holdsite.outside
+    paper = run_pipeline(noisy(z), load_config(preset="paper"))
+    assert site_of(paper).surface == label_at(paper, 45, 119)  # the paper's highest surface
+
+
+def test_the_paper_preset_has_no_workspace_and_picks_the_highest_surface():
+    z = np.full((80, 80), 20.0)
+    z[0:30, 10:22] = (200.0 - 2.0 * np.arange(30))[:, None]  # a finger rising to the border
+    default = run_pipeline(noisy(z), load_config())
+    assert site_of(default) is None
+    assert default.holdsite.reason.startswith("nothing to pick")
+    assert "structure" in default.holdsite.reason
+    assert [o.structure for o in default.holdsite.objects] == [True]
+    paper = run_pipeline(noisy(z), load_config(preset="paper"))
+    site = site_of(paper)
+    assert site.row < 30 and 10 <= site.col < 22
+    assert paper.holdsite.outside == ()
+    assert not any(o.structure or o.stands for o in paper.holdsite.objects)
+    empty = run_pipeline(noisy(tote()), load_config(preset="paper"))
+    site = site_of(empty)  # the empty tote's floor, in view
+    assert 12 <= site.row < 84 and 12 <= site.col < 116
+
+
+# --- 4. footprint_mm -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("mm", "depth", "expected"), [
+    (20.0, 600.0, 21),   # 20 px: a tie, rounded up
+    (20.6, 600.0, 21),   # 20.6 px
+    (22.4, 600.0, 23),   # 22.4 px
+    (10.0, 600.0, 11),   # 10 px: a tie
+    (0.5, 600.0, 1),     # half a pixel
+    (1000.0, 600.0, 255),  # 1000 px: clipped
+    (20.0, 1200.0, 11),  # 10 px at twice the depth
+])
+def test_footprint_pixels_are_odd_and_scale_with_depth(mm, depth, expected):
+    cam = InputConfig(fx=600.0, fy=600.0, larger_is_closer=False, metres_per_unit=0.001)
+    cfg = HoldsiteConfig(footprint_mm=(mm, mm))
+    assert footprint_pixels(cfg, cam, depth) == (expected, expected)
+
+
+def test_footprint_pixels_rows_follow_fy_and_cols_fx_and_need_intrinsics():
+    cam = InputConfig(fx=600.0, fy=300.0, larger_is_closer=False, metres_per_unit=0.001)
+    cfg = HoldsiteConfig(footprint_mm=(40.0, 20.0))
+    assert footprint_pixels(cfg, cam, 600.0) == (21, 21)
+    metres = InputConfig(fx=600.0, fy=600.0, larger_is_closer=False, metres_per_unit=1.0)
+    assert footprint_pixels(cfg, metres, 0.6) == (41, 21)  # depth in metres
+    assert footprint_pixels(cfg, InputConfig(), 600.0) == cfg.size
+    assert footprint_pixels(HoldsiteConfig(size=(5, 9)), cam, 600.0) == (5, 9)
+
+
+def test_footprint_mm_with_one_side_is_a_config_error_naming_the_key():
+    with pytest.raises(ConfigError, match="footprint_mm"):
+        load_config(overrides={"holdsite": {"footprint_mm": [20.0, 0.0]}})
+
+
+def test_site_size_on_a_camera_scene_is_footprint_mm_at_its_depth():
+    depth = plane_depth(0, (0, 0, 600))
+    depth[20:70, 20:80] = plane_depth(0, (0, 0, 560))[20:70, 20:80]
+    cfg = cam_config(holdsite={"footprint_mm": [30.0, 30.0]})
+    result = run_pipeline(noisy(depth, 0.5), cfg)
+    site = site_of(result)
+    surface = next(s for s in result.surfaces if s.id == site.surface)
+    assert surface.mean_height == pytest.approx(-560.0, abs=1.0)
+    # 30 mm at 560 mm and f = 200: 10.7 px, the odd 11
+    assert site.size == (11, 11) == footprint_pixels(cfg.holdsite, cfg.input, 560.0)
+    assert result.holdsite.to_dict()["holdsite"]["size"] == [11, 11]
+    rows, cols = site.size
+    window = result.labels[site.row - rows // 2: site.row + rows // 2 + 1,
+                           site.col - cols // 2: site.col + cols // 2 + 1]
+    assert np.all(window == site.surface)
+
+
+# --- 5. flatness -----------------------------------------------------------------------
+
+
+def brute_flat_rms(z, fp):
+    h, w = z.shape
+    kr, kc = fp.shape[0] // 2, fp.shape[1] // 2
+    fr, fc = np.nonzero(fp)
+    out = np.full(z.shape, np.nan)
+    for r in range(h):
+        for c in range(w):
+            rr, cc = r + fr - kr, c + fc - kc
+            if rr.min() < 0 or cc.min() < 0 or rr.max() >= h or cc.max() >= w:
+                continue
+            vals = z[rr, cc]
+            if not np.isfinite(vals).all():
+                continue
+            a = np.column_stack([np.ones(vals.size), cc, rr]).astype(np.float64)
+            coef, *_ = np.linalg.lstsq(a, vals, rcond=None)
+            out[r, c] = np.sqrt(np.mean((vals - a @ coef) ** 2))
+    return out
+
+
+@pytest.mark.parametrize("fp", [np.ones((5, 7), dtype=bool), footprint((3, 7), 30.0)],
+                         ids=["rectangle", "rotated"])
+def test_window_flat_rms_is_the_plane_fit_rms_of_each_window(fp):
+    rng = np.random.default_rng(1)
+    z = 500.0 + rng.normal(0.0, 2.0, (20, 24))
+    z[9, 11] = np.nan
+    got = window_flat_rms(z, fp)
+    want = brute_flat_rms(z, fp)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    assert np.isnan(got[9, 11]) and np.isfinite(want).sum() > 50
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+    for r, c in np.argwhere(np.isfinite(want))[::17]:
+        assert site_flat_rms(z, int(r), int(c), fp) == pytest.approx(want[r, c], rel=1e-6)
+
+
+def test_window_flat_rms_of_a_plane_is_zero():
+    v, u = np.indices((30, 30), dtype=np.float64)
+    z = 800.0 + 3.5 * u - 2.25 * v
+    got = window_flat_rms(z, footprint((5, 9), 45.0))
+    assert np.nanmax(got) < 1e-5 and np.isfinite(got).sum() > 200
+    assert site_flat_rms(z, 15, 15, np.ones((7, 7), dtype=bool)) < 1e-9
+
+
+def wavy_box():
+    v, u = np.indices((64, 64), dtype=np.float64)
+    z = np.full((64, 64), 20.0)
+    bumps = 3.0 * np.sin(2 * np.pi * u / 12) * np.sin(2 * np.pi * v / 12)
+    z[12:52, 12:52] = 80.0 + bumps[12:52, 12:52]
+    return noisy(z, 0.2)
+
+
+def test_a_rough_box_top_is_refused_naming_the_plane_fit_rms():
+    result = run_pipeline(wavy_box(), load_config(overrides={"holdsite": {
+        "max_flat_rms": 0.5}}))
+    assert site_of(result) is None
+    reason = result.holdsite.reason
+    assert reason.startswith("nothing to pick") and "plane-fit RMS <= 0.5" in reason
+    limit = 1.0
+    result = run_pipeline(wavy_box(), load_config(overrides={"holdsite": {
+        "max_flat_rms": limit}}))
+    sites = [site_of(result), *result.holdsite.candidates]
+    assert sites[0] is not None
+    for site in sites:
+        assert site.flat_rms <= limit
+        fp = footprint(site.size, site.angle)
+        assert site.flat_rms == pytest.approx(
+            site_flat_rms(result.heights, site.row, site.col, fp), rel=1e-9)
+    auto = run_pipeline(wavy_box(), load_config())
+    limit = flat_limit(effective_holdsite(load_config()), load_config().input,
+                       auto.noise_sigma)
+    assert limit == pytest.approx(2 * auto.noise_sigma + 1.0)
+    assert site_of(auto).flat_rms <= limit
+
+
+def test_flat_limit_defaults():
+    hold = HoldsiteConfig()
+    assert flat_limit(hold, InputConfig(), 0.5) == pytest.approx(2.0)
+    assert flat_limit(hold, camera(), 0.5) == pytest.approx(2.0)  # + 1 mm, in mm
+    metres = InputConfig(fx=FX, fy=FX, larger_is_closer=False, metres_per_unit=1.0)
+    assert flat_limit(hold, metres, 0.0005) == pytest.approx(0.002)
+    assert flat_limit(HoldsiteConfig(max_flat_rms=0.3), camera(), 5.0) == 0.3
+    paper = load_config(preset="paper").holdsite
+    assert flat_limit(paper, InputConfig(), 0.5) == math.inf
+
+
+# --- 6. max_tilt -----------------------------------------------------------------------
+
+
+def test_max_tilt_applies_with_a_lateral_scale_only():
+    assert effective_holdsite(load_config()).max_tilt == 90.0
+    assert effective_holdsite(load_config(overrides={
+        "input": {"units_per_pixel": 1.0}})).max_tilt == 45.0
+    assert effective_holdsite(cam_config()).max_tilt == 45.0
+
+
+def test_a_60_degree_camera_face_is_refused_and_the_level_box_below_is_picked():
+    depth = plane_depth(0, (0, 0, 600))
+    depth[20:60, 20:60] = plane_depth(0, (0, 0, 560))[20:60, 20:60]
+    depth[48:78, 95:140] = plane_depth(60, (0, 0, 480))[48:78, 95:140]
+    assert depth[48:78, 95:140].max() < 540  # the tilted face is higher all over
+    img = noisy(depth, 0.5)
+    site = site_of(run_pipeline(img, cam_config()))
+    assert 20 <= site.row < 60 and 20 <= site.col < 60
+    assert site.approach_camera[2] == pytest.approx(1.0, abs=0.01)
+    steep = site_of(run_pipeline(img, cam_config(holdsite={"max_tilt": 90.0})))
+    assert 48 <= steep.row < 78 and 95 <= steep.col < 140
+    tilt = math.degrees(math.acos(abs(steep.approach_camera[2])))
+    assert tilt == pytest.approx(60.0, abs=3.0)
+
+
+def test_a_steep_ramp_in_a_height_map_counts_only_with_units_per_pixel():
+    z = np.full((64, 96), 20.0)
+    z[16:48, 8:40] = 60.0
+    z[16:48, 52:88] = 80.0 + 2.0 * np.arange(36)[None, :]  # 63 degrees at 1 unit/pixel
+    site = site_of(run_pipeline(noisy(z), load_config()))
+    assert 52 <= site.col < 88  # no lateral scale: no tilt test, the higher ramp
+    scaled = site_of(run_pipeline(noisy(z), load_config(overrides={
+        "input": {"units_per_pixel": 1.0}})))
+    assert 8 <= scaled.col < 40
