@@ -12,10 +12,18 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ".[test,bench,dask]"
 	touch $(STAMP)
 
-# The synthetic samples at the paper's settings; the real frame with its own settings.
+ARC := sample_data/arc
+
+# The synthetic samples at the paper's settings; each real frame with its camera's
+# preset, intrinsics and empty-tote frame (README, "Your own camera in five minutes").
 run: $(STAMP)
 	$(BIN)/rangeseg run sample_data/synthetic -o out/synthetic --overwrite
-	$(BIN)/rangeseg run sample_data/arc --config sample_data/arc/suction.toml -o out/arc --overwrite
+	$(BIN)/rangeseg run $(ARC)/suction-scene.depth.png --preset tenth-mm-depth \
+	    --intrinsics $(ARC)/suction-camera-intrinsics.txt \
+	    --background $(ARC)/empty/suction-background.depth.png -o out/arc --overwrite
+	$(BIN)/rangeseg run $(ARC)/bin-scene.depth.png --preset tenth-mm-depth \
+	    --intrinsics $(ARC)/bin-camera-intrinsics.txt \
+	    --background $(ARC)/empty/bin-background.depth.png -o out/arc-bin --overwrite
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

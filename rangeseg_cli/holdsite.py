@@ -961,7 +961,7 @@ def footprint_pixels(cfg: HoldsiteConfig, camera: InputConfig, depth: float
     mm = depth * camera.metres_per_unit * 1000.0
 
     def odd(side: float, focal: float) -> int:
-        k = int(math.floor(side * focal / mm / 2.0 + 0.5)) * 2 + 1
+        k = int(math.floor(side * focal / mm / 2.0)) * 2 + 1  # the nearest odd count
         return min(max(k, 1), 255)
 
     return odd(cfg.footprint_mm[0], camera.fy), odd(cfg.footprint_mm[1], camera.fx)

@@ -526,3 +526,14 @@ def test_a_steep_ramp_in_a_height_map_counts_only_with_units_per_pixel():
     scaled = site_of(run_pipeline(noisy(z), load_config(overrides={
         "input": {"units_per_pixel": 1.0}})))
     assert 8 <= scaled.col < 40
+
+
+@pytest.mark.parametrize("side, expected", [(21.0, 21), (19.5, 19), (7.0, 7), (1.0, 1),
+                                            (22.4, 23)])
+def test_footprint_mm_rounds_to_the_nearest_odd_count(side, expected):
+    from rangeseg_cli.config import HoldsiteConfig, InputConfig
+    from rangeseg_cli.holdsite import footprint_pixels
+
+    camera = InputConfig(larger_is_closer=False, metres_per_unit=0.001, fx=600.0, fy=600.0)
+    cfg = HoldsiteConfig(footprint_mm=(side, side))
+    assert footprint_pixels(cfg, camera, 600.0) == (expected, expected)

@@ -1,0 +1,91 @@
+"""Real tote frames (sample_data/arc, Intel RealSense SR300 and a second camera; issue 32).
+
+Run as a user of a bin-picking cell would: the unit preset, the camera's
+intrinsics file and a frame of the empty tote, nothing hand-tuned. No ground
+truth comes with these frames; what is checked needs none:
+
+- an *item*: the site's window is nearer the camera than the empty tote by
+  more than 10 mm at most of its pixels (the empty frame has no item there);
+- *inside the tote*: the empty frame shows the tote's floor under the site
+  (the floor is the empty frame's dominant plane: within 10 mm of it);
+- the approach is within 45 degrees of the camera's axis;
+- the empty-tote frames alone have nothing to pick.
+"""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rangeseg_cli import io, load_config, run_pipeline
+from rangeseg_cli.intrinsics import read_intrinsics
+from rangeseg_cli.workspace import find_support, points
+
+ARC = Path(__file__).resolve().parent.parent / "sample_data" / "arc"
+CAMERAS = ("suction", "bin")
+
+
+def _config(camera: str):
+    k = read_intrinsics(ARC / f"{camera}-camera-intrinsics.txt")
+    return load_config(preset="tenth-mm-depth",
+                       overrides={"input": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}})
+
+
+def _depth_mm(raw: np.ndarray) -> np.ndarray:
+    return np.where(raw > 0, raw * 0.1, np.nan)
+
+
+def _window(site: dict) -> tuple[slice, slice]:
+    rows, cols = site["size"]
+    r, c = site["row"], site["col"]
+    return slice(r - rows // 2, r + rows // 2 + 1), slice(c - cols // 2, c + cols // 2 + 1)
+
+
+@pytest.fixture(scope="module", params=CAMERAS)
+def with_background(request):
+    camera = request.param
+    raw = io.read_image(ARC / f"{camera}-scene.depth.png")
+    empty = io.read_image(ARC / "empty" / f"{camera}-background.depth.png")
+    config = _config(camera)
+    result = run_pipeline(raw, config, background=empty)
+    return raw, empty, config, result.holdsite.to_dict()
+
+
+def test_the_site_lies_on_an_item_that_the_empty_tote_does_not_have(with_background):
+    raw, empty, _, doc = with_background
+    site = doc["holdsite"]
+    assert site is not None, doc["reason"]
+    window = _window(site)
+    scene, tote = _depth_mm(raw[window]), _depth_mm(empty[window])
+    assert np.isfinite(scene).all()  # a valid reading under every cup pixel
+    nearer = tote - scene > 10.0
+    assert np.mean(nearer[np.isfinite(tote)]) > 0.8
+
+
+def test_the_site_lies_over_the_tote_floor(with_background):
+    raw, empty, config, doc = with_background
+    site = doc["holdsite"]
+    z = -_depth_mm(empty)
+    floor = find_support(z, config.input, 10.0)
+    assert floor is not None
+    r, c = site["row"], site["col"]
+    patch = z[r - 10: r + 11, c - 10: c + 11]
+    rows, cols = np.nonzero(np.isfinite(patch))
+    pts = points(patch[rows, cols], config.input, rows + r - 10.0, cols + c - 10.0)
+    assert np.median(np.abs(floor.distance(pts))) < 10.0  # the empty tote's floor is there
+
+
+def test_the_approach_is_within_45_degrees_of_the_camera_axis(with_background):
+    *_, doc = with_background
+    approach = doc["holdsite"]["approach_camera"]
+    assert math.degrees(math.acos(approach[2])) <= 45.0
+    assert doc["holdsite"]["flat_rms"] < 2.0  # mm: flat enough for a cup to seal
+
+
+@pytest.mark.parametrize("camera", CAMERAS)
+def test_an_empty_tote_has_nothing_to_pick(camera):
+    empty = io.read_image(ARC / "empty" / f"{camera}-background.depth.png")
+    doc = run_pipeline(empty, _config(camera)).holdsite.to_dict()
+    assert doc["holdsite"] is None
+    assert doc["reason"].startswith("nothing to pick")
