@@ -60,6 +60,9 @@ MANIFEST = "rangeseg-run.json"
 #: Significant digits of the manifest's floats: 17 give every float back exactly, so
 #: the configuration the stage commands read from it is the one that was run.
 MANIFEST_DIGITS = 17
+#: Statuses of an image in the manifest: ``running`` from the start of a run until the
+#: image is recorded (an image a killed run left so is redone by ``--resume``).
+MANIFEST_STATUSES = ("done", "failed", "running")
 #: Most ``n_jobs`` a batch takes: worker processes here, or images in flight on Dask.
 MAX_JOBS = 1024
 log = logging.getLogger(__name__)
@@ -545,14 +548,18 @@ def _manifest_problem(data: Any) -> str | None:
     """What is wrong with a manifest's shape, or ``None`` when it is right.
 
     An object, with ``config`` an object and ``images`` an object of entries
-    (:func:`_entry_problem`): what :func:`plan_jobs`, :func:`manifest_config`
-    and :class:`_Manifest` read.
+    (:func:`_entry_problem`; each with a status of :data:`MANIFEST_STATUSES`),
+    both present: what :func:`plan_jobs`, :func:`manifest_config` and
+    :class:`_Manifest` read.
     """
     if not isinstance(data, dict):
         return f"it holds {_json_kind(data)}, not an object"
-    if not isinstance(data.get("config", {}), dict):
+    for key in ("config", "images"):  # every manifest rangeseg writes has both
+        if key not in data:
+            return f'"{key}" is missing; rangeseg writes it in every manifest'
+    if not isinstance(data["config"], dict):
         return f'"config" is {_json_kind(data["config"])}, not an object of tables'
-    images = data.get("images", {})
+    images = data["images"]
     if not isinstance(images, dict):
         return f'"images" is {_json_kind(images)}, not an object of images'
     for rel, entry in images.items():
@@ -575,6 +582,9 @@ def _entry_problem(entry: Any) -> str | None:
     digests = entry.get("stage_configs", {})
     if not (isinstance(digests, dict) and all(isinstance(d, str) for d in digests.values())):
         return '"stage_configs" is not an object of stage names and digests'
+    if entry.get("status") not in MANIFEST_STATUSES:
+        what = json.dumps(entry["status"]) if "status" in entry else "missing"
+        return f'"status" is {what}; allowed: ' + ", ".join(map(json.dumps, MANIFEST_STATUSES))
     return None
 
 
