@@ -431,8 +431,12 @@ def jobs_from_inputs(inputs: Iterable[str | Path], out: Location
 
 
 def _identity(path: Location) -> object:
-    """What names one input file: a local path through links, else the URL."""
-    return path.resolve() if isinstance(path, Path) else str(path)
+    """What names one input file: a local path through links, else the URL.
+
+    A link loop is named as it stands (``realpath`` does not raise): reading it
+    then fails with one line (:func:`rangeseg_cli.io.read_image`).
+    """
+    return Path(os.path.realpath(path)) if isinstance(path, Path) else str(path)
 
 
 def _same_file(a: Location | None, b: Location) -> bool:

@@ -16,6 +16,7 @@ moved over it.
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -320,11 +321,23 @@ def read_image(path: str | Path | URLPath) -> np.ndarray:
     except PermissionError:
         raise InputError(f"{path}: permission denied") from None
     except Exception as exc:  # noqa: BLE001 - every decoder failure becomes one line
-        reason = _reason(exc)
-        if reason.startswith("Could not find a backend"):  # imageio names a file object
-            reason = "its content is no image format rangeseg reads: PNG, PGM/PNM, TIFF, NPY"
-        raise InputError(f"{path}: not a readable image ({reason})") from None
+        raise _unreadable(path, exc) from None
     return check_array(raw, name=str(path))
+
+
+def _unreadable(path: Location, exc: Exception) -> InputError:
+    """The one-line error of a file that could not be decoded (``exc``)."""
+    if isinstance(exc, OSError) and exc.errno == errno.ELOOP:
+        return InputError(f"{path}: {LINK_LOOP}, not an image; remove the link or point it "
+                          "at a file")
+    reason = _reason(exc)
+    if reason.startswith("Could not find a backend"):  # imageio names a file object
+        reason = "its content is no image format rangeseg reads: PNG, PGM/PNM, TIFF, NPY"
+    return InputError(f"{path}: not a readable image ({reason})")
+
+
+#: What a link that leads back to itself is called in messages.
+LINK_LOOP = "a symbolic link loop (the link leads back to itself)"
 
 
 def input_stamp(path: str | Path | URLPath) -> str | None:
@@ -511,8 +524,21 @@ def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
                 else:
                     skipped.append(path)
         else:
-            raise InputError(f"{root}: no such file or folder")
+            raise _missing_input(root)
     return images, skipped
+
+
+def _missing_input(root: Location) -> InputError:
+    """The error of a named input that is no file or folder: missing, or a broken link."""
+    if isinstance(root, Path) and root.is_symlink():
+        try:
+            root.stat()
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                return InputError(f"{root}: {LINK_LOOP}; name a file or folder")
+        return InputError(f"{root}: a symbolic link to {os.readlink(root)}, which does not "
+                          "exist; name a file or folder")
+    return InputError(f"{root}: no such file or folder")
 
 
 def _walk(root: Location, excluded: Location | None) -> Iterator[tuple[Location, PurePath]]:

@@ -57,3 +57,32 @@ def test_a_manifest_with_a_bad_status_or_no_config_stops_with_one_line(runner, b
         f"Error: {path}: not a manifest of rangeseg ({problem}); repair it, or delete it and "
         "redo the images with --overwrite")
     assert path.read_bytes() == before
+
+
+# --------------------------------------------------------------------------- link loop (1)
+
+
+def test_a_symlink_loop_in_an_input_folder_fails_alone(runner, tmp_path, write_png):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    write_png(folder / "good.png", box_scene(48).astype(np.uint8))
+    (folder / "a.png").symlink_to("b.png")
+    (folder / "b.png").symlink_to("a.png")
+    out = tmp_path / "out"
+    res = runner.invoke(main, ["run", str(folder), "-o", str(out), "-j", "1", "-q", "--json"])
+    no_traceback(res)
+    assert res.exit_code == 1
+    for name in ("a.png", "b.png"):
+        assert (f"{folder / name}: a symbolic link loop (the link leads back to itself), "
+                "not an image") in res.stderr
+    summary = json.loads(res.stdout)
+    assert summary["done"] == 1 and sorted(summary["errors"]) == ["a", "b"]
+    assert (out / "good.holdsite.json").is_file()
+
+
+def test_a_symlink_loop_named_as_input_is_one_line_exit_2(runner, tmp_path):
+    (tmp_path / "a.png").symlink_to("a.png")
+    res = runner.invoke(main, ["run", str(tmp_path / "a.png"), "-o", str(tmp_path / "out")])
+    no_traceback(res)
+    assert res.exit_code == 2
+    assert "a.png: a symbolic link loop" in res.output.strip().splitlines()[-1]
