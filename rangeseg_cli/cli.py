@@ -416,8 +416,12 @@ def config_cmd(config_path: str | None, preset: str | None, settings: tuple[str,
     from .config import default_toml
 
     shorthands, _ = _shorthands(paths)
-    click.echo(default_toml(_load_config(config_path, preset, settings, shorthands=shorthands)),
-               nl=False)
+    given = [("--preset", preset), ("--config", config_path),
+             *((f"--{k.removesuffix('_path')}", v) for k, v in paths.items())]
+    made_by = " ".join([f"{opt} {value}" for opt, value in given if value is not None]
+                       + [f"--set {item}" for item in settings])
+    click.echo(default_toml(_load_config(config_path, preset, settings, shorthands=shorthands),
+                            made_by=made_by), nl=False)
 
 
 # --------------------------------------------------------------------------- synth and eval

@@ -1,13 +1,16 @@
 """Configuration: one frozen dataclass per pipeline stage, loaded from TOML.
 
-Defaults are the parameters of Al-Hujazi & Sood (1990), Section VI:
+The defaults hold the parameters of Al-Hujazi & Sood (1990), Section VI:
 step edges with a 5-tap Gaussian (sigma 1) and threshold 6; roof edges with a
 17-tap Gaussian (sigma 4) and thresholds 6 (pass 2a) and 4 (pass 2b);
 components below 20 pixels dropped; region growing at 10 e_A; a 7x7
-holdsite window (Section VII).
+holdsite window (Section VII); and the steps beyond the paper, on
+(``--preset paper`` turns them off).
 
 Every key is declared once here with its type, its allowed values and a
-one-line help text; :func:`default_toml` prints them as commented TOML, and
+one-line help text; :func:`default_toml` prints them as commented TOML,
+:func:`key_reference` gives them to ``docs/gen_config.py`` (which writes
+``docs/configuration.md``), and
 :func:`load_config` rejects unknown tables and keys, wrong types and values
 out of range with a :class:`~rangeseg_cli.errors.ConfigError` that names the
 table, the key, the value and what is allowed.
@@ -53,7 +56,7 @@ def _opt(default: Any, help: str, **limits: Any) -> Any:
 
 @dataclass(frozen=True)
 class InputConfig:
-    """How raw pixel values become heights (SPEC "Units and real sensors")."""
+    """How raw pixel values become heights (docs/sensors.md)."""
 
     scale: float = _opt(1.0, "multiply raw values by this (e.g. 0.1 for depth in 0.1 mm -> mm)",
                         min_excl=0.0, max=1e6)
@@ -842,26 +845,74 @@ def _toml_value(value: Any) -> str:
     return str(value)
 
 
-def default_toml(config: Config | None = None) -> str:
+@dataclass(frozen=True)
+class KeyReference:
+    """One configuration key as documented: its table, name, default, allowed values, help."""
+
+    table: str
+    table_help: str
+    key: str
+    default: str
+    allowed: str
+    help: str
+
+
+def key_reference() -> list[KeyReference]:
+    """Every key of :class:`Config` in order, with its default, allowed values and help text.
+
+    The one source of ``rangeseg config``'s comments and of ``docs/configuration.md``.
+    """
+    config = Config()
+    out = []
+    for table_field in dataclasses.fields(config):
+        table = getattr(config, table_field.name)
+        table_help = str(type(table).__doc__).splitlines()[0]
+        for f in dataclasses.fields(table):
+            out.append(KeyReference(table_field.name, table_help, f.name,
+                                    _toml_value(getattr(table, f.name)), _describe_allowed(f),
+                                    f.metadata["help"]))
+    return out
+
+
+#: Where ``rangeseg config``'s output points for the whole reference.
+DOCS = "docs/configuration.md and docs/sensors.md in rangeseg's repository"
+
+
+def default_toml(config: Config | None = None, made_by: str = "") -> str:
     """Render a configuration as TOML with a comment on every key.
 
     Parameters
     ----------
     config
         The configuration to print; the defaults when ``None``.
+    made_by
+        What made ``config`` (e.g. ``"--preset mm-depth --set step.threshold=2"``),
+        said in the header when it differs from the defaults.
 
     Returns
     -------
     str
-        TOML text that :func:`load_config` reads back to the same values.
+        TOML text that :func:`load_config` reads back to the same values; a key
+        whose value differs from the default says the default in its comment.
     """
     config = config or Config()
-    lines = ["# rangeseg configuration. Defaults are the parameters of Al-Hujazi & Sood",
-             "# (1990), Section VI. Every key is optional."]
+    defaults = Config()
+    if config.digest() == defaults.digest():
+        lines = ["# rangeseg configuration: the defaults (the parameters of Al-Hujazi & Sood",
+                 "# 1990, Section VI, and the steps beyond the paper). Every key is optional."]
+    else:
+        lines = ["# rangeseg configuration from " + (made_by or "the options given")
+                 + " (not the defaults):",
+                 "# keys that differ from the defaults say their default. Every key is optional."]
+    lines.append(f"# Reference: {DOCS}.")
     for table_field in dataclasses.fields(config):
         table = getattr(config, table_field.name)
+        default_table = getattr(defaults, table_field.name)
         lines += ["", f"# {str(type(table).__doc__).splitlines()[0]}", f"[{table_field.name}]"]
         for f in dataclasses.fields(table):
-            lines.append(f"# {f.metadata['help']} ({_describe_allowed(f)})")
-            lines.append(f"{f.name} = {_toml_value(getattr(table, f.name))}")
+            value = _toml_value(getattr(table, f.name))
+            default = _toml_value(getattr(default_table, f.name))
+            changed = f"; default {default}" if value != default else ""
+            lines.append(f"# {f.metadata['help']} ({_describe_allowed(f)}{changed})")
+            lines.append(f"{f.name} = {value}")
     return "\n".join(lines) + "\n"
