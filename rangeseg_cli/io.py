@@ -18,10 +18,12 @@ from __future__ import annotations
 
 import errno
 import json
+import logging
 import math
 import os
 import re
 import secrets
+import stat
 import tempfile
 import warnings
 from collections.abc import Callable, Iterable, Iterator
@@ -376,20 +378,106 @@ def _read_any(path: Location) -> np.ndarray:
         data = path.read_bytes()
         if not data:
             raise InputError(f"{path}: empty file")
-        return _decode(BytesIO(data), suffix, path)
-    if path.stat().st_size == 0:
+        return _decode_explained(BytesIO(data), suffix, path, data[:_HEAD])
+    _check_regular(path)  # a FIFO is never opened: reading it could wait forever
+    with path.open("rb") as fh:
+        head = fh.read(_HEAD)
+    return _decode_explained(path, suffix, path, head)
+
+
+#: Bytes read to tell a file's format by its signature.
+_HEAD = 16
+#: Formats by their first bytes: those rangeseg reads, and a few others met beside them.
+_SIGNATURES = ((b"\x89PNG\r\n\x1a\n", "PNG"), (b"II*\x00", "TIFF"), (b"MM\x00*", "TIFF"),
+               (b"II+\x00", "TIFF"), (b"MM\x00+", "TIFF"), (b"\x93NUMPY", "NPY"),
+               (b"PK\x03\x04", "zip (NPZ?)"), (b"\xff\xd8\xff", "JPEG"), (b"GIF8", "GIF"))
+#: The format each extension names, and the extension of each format rangeseg reads.
+_FORMAT_OF = {".png": "PNG", ".pgm": "PGM/PNM", ".pnm": "PGM/PNM", ".tif": "TIFF",
+              ".tiff": "TIFF", ".npy": "NPY"}
+_SUFFIX_OF = {"PNG": ".png", "PGM/PNM": ".pgm", "TIFF": ".tif", "NPY": ".npy"}
+#: Kinds of file that are not regular files, as messages name them.
+_SPECIAL_FILES = {stat.S_IFIFO: "a named pipe (FIFO)", stat.S_IFSOCK: "a socket",
+                  stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device"}
+
+
+def content_format(head: bytes) -> str | None:
+    """The format whose signature ``head`` (a file's first bytes) starts with, if known.
+
+    Returns
+    -------
+    str or None
+        ``"PNG"``, ``"PGM/PNM"``, ``"TIFF"``, ``"NPY"``, or another format met
+        beside depth frames (``"JPEG"``, ``"GIF"``, ``"zip (NPZ?)"``); ``None``
+        for anything else.
+    """
+    if re.match(rb"P[1-7]\s", head):
+        return "PGM/PNM"
+    return next((kind for magic, kind in _SIGNATURES if head.startswith(magic)), None)
+
+
+def _check_regular(path: Path) -> None:
+    """Refuse an empty file, or one that is no regular file (a FIFO, a device), unopened.
+
+    Raises
+    ------
+    InputError
+        Naming the file and what it is.
+    """
+    info = path.stat()
+    kind = _SPECIAL_FILES.get(stat.S_IFMT(info.st_mode))
+    if kind is not None:
+        raise InputError(f"{path}: {kind}, not a regular file; rangeseg reads image files: "
+                         f"{READS}")
+    if stat.S_ISREG(info.st_mode) and info.st_size == 0:
         raise InputError(f"{path}: empty file")
-    return _decode(path, suffix, path)
+
+
+#: The formats rangeseg reads, for messages.
+READS = "PNG, PGM/PNM, TIFF or NPY"
+
+
+def _decode_explained(source: Path | BytesIO, suffix: str, path: Location, head: bytes
+                      ) -> np.ndarray:
+    """:func:`_decode`, its failure said in one line: what the file holds, what is read."""
+    try:
+        return _decode(source, suffix, path)
+    except RangesegError:
+        raise
+    except (FileNotFoundError, IsADirectoryError, PermissionError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - every decoder failure becomes one line
+        why = _why_unreadable(_reason(exc), content_format(head), suffix)
+        raise InputError(f"{path}: not a readable image ({why})") from None
+
+
+def _why_unreadable(reason: str, kind: str | None, suffix: str) -> str:
+    """Why a file of format ``kind`` (by its first bytes) named ``*suffix`` failed to decode."""
+    expected = _FORMAT_OF.get(suffix, suffix)
+    if kind is not None and kind != expected:
+        fix = (f"rename it to {_SUFFIX_OF[kind]}" if kind in _SUFFIX_OF
+               else f"convert it to {READS}")
+        return (f"it holds {kind} data, not {expected} as its extension {suffix} says; "
+                f"rangeseg picks the reader by the extension: {fix}")
+    if "Object arrays cannot be loaded" in reason:
+        return ("an NPY array of Python objects, which rangeseg never loads; save numbers, "
+                "e.g. numpy.save(name, depth.astype('float32'))")
+    if kind is None and suffix == ".npy":
+        return f"no NPY header: not a file numpy.save wrote; rangeseg reads {READS}"
+    if kind is None:
+        return f"its content is no image format rangeseg reads: {READS}"
+    return f"a damaged or truncated {kind} file: {reason}"
 
 
 def _decode(source: Path | BytesIO, suffix: str, path: Location) -> np.ndarray:
     """Decode a local file, or the bytes of a remote one, by the name's extension."""
     if suffix == ".npy":
-        return np.load(source, allow_pickle=False)
+        arr = np.load(source, allow_pickle=False)
+        if not isinstance(arr, np.ndarray):  # an NPZ archive
+            arr.close()
+            raise ValueError("an NPZ archive of arrays, not one array")
+        return arr
     if suffix in (".tif", ".tiff"):
-        import tifffile
-
-        return tifffile.imread(source)
+        return _decode_tiff(source)
     if suffix in (".png", ".pgm", ".pnm"):
         if isinstance(source, Path):
             with source.open("rb") as fh:  # closed even when the decoder fails
@@ -397,6 +485,27 @@ def _decode(source: Path | BytesIO, suffix: str, path: Location) -> np.ndarray:
         return _decode_png_pnm(source, suffix, path)
     raise InputError(f"{path}: unsupported extension {suffix!r}; allowed: "
                      + ", ".join(IMAGE_EXTENSIONS))
+
+
+def _decode_tiff(source: Path | BytesIO) -> np.ndarray:
+    """A TIFF's first image; tifffile's own log lines are kept off stderr.
+
+    Raises
+    ------
+    ValueError
+        When tifffile gives no pixels (it logs a damaged file and returns an empty array).
+    """
+    import tifffile
+
+    logger = logging.getLogger("tifffile")
+    disabled, logger.disabled = logger.disabled, True
+    try:
+        arr = tifffile.imread(source)
+    finally:
+        logger.disabled = disabled
+    if arr.size == 0:
+        raise ValueError("no image data tifffile can decode")
+    return arr
 
 
 def _decode_png_pnm(fh: BinaryIO, suffix: str, path: Location) -> np.ndarray:
@@ -538,6 +647,10 @@ def _missing_input(root: Location) -> InputError:
                 return InputError(f"{root}: {LINK_LOOP}; name a file or folder")
         return InputError(f"{root}: a symbolic link to {os.readlink(root)}, which does not "
                           "exist; name a file or folder")
+    if isinstance(root, Path) and root.exists():
+        kind = _SPECIAL_FILES.get(stat.S_IFMT(root.stat().st_mode), "not a regular file")
+        return InputError(f"{root}: {kind}, not a file or folder; rangeseg reads image "
+                          f"files: {READS}")
     return InputError(f"{root}: no such file or folder")
 
 

@@ -86,3 +86,57 @@ def test_a_symlink_loop_named_as_input_is_one_line_exit_2(runner, tmp_path):
     no_traceback(res)
     assert res.exit_code == 2
     assert "a.png: a symbolic link loop" in res.output.strip().splitlines()[-1]
+
+
+# --------------------------------------------------------------------------- read errors (4)
+
+
+def test_png_bytes_named_npy_say_what_they_are_not_numpys_pickle_hint(tmp_path, box_png):
+    from rangeseg_cli import io
+    from rangeseg_cli.errors import InputError
+
+    fake = tmp_path / "x.npy"
+    fake.write_bytes(box_png.read_bytes())
+    with pytest.raises(InputError) as info:
+        io.read_image(fake)
+    assert str(info.value) == (f"{fake}: not a readable image (it holds PNG data, not NPY as "
+                               "its extension .npy says; rangeseg picks the reader by the "
+                               "extension: rename it to .png)")
+    np.save(tmp_path / "objects.npy", np.array([{}, 1], dtype=object))
+    with pytest.raises(InputError, match=r"objects.npy: not a readable image \(an NPY array "
+                                         r"of Python objects, which rangeseg never loads"):
+        io.read_image(tmp_path / "objects.npy")
+
+
+def test_a_corrupt_tiff_is_one_line_without_tifffiles_own(runner, tmp_path, caplog):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "good.tif", np.zeros((32, 32), np.uint16))
+    data = (tmp_path / "good.tif").read_bytes()
+    (tmp_path / "bad.tif").write_bytes(data[:8] + bytes(200))  # the header, then zeros
+    res = runner.invoke(main, ["run", str(tmp_path / "bad.tif"), "-o", str(tmp_path / "out"),
+                               "-j", "1", "-q"])
+    no_traceback(res)
+    assert res.exit_code == 1
+    assert res.stderr == (f"{tmp_path / 'bad.tif'}: not a readable image (a damaged or "
+                          "truncated TIFF file: no image data tifffile can decode)\n")
+    assert not [r for r in caplog.records if r.name.startswith("tifffile")]
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="no named pipes")
+def test_a_fifo_named_png_is_named_a_fifo_and_never_opened(runner, tmp_path, box_png):
+    import os
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    os.mkfifo(folder / "pipe.png")  # opening it to read would wait for a writer forever
+    (folder / "box.png").write_bytes(box_png.read_bytes())
+    res = runner.invoke(main, ["run", str(folder), "-o", str(tmp_path / "out"), "-j", "1",
+                               "-q"])
+    no_traceback(res)
+    assert res.exit_code == 1
+    assert res.stderr == (f"{folder / 'pipe.png'}: a named pipe (FIFO), not a regular file; "
+                          "rangeseg reads image files: PNG, PGM/PNM, TIFF or NPY\n")
+    res = runner.invoke(main, ["run", str(folder / "pipe.png"), "-o", str(tmp_path / "o2")])
+    assert res.exit_code == 2
+    assert "pipe.png: a named pipe (FIFO), not a file or folder" in res.output
