@@ -370,7 +370,7 @@ def _run_holdsite(state: dict[str, Any], base: Location, config: Config) -> None
     io.write_json(_p(base, "holdsite.json"), result.to_dict(), config.output.float_digits)
     if config.output.png:
         io.write_png(_p(base, "overlay.png"),
-                     render.overlay(state["labels"], result))
+                     render.overlay(state["labels"], result, heights=state["z"]))
 
 
 _STAGE_RUNNERS: dict[str, Callable[[dict[str, Any], Location, Config], None]] = {

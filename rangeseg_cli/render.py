@@ -2,7 +2,9 @@
 
 Everything here returns uint8 arrays; :mod:`rangeseg_cli.io` writes them.
 The layout follows the paper's Figs. 10-13: edges white on black, regions
-in colour, the holdsite a white square.
+in colour, the holdsite a white square. The overlay shades each surface's
+colour by height (nearer the sensor = brighter), so that it can be laid
+beside the scene.
 """
 
 from __future__ import annotations
@@ -80,8 +82,41 @@ def _stamp(image: np.ndarray, mask: np.ndarray, row: int, col: int) -> None:
     image[rr[keep], cc[keep]] = 255
 
 
-def overlay(labels: np.ndarray, holdsite: Any, size: tuple[int, int] | None = None
-            ) -> np.ndarray:
+#: Brightness of the lowest (farthest) labelled pixels of an overlay; the highest get 1.
+SHADE_FLOOR = 0.35
+
+
+def shade_by_height(image: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Scale a colour picture's brightness by height: nearer the sensor = brighter.
+
+    Parameters
+    ----------
+    image
+        uint8 (H, W, 3) colours (e.g. :func:`label_colors`).
+    z
+        float (H, W) heights (larger = closer), NaN where invalid.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 (H, W, 3): each pixel's colour times :data:`SHADE_FLOOR` at the
+        1st percentile of the valid heights up to 1 at the 99th (clipped);
+        invalid pixels keep their colour.
+    """
+    if z.shape != image.shape[:2]:
+        raise ValueError(f"`z` (shape {z.shape}) must have the shape of `image` "
+                         f"({image.shape[:2]})")
+    valid = np.isfinite(z)
+    if not valid.any():
+        return image.copy()
+    lo, hi = np.percentile(z[valid], [1, 99])
+    t = np.clip((np.where(valid, z, hi) - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    factor = SHADE_FLOOR + (1.0 - SHADE_FLOOR) * t
+    return (image * factor[..., None]).round().astype(np.uint8)
+
+
+def overlay(labels: np.ndarray, holdsite: Any, size: tuple[int, int] | None = None,
+            *, heights: np.ndarray | None = None) -> np.ndarray:
     """Segmentation in colour with the holdsite drawn as in the paper's Figs. 10-13.
 
     Parameters
@@ -93,18 +128,23 @@ def overlay(labels: np.ndarray, holdsite: Any, size: tuple[int, int] | None = No
         (``holdsite.json``); ``None`` draws the labels only.
     size
         Footprint (rows, cols); by default each site's own ``size``.
+    heights
+        float (H, W) heights (NaN invalid): each surface's colour is shaded by
+        them, nearer = brighter (:func:`shade_by_height`); ``None``: flat colours.
 
     Returns
     -------
     numpy.ndarray
-        uint8 (H, W, 3): :func:`label_colors`, the chosen window filled white
-        (rotated by its ``angle``), the runners-up outlined in white.
+        uint8 (H, W, 3): :func:`label_colors` (shaded), the chosen window
+        filled white (rotated by its ``angle``), the runners-up outlined in white.
     """
     from scipy import ndimage
 
     from .holdsite import footprint
 
     image = label_colors(labels)
+    if heights is not None:
+        image = shade_by_height(image, heights)
     doc = holdsite.to_dict() if hasattr(holdsite, "to_dict") else (holdsite or {})
     sites = [(s, False) for s in doc.get("candidates", [])]
     if doc.get("holdsite"):
