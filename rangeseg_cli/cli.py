@@ -206,6 +206,7 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
         raise click.UsageError("--resume and --overwrite exclude each other: --resume "
                                "completes what is missing, --overwrite redoes every image")
     _set_threads(opts["threads"])
+    _say_if_compiling(opts)
     reporter = BatchReporter(quiet=opts["quiet"] > 0, verbose=opts["verbose"])
     # Dask: --jobs caps the images in flight; without it the cluster sets the parallelism.
     n_jobs = opts["jobs"] if opts["executor"] == "dask" else opts["jobs"] or default_jobs()
@@ -226,6 +227,14 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
     if opts["as_json"]:
         click.echo(json.dumps(summary.to_dict(), sort_keys=True, indent=2))
     _exit(ctx, summary)
+
+
+def _say_if_compiling(opts: dict[str, Any]) -> None:
+    """On stderr, unless -q: the first run compiles the numba kernels (the workers' on Dask)."""
+    from .kernel_cache import MESSAGE, cold_kernel_cache
+
+    if not opts["quiet"] and opts["executor"] == "local" and cold_kernel_cache():
+        click.echo(MESSAGE, err=True)
 
 
 def _set_threads(threads: int | None) -> None:
