@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -104,3 +109,40 @@ def write_png():
         return path
 
     return _write
+
+
+def end_process(proc: subprocess.Popen) -> None:
+    """Kill ``proc`` (its whole group when it leads one) if it still runs; reap it, close its pipes."""
+    if proc.poll() is None:
+        try:
+            if os.getpgid(proc.pid) == proc.pid:  # started with start_new_session
+                os.killpg(proc.pid, signal.SIGKILL)
+            else:
+                proc.kill()
+        except ProcessLookupError:  # it ended meanwhile
+            pass
+    for stream in (proc.stdin, proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()
+    proc.wait()
+
+
+@pytest.fixture
+def spawn() -> Iterator[Callable[..., subprocess.Popen]]:
+    """``subprocess.Popen``, each process it starts ended when the test ends, passed or not.
+
+    A process left running (a test that failed half-way) would hold its files and cores,
+    and fail the next module's set-up (``ResourceWarning: subprocess ... is still running``).
+    """
+    procs: list[subprocess.Popen] = []
+
+    def _spawn(args: Any, **kwargs: Any) -> subprocess.Popen:
+        proc = subprocess.Popen(args, **kwargs)
+        procs.append(proc)
+        return proc
+
+    try:
+        yield _spawn
+    finally:
+        for proc in procs:
+            end_process(proc)

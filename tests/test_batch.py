@@ -125,12 +125,12 @@ def _two_workers(pid: int) -> set[int]:
     return workers
 
 
-def test_resume_after_sigkill_completes_with_identical_bytes(tmp_path, write_png):
+def test_resume_after_sigkill_completes_with_identical_bytes(tmp_path, write_png, spawn):
     folder = _many(tmp_path, write_png, 24)
     ref, out = tmp_path / "ref", tmp_path / "out"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "1", "-q"]
     subprocess.run([*cmd, "-o", str(ref)], check=True, capture_output=True)
-    proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
+    proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 3:
@@ -253,12 +253,12 @@ def test_random_nan_patterns_never_leak_into_labels(seed, frac):
     ("2", signal.SIGTERM, 143, "terminated (SIGTERM):"),
 ])
 def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path, write_png,
-                                                                        jobs, signum, code,
-                                                                        said):
+                                                                        spawn, jobs, signum,
+                                                                        code, said):
     folder = _many(tmp_path, write_png, 30)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", jobs, "-q"]
-    proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.PIPE,
+    proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 2:
@@ -278,7 +278,7 @@ def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path
 
 
 def test_a_run_killed_with_new_settings_leaves_nothing_certified_under_the_old(
-        tmp_path, write_png):
+        tmp_path, write_png, spawn):
     # SIGKILL (an OOM killer, power loss) lands between writing an image's files and the
     # next write of the manifest: those images used to keep their entries of the old
     # settings, and --resume with the old settings kept their new files, exit 0.
@@ -287,7 +287,7 @@ def test_a_run_killed_with_new_settings_leaves_nothing_certified_under_the_old(
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "1", "-q"]
     assert subprocess.run([*cmd, "-o", str(out)], capture_output=True).returncode == 0
     before = {p: p.stat().st_mtime_ns for p in out.glob("*.holdsite.json")}
-    proc = subprocess.Popen([*cmd, "-o", str(out), "--overwrite", "--set", "step.threshold=8"],
+    proc = spawn([*cmd, "-o", str(out), "--overwrite", "--set", "step.threshold=8"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and sum(
@@ -306,10 +306,28 @@ def test_a_run_killed_with_new_settings_leaves_nothing_certified_under_the_old(
 def _children(pid: int) -> set[int]:
     """Pids of the processes ``pid`` forked (Linux ``/proc``)."""
     kids: set[int] = set()
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as fh:
-            kids.update(int(k) for k in fh.read().split())
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except FileNotFoundError:  # the process has ended
+        return kids
+    for task in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{task}/children") as fh:
+                kids.update(int(k) for k in fh.read().split())
+        except (FileNotFoundError, ProcessLookupError):  # the thread ended since the listing
+            continue
     return kids
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc is Linux's")
+def test_children_of_a_process_whose_threads_come_and_go(monkeypatch, spawn):
+    # A thread listed in /proc/<pid>/task that has ended before its `children` is read
+    # raised FileNotFoundError, and the batch the test had started was left running.
+    kid = spawn([sys.executable, "-c", "import time; time.sleep(60)"])
+    real = os.listdir
+    monkeypatch.setattr(os, "listdir", lambda path: [*real(path), "999999999"])
+    assert kid.pid in _children(os.getpid())
+    assert _children(999999999) == set()  # a process that has ended: none
 
 
 def _alive(pid: int) -> bool:
@@ -322,12 +340,12 @@ def _alive(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl and /proc are Linux's")
-def test_workers_do_not_outlive_a_batch_killed_with_sigkill(tmp_path, write_png):
+def test_workers_do_not_outlive_a_batch_killed_with_sigkill(tmp_path, write_png, spawn):
     # An OOM killer or a scheduler's time limit sends SIGKILL: the pool cannot be stopped,
     # and the workers used to wait for work for ever, each holding its memory.
     folder = _many(tmp_path, write_png, 40)
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder),
+    proc = spawn([sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder),
                              "-o", str(out), "-j", "2", "-q"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     workers = _two_workers(proc.pid)
@@ -343,13 +361,14 @@ def test_workers_do_not_outlive_a_batch_killed_with_sigkill(tmp_path, write_png)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc is Linux's")
-def test_a_worker_killed_mid_batch_fails_its_images_and_the_batch_goes_on(tmp_path, write_png):
+def test_a_worker_killed_mid_batch_fails_its_images_and_the_batch_goes_on(tmp_path, write_png,
+                                                                         spawn):
     # The OOM killer takes one worker: the pool broke and the batch ended in a
     # BrokenProcessPool traceback, the images after it never run.
     folder = _many(tmp_path, write_png, 30)
     out, fresh = tmp_path / "out", tmp_path / "fresh"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "2", "-q"]
-    proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
+    proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     workers = _two_workers(proc.pid)
     time.sleep(0.3)
@@ -370,12 +389,12 @@ def test_a_worker_killed_mid_batch_fails_its_images_and_the_batch_goes_on(tmp_pa
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc is Linux's")
-def test_sigterm_to_the_whole_group_stops_as_sigterm_to_the_batch(tmp_path, write_png):
+def test_sigterm_to_the_whole_group_stops_as_sigterm_to_the_batch(tmp_path, write_png, spawn):
     # systemd or a container runtime signals every process: the workers die with the pool
     folder = _many(tmp_path, write_png, 30)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "2", "-q"]
-    proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
+    proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 2:

@@ -278,8 +278,8 @@ def many(tmp_path_factory):
     return folder, tree_bytes(out)
 
 
-def start_cli(folder: Path, out: Path, address: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder),
+def start_cli(spawn, folder: Path, out: Path, address: str) -> subprocess.Popen:
+    return spawn([sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder),
                              "-o", str(out), "-q", "--executor", "dask", "--scheduler", address],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -327,11 +327,11 @@ def resume_on(cluster, folder: Path, out: Path, reference: dict[str, bytes], don
     assert tree_bytes(out) == reference  # and no temporaries left
 
 
-def test_ctrl_c_on_dask_exits_130_keeps_what_finished_and_resumes(cluster, client, many,
+def test_ctrl_c_on_dask_exits_130_keeps_what_finished_and_resumes(cluster, client, many, spawn,
                                                                   tmp_path):
     folder, reference = many
     out = tmp_path / "out"
-    proc = start_cli(folder, out, cluster.scheduler_address)
+    proc = start_cli(spawn, folder, out, cluster.scheduler_address)
     wait_for_results(out, 3)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
@@ -353,19 +353,18 @@ with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="
 """
 
 
-def test_losing_the_scheduler_mid_batch_is_one_line_naming_it(cluster, many, tmp_path):
+def test_losing_the_scheduler_mid_batch_is_one_line_naming_it(cluster, many, tmp_path, spawn):
     # A scheduler (and its one worker) in a subprocess, killed with SIGKILL mid-batch.
     folder, reference = many
     out = tmp_path / "out"
-    with subprocess.Popen([sys.executable, "-c", DOOMED_CLUSTER], stdout=subprocess.PIPE,
-                          text=True) as doomed:
-        try:
-            address = doomed.stdout.readline().strip()
-            proc = start_cli(folder, out, address)
-            wait_for_results(out, 3)
-        finally:
-            doomed.kill()
-        _, err = proc.communicate(timeout=60)
+    doomed = spawn([sys.executable, "-c", DOOMED_CLUSTER], stdout=subprocess.PIPE, text=True)
+    try:
+        address = doomed.stdout.readline().strip()
+        proc = start_cli(spawn, folder, out, address)
+        wait_for_results(out, 3)
+    finally:
+        doomed.kill()
+    _, err = proc.communicate(timeout=60)
     assert proc.returncode == 1, err
     assert err.splitlines() == [f"Error: lost the Dask scheduler at {address} mid-batch; what "
                                 "finished is kept: rerun with --resume once it is back"]
