@@ -41,7 +41,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
@@ -404,7 +404,7 @@ def jobs_from_inputs(inputs: Iterable[str | Path], out: Location
         When an input URL cannot be used (see :func:`rangeseg_cli.io.location`).
     """
     inputs = list(inputs)
-    images, skipped = io.find_images(inputs, exclude=out)
+    images, skipped = io.find_images(inputs, exclude=out, written=WrittenHere())
     named: set[object] | None = None  # the files named themselves, asked only on a repeat
     seen: dict[str, Location] = {}
     files: set[object] = set()
@@ -428,6 +428,53 @@ def jobs_from_inputs(inputs: Iterable[str | Path], out: Location
         files.add(ident)
         jobs.append(Job(rel=key, source=str(path)))
     return jobs, [str(p) for p in skipped]
+
+
+class WrittenHere:
+    """Whether a file below an input folder is an output an earlier run wrote there.
+
+    So it is when its name is ``<stem>.<artifact>`` (:data:`STAGE_FILES`,
+    :data:`STAGE_PICTURES`) and the manifest of its folder, or of a folder
+    above it up to the one searched, lists the image ``stem`` (its path from
+    that folder). A camera frame ``cam.step.png`` no run wrote is read as an
+    image. Each manifest is read once.
+    """
+
+    ARTIFACTS = tuple(n for names in (*STAGE_FILES.values(), *STAGE_PICTURES.values())
+                      for n in names)
+
+    def __init__(self) -> None:
+        self.images: dict[str, dict[str, Any]] = {}
+
+    def __call__(self, root: Location, rel: PurePath) -> bool:
+        """Whether ``root / rel`` is such an output.
+
+        Raises
+        ------
+        InputError
+            Naming a damaged manifest in an input folder.
+        """
+        stem = next((rel.name[: -len(a) - 1] for a in self.ARTIFACTS
+                     if rel.name.endswith(f".{a}")), "")
+        if not stem:
+            return False
+        folders = rel.parts[:-1]
+        folder = root
+        for depth in range(len(folders) + 1):
+            if "/".join((*folders[depth:], stem)) in self._listed(folder):
+                return True
+            if depth < len(folders):
+                folder = folder / folders[depth]
+        return False
+
+    def _listed(self, folder: Location) -> dict[str, Any]:
+        key = str(folder)
+        if key not in self.images:
+            try:
+                self.images[key] = read_manifest(folder).get("images", {})
+            except OutputError as exc:
+                raise InputError(str(exc)) from None
+        return self.images[key]
 
 
 def _identity(path: Location) -> object:

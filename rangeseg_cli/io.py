@@ -39,7 +39,9 @@ from .rangeimage import check_array
 
 #: Extensions read as range images (lower case).
 IMAGE_EXTENSIONS = (".png", ".pgm", ".pnm", ".tif", ".tiff", ".npy")
-#: Suffixes of files this tool writes; never read back as inputs.
+#: Marks ground truth beside a frame (``<stem>.gt.npy``, ``.gt.background.png``): never read.
+GROUND_TRUTH_MARKER = ".gt."
+#: Parts of the names of files this tool writes (``find_images`` without its ``written``).
 OUTPUT_MARKERS = (".edges.", ".labels.", ".components.", ".range.", ".step.", ".roof.",
                   ".overlay.", ".gt.", ".surfaces.", ".holdsite.", ".linked.")
 #: fsspec protocols of object stores: writing a whole object at once is atomic.
@@ -590,7 +592,13 @@ def _plain_values(text: bytes, count: int, name: str) -> np.ndarray:
     return np.array(tokens, dtype=np.int64)
 
 
-def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
+#: Decides whether a file below a searched folder (the folder, the file's path relative
+#: to it) is an output an earlier run of rangeseg wrote there.
+WrittenCheck: TypeAlias = Callable[[Location, PurePath], bool]
+
+
+def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None,
+                written: WrittenCheck | None = None
                 ) -> tuple[list[tuple[Location, PurePath]], list[Location]]:
     """Resolve files and folders (recursively) into image files.
 
@@ -602,6 +610,13 @@ def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
         not searched.
     exclude
         A folder never read from (the output folder, when it lies inside an input).
+    written
+        Which files of the searched folders are outputs of an earlier run (read
+        from its manifest: :func:`rangeseg_cli.batch.jobs_from_inputs`); those
+        are not read. Without it, every file named like an output
+        (:data:`OUTPUT_MARKERS`) is taken for one. Ground truth
+        (``<stem>.gt.*``, as ``rangeseg synth`` writes beside its frames) is
+        never read.
 
     Returns
     -------
@@ -610,7 +625,8 @@ def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
         the path below the named folder without its extension (just the stem for
         a file named directly), so outputs go to ``OUT/<rel>.<artifact>``.
     skipped
-        Files in the folders that are not images by extension, or are outputs.
+        Files in the folders that are not images by extension, ground truth, or
+        outputs.
 
     Raises
     ------
@@ -628,7 +644,7 @@ def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
             images.append((root, Path(_strip(root.name))))
         elif root.is_dir():
             for path, rel in _walk(root, excluded):
-                if _is_image_name(path.name):
+                if _is_input_image(root, rel, written):
                     images.append((path, rel.parent / _strip(rel.name)))
                 else:
                     skipped.append(path)
@@ -741,9 +757,18 @@ def remove_temporaries(root: Location) -> None:
             tmp.unlink(missing_ok=True)
 
 
-def _is_image_name(name: str) -> bool:
-    lower = name.lower()
-    return lower.endswith(IMAGE_EXTENSIONS) and not any(m in lower for m in OUTPUT_MARKERS)
+def _is_input_image(root: Location, rel: PurePath, written: WrittenCheck | None) -> bool:
+    """Whether file ``rel`` below folder ``root`` is read as an image.
+
+    So it is by its extension, unless it is ground truth or an output of an
+    earlier run (by ``written``, else by its name).
+    """
+    lower = rel.name.lower()
+    if not lower.endswith(IMAGE_EXTENSIONS) or GROUND_TRUTH_MARKER in lower:
+        return False
+    if written is None:
+        return not any(m in lower for m in OUTPUT_MARKERS)
+    return not written(root, rel)
 
 
 def _strip(name: str) -> str:

@@ -382,13 +382,14 @@ def test_input_linked_to_an_output_is_refused(runner, box_png, tmp_path):
 
 def test_file_named_like_an_output_in_the_input_folder_is_not_overwritten(runner, box_png,
                                                                           tmp_path):
-    mine = tmp_path / "box.range.npy"  # the user's; not read as an image, named as an output
+    mine = tmp_path / "box.range.npy"  # the user's (no manifest lists it): an input image
     np.save(mine, box_scene(48))
     before = mine.read_bytes()
     res = runner.invoke(main, ["run", str(tmp_path), "-o", str(tmp_path), "-j", "1"])
     assert res.exit_code == 2
     line = one_line_error(res)
-    assert line.startswith(f"Error: {mine} is in an input folder") and str(box_png) in line
+    assert line.startswith(f"Error: {mine} is an input, and this run would overwrite it")
+    assert str(box_png) in line
     assert mine.read_bytes() == before
 
 

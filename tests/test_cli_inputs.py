@@ -140,3 +140,34 @@ def test_a_fifo_named_png_is_named_a_fifo_and_never_opened(runner, tmp_path, box
     res = runner.invoke(main, ["run", str(folder / "pipe.png"), "-o", str(tmp_path / "o2")])
     assert res.exit_code == 2
     assert "pipe.png: a named pipe (FIFO), not a file or folder" in res.output
+
+
+# --------------------------------------------------------------------------- names like outputs (3)
+
+
+def test_frames_named_like_outputs_are_read_when_no_run_wrote_them(runner, tmp_path, box_png):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("cam.step.png", "tote.labels.png"):  # a camera's names, no manifest here
+        (folder / name).write_bytes(box_png.read_bytes())
+    res = runner.invoke(main, ["edges", str(folder), "-o", str(tmp_path / "out"), "-j", "1",
+                               "-q", "--json"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout)
+    assert summary["done"] == 2 and summary["not_images"] == 0
+    assert (tmp_path / "out" / "cam.step.edges.npy").is_file()
+
+
+def test_outputs_an_earlier_run_wrote_and_ground_truth_are_not_read(runner, tmp_path, box_png):
+    folder = tmp_path / "in"
+    (folder / "sub").mkdir(parents=True)
+    (folder / "sub" / "box.png").write_bytes(box_png.read_bytes())
+    np.save(folder / "sub" / "box.gt.npy", np.zeros((48, 48), np.int32))  # rangeseg synth's
+    first = runner.invoke(main, ["edges", str(folder), "-o", str(folder / "old"), "-j", "1"])
+    assert first.exit_code == 0, first.output
+    res = runner.invoke(main, ["edges", str(folder), "-o", str(tmp_path / "out"), "-j", "1",
+                               "-q", "--json"])  # old/ is searched now: its manifest says
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout)
+    assert summary["done"] == 1  # sub/box only; old/sub/box.* were written by rangeseg
+    assert summary["not_images"] == 7  # 5 outputs, the manifest and the ground truth
