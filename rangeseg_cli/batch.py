@@ -391,9 +391,12 @@ def expected_files(rel: str, stages: Iterable[str], config: Config) -> list[str]
 # --------------------------------------------------------------------------- batches
 
 
-def jobs_from_inputs(inputs: Iterable[str | Path], out: Location
-                     ) -> tuple[list[Job], list[str]]:
+def jobs_from_inputs(inputs: Iterable[str | Path], out: Location,
+                     names: io.NameFilter | None = None) -> tuple[list[Job], list[str]]:
     """Jobs for the images among ``inputs`` (files and folders, recursive; paths or URLs).
+
+    ``names``: which files of the folders to read (``--include``, ``--exclude``);
+    the files it leaves out are listed with the non-images.
 
     Raises
     ------
@@ -404,7 +407,7 @@ def jobs_from_inputs(inputs: Iterable[str | Path], out: Location
         When an input URL cannot be used (see :func:`rangeseg_cli.io.location`).
     """
     inputs = list(inputs)
-    images, skipped = io.find_images(inputs, exclude=out, written=WrittenHere())
+    images, skipped = io.find_images(inputs, exclude=out, written=WrittenHere(), names=names)
     named: set[object] | None = None  # the files named themselves, asked only on a repeat
     seen: dict[str, Location] = {}
     files: set[object] = set()

@@ -84,6 +84,29 @@ def _not_empty(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
     return value
 
 
+def _name_filter(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]
+                 ) -> tuple[str, ...]:
+    """--include/--exclude: an empty glob is a usage error."""
+    from .io import NameFilter
+
+    try:
+        NameFilter(include=value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+    return value
+
+
+include_opt = click.option(
+    "--include", "include", multiple=True, metavar="GLOB", callback=_name_filter,
+    help="Read only the files of INPUTS folders that GLOB matches (repeatable). A GLOB "
+         "without / is matched against the file's name and its folders' names "
+         "('*_depth.npy'), one with / against its path below the named folder "
+         "('cam1/**/*.png'); * stops at /, ** does not; case-sensitive. --exclude wins "
+         "over --include; a file named as an INPUT is always read.")
+exclude_opt = click.option(
+    "--exclude", "exclude", multiple=True, metavar="GLOB", callback=_name_filter,
+    help="Do not read the files of INPUTS folders that GLOB matches (repeatable; globs as "
+         "for --include), e.g. --exclude '*_mask.png'; wins over --include.")
 output_opt = click.option("--output", "-o", "out", required=True,
                           type=click.Path(file_okay=False), callback=_not_empty,
                           help="Output folder: a path or a URL such as s3://bucket/out.")
@@ -301,17 +324,21 @@ def _location(name: str) -> Any:
         raise UsageProblem(str(exc)) from None
 
 
-def _input_jobs(inputs: tuple[str, ...], out: Any) -> tuple[list[Any], list[str]]:
+def _input_jobs(inputs: tuple[str, ...], out: Any, opts: dict[str, Any]
+                ) -> tuple[list[Any], list[str]]:
     from .batch import jobs_from_inputs
     from .errors import InputError, StorageError
+    from .io import NameFilter
 
+    names = NameFilter(include=opts["include"], exclude=opts["exclude"])
     try:
-        jobs, skipped = jobs_from_inputs(inputs, out)
+        jobs, skipped = jobs_from_inputs(inputs, out, names)
     except (InputError, StorageError) as exc:
         raise UsageProblem(str(exc)) from None
     if not jobs:
+        filters = " and --include/--exclude" if names.include or names.exclude else ""
         raise UsageProblem("no range images found in " + ", ".join(inputs)
-                               + " (extensions: .png .pgm .pnm .tif .tiff .npy)")
+                           + f" (extensions: .png .pgm .pnm .tif .tiff .npy{filters})")
     return jobs, skipped
 
 
@@ -358,6 +385,8 @@ def _input_command(name: str, last: str, help_text: str) -> None:
     @main.command(name=name, help=help_text)
     @inputs_arg
     @output_opt
+    @include_opt
+    @exclude_opt
     @_batch_options
     @click.pass_context
     def command(ctx: click.Context, inputs: tuple[str, ...], out: str, **opts: Any) -> None:
@@ -366,7 +395,7 @@ def _input_command(name: str, last: str, help_text: str) -> None:
         config = _load_config(opts["config_path"], opts["preset"], opts["settings"],
                               shorthands=shorthands)
         out_path = _location(out)
-        jobs, skipped = _input_jobs(inputs, out_path)
+        jobs, skipped = _input_jobs(inputs, out_path, opts)
         from .batch import stage_range
 
         _run(ctx, jobs, out_path, config, stage_range("edges", last), opts, skipped)

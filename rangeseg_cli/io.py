@@ -17,6 +17,7 @@ moved over it.
 from __future__ import annotations
 
 import errno
+import fnmatch
 import json
 import logging
 import math
@@ -26,7 +27,8 @@ import secrets
 import stat
 import tempfile
 import warnings
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path, PurePath, PurePosixPath
 from typing import Any, BinaryIO, TypeAlias
@@ -597,8 +599,65 @@ def _plain_values(text: bytes, count: int, name: str) -> np.ndarray:
 WrittenCheck: TypeAlias = Callable[[Location, PurePath], bool]
 
 
+@dataclass(frozen=True)
+class NameFilter:
+    """Which files of a searched folder are read: ``--include`` and ``--exclude`` globs.
+
+    A glob without ``/`` is matched against each part of a file's path below
+    the named folder (its name and its folders' names: ``*_mask.png``,
+    ``masks``); one with ``/`` against the path itself and the folders above
+    the file (``cam1/*.npy``, ``cam1/masks``; a leading ``/`` is dropped).
+    ``*`` and ``?`` stop at ``/``, a ``**`` piece matches any number of
+    folders, ``[abc]`` is one of the characters; matching is case-sensitive,
+    as in rsync and ripgrep.
+
+    Attributes
+    ----------
+    include
+        With any, only the files some include glob matches are read.
+    exclude
+        The files an exclude glob matches are not read, whatever the includes say.
+    """
+
+    include: tuple[str, ...] = ()
+    exclude: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for glob in (*self.include, *self.exclude):
+            if not glob.strip("/"):
+                raise ValueError(f"{glob!r}: an empty glob; expected e.g. '*_depth.npy'")
+
+    def accepts(self, rel: PurePath) -> bool:
+        """Whether the file at ``rel`` (below the named folder) is read."""
+        if any(_glob_matches(g, rel) for g in self.exclude):
+            return False
+        return not self.include or any(_glob_matches(g, rel) for g in self.include)
+
+
+def _glob_matches(glob: str, rel: PurePath) -> bool:
+    """Whether ``glob`` matches ``rel`` or a folder above it (:class:`NameFilter`)."""
+    glob, parts = glob.strip("/"), rel.parts
+    if "/" not in glob:
+        return any(fnmatch.fnmatchcase(part, glob) for part in parts)
+    pieces = glob.split("/")
+    return any(_pieces_match(pieces, parts[:n]) for n in range(1, len(parts) + 1))
+
+
+def _pieces_match(pieces: Sequence[str], parts: Sequence[str]) -> bool:
+    """Whether the ``/``-separated pieces of a glob match a path's parts, one each.
+
+    A ``**`` piece matches any number of parts.
+    """
+    if not pieces:
+        return not parts
+    if pieces[0] == "**":
+        return any(_pieces_match(pieces[1:], parts[k:]) for k in range(len(parts) + 1))
+    return (bool(parts) and fnmatch.fnmatchcase(parts[0], pieces[0])
+            and _pieces_match(pieces[1:], parts[1:]))
+
+
 def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None,
-                written: WrittenCheck | None = None
+                written: WrittenCheck | None = None, names: NameFilter | None = None
                 ) -> tuple[list[tuple[Location, PurePath]], list[Location]]:
     """Resolve files and folders (recursively) into image files.
 
@@ -617,6 +676,9 @@ def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
         (:data:`OUTPUT_MARKERS`) is taken for one. Ground truth
         (``<stem>.gt.*``, as ``rangeseg synth`` writes beside its frames) is
         never read.
+    names
+        Which files of the searched folders to read (``--include``,
+        ``--exclude``); a file named in ``inputs`` is always read.
 
     Returns
     -------
@@ -625,8 +687,8 @@ def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
         the path below the named folder without its extension (just the stem for
         a file named directly), so outputs go to ``OUT/<rel>.<artifact>``.
     skipped
-        Files in the folders that are not images by extension, ground truth, or
-        outputs.
+        Files in the folders that are not images by extension, ground truth,
+        outputs, or left out by ``names``.
 
     Raises
     ------
@@ -644,7 +706,8 @@ def find_images(inputs: Iterable[str | Path], *, exclude: Location | None = None
             images.append((root, Path(_strip(root.name))))
         elif root.is_dir():
             for path, rel in _walk(root, excluded):
-                if _is_input_image(root, rel, written):
+                if (names is None or names.accepts(rel)) and _is_input_image(root, rel,
+                                                                             written):
                     images.append((path, rel.parent / _strip(rel.name)))
                 else:
                     skipped.append(path)

@@ -171,3 +171,55 @@ def test_outputs_an_earlier_run_wrote_and_ground_truth_are_not_read(runner, tmp_
     summary = json.loads(res.stdout)
     assert summary["done"] == 1  # sub/box only; old/sub/box.* were written by rangeseg
     assert summary["not_images"] == 7  # 5 outputs, the manifest and the ground truth
+
+
+# --------------------------------------------------------------------------- filters (10)
+
+
+@pytest.fixture
+def camera_folder(tmp_path, box_png):
+    """Depth frames with a mask beside each, in two camera folders, and a masks folder."""
+    folder = tmp_path / "in"
+    for cam in ("cam1", "cam2"):
+        (folder / cam / "masks").mkdir(parents=True)
+        np.save(folder / cam / "frame_0_depth.npy", box_scene(48))
+        (folder / cam / "frame_0_mask.png").write_bytes(box_png.read_bytes())
+        (folder / cam / "masks" / "m.png").write_bytes(box_png.read_bytes())
+    return folder
+
+
+@pytest.mark.parametrize("args, done", [
+    (["--exclude", "*_mask.png", "--exclude", "masks"],
+     ["cam1/frame_0_depth", "cam2/frame_0_depth"]),
+    (["--include", "*_depth.npy"], ["cam1/frame_0_depth", "cam2/frame_0_depth"]),
+    (["--include", "cam1/**", "--exclude", "*_mask.png"],
+     ["cam1/frame_0_depth", "cam1/masks/m"]),
+    (["--include", "cam1/*.png", "--include", "/cam2/masks"],
+     ["cam1/frame_0_mask", "cam2/masks/m"]),
+    (["--include", "*_depth.npy", "--exclude", "cam2"], ["cam1/frame_0_depth"]),
+])
+def test_include_and_exclude_globs_choose_the_files_of_a_folder(runner, camera_folder,
+                                                               tmp_path, args, done):
+    out = tmp_path / "out"
+    res = runner.invoke(main, ["edges", str(camera_folder), "-o", str(out), "-j", "1", "-q",
+                               "--json", *args])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["done"] == len(done)
+    manifest = json.loads((out / "rangeseg-run.json").read_text())
+    assert sorted(manifest["images"]) == done
+
+
+def test_filters_leave_a_named_file_alone_and_say_when_they_leave_nothing(runner,
+                                                                       camera_folder,
+                                                                       tmp_path):
+    mask = camera_folder / "cam1" / "frame_0_mask.png"
+    res = runner.invoke(main, ["edges", str(mask), "-o", str(tmp_path / "out"), "-j", "1",
+                               "-q", "--exclude", "*_mask.png"])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(main, ["run", str(camera_folder), "-o", str(tmp_path / "o2"),
+                               "--include", "*.tif"])
+    assert res.exit_code == 2
+    assert "no range images found" in res.output and "--include/--exclude" in res.output
+    res = runner.invoke(main, ["run", str(camera_folder), "-o", str(tmp_path / "o2"),
+                               "--exclude", ""])
+    assert res.exit_code == 2 and "an empty glob" in res.output
