@@ -248,7 +248,7 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
         reporter.stop()
     reporter.summary(summary)
     if opts["as_json"]:
-        click.echo(json.dumps(summary.to_dict(), sort_keys=True, indent=2))
+        _echo_json(ctx, summary.to_dict())
     _exit(ctx, summary)
 
 
@@ -355,20 +355,60 @@ def _output_jobs(out: Any) -> list[Any]:
 # --------------------------------------------------------------------------- commands
 
 
+#: ``ctx.meta`` keys: whether ``--json`` was given, and whether its object was printed.
+_JSON_WANTED, _JSON_PRINTED = "rangeseg.json", "rangeseg.json_printed"
+
+
+def _echo_json(ctx: click.Context, data: dict[str, Any]) -> None:
+    """Print the one JSON object of ``--json`` on stdout."""
+    click.echo(json.dumps(data, sort_keys=True, indent=2))
+    ctx.meta[_JSON_PRINTED] = True
+
+
+def _json_error(ctx: click.Context, message: str, code: int, **more: Any) -> None:
+    """With ``--json``, the object of a command that stopped before its own was printed."""
+    if ctx.meta.get(_JSON_WANTED) and not ctx.meta.get(_JSON_PRINTED):
+        _echo_json(ctx, {"error": message, "exit_code": code, **more})
+
+
+def _json_requested(args: list[str]) -> bool:
+    """Whether ``--json`` is among the options (before a ``--``)."""
+    return "--json" in (args[: args.index("--")] if "--" in args else args)
+
+
 class _Group(click.Group):
     """The command group, with Ctrl-C handled before the batch as during it.
 
     Ctrl-C while the config is read, IMAGES are listed or the batch is planned
     exits 130 as one during the batch does, not with click's ``Aborted!`` and
-    1 (the code of a failed image).
+    1 (the code of a failed image). With ``--json``, a usage error or such a
+    Ctrl-C prints ``{"error": ..., "exit_code": ...}`` on stdout: a parser
+    always gets one object.
     """
+
+    def make_context(self, info_name: str | None, args: list[str],
+                     parent: click.Context | None = None, **extra: Any) -> click.Context:
+        wanted = _json_requested(args)
+        try:
+            ctx = super().make_context(info_name, args, parent=parent, **extra)
+        except click.ClickException as exc:
+            if wanted:
+                click.echo(json.dumps({"error": exc.format_message(),
+                                       "exit_code": exc.exit_code}, sort_keys=True, indent=2))
+            raise
+        ctx.meta[_JSON_WANTED] = wanted
+        return ctx
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)
+            _json_error(ctx, "interrupted", 130, interrupted=True)
             ctx.exit(130)
+        except click.ClickException as exc:
+            _json_error(ctx, exc.format_message(), exc.exit_code)
+            raise
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
@@ -619,7 +659,7 @@ def eval_cmd(ctx: click.Context, pred_dir: str, gt_dir: str, tolerance: float,
     for reason in result["errors"]:
         click.echo(reason, err=True)
     if as_json:
-        click.echo(json.dumps(result, sort_keys=True, indent=2))
+        _echo_json(ctx, result)
     elif not quiet:
         from .cli_report import print_eval_table
 

@@ -223,3 +223,39 @@ def test_filters_leave_a_named_file_alone_and_say_when_they_leave_nothing(runner
     res = runner.invoke(main, ["run", str(camera_folder), "-o", str(tmp_path / "o2"),
                                "--exclude", ""])
     assert res.exit_code == 2 and "an empty glob" in res.output
+
+
+# --------------------------------------------------------------------------- --json (8)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["run", "--json", "-o", "{tmp}/out"], "Missing argument 'INPUTS...'."),
+    (["run", "{tmp}/nothere", "-o", "{tmp}/out", "--json"], "{tmp}/nothere: no such file or "
+                                                             "folder"),
+    (["grow", "{tmp}/out", "--json", "--jobs", "0"], None),
+    (["eval", "{tmp}", "--json"], "Missing argument 'GT_DIR'."),
+])
+def test_json_prints_one_object_on_a_usage_error(runner, tmp_path, args, message):
+    res = runner.invoke(main, [a.format(tmp=tmp_path) for a in args])
+    assert res.exit_code == 2
+    data = json.loads(res.stdout)  # one object, nothing else on stdout
+    assert data["exit_code"] == 2 and data["error"]
+    if message is not None:
+        assert data["error"] == message.format(tmp=tmp_path)
+    assert "Error:" in res.stderr  # the line on stderr stays
+
+
+def test_json_prints_one_object_on_ctrl_c_before_the_first_image(runner, box_png, tmp_path,
+                                                                 monkeypatch):
+    import rangeseg_cli.cli as cli
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt  # Ctrl-C while IMAGES are listed
+
+    monkeypatch.setattr(cli, "_input_jobs", interrupted)
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out"), "--json"])
+    assert res.exit_code == 130
+    assert json.loads(res.stdout) == {"error": "interrupted", "exit_code": 130,
+                                      "interrupted": True}
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out")])
+    assert res.exit_code == 130 and res.stdout == ""  # without --json: nothing on stdout
