@@ -5,7 +5,7 @@ the levels of ``--noises``) for seeds 0, 1, 2 (the same images ``rangeseg
 synth OUT --noise 0,1,2 --seed S`` writes), runs ``run_pipeline`` up to the
 labels with the given configuration and scores them with Hoover et al.
 (1996) at T = 0.8 on GT regions of >= 50 pixels.
-Prints one row per noise level (the table of ``docs/QUALITY.md``), with
+Prints one row per noise level (the table of ``docs/quality.md``), with
 ``--widths`` the same counts by the width of the GT face (:func:`face_width`:
 where the narrow faces are lost) and, with ``--misses``, every GT region that
 is not correctly detected, with the overlap of the region that came nearest

@@ -16,7 +16,7 @@ then abut; their boundary is where the labels change, and
 pipeline fills twice: before the merge and the recut, which judge the
 filled regions, and after them, since a merged region's surface or a recut
 piece's plane can explain edge pixels that no surface explained before (the
-walls of the cube's holes at noise 0, ``docs/QUALITY.md``).
+walls of the cube's holes at noise 0, ``docs/quality.md``).
 
 Notes
 -----

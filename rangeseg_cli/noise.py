@@ -39,7 +39,7 @@ Notes
    and 2.5 / 2.5 / 1.7 mm, segment best among 0.5-1.5 times them (from 2
    units per pixel, 1.5 times them, the contours stay open), and they
    reproduce the hand-tuned 2 / 2 / 1.5 mm of ``sample_data/arc``
-   (docs/QUALITY.md, "Thresholds that follow the sensor"). Height maps
+   (docs/sensors.md, "Thresholds that follow the sensor"). Height maps
    without a scale (the 8-bit synthetic scenes) are not affected: they keep
    the paper's thresholds.
 4. Thresholds (:func:`noise_scaled_config`). With ``[input]
@@ -60,7 +60,7 @@ Notes
    noise peak stays about as many standard deviations of AR below them as
    at sigma_o = 2 (step 4.1, roof 3.1: at sigma_o = 3 the factor is 1.5 =
    about 3.1 / 2.1, plus what the later stages, tuned on sigma_o <= 2, lose
-   to the noise; the slope was chosen on seeds 0-8, docs/QUALITY.md).
+   to the noise; the slope was chosen on seeds 0-8, docs/quality.md).
    Without a lateral scale and at an estimated noise up to
    :data:`PAPER_NOISE` (the 8-bit scenes at sigma_o 0-2) the thresholds
    are the paper's, exactly.

@@ -50,7 +50,7 @@ Notes
    is a pixel off; the boundary refinement of :mod:`rangeseg_cli.refine`
    puts it back, so recovery gains correct detections at sigma 2 (the
    synthetic scenes were measured up to sigma 2, estimate 2.0; without the
-   refinement such faces only added regions: ``docs/QUALITY.md``).
+   refinement such faces only added regions: ``docs/quality.md``).
 
 New regions are numbered after the existing ones, in raster order of their
 first pixel; existing labels keep their ids. Everything is a function of

@@ -133,3 +133,19 @@ def test_rangeseg_config_cites_the_docs_and_says_what_it_shows():
     assert "--preset mm-depth" in header and "--set step.threshold=2" in header
     assert "default 6.0" in changed.output  # the changed key says its default
     assert "SPEC" not in changed.output
+
+
+def test_performance_page_is_what_the_benchmark_results_give():
+    spec = importlib.util.spec_from_file_location("report", ROOT / "benchmarks" / "report.py")
+    assert spec is not None and spec.loader is not None
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    committed = (ROOT / "docs" / "performance.md").read_text(encoding="utf-8")
+    assert committed == report.render(), "docs/performance.md is stale: run benchmarks/report.py"
+
+
+@pytest.mark.parametrize("page", [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))],
+                         ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_no_page_is_longer_than_its_budget(page):
+    words = len(page.read_text(encoding="utf-8").split())
+    assert words <= (2000 if page.name == "README.md" else 3000), f"{page.name}: {words} words"

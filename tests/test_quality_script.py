@@ -1,4 +1,4 @@
-"""Tests of benchmarks/quality.py: face widths (the ``--widths`` table of docs/QUALITY.md), options."""
+"""Tests of benchmarks/quality.py: face widths (the ``--widths`` table of docs/quality.md), options."""
 
 from __future__ import annotations
 

@@ -245,7 +245,7 @@ def test_plane_through_pixels_is_the_least_squares_plane_even_on_a_line() -> Non
 
 def test_at_sigma_2_a_recovered_grazing_side_is_found_once_the_refinement_settles_it() -> None:
     # part1's block +x, a side 2 pixels wide, seed 0: recovered, then its boundary moved
-    # back by the refinement (docs/QUALITY.md); neither alone finds it.
+    # back by the refinement (docs/quality.md); neither alone finds it.
     scene = render_scene("part1", noise=2.0, seed=0)
     side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "block +x")
     found = {}

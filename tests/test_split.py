@@ -228,7 +228,7 @@ def test_trim_leaves_out_a_sliver_that_a_piece_cannot_be_split_at() -> None:
 def test_trimming_finds_part1s_grazing_base_side() -> None:
     # part1's base +y is a strip 1-2 pixels wide seen at a grazing angle (flush with the
     # block's +y side and the fillet's end: one GT surface); without the trim its pixels
-    # stay in a piece of the block's side and base top (docs/QUALITY.md).
+    # stay in a piece of the block's side and base top (docs/quality.md).
     from rangeseg_cli.synth import render_scene
 
     scene = render_scene("part1", size=(128, 128), noise=0.0, seed=0)
@@ -999,7 +999,7 @@ def test_a_small_frustum_in_a_pile_is_cut_into_its_faces() -> None:
     # Pile seed 12, frustum 3 (noise-free): its sides are 4-7 pixels wide. The split
     # divides its component, but one piece holds two sides and a strip of the top; it
     # fails the fit test, nothing divides it, and merge_back glued every other piece to
-    # it: the whole frustum came out as one region (docs/QUALITY.md).
+    # it: the whole frustum came out as one region (docs/quality.md).
     from rangeseg_cli.synth import render_scene
 
     scene = render_scene("pile", size=(128, 128), noise=0.0, seed=12)
