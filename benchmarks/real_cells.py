@@ -40,7 +40,7 @@ import numpy as np
 
 from rangeseg_cli import __version__
 from rangeseg_cli.config import load_config, parse_settings
-from rangeseg_cli.evaluate import DEFAULT_MAX_TILT, check_object_holdsite
+from rangeseg_cli.evaluate import DEFAULT_MAX_TILT, check_object_holdsite, footprint_at_depth
 from rangeseg_cli.io import read_image, read_json
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth_camera import CAMERA_SCENES, camera_stem, write_camera_scenes
@@ -82,8 +82,13 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str]
     result = run_pipeline(read_image(stem.with_name(stem.name + ".png")), config, **kwargs)
     seconds = time.perf_counter() - start
     doc = result.holdsite.to_dict()
+    raw = read_image(stem.with_name(stem.name + ".png"))
+    depth_mm = np.where(raw > 0, raw * 1000.0 * float(info["camera"]["metres_per_raw"]),
+                        np.nan)
+    window = (footprint_at_depth(config.holdsite.footprint_mm, info["camera"], depth_mm)
+              if any(config.holdsite.footprint_mm) else None)
     check = check_object_holdsite(doc["holdsite"], gt, info, max_tilt=max_tilt,
-                                  size=tuple(config.holdsite.size))
+                                  size=tuple(config.holdsite.size), footprint=window)
     return {"scene": name, "seed": seed, "ok": check["ok"], "reason": check["reason"],
             "object": check["object"], "tilt": check["tilt"], "seconds": seconds,
             "holdsite": None if doc["holdsite"] is None else

@@ -57,7 +57,7 @@ nothing can be picked.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -476,8 +476,13 @@ def approach_tilt(approach: Sequence[float] | None) -> float | None:
 
 
 def _fits_somewhere(gt: np.ndarray, surfaces: Sequence[Mapping[str, Any]], objects: set[int],
-                    size: tuple[int, int]) -> list[int]:
-    """Objects of ``objects`` on whose GT pixels a ``size`` window fits somewhere (unrotated)."""
+                    size: tuple[int, int] | Callable[[np.ndarray], tuple[int, int]]
+                    ) -> list[int]:
+    """Objects of ``objects`` on whose GT pixels a window fits somewhere (unrotated).
+
+    ``size`` is the window, or a function of an object's mask that gives it
+    (a footprint in millimetres at the object's depth).
+    """
     owner = np.full(int(gt.max(initial=0)) + 1, -1, np.int64)
     for s in surfaces:
         if 0 < int(s["id"]) < owner.size:
@@ -485,14 +490,40 @@ def _fits_somewhere(gt: np.ndarray, surfaces: Sequence[Mapping[str, Any]], objec
     obj = owner[gt]
     fits = []
     for o in sorted(objects):
-        if ndimage.binary_erosion(obj == o, np.ones(size, bool)).any():
+        mask = obj == o
+        window = size(mask) if callable(size) else size
+        if mask.any() and ndimage.binary_erosion(mask, np.ones(window, bool)).any():
             fits.append(o)
     return fits
 
 
+def footprint_at_depth(footprint_mm: tuple[float, float], camera: Mapping[str, Any],
+                       depth_mm: np.ndarray) -> Callable[[np.ndarray], tuple[int, int]]:
+    """The window (odd rows, cols) of a footprint in mm at the median depth of a mask.
+
+    As ``rangeseg`` converts ``[holdsite] footprint_mm`` (pinhole: ``L f /
+    d`` pixels, the nearest odd count, 1 to 255).
+    """
+    def odd(side: float, focal: float, depth: float) -> int:
+        return min(max(int(math.floor(side * focal / depth / 2.0)) * 2 + 1, 1), 255)
+
+    def window(mask: np.ndarray) -> tuple[int, int]:
+        d = depth_mm[mask]
+        d = d[np.isfinite(d) & (d > 0)]
+        if not d.size:
+            return (255, 255)
+        m = float(np.median(d))
+        return (odd(footprint_mm[0], float(camera["fy"]), m),
+                odd(footprint_mm[1], float(camera["fx"]), m))
+
+    return window
+
+
 def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
                           info: Mapping[str, Any], *, max_tilt: float = DEFAULT_MAX_TILT,
-                          size: tuple[int, int] = (7, 7)) -> dict[str, Any]:
+                          size: tuple[int, int] = (7, 7),
+                          footprint: Callable[[np.ndarray], tuple[int, int]] | None = None
+                          ) -> dict[str, Any]:
     """Whether a holdsite is usable by a suction gripper: the object-level check.
 
     Usable: the gripper window (``row``, ``col``, ``size``, ``angle``) lies
@@ -519,6 +550,9 @@ def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
     size
         Window when the holdsite gives none, and the window a null holdsite
         is judged with.
+    footprint
+        The window a null holdsite is judged with, per object mask, instead
+        of ``size`` (:func:`footprint_at_depth`: a cup in millimetres).
 
     Returns
     -------
@@ -536,7 +570,7 @@ def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
     if not (isinstance(max_tilt, int | float) and 0 <= max_tilt <= 90):
         raise ValueError(f"`max_tilt` {max_tilt!r} must be a number of degrees from 0 to 90")
     pickable = pickable_objects(info)
-    in_view = _fits_somewhere(gt, info["surfaces"], pickable, size)
+    in_view = _fits_somewhere(gt, info["surfaces"], pickable, footprint or size)
     result: dict[str, Any] = {"ok": False, "object": None, "surfaces": [], "tilt": None,
                               "pickable_in_view": in_view}
     if holdsite is None:
