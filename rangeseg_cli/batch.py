@@ -147,14 +147,21 @@ class BatchSummary:
         return totals
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain summary for ``--json``."""
+        """Plain summary for ``--json``.
+
+        An image whose name is no valid UTF-8 is keyed in ``errors`` by its
+        :func:`~rangeseg_cli.io.percent_name`, listed in ``percent_encoded``.
+        """
+        failed = [r for r in self.records if r.status == "failed"]
+        encoded = sorted(io.percent_name(r.rel) for r in failed if not io.is_utf8(r.rel))
         return {
             "done": self.count("done"), "failed": self.count("failed"),
             "resumed": self.count("skipped"), "not_images": len(self.skipped_files),
             "seconds": self.seconds, "stage_seconds": self.stage_seconds,
             "interrupted": self.interrupted, "terminated": self.terminated,
-            "errors": {r.rel: r.error for r in self.records if r.status == "failed"},
-        } | ({"stopped": self.error} if self.error else {})
+            "errors": {manifest_key(r.rel): io.printable(r.error or "") for r in failed},
+        } | ({"stopped": self.error} if self.error else {}) | (
+            {"percent_encoded": encoded} if encoded else {})
 
 
 def artifact(out: Location, rel: str, name: str) -> Location:
@@ -430,7 +437,27 @@ def jobs_from_inputs(inputs: Iterable[str | Path], out: Location,
         seen[key] = path
         files.add(ident)
         jobs.append(Job(rel=key, source=str(path)))
+    _check_manifest_keys(jobs)
     return jobs, [str(p) for p in skipped]
+
+
+def _check_manifest_keys(jobs: list[Job]) -> None:
+    """Refuse two images with one key in the manifest (:func:`manifest_key`).
+
+    Raises
+    ------
+    InputError
+        Naming both, e.g. ``caf%E9.png`` and a Latin-1 ``café.png`` (byte E9).
+    """
+    by_key: dict[str, Job] = {}
+    for job in jobs:
+        key = manifest_key(job.rel)
+        other = by_key.setdefault(key, job)
+        if other is not job:
+            raise InputError(f"{io.printable(other.source or other.rel)} and "
+                             f"{io.printable(job.source or job.rel)} have one name in the "
+                             f"manifest, {key!r} (a name that is no UTF-8 is written "
+                             "percent-encoded); rename one of them")
 
 
 class WrittenHere:
@@ -578,6 +605,47 @@ def jobs_from_output(out: Location) -> list[Job]:
     return [Job(rel=r) for r in rels]
 
 
+def manifest_key(rel: str) -> str:
+    """An image's key in the manifest and ``--json``.
+
+    Its name, or its :func:`~rangeseg_cli.io.percent_name` when that is no valid UTF-8.
+    """
+    return rel if io.is_utf8(rel) else io.percent_name(rel)
+
+
+def _encode_names(data: dict[str, Any]) -> dict[str, Any]:
+    """The manifest as written: names that are no UTF-8 percent-encoded, and so marked.
+
+    The key and ``input`` of such an image are
+    :func:`~rangeseg_cli.io.percent_name` forms, and its entry has
+    ``"name_encoding": "percent"``; its messages have the bytes as ``%XX``.
+    """
+    images = {}
+    for rel, entry in data.get("images", {}).items():
+        entry = {k: io.printable(v) if k in ("error", "traceback") else v
+                 for k, v in entry.items()}
+        if not (io.is_utf8(rel) and io.is_utf8(entry.get("input", ""))):
+            entry["name_encoding"] = "percent"
+            rel = io.percent_name(rel)
+            if "input" in entry:
+                entry["input"] = io.percent_name(entry["input"])
+        images[rel] = entry
+    return data | {"images": images}
+
+
+def _decode_names(images: dict[str, Any]) -> dict[str, Any]:
+    """The entries of a manifest's images under their names (:func:`_encode_names` undone)."""
+    out = {}
+    for rel, entry in images.items():
+        if entry.get("name_encoding") == "percent":
+            entry = {k: v for k, v in entry.items() if k != "name_encoding"}
+            rel = io.name_from_percent(rel)
+            if "input" in entry:
+                entry["input"] = io.name_from_percent(entry["input"])
+        out[rel] = entry
+    return out
+
+
 def read_manifest(out: Location) -> dict[str, Any]:
     """The manifest in ``out``, or an empty one.
 
@@ -595,7 +663,7 @@ def read_manifest(out: Location) -> dict[str, Any]:
     if problem:
         raise OutputError(f"{path}: not a manifest of rangeseg ({problem}); repair it, or "
                           "delete it and redo the images with --overwrite")
-    return dict(data)
+    return data | {"images": _decode_names(data["images"])}
 
 
 def _manifest_problem(data: Any) -> str | None:
@@ -636,6 +704,8 @@ def _entry_problem(entry: Any) -> str | None:
     digests = entry.get("stage_configs", {})
     if not (isinstance(digests, dict) and all(isinstance(d, str) for d in digests.values())):
         return '"stage_configs" is not an object of stage names and digests'
+    if entry.get("name_encoding", "percent") != "percent":
+        return f'"name_encoding" is {json.dumps(entry["name_encoding"])}; allowed: "percent"'
     if entry.get("status") not in MANIFEST_STATUSES:
         what = json.dumps(entry["status"]) if "status" in entry else "missing"
         return f'"status" is {what}; allowed: ' + ", ".join(map(json.dumps, MANIFEST_STATUSES))
@@ -851,13 +921,13 @@ class _Manifest:
                                if s in STAGES and STAGES.index(s) < first]
             self.data["images"][job.rel] = entry
         io.make_folder(self.out)
-        io.write_json(self.out / MANIFEST, self.data, digits=MANIFEST_DIGITS)
+        io.write_json(self.out / MANIFEST, _encode_names(self.data), digits=MANIFEST_DIGITS)
 
     def write(self, summary: BatchSummary | None = None) -> None:
         if summary is not None:
             self.data["summary"] = summary.to_dict()
         io.make_folder(self.out)
-        io.write_json(self.out / MANIFEST, self.data, digits=MANIFEST_DIGITS)
+        io.write_json(self.out / MANIFEST, _encode_names(self.data), digits=MANIFEST_DIGITS)
         self.last_write = time.monotonic()
 
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path, PurePath, PurePosixPath
 from typing import Any, BinaryIO, TypeAlias
-from urllib.parse import unquote, urlsplit
+from urllib.parse import unquote, unquote_to_bytes, urlsplit
 
 import numpy as np
 
@@ -1015,6 +1015,40 @@ def to_jsonable(value: Any, digits: int = 6) -> Any:
     if isinstance(value, Path):
         return value.as_posix()
     raise TypeError(f"cannot write {type(value).__name__} to JSON")
+
+
+def is_utf8(name: str) -> bool:
+    """Whether ``name`` is valid UTF-8 text (a file name that is not holds surrogate escapes)."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def percent_name(name: str) -> str:
+    """A file name that is no valid UTF-8, as written in JSON: reversible, plain text.
+
+    Each byte of the name that is not part of valid UTF-8, and each ``%``, is
+    written ``%XX`` (two upper-case hex digits); the rest stays as it is. So
+    Latin-1 ``café.png`` (byte E9) is ``"caf%E9.png"``, and the bytes come back
+    with ``urllib.parse.unquote_to_bytes`` (:func:`name_from_percent`).
+    """
+    return "".join(f"%{ord(c) - 0xDC00:02X}" if 0xDC80 <= ord(c) <= 0xDCFF
+                   else "%25" if c == "%" else c for c in name)
+
+
+def name_from_percent(text: str) -> str:
+    """The file name :func:`percent_name` wrote (undecodable bytes as surrogate escapes)."""
+    return unquote_to_bytes(text).decode("utf-8", "surrogateescape")
+
+
+def printable(text: str) -> str:
+    """``text`` (a message naming files) with each byte that is no UTF-8 written ``%XX``."""
+    if is_utf8(text):
+        return text
+    return "".join(f"%{ord(c) - 0xDC00:02X}" if 0xDC80 <= ord(c) <= 0xDCFF else c
+                   for c in text).encode("utf-8", "replace").decode("utf-8")
 
 
 def write_json(path: Location, data: Any, digits: int = 6) -> None:

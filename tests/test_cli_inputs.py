@@ -259,3 +259,48 @@ def test_json_prints_one_object_on_ctrl_c_before_the_first_image(runner, box_png
                                       "interrupted": True}
     res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out")])
     assert res.exit_code == 130 and res.stdout == ""  # without --json: nothing on stdout
+
+
+# --------------------------------------------------------------------------- names (5)
+
+
+@pytest.fixture
+def latin1_folder(tmp_path, box_png):
+    """A Latin-1 name (no UTF-8) of a good image, one of a bad image, a UTF-8 name with %."""
+    import os
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    try:
+        (folder / os.fsdecode(b"caf\xe9.png")).write_bytes(box_png.read_bytes())
+        (folder / os.fsdecode(b"bad\xff.png")).write_bytes(b"not an image")
+    except (OSError, UnicodeError):
+        pytest.skip("this file system takes UTF-8 names only")
+    (folder / "d\u00e9j\u00e0 100%.png").write_bytes(box_png.read_bytes())
+    return folder
+
+
+def test_names_that_are_not_utf8_are_percent_encoded_and_resumed(runner, latin1_folder,
+                                                                  tmp_path):
+    import os
+    from urllib.parse import unquote_to_bytes
+
+    out = tmp_path / "out"
+    args = ["edges", str(latin1_folder), "-o", str(out), "-j", "1", "-q", "--json"]
+    res = runner.invoke(main, args)
+    assert res.exit_code == 1
+    assert "\\udc" not in res.stdout
+    summary = json.loads(res.stdout)
+    assert list(summary["errors"]) == ["bad%FF"] and summary["percent_encoded"] == ["bad%FF"]
+    text = (out / "rangeseg-run.json").read_text()
+    assert "\\udc" not in text  # no lone surrogates, which jq and node turn into U+FFFD
+    images = json.loads(text)["images"]
+    assert sorted(images) == ["bad%FF", "caf%E9", "d\u00e9j\u00e0 100%"]  # UTF-8 as given
+    cafe = images["caf%E9"]
+    assert cafe["name_encoding"] == "percent"
+    assert "name_encoding" not in images["d\u00e9j\u00e0 100%"]
+    assert unquote_to_bytes(cafe["input"]) == os.fsencode(latin1_folder) + b"/caf\xe9.png"
+    res = runner.invoke(main, [*args, "--resume"])
+    assert json.loads(res.stdout)["resumed"] == 2  # matched by name: not redone
+    res = runner.invoke(main, ["link", str(out), "-j", "1", "-q", "--json"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["done"] == 2, res.output
