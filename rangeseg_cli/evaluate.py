@@ -478,23 +478,22 @@ def approach_tilt(approach: Sequence[float] | None) -> float | None:
 def _fits_somewhere(gt: np.ndarray, surfaces: Sequence[Mapping[str, Any]], objects: set[int],
                     size: tuple[int, int] | Callable[[np.ndarray], tuple[int, int]]
                     ) -> list[int]:
-    """Objects of ``objects`` on whose GT pixels a window fits somewhere (unrotated).
+    """Objects of ``objects`` with a surface on whose GT pixels a window fits (unrotated).
 
-    ``size`` is the window, or a function of an object's mask that gives it
-    (a footprint in millimetres at the object's depth).
+    A suction cup seals on one face, not across an edge: the window must fit
+    in one GT surface. ``size`` is the window, or a function of a surface's
+    mask that gives it (a footprint in millimetres at its depth).
     """
-    owner = np.full(int(gt.max(initial=0)) + 1, -1, np.int64)
+    fits = set()
     for s in surfaces:
-        if 0 < int(s["id"]) < owner.size:
-            owner[int(s["id"])] = int(s["object"])
-    obj = owner[gt]
-    fits = []
-    for o in sorted(objects):
-        mask = obj == o
+        o = int(s["object"])
+        if o not in objects or o in fits:
+            continue
+        mask = gt == int(s["id"])
         window = size(mask) if callable(size) else size
         if mask.any() and ndimage.binary_erosion(mask, np.ones(window, bool)).any():
-            fits.append(o)
-    return fits
+            fits.add(o)
+    return sorted(fits)
 
 
 def footprint_at_depth(footprint_mm: tuple[float, float], camera: Mapping[str, Any],
@@ -533,8 +532,9 @@ def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
     axis: the angle between ``approach_camera`` and (0, 0, 1). When the
     scene has a ``camera`` and the holdsite no ``approach_camera``, the site
     is not usable (its tilt cannot be judged); in a scene without a camera
-    the tilt is not checked. No holdsite is correct when no pickable object
-    holds a ``size`` window anywhere (an empty tote), and wrong otherwise.
+    the tilt is not checked. No holdsite is correct when no surface of a
+    pickable object holds a ``size`` window (an empty tote; a cup seals on
+    one face), and wrong otherwise.
 
     Parameters
     ----------
