@@ -41,7 +41,8 @@ def panels(result: PipelineResult, config: Config) -> list[np.ndarray]:
         _rgb(render.mask_image(maps.roof)),
         _rgb(render.mask_image(maps.step | maps.roof)),
         linked,
-        render.overlay(result.labels, result.holdsite, config.holdsite.size),
+        render.overlay(result.labels, result.holdsite, config.holdsite.size,
+                       heights=result.heights),
     ]
 
 

@@ -42,7 +42,7 @@ def panels(camera: str) -> list[np.ndarray]:
         site = doc["holdsite"]
         where = f"site at row {site['row']}, col {site['col']}" if site else doc["reason"][:60]
         print(f"{camera}: {'with background' if background is not None else 'alone'}: {where}")
-        out.append(render.overlay(result.labels, doc))
+        out.append(render.overlay(result.labels, doc, heights=result.heights))
     return out
 
 
