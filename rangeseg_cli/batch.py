@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import multiprocessing
 import os
 import signal
 import threading
@@ -46,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, io, parallel, render
+from . import __version__, io, outlock, parallel, render, stopping
 from .config import STAGE_TABLES, Config, InputConfig, build_config, from_json
 from .errors import ClusterLost, InputError, OutputError, RangesegError
 from .frames import SharedFrames, check_frame_size, read_workspace_frames
@@ -63,6 +64,9 @@ MANIFEST_DIGITS = 17
 #: Statuses of an image in the manifest: ``running`` from the start of a run until the
 #: image is recorded (an image a killed run left so is redone by ``--resume``).
 MANIFEST_STATUSES = ("done", "failed", "running")
+#: Status of a record of an image a stopped batch never started: its manifest entry goes
+#: back to what it was before the batch (absent for a new image); never written.
+NOT_STARTED = "not started"
 #: Most ``n_jobs`` a batch takes: worker processes here, or images in flight on Dask.
 MAX_JOBS = 1024
 log = logging.getLogger(__name__)
@@ -878,6 +882,15 @@ class _Manifest:
             self.data.update(self.header)
         self.data.setdefault("images", {})
         self.last_write = 0.0
+        self.before: dict[str, Any] = {}  # entries of the images to run, before the run
+
+    def forget(self, rel: str) -> None:
+        """An image the batch never started: its entry as before the batch (or none)."""
+        old = self.before.get(rel)
+        if old is None:
+            self.data["images"].pop(rel, None)
+        else:
+            self.data["images"][rel] = old
 
     def add(self, record: Record) -> None:
         if record.status == "skipped":
@@ -915,6 +928,7 @@ class _Manifest:
         """
         first = STAGES.index(self.stages[0])
         for job in todo:
+            self.before[job.rel] = self.data["images"].get(job.rel)
             entry = dict(self.data["images"].get(job.rel, {}))
             entry["status"] = "running"
             entry["stages"] = [s for s in entry.get("stages", [])
@@ -1005,7 +1019,8 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
     io.check_output_protocol(out)
     check_inputs_kept(jobs, out, stages, skipped_files or [])
     frames = shared_frames(config, stages, intrinsics)
-    with _executor(executor, scheduler, n_jobs) as execute:  # dask: connect before any work
+    with (outlock.held(out, command),  # one batch at a time in OUT
+          _executor(executor, scheduler, n_jobs) as execute):  # dask: connect before any work
         remove_stale_temporaries(out)
         todo, records = plan_jobs(jobs, out, config, stages, resume=resume,
                                   overwrite=overwrite, frames=frames)
@@ -1019,6 +1034,9 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         interrupted, terminated, error = False, False, None
 
         def finish(record: Record, *, ran: bool = True) -> None:
+            if record.status == NOT_STARTED:  # a stopped batch: its files are untouched
+                manifest.forget(record.rel)
+                return
             records.append(record)
             if ran:  # a refused image: its entry and files stay as they are
                 manifest.add(record)
@@ -1033,11 +1051,11 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
             interrupted, terminated = True, isinstance(exc, Terminated)
         except ClusterLost as exc:
             error = str(exc)
-    summary = BatchSummary(records=sorted(records, key=lambda r: r.rel),
-                           skipped_files=skipped_files or [],
-                           seconds=time.perf_counter() - t0, interrupted=interrupted,
-                           terminated=terminated, error=error)
-    manifest.write(summary)
+        summary = BatchSummary(records=sorted(records, key=lambda r: r.rel),
+                               skipped_files=skipped_files or [],
+                               seconds=time.perf_counter() - t0, interrupted=interrupted,
+                               terminated=terminated, error=error)
+        manifest.write(summary)
     return summary
 
 
@@ -1155,11 +1173,40 @@ def _execute(todo: list[Job], out: Location, config: Config, stages: tuple[str, 
     workers = min(n_jobs, len(todo))  # a worker more than images would only start up
     with StopFlag() as stop:
         if workers <= 1:
-            for job in todo:
-                stop.check()
-                finish(process_image(job, out, config, stages, frames))
+            _execute_here(todo, out, config, stages, frames, finish, stop)
             return
         _execute_pool(todo, out, config, stages, frames, workers, finish, stop)
+
+
+def _execute_here(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
+                  frames: SharedFrames, finish: Callable[[Record], None], stop: StopFlag
+                  ) -> None:
+    """Process ``todo`` in this process; a stop is honoured between images and inside one.
+
+    The pipeline's long loops call :func:`rangeseg_cli.stopping.checkpoint`,
+    which raises here once Ctrl-C or SIGTERM has asked to stop: the image in
+    progress stays ``running`` (redone by ``--resume``), the later ones were
+    never started (:data:`NOT_STARTED`).
+    """
+    for k, job in enumerate(todo):
+        try:
+            stop.check()
+        except KeyboardInterrupt:
+            _not_started(todo[k:], finish)
+            raise
+        try:
+            with stopping.stop_checks(stop.check):
+                record = process_image(job, out, config, stages, frames)
+        except KeyboardInterrupt:
+            _not_started(todo[k + 1:], finish)
+            raise
+        finish(record)
+
+
+def _not_started(jobs: Iterable[Job], finish: Callable[[Record], None]) -> None:
+    """Record ``jobs`` as never started (their manifest entries go back as they were)."""
+    for job in jobs:
+        finish(Record(rel=job.rel, status=NOT_STARTED, source=job.source))
 
 
 def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[str, ...],
@@ -1190,12 +1237,14 @@ def _pool_round(jobs: list[Job], out: Location, config: Config, stages: tuple[st
     # At most 2 images per worker in flight: memory stays bounded for any batch size.
     pending: dict[Future[Record], Job] = {}
     submitted = 0
+    stopping_now = multiprocessing.Event()  # set: the workers stop mid-image, start none
     with ProcessPoolExecutor(max_workers=n_jobs, initializer=_init_worker,
-                             initargs=(parallel.per_process(n_jobs), os.getpid())) as pool:
+                             initargs=(parallel.per_process(n_jobs), os.getpid(),
+                                       stopping_now)) as pool:
         try:
             for job in jobs:
                 stop.check()
-                pending[pool.submit(process_image, job, out, config, stages, frames)] = job
+                pending[pool.submit(_work, job, out, config, stages, frames)] = job
                 submitted += 1
                 while len(pending) >= 2 * n_jobs:
                     _collect(pending, finish, stop)
@@ -1205,15 +1254,45 @@ def _pool_round(jobs: list[Job], out: Location, config: Config, stages: tuple[st
             pool.shutdown(wait=True)  # the other workers are stopped: none writes any more
             if stop.requested is not None:  # a SIGTERM to the whole group ended them too:
                 _keep_finished(pending, finish)  # the others stay `running`, redone later
+                _not_started(jobs[submitted:], finish)
                 stop.check()
             for fut, job in pending.items():
                 finish(fut.result() if _finished(fut) else _lost(job, out, stages[0]))
             return jobs[submitted:]
         except KeyboardInterrupt:
+            stopping_now.set()
             pool.shutdown(wait=True, cancel_futures=True)
-            _keep_finished(pending, finish)
+            _keep_finished(pending, finish)  # and those no worker started
+            _not_started([job for fut, job in pending.items() if fut.cancelled()]
+                         + jobs[submitted:], finish)
             raise
     return []
+
+
+#: In a worker process: the batch's stop event (:func:`_init_worker`), else None.
+_worker_stop: Any = None
+
+
+def _work(job: Job, out: Location, config: Config, stages: tuple[str, ...],
+          frames: SharedFrames) -> Record:
+    """:func:`process_image` in a worker, which a stop of the batch ends mid-image.
+
+    Once the batch is stopping, an image not yet begun is :data:`NOT_STARTED`
+    and one in progress raises ``KeyboardInterrupt`` at its next
+    :func:`~rangeseg_cli.stopping.checkpoint` (it stays ``running``).
+    """
+    event = _worker_stop
+    if event is None:
+        return process_image(job, out, config, stages, frames)
+    if event.is_set():
+        return Record(rel=job.rel, status=NOT_STARTED, source=job.source)
+
+    def check() -> None:
+        if event.is_set():
+            raise KeyboardInterrupt
+
+    with stopping.stop_checks(check):
+        return process_image(job, out, config, stages, frames)
 
 
 def _finished(fut: Future[Record]) -> bool:
@@ -1272,13 +1351,14 @@ def _collect(pending: dict[Future[Record], Job], finish: Callable[[Record], None
     stop.check()
 
 
-def _init_worker(threads: int = 1, parent: int | None = None) -> None:
+def _init_worker(threads: int = 1, parent: int | None = None, stop: Any = None) -> None:
     """Set up a worker process: Ctrl-C, its threads and BLAS threads are the batch's.
 
     ``threads`` is the worker's share of the cores for the kernels of one
     image (:func:`rangeseg_cli.parallel.per_process`); ``parent`` the pid of
     the batch's process, which the worker does not outlive
-    (:func:`_exit_with_parent`).
+    (:func:`_exit_with_parent`); ``stop`` the batch's stop event (a
+    ``multiprocessing.Event``), which ends the worker's images (:func:`_work`).
 
     Workers leave Ctrl-C to the main process, which stops the batch cleanly;
     SIGTERM ends a worker (a broken pool terminates the others with it).
@@ -1287,8 +1367,10 @@ def _init_worker(threads: int = 1, parent: int | None = None) -> None:
     spin against each other; on 2 cores that took ``--jobs 2`` from about
     1.6x to 1.1x the throughput of ``--jobs 1``.
     """
+    global _worker_stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the batch's StopFlag, inherited by fork
+    _worker_stop = stop
     if parent is not None:
         _exit_with_parent(parent)
     parallel.set_threads(threads)
