@@ -1019,8 +1019,8 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
     io.check_output_protocol(out)
     check_inputs_kept(jobs, out, stages, skipped_files or [])
     frames = shared_frames(config, stages, intrinsics)
-    with (outlock.held(out, command),  # one batch at a time in OUT
-          _executor(executor, scheduler, n_jobs) as execute):  # dask: connect before any work
+    with (_executor(executor, scheduler, n_jobs) as execute,  # dask: connect before any work
+          outlock.held(out, command)):  # then one batch at a time in OUT
         remove_stale_temporaries(out)
         todo, records = plan_jobs(jobs, out, config, stages, resume=resume,
                                   overwrite=overwrite, frames=frames)
