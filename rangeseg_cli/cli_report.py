@@ -71,24 +71,30 @@ class BatchReporter:
                 f"{k} {v:.3f}" for k, v in stages.items()), markup=False)
 
 
+def _check_cell(check: dict[str, Any] | None) -> str:
+    """A holdsite check as a table cell: ok, fail or - (not checked)."""
+    return "-" if check is None else ("ok" if check["ok"] else "[red]fail[/red]")
+
+
 def print_eval_table(result: dict[str, Any]) -> None:
     """Print the Hoover et al. (1996) classes per image and in total, and the tolerance curve."""
     keys = ("gt_regions", "correct", "over", "under", "missed", "noise")
     table = Table(title=f"Hoover et al. (1996) at tolerance {result['tolerance']:g}, "
                   f"GT regions >= {result['min_region']} px")
-    for col in ("image", "GT", "correct", "over", "under", "missed", "noise", "holdsite"):
+    for col in ("image", "GT", "correct", "over", "under", "missed", "noise", "holdsite",
+                "usable"):
         table.add_column(col, justify="left" if col == "image" else "right")
     for stem, row in result["images"].items():
         if "error" in row:
-            table.add_row(stem, "[red]error[/red]", *[""] * 6)
+            table.add_row(stem, "[red]error[/red]", *[""] * 7)
             continue
-        hs = row.get("holdsite")
-        table.add_row(stem, *(str(row[k]) for k in keys),
-                      "-" if hs is None else ("ok" if hs["ok"] else "[red]fail[/red]"))
+        table.add_row(stem, *(str(row[k]) for k in keys), _check_cell(row.get("holdsite")),
+                      _check_cell(row.get("holdsite_object")))
     total = result["total"]
-    checks = total["holdsite"]
-    table.add_row("[bold]total", *(f"[bold]{total[k]}" for k in keys),
-                  f"[bold]{checks['ok']}/{checks['checked']}", end_section=True)
+    cells = [f"[bold]{c['ok']}/{c['checked']}" if c else "" for c in
+             (total.get("holdsite"), total.get("holdsite_object"))]
+    table.add_row("[bold]total", *(f"[bold]{total[k]}" for k in keys), *cells,
+                  end_section=True)
     console = Console(highlight=False)
     console.print(table)
     curve = total["curve"]
