@@ -666,6 +666,7 @@ def _check_consistency(config: Config) -> None:
     if any(hold.footprint_mm) and not all(hold.footprint_mm):
         raise ConfigError(f"[holdsite] footprint_mm = {list(hold.footprint_mm)}: both sides "
                           "must be > 0 (or both 0: the footprint is size, in pixels)")
+    _check_workspace(config)
     box = config.workspace.roi_box
     if box and not (box[0] < box[2] and box[1] < box[3]):
         raise ConfigError(f"[workspace] roi_box = {list(box)}: expected [row0, col0, row1, "
@@ -675,6 +676,26 @@ def _check_consistency(config: Config) -> None:
             f"[roof] threshold_b = {config.roof.threshold_b}: must be <= threshold_a "
             f"({config.roof.threshold_a}); pass 2b uses the lower threshold (Sec. V-2)"
         )
+
+
+def _check_workspace(config: Config) -> None:
+    """The workspace's keys agree: a band above a support, with room; a polygon with area."""
+    ws = config.workspace
+    if (ws.min_height or ws.max_height) and not ws.support:
+        raise ConfigError(f"[workspace] min_height = {ws.min_height}, max_height = "
+                          f"{ws.max_height}: a height band is measured above the support; it "
+                          "needs [workspace] support = true")
+    if ws.max_height and ws.min_height >= ws.max_height:
+        raise ConfigError(f"[workspace] min_height = {ws.min_height}: must be below "
+                          f"max_height ({ws.max_height}), or max_height = 0 (no upper bound)")
+    poly = ws.roi_polygon
+    if poly:
+        twice = sum(r0 * c1 - r1 * c0 for (r0, c0), (r1, c1) in zip(poly, poly[1:] + poly[:1],
+                                                                     strict=True))
+        if abs(twice) < 1e-9:
+            raise ConfigError(f"[workspace] roi_polygon = {[list(p) for p in poly]}: the "
+                              "polygon has no area; give 3 or more [row, col] vertices that "
+                              "enclose the pixels that may be picked")
 
 
 def check_config(config: Any) -> None:

@@ -137,7 +137,7 @@ from .surfaces import (
     neighbour_pairs,
     pair_medians,
 )
-from .workspace import Workspace, assess, top_height
+from .workspace import Workspace, assess
 
 #: Regions whose pixels lie within this chessboard distance are neighbours
 #: (across an edge band one or two pixels thick), as in ``Surface.neighbors``:
@@ -642,23 +642,27 @@ def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarr
 
 
 def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.ndarray,
-                    lift: np.ndarray, space: Workspace, footprint_area: int
-                    ) -> list[ObjectInfo]:
-    """Structures at the border, not things to pick (module Notes, step 0).
+                    lift: np.ndarray, space: Workspace, half_width: float,
+                    walls_known: bool = False) -> list[ObjectInfo]:
+    """Structures at the border, never picked (module Notes, step 0).
 
     The border is the image frame and the invalid pixels joined to it outside
-    the support's extent (:func:`border_zone`). The pile is the objects away
-    from it that stand on the support (within :data:`STAND_REACH` pixels of
-    it) and hold ``footprint_area`` pixels or more (pieces of a wall do not);
-    its top is the median of their tops (95th percentiles of heights above
-    the support): a hovering finger counted among them does not raise it.
-    An object touching the border is a structure when its top rises above
-    :data:`STRUCTURE_RISE` times the pile's top plus the support's tolerance
-    (fingers, a tote's wall or rim above the pile); with no pile, when it
-    does not stand on the support (a tote's rim) or rises towards the border
-    (its pixels at the border higher than its median: a tote's wall). An
-    object within :data:`STAND_REACH` of a structure that rises as high is
-    one too (the finger of a gripper whose arm enters from the border).
+    the support's extent (:func:`border_zone`). An object *hovers* when the
+    lowest of its pixels (5th percentile of heights above the support) lies
+    above half its top (95th percentile) and above two tolerances: the
+    robot's arm and fingers, a tote's rim; an item resting on the support
+    shows its sides down to it, a tote's wall rises from it. The pile is the
+    objects away from the border that do not hover and hold a footprint
+    (their widest inscribed disc reaches ``half_width`` px). An object
+    touching the border is a structure when it hovers or (without a
+    background frame: ``walls_known`` false) rises towards the border (its
+    pixels at the border higher than its median: a tote's wall), and, when
+    there is a pile, its top rises above :data:`STRUCTURE_RISE` times the
+    pile's highest top plus the support's tolerance. A hovering object
+    within :data:`STAND_REACH` of a structure is one too (a finger seen
+    apart from its arm). In a height map (no perspective) a flat item cut by
+    the frame looks like a finger: with nothing else in view it is taken
+    for one (``[workspace] border_structures = false`` picks it).
     """
     height = space.height
     if height is None or not objects:
@@ -669,25 +673,53 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     owner = member[labels]
     with np.errstate(invalid="ignore"):
         standing = _touching(owner, np.abs(height) <= space.tolerance)
-    tops = {o.id: top_height(height, owner == o.id) for o in objects}
+    spans = {o.id: _height_span(height, owner == o.id) for o in objects}
+    hover = {i for i, (low, top) in spans.items()
+             if top > 2 * space.tolerance and low > max(HOVER_SHARE * top, 2 * space.tolerance)}
     zone = border_zone(valid, space.extent)
     bordering = set(np.unique(owner[zone & (owner > 0)]).tolist())
-    pile = [tops[o.id] for o in objects if o.id not in bordering and o.id in standing
-            and o.pixels >= footprint_area and np.isfinite(tops[o.id])]
-    high = (STRUCTURE_RISE * float(np.median(pile)) + space.tolerance) if pile else math.inf
-    structures = set()
-    for o in objects:
-        if o.id not in bordering or not np.isfinite(tops[o.id]):
-            continue
-        if pile and tops[o.id] > high:
-            structures.add(o.id)
-        elif not pile and (o.id not in standing or _rises_to_border(
-                owner == o.id, height, zone, space.tolerance)):
-            structures.add(o.id)
-    structures |= _attached(objects, owner, structures, tops, high)
+    wide = _widest(owner, [o.id for o in objects])
+    pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
+            and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
+    high = STRUCTURE_RISE * max(pile) + space.tolerance if pile else -math.inf
+    structures = {o.id for o in objects if o.id in bordering and spans[o.id][1] > high
+                  and (o.id in hover or (not walls_known and _rises_to_border(
+                      owner == o.id, height, zone, space.tolerance)))}
+    structures |= _attached(objects, owner, structures, hover)
     return [dataclasses.replace(o, structure=o.id in structures,
-                                stands=o.id in standing and o.pixels >= footprint_area)
+                                stands=o.id in standing and wide.get(o.id, 0.0) >= half_width)
             for o in objects]
+
+
+#: An object hovers when its lowest pixels lie above this share of its top.
+HOVER_SHARE = 0.5
+
+
+def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """(5th, 95th) percentiles of ``height`` over ``mask`` (NaN when none is finite)."""
+    values = height[mask]
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return math.nan, math.nan
+    low, top = np.percentile(values, [5, 95])
+    return float(low), float(top)
+
+
+def _widest(owner: np.ndarray, ids: list[int]) -> dict[int, float]:
+    """Radius in px of the widest disc inside each object's pixels (its clearance)."""
+    if not ids:
+        return {}
+    same = owner > 0
+    for axis in (0, 1):  # a pixel whose neighbour belongs to another object is a border
+        diff = np.diff(owner, axis=axis) != 0
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (1, 0)
+        same &= ~np.pad(diff, pad)
+        pad[axis] = (0, 1)
+        same &= ~np.pad(diff, pad)
+    edt = ndimage.distance_transform_edt(same)
+    radii = ndimage.maximum(edt, owner, ids)
+    return {i: float(r) for i, r in zip(ids, np.atleast_1d(radii), strict=True)}
 
 
 #: Pixels within which an object touches the support or a structure.
@@ -702,14 +734,14 @@ def _touching(owner: np.ndarray, mask: np.ndarray) -> set[int]:
 
 
 def _attached(objects: list[ObjectInfo], owner: np.ndarray, structures: set[int],
-              tops: dict[int, float], high: float) -> set[int]:
-    """Objects as high as a structure and touching one, transitively (a gripper's fingers)."""
+              hover: set[int]) -> set[int]:
+    """Hovering objects touching a structure, transitively (a gripper's fingers)."""
     found: set[int] = set()
     frontier = set(structures)
-    while frontier and math.isfinite(high):
+    while frontier:
         near = _touching(owner, np.isin(owner, list(frontier)))
-        frontier = {o.id for o in objects if o.id in near and o.id not in structures
-                    and o.id not in found and tops[o.id] > high}
+        frontier = {o.id for o in objects if o.id in near and o.id in hover
+                    and o.id not in structures | found}
         found |= frontier
     return found
 
@@ -1931,8 +1963,8 @@ def _failure(cfg: HoldsiteConfig, missed: list[_Hits], limit: float) -> str:
     clear = (f"largest clearance found: {widest.max_clearance:.1f} px "
              f"(surface {widest.surface.id})")
     fitting = [h for h in missed if h.fitting]
-    if not fitting:
-        return f"no surface has a {win} window wholly on its valid pixels; {clear}"
+    if not fitting:  # nothing holds the footprint: no object to pick, as an empty support
+        return f"nothing to pick: no surface has a {win} window wholly on its valid pixels; {clear}"
     rough = [h for h in missed if h.rough]
     if rough and not any(h.steep for h in missed):
         flat = min(rough, key=lambda h: h.min_rms)
@@ -2037,9 +2069,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     noise = estimate_noise(z, backend=backend)
     coeffs = _coefficient_table(surfaces, n)
     # Step 0: the workspace (beyond the paper): what may be picked
-    space = assess(z, labels, coeffs, config, noise, background=background, roi=roi)
-    area = math.prod(footprint_pixels(config.holdsite, config.input,
-                                      -float(np.nanmedian(z)) if valid.any() else 0.0))
+    space = assess(z, config, noise, background=background, roi=roi)
+    depth = -float(np.nanmedian(z)) if valid.any() else 0.0
+    area = math.prod(footprint_pixels(config.holdsite, config.input, depth))
     on_support = None
     if space.height is not None:
         with np.errstate(invalid="ignore"):
@@ -2062,7 +2094,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     object_of, objects = find_objects(by_id, left_out, gaps, tol, border)
     lift = region_lift(labels, space, z, n)
     if config.workspace.border_structures:
-        objects = mark_structures(objects, labels, valid, lift, space, area)
+        half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
+        objects = mark_structures(objects, labels, valid, lift, space, half,
+                                  walls_known=background is not None)
     obj_by_id = {o.id: o for o in objects}
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
     floating = floating_objects(objects) if space.support is not None else set()
@@ -2078,7 +2112,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     bg, camera = tuple(sorted(background_ids)), config.input.has_intrinsics
     objs, out = tuple(_named_as_labelled(objects, origin)), tuple(sorted(excluded))
     if not found:
-        reason = ("nothing to pick: " + _failure(hold, missed, scene.flat_limit) if order
+        reason = (_failure(hold, missed, scene.flat_limit) if order
                   else _nothing_to_pick(by_id, objects, space)) + _unit_note(config)
         return HoldsiteResult(None, reason, (), bg, objs, camera, out)
     # Step 5: the best window, then the runners-up

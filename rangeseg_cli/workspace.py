@@ -238,19 +238,6 @@ def find_support(z: np.ndarray, camera: InputConfig, tol: float, *, seed: int = 
     return Plane((nx, ny, nz), offset, share)
 
 
-def region_heights(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
-    """Heights of each labelled pixel's region fit (``coeffs`` by label), else the data."""
-    out = np.array(z, dtype=np.float64, copy=True)
-    rows, cols = np.nonzero(labels > 0)
-    if rows.size:
-        a = coeffs[labels[rows, cols]]
-        x, y = cols.astype(np.float64), rows.astype(np.float64)
-        fit = (a[:, 0] + a[:, 1] * x + a[:, 2] * y + a[:, 3] * x * x + a[:, 4] * x * y
-               + a[:, 5] * y * y)
-        out[rows, cols] = np.where(np.isfinite(z[rows, cols]), fit, np.nan)
-    return out
-
-
 def polygon_mask(shape: tuple[int, int], vertices: tuple[tuple[float, float], ...]
                  ) -> np.ndarray:
     """Bool (H, W): pixel centres inside the polygon of (row, col) vertices (even-odd rule)."""
@@ -327,19 +314,15 @@ def _median3(z: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(z), 0.5 * (low + high), np.nan)
 
 
-def assess(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, config: Config,
-           noise: float, *, background: np.ndarray | None = None,
-           roi: np.ndarray | None = None) -> Workspace:
+def assess(z: np.ndarray, config: Config, noise: float, *,
+           background: np.ndarray | None = None, roi: np.ndarray | None = None
+           ) -> Workspace:
     """The pickable pixels of one segmented image (module Notes).
 
     Parameters
     ----------
     z
         float64 (H, W) heights, NaN where invalid.
-    labels
-        int (H, W) labels, 0 = none.
-    coeffs
-        (K + 1, 6) quadric coefficients by label (row 0 unused).
     config
         ``[workspace]`` and ``[input]``.
     noise

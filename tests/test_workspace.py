@@ -105,9 +105,7 @@ def label_at(result, row, col):
 
 
 def run_assess(z, config, noise=0.5, **frames):
-    labels = np.zeros(z.shape, dtype=np.int32)
-    coeffs = np.zeros((1, 6))
-    return assess(z, labels, coeffs, config, noise, **frames)
+    return assess(z, config, noise, **frames)
 
 
 def tote(shape=(96, 128), floor=20.0, rim=120.0, wall=12, right_margin=0):
@@ -463,7 +461,8 @@ def test_a_rough_box_top_is_refused_naming_the_plane_fit_rms():
         "max_flat_rms": 0.5}}))
     assert site_of(result) is None
     reason = result.holdsite.reason
-    assert reason.startswith("nothing to pick") and "plane-fit RMS <= 0.5" in reason
+    # an object is there, too rough to seal on: not "nothing to pick"
+    assert not reason.startswith("nothing to pick") and "plane-fit RMS <= 0.5" in reason
     limit = 1.0
     result = run_pipeline(wavy_box(), load_config(overrides={"holdsite": {
         "max_flat_rms": limit}}))
@@ -537,3 +536,26 @@ def test_footprint_mm_rounds_to_the_nearest_odd_count(side, expected):
     camera = InputConfig(larger_is_closer=False, metres_per_unit=0.001, fx=600.0, fy=600.0)
     cfg = HoldsiteConfig(footprint_mm=(side, side))
     assert footprint_pixels(cfg, camera, 600.0) == (expected, expected)
+
+
+@pytest.mark.parametrize("workspace, match", [
+    ({"support": False, "min_height": 30.0}, r"height band is measured above the support"),
+    ({"support": False, "max_height": 30.0}, r"height band is measured above the support"),
+    ({"min_height": 50.0, "max_height": 10.0}, r"min_height = 50.0: must be below max_height"),
+    ({"roi_polygon": [[0, 0], [1, 1], [2, 2]]}, r"roi_polygon .*: the polygon has no area"),
+])
+def test_workspace_keys_that_contradict_each_other_are_refused(workspace, match):
+    with pytest.raises(ConfigError, match=match):
+        load_config(overrides={"workspace": workspace})
+
+
+def test_a_flat_finger_from_the_border_over_an_empty_table_is_not_picked():
+    z = np.full((80, 80), 20.0)
+    z[0:30, 10:24] = 200.0  # hovering: its lowest pixels as high as its top
+    result = run_pipeline(noisy(z), load_config())
+    assert site_of(result) is None and result.holdsite.reason.startswith("nothing to pick")
+    finger = next(o for o in result.holdsite.objects if label_at(result, 10, 16) in o.surfaces)
+    assert finger.structure
+    paper = run_pipeline(noisy(z), load_config(preset="paper"))
+    assert label_at(paper, paper.holdsite.holdsite.row, paper.holdsite.holdsite.col) == \
+        label_at(paper, 10, 16)
