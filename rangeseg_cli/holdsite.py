@@ -643,24 +643,29 @@ def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarr
 
 def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.ndarray,
                     lift: np.ndarray, space: Workspace, half_width: float,
-                    walls_known: bool = False) -> list[ObjectInfo]:
+                    walls_known: bool = False,
+                    touching: set[tuple[int, int]] | None = None) -> list[ObjectInfo]:
     """Structures at the border, never picked (module Notes, step 0).
 
     The border is the image frame and the invalid pixels joined to it outside
-    the support's extent (:func:`border_zone`). An object *hovers* when the
-    lowest of its pixels (5th percentile of heights above the support) lies
-    above half its top (95th percentile) and above two tolerances: the
-    robot's arm and fingers, a tote's rim; an item resting on the support
-    shows its sides down to it, a tote's wall rises from it. The pile is the
+    the support's extent (:func:`border_zone`). An object *hovers*
+    (:func:`_hovering`) when the lowest of its pixels (5th percentile of
+    heights above the support) lies well above whatever is under it: the
+    highest top of the lower objects it touches (``touching``: pairs of
+    object ids), else the support; the robot's arm and fingers, a tote's
+    rim. An item rests on the support or on another item and shows its
+    sides down to it; a tote's wall rises from the floor. The pile is the
     objects away from the border that do not hover and hold a footprint
-    (their widest inscribed disc reaches ``half_width`` px). An object
-    touching the border is a structure when it hovers or (without a
-    background frame: ``walls_known`` false) rises towards the border (its
-    pixels at the border higher than its median: a tote's wall), and, when
-    there is a pile, its top rises above :data:`STRUCTURE_RISE` times the
-    pile's highest top plus the support's tolerance. A hovering object
-    within :data:`STAND_REACH` of a structure is one too (a finger seen
-    apart from its arm). In a height map (no perspective) a flat item cut by
+    (their widest inscribed disc reaches ``half_width`` px). With a pile, an
+    object touching the border is a structure when its top rises above
+    :data:`STRUCTURE_RISE` times the pile's highest top plus the support's
+    tolerance (the arm, a mount, a tote's wall or rim above the pile), and
+    so is an object as high touching a structure (a finger seen apart from
+    its arm). With nothing else in view, one touching the border is a
+    structure when it hovers or (without a background frame:
+    ``walls_known`` false) rises towards the border (its pixels at the
+    border higher than its median: a tote's wall), and so is a hovering
+    object touching it. In a height map (no perspective) a flat item cut by
     the frame looks like a finger: with nothing else in view it is taken
     for one (``[workspace] border_structures = false`` picks it).
     """
@@ -674,25 +679,50 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     with np.errstate(invalid="ignore"):
         standing = _touching(owner, np.abs(height) <= space.tolerance)
     spans = {o.id: _height_span(height, owner == o.id) for o in objects}
-    hover = {i for i, (low, top) in spans.items()
-             if top > 2 * space.tolerance and low > max(HOVER_SHARE * top, 2 * space.tolerance)}
+    hover = _hovering(spans, touching or set(), space.tolerance)
     zone = border_zone(valid, space.extent)
     bordering = set(np.unique(owner[zone & (owner > 0)]).tolist())
     wide = _widest(owner, [o.id for o in objects])
     pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
             and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
-    high = STRUCTURE_RISE * max(pile) + space.tolerance if pile else -math.inf
-    structures = {o.id for o in objects if o.id in bordering and spans[o.id][1] > high
-                  and (o.id in hover or (not walls_known and _rises_to_border(
-                      owner == o.id, height, zone, space.tolerance)))}
-    structures |= _attached(objects, owner, structures, hover)
+    if pile:  # far above the pile: the arm, a mount, a wall
+        high = STRUCTURE_RISE * max(pile) + space.tolerance
+        above = {o.id for o in objects if spans[o.id][1] > high}
+        structures = bordering & above
+    else:  # nothing else in view: what hovers or (a wall: the tallest) rises to the border
+        above = hover
+        tallest = max((spans[i][1] for i in bordering if i in spans and np.isfinite(
+            spans[i][1])), default=math.inf)
+        structures = {o.id for o in objects if o.id in bordering and (o.id in hover or (
+            not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
+                owner == o.id, height, zone, space.tolerance)))}
+    structures |= _attached(objects, owner, structures, above)
     return [dataclasses.replace(o, structure=o.id in structures,
                                 stands=o.id in standing and wide.get(o.id, 0.0) >= half_width)
             for o in objects]
 
 
-#: An object hovers when its lowest pixels lie above this share of its top.
-HOVER_SHARE = 0.5
+#: An object hovers when its lowest pixels lie above what is under it by this share of
+#: its height over that, and by this many support tolerances (an item on another shows
+#: little of its lower side: a ball on a box, 28 mm above it in a synthetic cell).
+HOVER_SHARE, HOVER_TOLERANCES = 0.5, 8.0
+
+
+def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, int]],
+              tol: float) -> set[int]:
+    """Objects whose lowest pixels lie well above the tops of the lower objects they touch.
+
+    ``spans``: (low, top) of each object; ``touching``: pairs of objects
+    whose regions are neighbours. What is under an object is the highest
+    top among the touching objects lower than it, else the support (0).
+    """
+    under = dict.fromkeys(spans, 0.0)
+    for a, b in touching:
+        for one, other in ((a, b), (b, a)):
+            if one in spans and other in spans and spans[other][1] < spans[one][1]:
+                under[one] = max(under[one], spans[other][1])
+    return {i for i, (low, top) in spans.items() if np.isfinite(top) and top > 2 * tol
+            and low - under[i] > max(HOVER_SHARE * (top - under[i]), HOVER_TOLERANCES * tol)}
 
 
 def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
@@ -722,6 +752,9 @@ def _widest(owner: np.ndarray, ids: list[int]) -> dict[int, float]:
     return {i: float(r) for i, r in zip(ids, np.atleast_1d(radii), strict=True)}
 
 
+#: With nothing in view, a wall rises to the border and is about the tallest there.
+WALL_SHARE = 0.8
+
 #: Pixels within which an object touches the support or a structure.
 STAND_REACH = 6
 
@@ -735,7 +768,7 @@ def _touching(owner: np.ndarray, mask: np.ndarray) -> set[int]:
 
 def _attached(objects: list[ObjectInfo], owner: np.ndarray, structures: set[int],
               hover: set[int]) -> set[int]:
-    """Hovering objects touching a structure, transitively (a gripper's fingers)."""
+    """Objects of ``hover`` touching a structure, transitively (a gripper's fingers)."""
     found: set[int] = set()
     frontier = set(structures)
     while frontier:
@@ -2095,8 +2128,10 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     lift = region_lift(labels, space, z, n)
     if config.workspace.border_structures:
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
+        touching = {(object_of[i], object_of[j]) for i, j in gaps
+                    if i in object_of and j in object_of and object_of[i] != object_of[j]}
         objects = mark_structures(objects, labels, valid, lift, space, half,
-                                  walls_known=background is not None)
+                                  walls_known=background is not None, touching=touching)
     obj_by_id = {o.id: o for o in objects}
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
     floating = floating_objects(objects) if space.support is not None else set()
