@@ -213,7 +213,8 @@ def edges_pass(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray, thresho
     radius
         AR must be the maximum within +-``radius`` pixels along the direction.
     symmetric
-        Cut both sides of the mask at the shorter reach (SPEC *Truncation*).
+        Cut both sides of the mask at the shorter reach (docs/REPRODUCTION.md,
+        "Where the paper is vague").
 
     Returns
     -------
@@ -1058,7 +1059,7 @@ def _run_pairs(labels: np.ndarray, reach: int, runs: tuple[np.ndarray, np.ndarra
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no cover
-    """Pixel pairs of different positive labels within ``reach`` (SPEC "Surfaces", Sec. VII).
+    """Pixel pairs of different positive labels within ``reach`` (neighbours; Sec. VII).
 
     The runs of equal labels along the rows (:func:`_label_runs`) of each
     row and of the row dy below, shifted by dx, are intersected for each of

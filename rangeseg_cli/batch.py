@@ -6,7 +6,7 @@ range of the pipeline's stages; every artefact is written atomically, so a
 killed run leaves only complete files; a bad image is recorded as failed and
 the others go on.
 
-Artefacts of an image with relative stem ``rel`` (SPEC file contract):
+Artefacts of an image with relative stem ``rel`` (docs/outputs.md):
 
 ========== ==========================================================
 stage      files ``OUT/<rel>.<artifact>``

@@ -22,8 +22,8 @@ Truncation: the paper zeroes the mask from the excluded pixel on
 (``"one-sided"``), which biases the smoothed value on a sloped face by the
 slope times the shift of the mask's centroid. The default ``"symmetric"``
 cuts both sides at the shorter reach, which leaves AR exactly 0 on any
-planar ramp (SPEC, *Truncation*). Invalid pixels and pixels outside the
-image are always excluded.
+planar ramp (docs/REPRODUCTION.md, "Where the paper is vague"). Invalid
+pixels and pixels outside the image are always excluded.
 
 Backends: the numpy functions of this module are the reference. When numba is
 installed, :func:`detect_edges` runs the fused compiled kernels of
@@ -56,7 +56,7 @@ _USE_NUMBA: bool = (os.environ.get("RANGESEG_PURE_NUMPY", "") != "1"
 #: The four search directions of Fig. 8, as (row step, column step).
 DIRECTIONS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (1, 1), (1, -1))
 
-#: Codes of the edge map (SPEC file contract).
+#: Codes of the edge map (docs/outputs.md).
 NO_EDGE, STEP_EDGE, ROOF_EDGE, LINKED_EDGE = 0, 1, 2, 3
 
 

@@ -10,7 +10,7 @@ repeated for the final surface parameters (:mod:`rangeseg_cli.surfaces`).
 
 Notes
 -----
-Decisions where the paper and SPEC are silent:
+Decisions where the paper is silent (docs/REPRODUCTION.md):
 
 * **Simultaneous passes.** Every pixel of a pass is decided from the labels
   at the start of that pass, so the result does not depend on a scan order

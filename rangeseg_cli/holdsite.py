@@ -294,7 +294,7 @@ class HoldsiteResult:
     outside: tuple[int, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
-        """The ``holdsite.json`` document (SPEC file contract)."""
+        """The ``holdsite.json`` document (docs/outputs.md)."""
         site = self.holdsite.to_dict(camera=self.camera) if self.holdsite else None
         return {"holdsite": site, "reason": self.reason,
                 "candidates": [c.to_dict(camera=self.camera) for c in self.candidates],

@@ -10,7 +10,7 @@ Notes
 -----
 1. Gap closing, applied once: a valid non-edge pixel whose two neighbours
    along one of the four directions of Fig. 8 are both edges (codes 1 or 2)
-   becomes an edge with code 3 (SPEC file contract). Pixels already coded 3
+   becomes an edge with code 3 (docs/outputs.md). Pixels already coded 3
    are treated as non-edge on input, so linking a linked map again gives the
    same map (the result depends only on the codes 1 and 2).
 2. Components: the valid non-edge pixels are labelled by 4-connectivity;
@@ -18,7 +18,7 @@ Notes
    (label 0) and the rest renumbered 1..K in raster order of their first
    pixel.
 
-Invalid pixels are never edges and never labelled (SPEC, pipeline input).
+Invalid pixels are never edges and never labelled (docs/sensors.md, units).
 """
 
 from __future__ import annotations

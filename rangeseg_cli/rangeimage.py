@@ -1,4 +1,4 @@
-"""Raw pixel values to heights (SPEC "Units and real sensors").
+"""Raw pixel values to heights (docs/sensors.md, "Units").
 
 Heights grow towards the sensor, as in the paper's ERIM images. Depth images
 (closer = smaller) are negated; a configured no-data value, the top of an

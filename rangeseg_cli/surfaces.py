@@ -1,4 +1,4 @@
-"""Surface descriptions of the final regions (Al-Hujazi & Sood 1990, Sec. V-4; SPEC "Surfaces").
+"""Surface descriptions of the final regions (Al-Hujazi & Sood 1990, Sec. V-4; docs/outputs.md).
 
 After region growing "the quadratic surface fit is then repeated to obtain
 the final surface parameters. These parameters can be used to classify the
@@ -392,7 +392,7 @@ def _edge_kinds(group_i: np.ndarray, group_j: np.ndarray, medians: np.ndarray,
 
 def edge_types(labels: np.ndarray, coeffs: np.ndarray, step_threshold: float, *,
                backend: Backend = "auto") -> dict[tuple[int, int], str]:
-    """Neighbouring region pairs and the type of the edge between them (SPEC "Surfaces").
+    """Neighbouring region pairs and the type of the edge between them (docs/outputs.md).
 
     Parameters
     ----------
@@ -447,7 +447,7 @@ def label_boxes(labels: np.ndarray, n: int, *, backend: Backend = "auto") -> np.
 
 def describe_surfaces(z: np.ndarray, labels: np.ndarray, config: Config, *,
                       backend: Backend = "auto") -> list[Surface]:
-    """Refit the final regions and describe them (Sec. V-4, SPEC "Surfaces").
+    """Refit the final regions and describe them (Sec. V-4; docs/outputs.md).
 
     Parameters
     ----------
@@ -557,7 +557,7 @@ def _plain(value: Any) -> Any:
 
 
 def surfaces_to_json(surfaces: list[Surface]) -> dict[str, Any]:
-    """The ``surfaces.json`` document (SPEC file contract).
+    """The ``surfaces.json`` document (docs/outputs.md).
 
     Parameters
     ----------
