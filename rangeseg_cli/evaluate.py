@@ -67,6 +67,7 @@ from scipy import ndimage
 
 from .config import check_value, shown_value
 from .errors import ConfigError
+from .workspace import odd_pixels
 
 #: Tolerances of the correct-detection curve (Hoover et al. plot 0.5..0.95).
 CURVE_TOLERANCES: tuple[float, ...] = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))
@@ -392,6 +393,31 @@ def _window(holdsite: Mapping[str, Any], size: tuple[int, int]
             int(holdsite["col"]) + dc - fp.shape[1] // 2)
 
 
+def _check_max_tilt(max_tilt: Any) -> None:
+    """``max_tilt`` is a number of degrees from 0 to 90 (ValueError naming it otherwise)."""
+    if not (isinstance(max_tilt, int | float) and 0 <= max_tilt <= 90):
+        raise ValueError(f"`max_tilt` {max_tilt!r} must be a number of degrees from 0 to 90")
+
+
+def _labels_under(holdsite: Mapping[str, Any], gt: np.ndarray, size: tuple[int, int]
+                  ) -> np.ndarray | None:
+    """GT labels under a holdsite's window; ``None`` when the window leaves the image.
+
+    Raises
+    ------
+    ValueError
+        For a holdsite whose window cannot be drawn (naming the key).
+    """
+    problem = _holdsite_problem(holdsite)
+    if problem:
+        raise ValueError(f"`holdsite`: {problem}")
+    r, c = _window(holdsite, size)
+    h, w = gt.shape
+    if r.min() < 0 or c.min() < 0 or r.max() >= h or c.max() >= w:
+        return None
+    return gt[r, c]
+
+
 def check_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
                    info: Mapping[str, Any], *, size: tuple[int, int] = (7, 7)
                    ) -> dict[str, Any]:
@@ -425,14 +451,10 @@ def check_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
     result: dict[str, Any] = {"ok": False, "surface": None, "object": None}
     if holdsite is None:
         return {**result, "reason": "no holdsite reported"}
-    problem = _holdsite_problem(holdsite)
-    if problem:
-        raise ValueError(f"`holdsite`: {problem}")
-    r, c = _window(holdsite, size)
-    h, w = gt.shape
-    if r.min() < 0 or c.min() < 0 or r.max() >= h or c.max() >= w:
+    under = _labels_under(holdsite, gt, size)
+    if under is None:
         return {**result, "reason": "window leaves the image"}
-    labels = np.unique(gt[r, c])
+    labels = np.unique(under)
     if len(labels) != 1 or labels[0] == 0:
         ids = ", ".join(str(v) for v in labels)
         return {**result, "reason": f"window crosses surfaces {ids}"}
@@ -503,17 +525,14 @@ def footprint_at_depth(footprint_mm: tuple[float, float], camera: Mapping[str, A
     As ``rangeseg`` converts ``[holdsite] footprint_mm`` (pinhole: ``L f /
     d`` pixels, the nearest odd count, 1 to 255).
     """
-    def odd(side: float, focal: float, depth: float) -> int:
-        return min(max(int(math.floor(side * focal / depth / 2.0)) * 2 + 1, 1), 255)
-
     def window(mask: np.ndarray) -> tuple[int, int]:
         d = depth_mm[mask]
         d = d[np.isfinite(d) & (d > 0)]
         if not d.size:
             return (255, 255)
         m = float(np.median(d))
-        return (odd(footprint_mm[0], float(camera["fy"]), m),
-                odd(footprint_mm[1], float(camera["fx"]), m))
+        return (odd_pixels(footprint_mm[0], float(camera["fy"]), m),
+                odd_pixels(footprint_mm[1], float(camera["fx"]), m))
 
     return window
 
@@ -567,8 +586,7 @@ def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
         For a holdsite :func:`check_holdsite` cannot draw, or ``max_tilt``
         outside 0..90.
     """
-    if not (isinstance(max_tilt, int | float) and 0 <= max_tilt <= 90):
-        raise ValueError(f"`max_tilt` {max_tilt!r} must be a number of degrees from 0 to 90")
+    _check_max_tilt(max_tilt)
     pickable = pickable_objects(info)
     in_view = _fits_somewhere(gt, info["surfaces"], pickable, footprint or size)
     result: dict[str, Any] = {"ok": False, "object": None, "surfaces": [], "tilt": None,
@@ -577,14 +595,9 @@ def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
         if in_view:
             return {**result, "reason": f"no holdsite, but objects {in_view} can be picked"}
         return {**result, "ok": True, "reason": "no holdsite, and nothing to pick"}
-    problem = _holdsite_problem(holdsite)
-    if problem:
-        raise ValueError(f"`holdsite`: {problem}")
-    r, c = _window(holdsite, size)
-    h, w = gt.shape
-    if r.min() < 0 or c.min() < 0 or r.max() >= h or c.max() >= w:
+    labels = _labels_under(holdsite, gt, size)
+    if labels is None:
         return {**result, "reason": "window leaves the image"}
-    labels = gt[r, c]
     result["surfaces"] = [int(v) for v in np.unique(labels)]
     return _judge_window(holdsite, labels, info, pickable, max_tilt, result)
 
@@ -809,8 +822,7 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
         _check_tolerance(t)
     if not _is_int(min_region) or min_region < 0:
         raise ValueError(f"`min_region` {min_region!r} must be an integer >= 0")
-    if not (isinstance(max_tilt, int | float) and 0 <= max_tilt <= 90):
-        raise ValueError(f"`max_tilt` {max_tilt!r} must be a number of degrees from 0 to 90")
+    _check_max_tilt(max_tilt)
     pred_dir, gt_dir = Path(pred_dir), Path(gt_dir)
     images: dict[str, Any] = {}
     errors: list[str] = []

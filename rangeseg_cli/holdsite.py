@@ -128,7 +128,7 @@ from .errors import InputError
 from .grow import RCOND, evaluate_quadric, valid_labels
 from .models import Surface
 from .noise import estimate_noise
-from .rangeimage import check_stage_arrays
+from .rangeimage import check_stage_arrays, require_shape_of_z
 from .stopping import checkpoint
 from .surfaces import (
     NEIGHBOUR_REACH,
@@ -137,7 +137,7 @@ from .surfaces import (
     neighbour_pairs,
     pair_medians,
 )
-from .workspace import Workspace, assess
+from .workspace import Workspace, assess, odd_pixels
 
 #: Regions whose pixels lie within this chessboard distance are neighbours
 #: (across an edge band one or two pixels thick), as in ``Surface.neighbors``:
@@ -580,20 +580,6 @@ PICKABLE_FRACTION = 0.5
 
 #: A structure at the border rises above this many times the pile's top (above the support).
 STRUCTURE_RISE = 1.25
-
-
-def _check_workspace_arrays(z: np.ndarray, background: np.ndarray | None,
-                            roi: np.ndarray | None) -> None:
-    """The workspace arrays have the image's shape (:func:`find_holdsite`'s InputError)."""
-    shape = np.shape(z)
-    for name, a in (("background", background), ("roi", roi)):
-        if a is not None and np.shape(a) != shape:
-            raise InputError(f"the {name} frame is {_shape_text(np.shape(a))} but the image "
-                             f"is {_shape_text(shape)}; they must be the same size")
-
-
-def _shape_text(shape: tuple[int, ...]) -> str:
-    return "x".join(str(v) for v in shape[::-1][:2]) if len(shape) >= 2 else str(shape)
 
 
 def unpickable_regions(labels: np.ndarray, pickable: np.ndarray, n: int) -> set[int]:
@@ -1204,12 +1190,9 @@ def footprint_pixels(cfg: HoldsiteConfig, camera: InputConfig, depth: float
     if not footprint_in_mm(cfg, camera) or depth <= 0:
         return cfg.size
     mm = depth * camera.metres_per_unit * 1000.0
+    return (odd_pixels(cfg.footprint_mm[0], camera.fy, mm),
+            odd_pixels(cfg.footprint_mm[1], camera.fx, mm))
 
-    def odd(side: float, focal: float) -> int:
-        k = int(math.floor(side * focal / mm / 2.0)) * 2 + 1  # the nearest odd count
-        return min(max(k, 1), 255)
-
-    return odd(cfg.footprint_mm[0], camera.fy), odd(cfg.footprint_mm[1], camera.fx)
 
 
 @dataclass
@@ -1913,11 +1896,15 @@ def _preference(obj: ObjectInfo, s: Surface, lift: np.ndarray) -> tuple[bool, bo
     return obj.touches_border, obj.covered, -float(lift[s.id]), s.id
 
 
-def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto"
+def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto", **frames: Any
            ) -> tuple[np.ndarray, np.ndarray]:
-    """``z`` as float64 and ``labels`` on its valid pixels, checked (:func:`find_holdsite`)."""
+    """``z`` as float64 and ``labels`` on its valid pixels, checked (:func:`find_holdsite`).
+
+    ``frames``: the workspace arrays given (``background``, ``roi``), of ``z``'s shape.
+    """
     try:
         check_stage_arrays(z, labels=labels)
+        require_shape_of_z(z, **{k: v for k, v in frames.items() if v is not None})
     except ValueError as exc:  # find_holdsite's documented error
         raise InputError(str(exc)) from None
     z = np.asarray(z, dtype=np.float64)
@@ -2089,8 +2076,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         For a configuration value out of range or a table of the wrong class
         (:func:`~rangeseg_cli.config.check_config`).
     """
-    _check_workspace_arrays(z, background, roi)
-    z, labels = _check(z, labels, backend)
+    z, labels = _check(z, labels, backend, background=background, roi=roi)
     check_config(config)
     valid = np.isfinite(z)
     n = int(labels.max(initial=0))

@@ -339,14 +339,15 @@ def assess(z: np.ndarray, config: Config, noise: float, *,
     ws = config.workspace
     valid = np.isfinite(z)
     pickable = valid & region_of_interest(z.shape, ws, roi)
-    tol = ws.support_tolerance or default_tolerance(z, config.input, noise)
+    auto = default_tolerance(z, config.input, noise)
+    tol = ws.support_tolerance or auto
     if background is None and not ws.support:
         return Workspace(pickable, None, None, tol)
     smooth = _median3(z)
     # the empty scene shows the whole support: found there when given
     ref = _median3(background) if background is not None else smooth
     if background is not None:
-        bg_tol = ws.background_tolerance or default_tolerance(z, config.input, noise)
+        bg_tol = ws.background_tolerance or auto
         pickable &= ~matches_background(smooth, ref, bg_tol)
     plane = find_support(ref, config.input, tol) if ws.support else None
     if plane is None:
@@ -354,7 +355,8 @@ def assess(z: np.ndarray, config: Config, noise: float, *,
     pts = points(smooth, config.input)
     height = plane.distance(pts)
     with np.errstate(invalid="ignore"):
-        on = np.abs(plane.distance(points(ref, config.input))) <= tol
+        on = np.abs(height if background is None
+                    else plane.distance(points(ref, config.input))) <= tol
         pickable &= height > max(tol, ws.min_height)
         if ws.max_height > 0:
             pickable &= height <= ws.max_height
@@ -409,6 +411,12 @@ def over_support(pts: np.ndarray, height: np.ndarray, hull: np.ndarray | None, p
     """
     fr, fc = _feet(pts, height, plane, camera)
     return inside_hull(hull, fr, fc, hull_inset(pts, camera))
+
+
+def odd_pixels(side_mm: float, focal: float, depth_mm: float) -> int:
+    """Pixels a side of ``side_mm`` spans at ``depth_mm`` (pinhole): the nearest odd, 1 to 255."""
+    k = int(math.floor(side_mm * focal / depth_mm / 2.0)) * 2 + 1
+    return min(max(k, 1), 255)
 
 
 def hull_inset(pts: np.ndarray, camera: InputConfig) -> float:

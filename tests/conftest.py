@@ -100,6 +100,20 @@ def _automatic_threads():
 
 
 @pytest.fixture
+def runner():
+    """click's CliRunner for the command-line tests."""
+    from click.testing import CliRunner
+
+    return CliRunner()
+
+
+@pytest.fixture
+def box_png(tmp_path, write_png):
+    """A 48x48 box scene written as an 8-bit PNG (:func:`box_scene`)."""
+    return write_png(tmp_path / "box.png", box_scene(48).astype(np.uint8))
+
+
+@pytest.fixture
 def write_png():
     """Write a uint8/uint16 array as PNG and return its path."""
     import imageio.v3 as iio

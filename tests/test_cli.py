@@ -2,17 +2,11 @@ import json
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from conftest import box_scene
 from rangeseg_cli import __version__
 from rangeseg_cli.cli import main
 from rangeseg_cli.config import Config, load_config
-
-
-@pytest.fixture
-def runner():
-    return CliRunner()
 
 
 @pytest.fixture

@@ -5,20 +5,9 @@ import json
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from conftest import box_scene
 from rangeseg_cli.cli import main
-
-
-@pytest.fixture
-def runner():
-    return CliRunner()
-
-
-@pytest.fixture
-def box_png(tmp_path, write_png):
-    return write_png(tmp_path / "box.png", box_scene(48).astype(np.uint8))
 
 
 def one_line_error(res) -> str:
