@@ -559,3 +559,20 @@ def test_a_flat_finger_from_the_border_over_an_empty_table_is_not_picked():
     paper = run_pipeline(noisy(z), load_config(preset="paper"))
     assert label_at(paper, paper.holdsite.holdsite.row, paper.holdsite.holdsite.col) == \
         label_at(paper, 10, 16)
+
+
+def test_workspace_arrays_of_another_shape_are_one_input_error():
+    from rangeseg_cli.errors import InputError
+    from rangeseg_cli.holdsite import find_holdsite
+
+    z = np.full((32, 32), 20.0)
+    labels = np.ones((32, 32), dtype=np.int32)
+    with pytest.raises(InputError, match=r"`background` \(shape \(8, 8\)\) must have the shape"):
+        find_holdsite(z, labels, [], load_config(), background=np.zeros((8, 8)))
+    with pytest.raises(InputError, match=r"`roi` \(shape \(32, 31\)\) must have the shape"):
+        find_holdsite(z, labels, [], load_config(), roi=np.ones((32, 31), bool))
+
+
+def test_an_roi_box_that_encloses_nothing_is_refused():
+    with pytest.raises(ConfigError, match=r"\[workspace\] roi_box = \[5, 10, 5, 30\]: expected"):
+        load_config(overrides={"workspace": {"roi_box": [5, 10, 5, 30]}})
