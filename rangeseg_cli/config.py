@@ -33,7 +33,6 @@ from .errors import ConfigError
 
 Truncation = Literal["symmetric", "one-sided"]
 BackgroundRule = Literal["lowest-border", "largest-border", "none"]
-PoseRule = Literal["local", "surface"]
 
 # Upper limits of the numeric keys: far beyond any useful setting, and small enough
 # that no product or square the stages form overflows (a fit level squared,
@@ -47,6 +46,8 @@ MAX_FACTOR = 1e3
 MAX_PIXELS = 1e6
 #: Pixel counts: the largest int32.
 MAX_COUNT = 2**31 - 1
+#: Significant digits of floats in JSON outputs.
+FLOAT_DIGITS = 6
 
 
 def _opt(default: Any, help: str, **limits: Any) -> Any:
@@ -70,14 +71,10 @@ class InputConfig:
                                  "plateau is no surface to describe or to grip")
     metres_per_unit: float = _opt(0.0, "metres per depth unit after scaling (0.001 for mm; "
                                   "0 = unknown)", min=0.0, max=1e3)
-    fx: float = _opt(0.0, "camera focal length x in pixels (0 = no intrinsics)", min=0.0,
-                     max=MAX_PIXELS)
-    fy: float = _opt(0.0, "camera focal length y in pixels (0 = no intrinsics)", min=0.0,
-                     max=MAX_PIXELS)
-    cx: float = _opt(0.0, "camera principal point x (column) in pixels", min=-MAX_PIXELS,
-                     max=MAX_PIXELS)
-    cy: float = _opt(0.0, "camera principal point y (row) in pixels", min=-MAX_PIXELS,
-                     max=MAX_PIXELS)
+    intrinsics: tuple[float, ...] = _opt(
+        (0.0, 0.0, 0.0, 0.0), "camera intrinsics [fx, fy, cx, cy] in pixels: focal lengths "
+        "and principal point (column, row), as --intrinsics reads them; [0, 0, 0, 0] = none",
+        min=-MAX_PIXELS, max=MAX_PIXELS, item=float, length=4)
     units_per_pixel: float = _opt(0.0, "depth units per pixel of lateral size of a height map "
                                   "(2 for rangeseg synth at 128x128): the lateral scale "
                                   "without camera intrinsics; 0 = unknown", min=0.0,
@@ -86,6 +83,26 @@ class InputConfig:
                                  "3 depth units per pixel to the image's lateral scale (fx, fy "
                                  "or units_per_pixel) and raise them above its noise sigma 2 "
                                  "(false = the thresholds as given, in depth units)")
+
+    @property
+    def fx(self) -> float:
+        """Focal length x in pixels (0 = no intrinsics)."""
+        return self.intrinsics[0] if self.intrinsics else 0.0
+
+    @property
+    def fy(self) -> float:
+        """Focal length y in pixels (0 = no intrinsics)."""
+        return self.intrinsics[1] if self.intrinsics else 0.0
+
+    @property
+    def cx(self) -> float:
+        """Principal point x (column) in pixels."""
+        return self.intrinsics[2] if self.intrinsics else 0.0
+
+    @property
+    def cy(self) -> float:
+        """Principal point y (row) in pixels."""
+        return self.intrinsics[3] if self.intrinsics else 0.0
 
     @property
     def has_intrinsics(self) -> bool:
@@ -99,10 +116,15 @@ class StepConfig:
 
     sigma: float = _opt(1.0, "standard deviation of the 1-D Gaussian, pixels", min=0.5,
                         max=10.0)
-    taps: int = _opt(5, "length of the 1-D Gaussian mask (odd)", min=3, max=41, odd=True)
     threshold: float = _opt(6.0, "minimum absolute residual (AR, eq. 3) of a step edge, "
                             "depth units (at 3 units per pixel with [input] auto_thresholds)",
                             min_excl=0.0, max=MAX_DEPTH)
+
+    @property
+    def taps(self) -> int:
+        """Length of the 1-D Gaussian mask: 2 ceil(2 sigma) + 1 (5 at sigma 1, 17 at 4)."""
+        return 2 * math.ceil(2 * self.sigma) + 1
+
 
 
 @dataclass(frozen=True)
@@ -111,7 +133,6 @@ class RoofConfig:
 
     sigma: float = _opt(4.0, "standard deviation of the 1-D Gaussian, pixels", min=0.5,
                         max=20.0)
-    taps: int = _opt(17, "length of the 1-D Gaussian mask (odd)", min=3, max=81, odd=True)
     threshold_a: float = _opt(6.0, "AR threshold of pass 2a (step edges excluded), units as "
                               "[step] threshold",
                               min_excl=0.0, max=MAX_DEPTH)
@@ -122,6 +143,12 @@ class RoofConfig:
     truncation: str = _opt("symmetric", "how the adaptive mask is cut at an excluded pixel: "
                            "symmetric (both sides at the shorter reach; no bias on ramps) or "
                            "one-sided (the paper's Fig. 9)", choices=get_args(Truncation))
+
+    @property
+    def taps(self) -> int:
+        """Length of the 1-D Gaussian mask: 2 ceil(2 sigma) + 1 (5 at sigma 1, 17 at 4)."""
+        return 2 * math.ceil(2 * self.sigma) + 1
+
 
 
 @dataclass(frozen=True)
@@ -151,9 +178,53 @@ class GrowConfig:
                                    "1 % on its pixel count: small regions)")
 
 
+#: The passes of the refinement after growing, in the order they run
+#: (:data:`rangeseg_cli.refinement.PASSES`): each one cuts, merges or assigns.
+REFINE_PASSES = ("split", "recover", "fill", "merge", "recut", "bridge", "chamfers", "carve",
+                 "facets", "boundaries", "merge_planes", "join_occluded")
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """The refinement after growing: cut, merge and assign with one fit test (beyond the paper)."""
+
+    passes: tuple[str, ...] = _opt(REFINE_PASSES, "the passes that run (always in the order "
+                                   "of the default list): split, recover and the others cut "
+                                   "regions; merge, merge_planes and join_occluded join them; "
+                                   "fill, bridge and boundaries give edge and boundary pixels "
+                                   "to a neighbour (docs/configuration.md); [] = the paper's "
+                                   "step 4 alone", names=REFINE_PASSES)
+    fit_factor: float = _opt(1.25, "the fit test: one surface of order <= 2 explains a region "
+                             "when its RMS error is at most this times the image noise "
+                             "(estimated, at least sqrt(grow.min_error))",
+                             min_excl=0.0, max=MAX_FACTOR)
+    min_crease: float = _opt(10.0, "two planar regions that pass the fit test stay apart when "
+                             "their planes meet at this angle in degrees or more",
+                             min=0.0, max=90.0)
+    crease_evidence: float = _opt(16.0, "merge two planes at min_crease or more all the same "
+                                  "when their union leaves less squared error than this many "
+                                  "times the noise variance (no evidence of a crease: 16 is "
+                                  "chi-square, 3 degrees of freedom, at 0.999); 0 = off",
+                                  min=0.0, max=MAX_FACTOR ** 2)
+    min_region: int = _opt(20, "smallest region a cut makes, pixels (smaller pieces join "
+                           "their nearest neighbour)", min=1, max=MAX_COUNT)
+    normal_sigma: float = _opt(2.0, "Gaussian sigma in pixels of the local plane fits that "
+                               "give the normals the cuts follow", min_excl=0.0, max=20.0)
+    smoothness: float = _opt(1.0, "boundaries: cost of each 8-neighbour a pixel would "
+                             "disagree with, against its squared residual in noise units",
+                             min=0.0, max=MAX_FACTOR ** 2)
+    max_noise: float = _opt(2.5, "recover no narrow face when the image noise is above this, "
+                            "depth units", min=0.0, max=MAX_DEPTH)
+
+
 @dataclass(frozen=True)
 class SplitConfig:
-    """Split components that fail the quality-of-fit test (beyond the paper, Sec. VIII)."""
+    """The refinement's settings as its passes read them (``Config.split``; not a table).
+
+    Derived from ``[refine]`` (:func:`refine_settings`): the pass switches
+    from ``passes``, seven values from its keys; every other field is a
+    constant of the refinement, named here and nowhere else (:data:`TUNING`).
+    """
 
     enabled: bool = _opt(True, "test each component's quadric fit against the image noise "
                          "and split a failing one at its creases, then regrow")
@@ -283,12 +354,6 @@ class HoldsiteConfig:
     max_flat_rms: float = _opt(0.0, "largest RMS of a plane fitted to the window's depths, "
                                "depth units; 0 = auto (2 x the image's noise + 1 unit, or "
                                "+ 1 mm with camera depth)", min=0.0, max=MAX_DEPTH)
-    pose: str = _opt("local", "where a site's elevation and normal come from: local (on a "
-                     "curved surface, a quadric of the surface's pixels in the square of side "
-                     "2 x footprint + 1 (at least 15) around the site; a planar surface keeps "
-                     "its plane) or "
-                     "surface (the whole surface's fit, as before 2026-11-27)",
-                     choices=get_args(PoseRule))
 
 
 @dataclass(frozen=True)
@@ -333,7 +398,14 @@ class OutputConfig:
 
     png: bool = _opt(True, "write PNG pictures (step, roof, edges, components, labels, "
                      "overlay)")
-    float_digits: int = _opt(6, "significant digits of floats in JSON outputs", min=3, max=17)
+    ply: bool = _opt(False, "write labelled point clouds, <stem>.points.ply and "
+                     "<stem>.holdsite.ply (binary PLY; docs/outputs.md)")
+
+    @property
+    def float_digits(self) -> int:
+        """Significant digits of floats in JSON outputs."""
+        return FLOAT_DIGITS
+
 
 
 @dataclass(frozen=True)
@@ -345,10 +417,15 @@ class Config:
     roof: RoofConfig = field(default_factory=RoofConfig)
     link: LinkConfig = field(default_factory=LinkConfig)
     grow: GrowConfig = field(default_factory=GrowConfig)
-    split: SplitConfig = field(default_factory=SplitConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
     holdsite: HoldsiteConfig = field(default_factory=HoldsiteConfig)
     workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+
+    @property
+    def split(self) -> SplitConfig:
+        """The refinement's settings (:func:`refine_settings` of ``[refine]``)."""
+        return refine_settings(self.refine, TUNING)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain nested dict (tuples as lists), as written to the manifest."""
@@ -386,19 +463,65 @@ class Config:
 #: The tables each stage reads, in stage order (``input`` and ``output`` shape every stage's
 #: files: heights, camera frame, pictures and digits; the noise-scaled thresholds).
 STAGE_TABLES: dict[str, tuple[str, ...]] = {
-    "edges": ("input", "output", "step", "roof"), "link": ("link",), "grow": ("grow", "split"),
+    "edges": ("input", "output", "step", "roof"), "link": ("link",), "grow": ("grow", "refine"),
     "holdsite": ("holdsite", "workspace"),
 }
 
 _TABLE_CLASSES: dict[str, type] = {
     "input": InputConfig, "step": StepConfig, "roof": RoofConfig, "link": LinkConfig,
-    "grow": GrowConfig, "split": SplitConfig, "holdsite": HoldsiteConfig,
+    "grow": GrowConfig, "refine": RefineConfig, "holdsite": HoldsiteConfig,
     "workspace": WorkspaceConfig, "output": OutputConfig,
 }
 
-#: Keys that moved: (table, key) -> the new ``table.key``, named when the old one is used.
+#: The constants of the refinement: :class:`SplitConfig`'s defaults.
+TUNING = SplitConfig()
+
+#: ``[refine] passes`` entry -> the :class:`SplitConfig` switch it sets.
+PASS_SWITCHES = {"split": "enabled", "recover": "recover", "fill": "fill_edges",
+                 "merge": "merge", "recut": "recut", "bridge": "bridge", "chamfers": "chamfers",
+                 "carve": "carve", "facets": "facets", "boundaries": "refine",
+                 "merge_planes": "merge_planes", "join_occluded": "join_occluded"}
+
+#: ``[refine]`` key -> the :class:`SplitConfig` field it sets.
+REFINE_FIELDS = {"fit_factor": "fit_factor", "min_crease": "min_crease",
+                 "crease_evidence": "crease_evidence", "min_region": "min_piece",
+                 "normal_sigma": "normal_sigma", "smoothness": "refine_smoothness",
+                 "max_noise": "recover_max_noise"}
+
+
+@functools.lru_cache(maxsize=64)
+def refine_settings(refine: RefineConfig, tuning: SplitConfig) -> SplitConfig:
+    """The refinement's settings: ``tuning`` with the switches and values of ``refine``."""
+    values: dict[str, Any] = {switch: name in refine.passes
+                              for name, switch in PASS_SWITCHES.items()}
+    values.update({field: getattr(refine, key) for key, field in REFINE_FIELDS.items()})
+    return dataclasses.replace(tuning, **values)
+
+
+def _retired_split_keys() -> dict[tuple[str, str], str]:
+    """What became of each key of the old ``[split]`` table (refused, with this said)."""
+    out = {("split", switch): f"is now the entry {name!r} of refine.passes (leave it out to "
+           "turn the pass off)" for name, switch in PASS_SWITCHES.items()}
+    out.update({("split", old): f"is now refine.{new}; set it there"
+                for new, old in REFINE_FIELDS.items()})
+    for f in dataclasses.fields(SplitConfig):
+        out.setdefault(("split", f.name), "is no longer a setting (a constant of the "
+                       "refinement: rangeseg_cli.config.TUNING); remove it")
+    return out
+
+
+#: Keys that moved or went: (table, key) -> what to say when the old one is used.
 MOVED_KEYS: dict[tuple[str, str], str] = {
-    ("holdsite", "units_per_pixel"): "input.units_per_pixel",
+    ("holdsite", "units_per_pixel"): "is now input.units_per_pixel; set it there",
+    **{("input", k): "is now part of input.intrinsics = [fx, fy, cx, cy]; set it there"
+       for k in ("fx", "fy", "cx", "cy")},
+    **{(t, "taps"): "is no longer a setting (the mask is 2 ceil(2 sigma) + 1 taps long); "
+       "set sigma" for t in ("step", "roof")},
+    ("holdsite", "pose"): "is no longer a setting (a curved surface's site takes the "
+    "normal of a local quadric, a plane's its plane); remove it",
+    ("output", "float_digits"): f"is no longer a setting (JSON floats have {FLOAT_DIGITS} "
+    "significant digits); remove it",
+    **_retired_split_keys(),
 }
 
 #: The sensor presets' footprint in mm: a 20 mm suction cup (a common bin-picking size,
@@ -407,16 +530,12 @@ CUP_MM = [20.0, 20.0]
 
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    # the paper's algorithm alone (no Sec. VIII split, recovery, fill, merge, recut, bridge,
-    # chamfers, carve, refine, merge_planes or facets)
+    # the paper's algorithm alone: no refinement after growing, no workspace rules
     "paper": {"input": {"auto_thresholds": False},
               "grow": {"planar_noise_test": False},
               "holdsite": {"max_tilt": 90.0, "max_flat_rms": MAX_DEPTH},
               "workspace": {"support": False, "border_structures": False},
-              "split": {"enabled": False, "recover": False, "fill_edges": False,
-                        "merge": False, "recut": False, "bridge": False, "carve": False,
-                        "chamfers": False, "refine": False, "merge_planes": False,
-                        "facets": False, "join_occluded": False}},
+              "refine": {"passes": []}},
     "mm-depth": {"input": {"scale": 1.0, "larger_is_closer": False, "invalid": 0.0,
                            "metres_per_unit": 0.001, "auto_thresholds": True},
                  "holdsite": {"footprint_mm": CUP_MM}},
@@ -440,6 +559,8 @@ def _describe_allowed(f: dataclasses.Field) -> str:
     kind = _kind(f)
     if "choices" in meta:
         return "one of " + ", ".join(repr(c) for c in meta["choices"])
+    if "names" in meta:
+        return "a list of distinct names among " + ", ".join(repr(c) for c in meta["names"])
     parts = []
     if kind is tuple:
         item = "numbers" if meta.get("item") is float else "integers"
@@ -551,6 +672,10 @@ def _coerce_list(f: dataclasses.Field, value: Any) -> tuple[bool, Any]:
     meta = f.metadata
     if not isinstance(value, list | tuple):
         return False, value
+    if "names" in meta:
+        ok = all(isinstance(v, str) and v in meta["names"] for v in value) and len(
+            set(value)) == len(value)
+        return ok, tuple(n for n in meta["names"] if n in value) if ok else value
     integer = meta.get("item", int) is int
     if meta.get("pairs"):
         ok = (len(value) == 0 or len(value) >= 3) and all(
@@ -629,6 +754,7 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
                 raise ConfigError(f"{source}: key {table} = {shown_value(entries)} is outside any "
                                   "table; put it under its table, e.g. [step] threshold = 8 "
                                   "(tables: " + ", ".join(_TABLE_CLASSES) + ")")
+            _refuse_retired(table, entries, source)
             raise ConfigError(f"{source}: unknown table [{table}]; allowed tables: "
                               + ", ".join(_TABLE_CLASSES))
         if not isinstance(entries, dict):
@@ -638,8 +764,7 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
         kwargs = {}
         for key, value in entries.items():
             if (table, key) in MOVED_KEYS:
-                raise ConfigError(f"{source}: [{table}] {key} is now "
-                                  f"{MOVED_KEYS[(table, key)]}; set it there")
+                raise ConfigError(f"{source}: [{table}] {key} {MOVED_KEYS[(table, key)]}")
             if key not in fields:
                 raise ConfigError(f"{source}: unknown key [{table}] {key}; allowed keys: "
                                   + ", ".join(fields))
@@ -652,16 +777,27 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
     return tables
 
 
+def _refuse_retired(table: str, entries: dict[str, Any], source: str) -> None:
+    """A table that went (``[split]``): name what became of its first key, or of it."""
+    for key in entries:
+        if (table, key) in MOVED_KEYS:
+            raise ConfigError(f"{source}: [{table}] {key} {MOVED_KEYS[(table, key)]}")
+    if table == "split":
+        raise ConfigError(f"{source}: the table [split] is now [refine]; allowed tables: "
+                          + ", ".join(_TABLE_CLASSES))
+
+
 def _check_consistency(config: Config) -> None:
-    if (config.input.fx > 0) != (config.input.fy > 0):
+    cam = config.input
+    if cam.intrinsics and (cam.fx < 0 or cam.fy < 0 or (cam.fx > 0) != (cam.fy > 0)):
         raise ConfigError(
-            f"[input] fx = {config.input.fx}, fy = {config.input.fy}: camera intrinsics "
-            "need both focal lengths (or neither: 0)")
-    if config.input.has_intrinsics and config.input.larger_is_closer:
+            f"[input] intrinsics = {list(cam.intrinsics)}: camera intrinsics need both focal "
+            "lengths fx, fy > 0 (or [0, 0, 0, 0]: none)")
+    if cam.has_intrinsics and cam.larger_is_closer:
         raise ConfigError(
-            f"[input] fx = {config.input.fx}, larger_is_closer = true: camera intrinsics "
-            "need depth along the optical axis (larger_is_closer = false, e.g. --preset "
-            "mm-depth); a height map has no camera frame")
+            f"[input] intrinsics = {list(cam.intrinsics)}, larger_is_closer = true: camera "
+            "intrinsics need depth along the optical axis (larger_is_closer = false, e.g. "
+            "--preset mm-depth); a height map has no camera frame")
     hold = config.holdsite
     if any(hold.footprint_mm) and not all(hold.footprint_mm):
         raise ConfigError(f"[holdsite] footprint_mm = {list(hold.footprint_mm)}: both sides "

@@ -80,12 +80,11 @@ object's centre of area and ``rho = sqrt(A / pi)`` the radius of a disc of
 the object's area ``A``.
 
 Step 6, pose: elevation and gradient at the centre, from the surface's fit
-on a planar surface and, on a curved one (``holdsite.pose = "local"``, the
-default), from a quadric of the surface's pixels within the footprint's
-longer side of the centre, and at least :data:`LOCAL_MIN_REACH` pixels
+on a planar surface and, on a curved one, from a quadric of the surface's
+pixels within the footprint's longer side of the centre, and at least :data:`LOCAL_MIN_REACH` pixels
 (:func:`local_reach`; :func:`local_pose`: one quadric of a whole
 curved surface can be off by several depth units and degrees at a given
-point); ``holdsite.pose = "surface"`` always takes the surface's fit. The
+point). The
 unit normal ``n ~ (-dz/dx, -dz/dy, 1)`` (x = col, y = row, z up towards the sensor); the
 approach vector ``-n`` (the gripper moves against the normal). With camera
 intrinsics and depth input (``larger_is_closer = false``, depth ``d = -z``),
@@ -122,8 +121,9 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from .backend import Backend, select_kernels
 from .config import MAX_DEPTH, Config, HoldsiteConfig, InputConfig, check_config
-from .edges import Backend, ar_2d, gaussian_taps, select_kernels
+from .edges import ar_2d, gaussian_taps
 from .errors import InputError
 from .grow import RCOND, evaluate_quadric, valid_labels
 from .models import Surface
@@ -955,14 +955,13 @@ def _compiled_box_means() -> bool:
     versions; the compiled :func:`rangeseg_cli._kernels.window_std` follows
     scipy 1.17's, and is used only where it gives the same values.
     """
-    from . import _kernels
-
+    kernels = select_kernels("numba")
     rng = np.random.default_rng(0)
     probe = rng.random((13, 11))
     probe[2, 3] = np.nan
     fp = np.ones((7, 5), dtype=bool)
     ref = window_ar_std(probe, fp, backend="numpy")
-    return bool(np.array_equal(_kernels.window_std(probe, 7, 5), ref))
+    return kernels is not None and bool(np.array_equal(kernels.window_std(probe, 7, 5), ref))
 
 
 def window_ar_std(ar: np.ndarray, fp: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
@@ -1532,7 +1531,7 @@ def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
 
     The pose is the one a site there would report (:func:`site_poses`), so a
     site's normal is always within the limit. Where that pose is the
-    surface's fit (a planar surface, or ``pose = "surface"``) every window
+    surface's fit (a planar surface) every window
     is tested here at once and the steep ones dropped. A curved surface's
     local poses cost a fit each, so they are computed in the order the
     windows are wanted, a chunk at a time (:func:`_first_level`), and
@@ -1723,7 +1722,7 @@ def local_reach(size: tuple[int, int]) -> int:
 
 def local_pose(z: np.ndarray, labels: np.ndarray, s: Surface, row: int, col: int, reach: int
                ) -> tuple[float, tuple[float, float]] | None:
-    """Step 6 (``holdsite.pose = "local"``): height and gradient at a site from nearby pixels.
+    """Step 6 (a curved surface): height and gradient at a site from nearby pixels.
 
     A least-squares quadric (Sec. V-4's model) of the valid pixels of surface
     ``s`` within ``reach`` pixels (chessboard) of ``(row, col)``, in
@@ -1814,8 +1813,8 @@ def local_poses(z: np.ndarray, labels: np.ndarray, s: Surface, rows: np.ndarray,
 
 
 def _local_pose_used(scene: _Scene, s: Surface) -> bool:
-    """Whether a site on ``s`` takes :func:`local_pose` (curved, ``pose = "local"``)."""
-    return scene.cfg.pose == "local" and s.type != "planar"
+    """Whether a site on ``s`` takes :func:`local_pose` (a curved surface)."""
+    return s.type != "planar"
 
 
 def site_poses(scene: _Scene, s: Surface, rows: np.ndarray, cols: np.ndarray
@@ -1823,8 +1822,7 @@ def site_poses(scene: _Scene, s: Surface, rows: np.ndarray, cols: np.ndarray
     """Step 6: elevation and gradient (dz/dx, dz/dy) of sites on ``s``, float64 (N,) each.
 
     A planar surface keeps its plane (its fit over the whole face is the
-    most precise estimate of a plane); a curved one, with ``holdsite.pose =
-    "local"``, gets the local quadric of its pixels within
+    most precise estimate of a plane); a curved one gets the local quadric of its pixels within
     :func:`local_reach` of each site (:func:`local_poses`), or its own fit
     where those pixels determine none.
     """

@@ -61,9 +61,9 @@ class Intrinsics:
     height: int | None = None
     source: str = ""
 
-    def settings(self) -> dict[str, dict[str, float]]:
-        """``{"input": {"fx", "fy", "cx", "cy"}}``: overrides for ``load_config``."""
-        return {"input": {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy}}
+    def settings(self) -> dict[str, dict[str, list[float]]]:
+        """``{"input": {"intrinsics": [fx, fy, cx, cy]}}``: overrides for ``load_config``."""
+        return {"input": {"intrinsics": [self.fx, self.fy, self.cx, self.cy]}}
 
 
 def read_intrinsics(path: str) -> Intrinsics:

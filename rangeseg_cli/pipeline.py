@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from . import refinement
 from .config import Config, check_config, load_config
 from .edges import EdgeMaps, detect_edges
 from .frames import SharedFrames, check_frame_size, read_workspace_frames, roi_mask
@@ -92,13 +93,10 @@ def uses_noise(config: Config) -> bool:
     """Whether a stage of ``config`` uses the image's noise estimate.
 
     The thresholds that follow the sensor (``[input] auto_thresholds``, Sec. V-1, V-2)
-    and the split, recovery, merges, recut, chamfers, carving and boundary refinement of
-    ``[split]`` (beyond the paper; the fill and the bridge do not).
+    and the passes of ``[refine]`` that read it
+    (:func:`~rangeseg_cli.refinement.uses_noise`: all but the fill and the bridge).
     """
-    s = config.split
-    return (config.input.auto_thresholds or s.enabled or s.recover or s.merge or s.recut
-            or s.chamfers or s.carve or s.refine or s.merge_planes or s.facets
-            or s.join_occluded)
+    return config.input.auto_thresholds or refinement.uses_noise(config)
 
 
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
@@ -137,89 +135,6 @@ def stage_grow(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     return labels, surfaces
 
 
-def _after_the_fill(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
-                    ) -> np.ndarray:
-    """The steps of ``[split]`` after the first fill, in order (:func:`stage_grow_and_gaps`).
-
-    Merge, recut, second fill, bridge (:func:`_merge_and_recut`); chamfers,
-    carving, facets, refinement, plane merge, facets again
-    (:func:`_faces_and_borders`); the bridge runs again at the end when a
-    step after it changed the regions: a face carved after the first bridge
-    (part1's +y side, cut from the base top) has edge pixels along it that
-    no region within reach explained then.
-    """
-    cfg = config.split
-    labels = _faces_and_borders(z, _merge_and_recut(z, labels, config, sigma), config, sigma)
-    if cfg.fill_edges and cfg.bridge and (cfg.chamfers or cfg.carve or cfg.refine
-                                          or cfg.merge_planes or cfg.facets):
-        from .fill import bridge_gaps  # once more: faces carved since, borders moved
-
-        labels = bridge_gaps(z, labels, config.grow)
-    if cfg.join_occluded:
-        from .occlusion import join_occluded
-
-        labels = join_occluded(z, labels, config, noise=sigma)
-    return labels
-
-
-def _merge_and_recut(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
-                     ) -> np.ndarray:
-    """Merge, recut, the second fill and the bridge (:func:`_after_the_fill`)."""
-    cfg = config.split
-    if cfg.merge:
-        from .merge import merge_regions
-
-        labels = merge_regions(z, labels, config, noise=sigma)
-    if cfg.recut:
-        from .recut import recut_regions
-
-        labels = recut_regions(z, labels, config, noise=sigma)
-    if cfg.fill_edges and (cfg.merge or cfg.recut):  # what the new surfaces explain
-        from .fill import fill_edges
-
-        labels = fill_edges(z, labels, config.grow)
-    if cfg.fill_edges and cfg.bridge:  # the fill's test, farther
-        from .fill import bridge_gaps
-
-        labels = bridge_gaps(z, labels, config.grow)
-    return labels
-
-
-def _faces_and_borders(z: np.ndarray, labels: np.ndarray, config: Config, sigma: float
-                       ) -> np.ndarray:
-    """Chamfers, carving, facets, refinement, plane merge, facets again (:func:`_after_the_fill`).
-
-    The facets run before the refinement, which settles their borders, and
-    once more after the plane merge, on the regions those two changed.
-    """
-    cfg = config.split
-    if cfg.chamfers:
-        from .chamfer import chamfer_faces
-
-        labels = chamfer_faces(z, labels, config, noise=sigma)
-    if cfg.carve:
-        from .carve import carve_faces
-
-        labels = carve_faces(z, labels, config, noise=sigma)
-    if cfg.facets:
-        from .facets import facet_regions
-
-        labels = facet_regions(z, labels, config, noise=sigma)
-    if cfg.refine:
-        from .refine import refine_boundaries
-
-        labels = refine_boundaries(z, labels, config, noise=sigma)
-    if cfg.merge_planes:
-        from .merge import merge_planes
-
-        labels = merge_planes(z, labels, config, noise=sigma)
-    if cfg.facets and (cfg.refine or cfg.merge_planes):  # regions those two changed
-        from .facets import facet_regions
-
-        labels = facet_regions(z, labels, config, noise=sigma)
-    return labels
-
-
 def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray,
                         config: Config, *, noise: float | None = None
                         ) -> tuple[np.ndarray, list[Surface], dict[tuple[int, int], float]]:
@@ -229,28 +144,9 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     are what :func:`stage_holdsite` would compute again from the labels and
     surfaces: pass them on (``gaps=``).
 
-    With ``[split] enabled``, components that fail the fit test are split
-    and regrown (Sec. VIII; :mod:`rangeseg_cli.split`); with ``[split]
-    recover``, narrow faces left unlabelled get regions of their own
-    (:mod:`rangeseg_cli.recover`); with ``[split] fill_edges`` the edge pixels
-    left go to the surface that fits them best (:mod:`rangeseg_cli.fill`);
-    with ``[split] merge`` touching regions that one surface fits are merged
-    (:mod:`rangeseg_cli.merge`); with ``[split] recut`` regions are cut along
-    the straight line where a plane meets a tangent surface or another
-    plane (:mod:`rangeseg_cli.recut`), and then, with ``[split]
-    fill_edges``, the edge pixels that the merged and recut regions'
-    surfaces explain are filled once more; with ``[split] bridge`` (and
-    ``fill_edges``) edge pixels left go to a planar region within 2 pixels that explains them
-    (:func:`~rangeseg_cli.fill.bridge_gaps`; again at the end, after the
-    steps below); with ``[split] chamfers`` a narrow face
-    between two planes at a crease gets a region of its own
-    (:mod:`rangeseg_cli.chamfer`); with ``[split] carve`` narrow
-    faces grown into a planar region's border get regions of their own
-    (:mod:`rangeseg_cli.carve`); with ``[split] refine`` boundary pixels
-    move to the neighbouring surface that predicts them best, or, near a
-    crease, to the one visible there (:mod:`rangeseg_cli.refine`); with
-    ``[split] merge_planes`` touching planar regions that one plane fits are
-    merged (:func:`~rangeseg_cli.merge.merge_planes`).
+    With ``[refine] passes``, the refinement's passes follow growing, in
+    the order of :data:`~rangeseg_cli.refinement.PASSES` (cut, merge and
+    assign: beyond the paper); without, this is the paper's step 4.
     ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
     """
@@ -261,27 +157,13 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
     check_config(config)
     fits = component_fits(z, components)  # seeds the growth; the split tests them
     labels = grow_regions(z, edges, components, config.grow, fits=fits)
-    cfg = config.split
-    if not (cfg.enabled or cfg.recover or cfg.fill_edges or cfg.merge or cfg.recut
-            or cfg.bridge or cfg.chamfers or cfg.carve or cfg.refine or cfg.merge_planes
-            or cfg.facets or cfg.join_occluded):
+    if not refinement.active_passes(config):
         return labels, *describe_surfaces_and_gaps(z, labels, config)  # the paper's step 4
     if uses_noise(config):  # the fill alone does not
         noise = estimate_noise(z) if noise is None else noise
     sigma = math.nan if noise is None else noise
-    if config.split.enabled:
-        from .split import split_regions
-
-        labels = split_regions(z, edges, components, labels, config, noise=sigma, fits=fits)
-    if config.split.recover:
-        from .recover import recover_faces
-
-        labels = recover_faces(z, components, labels, config, noise=sigma)
-    from .fill import fill_edges
-
-    if config.split.fill_edges:
-        labels = fill_edges(z, labels, config.grow)
-    labels = _after_the_fill(z, labels, config, sigma)
+    scene = refinement.Scene(z, edges, components, config, sigma, fits)
+    labels = refinement.refine_regions(scene, labels)
     return labels, *describe_surfaces_and_gaps(z, labels, config)
 
 
@@ -422,12 +304,11 @@ def shares_threads(shape: tuple[int, ...] | None, config: Config) -> bool:
 
     The edge passes of an image of more than one row band
     (:func:`~rangeseg_cli.parallel.row_bands`), and the split, recovery and
-    recut, which share their pieces out (:func:`~rangeseg_cli.parallel.map_tasks`);
+    recut, which share their pieces out (:func:`~rangeseg_cli.refinement.shares_work`);
     ``shape`` None (not known yet) counts as yes. The paper's pipeline on a
     128x128 frame runs in the calling thread alone.
     """
-    s = config.split
-    if shape is None or len(shape) < 2 or s.enabled or s.recover or s.recut:
+    if shape is None or len(shape) < 2 or refinement.shares_work(config):
         return True
     return len(row_bands(int(shape[0]), int(shape[1]), 0)) > 1
 
