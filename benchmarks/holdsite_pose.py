@@ -1,11 +1,11 @@
-"""How far the holdsites' reported pose is from the true surface, per ``holdsite.pose``.
+"""How far the holdsites' reported pose is from the true surface.
 
 Renders every synthetic scene at noise 0, 1, 2 for the given seeds, runs
-the pipeline once per ``[holdsite] pose`` setting and, for the chosen site
+the pipeline with the defaults and, for the chosen site
 and each runner-up whose 3x3 neighbourhood lies on one ground-truth face,
 compares the reported elevation and normal with the noise-free heights of
-the scene (normal from their central differences). Prints, per noise level
-and setting, the median, 95th percentile and largest elevation error (depth
+the scene (normal from their central differences). Prints, per noise level,
+the median, 95th percentile and largest elevation error (depth
 units) and normal angle (degrees).
 
 Usage::
@@ -24,8 +24,6 @@ import numpy as np
 from rangeseg_cli.config import load_config
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth import SCENES, Scene, render_scene
-
-POSES = ("local", "surface")
 
 
 def pose_errors(scene: Scene, site: object) -> tuple[float, float] | None:
@@ -46,28 +44,26 @@ def main() -> None:
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
-    configs = {p: load_config(overrides={"holdsite": {"pose": p}}) for p in POSES}
-    print("| σ | pose | sites | elevation error median / p95 / max "
+    config = load_config()
+    print("| σ | sites | elevation error median / p95 / max "
           "| angle (°) median / p95 / max |")
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|")
     for noise in (0.0, 1.0, 2.0):
-        errors: dict[str, list[tuple[float, float]]] = {p: [] for p in POSES}
+        errors: list[tuple[float, float]] = []
         for name in SCENES:
             for seed in seeds:
                 scene = render_scene(name, noise=noise, seed=seed)
-                for pose, config in configs.items():
-                    found = run_pipeline(scene.image, config).holdsite
-                    if found.holdsite is None:
-                        continue
-                    for site in (found.holdsite, *found.candidates):
-                        e = pose_errors(scene, site)
-                        if e is not None:
-                            errors[pose].append(e)
-        for pose in POSES:
-            a = np.array(errors[pose]).reshape(-1, 2)
-            stats = [f"{np.median(a[:, k]):.2f} / {np.percentile(a[:, k], 95):.2f} / "
-                     f"{a[:, k].max():.2f}" for k in (0, 1)]
-            print(f"| {noise:g} | {pose} | {len(a)} | {stats[0]} | {stats[1]} |")
+                found = run_pipeline(scene.image, config).holdsite
+                if found.holdsite is None:
+                    continue
+                for site in (found.holdsite, *found.candidates):
+                    e = pose_errors(scene, site)
+                    if e is not None:
+                        errors.append(e)
+        a = np.array(errors).reshape(-1, 2)
+        stats = [f"{np.median(a[:, k]):.2f} / {np.percentile(a[:, k], 95):.2f} / "
+                 f"{a[:, k].max():.2f}" for k in (0, 1)]
+        print(f"| {noise:g} | {len(a)} | {stats[0]} | {stats[1]} |")
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from rangeseg_cli.config import PRESETS, key_reference
+from rangeseg_cli.refinement import PASSES
 
 OUT = Path(__file__).with_name("configuration.md")
 
@@ -50,6 +51,13 @@ def render() -> str:
             table = ref.table
             lines += ["", f"## `[{table}]`", "", ref.table_help, ""]
         lines.append(f"- `{ref.key} = {ref.default}` ({ref.allowed}): {ref.help}.")
+    quiet = sorted({f"`{p.name}`" for p in PASSES if not p.uses_noise})
+    lines += ["", "## The refinement's passes", "",
+              "`[refine] passes` names the passes that run; they run in this order, each a cut, "
+              "a merge or an assign; all but " + " and ".join(quiet) + " scale their tests by "
+              "the image's noise:", ""]
+    lines += [f"{i}. `{p.name}` ({p.op}): {p.about}." for i, p in
+              enumerate((p for p in PASSES if p.about), start=1)]
     lines += ["", "## Presets", "",
               "`--preset NAME` (or `load_config(preset=NAME)`) applies these values before "
               "`--config` and the other options:", ""]

@@ -77,6 +77,8 @@ class Pass:
         The ``[refine] passes`` entry that turns it on.
     op
         Cut, merge or assign.
+    about
+        What it does, in one line (docs/configuration.md).
     run
         The pass: ``run(scene, labels) -> labels``.
     needs
@@ -93,6 +95,7 @@ class Pass:
 
     name: str
     op: Op
+    about: str
     run: Run
     needs: tuple[str, ...] = ()
     after_any: tuple[str, ...] = ()
@@ -106,23 +109,43 @@ _FACETS = _with_noise("facets", "facet_regions")
 
 #: The passes in the order they run.
 PASSES: tuple[Pass, ...] = (
-    Pass("split", "cut", _split, shares_work=True),
-    Pass("recover", "cut", _recover, shares_work=True),
-    Pass("fill", "assign", _FILL, uses_noise=False),
-    Pass("merge", "merge", _with_noise("merge", "merge_regions")),
-    Pass("recut", "cut", _with_noise("recut", "recut_regions"), shares_work=True),
-    Pass("fill", "assign", _FILL, after_any=("merge", "recut"), uses_noise=False),
-    Pass("bridge", "assign", _BRIDGE, needs=("fill",), uses_noise=False),
-    Pass("chamfers", "cut", _with_noise("chamfer", "chamfer_faces")),
-    Pass("carve", "cut", _with_noise("carve", "carve_faces")),
-    Pass("facets", "cut", _FACETS),
-    Pass("boundaries", "assign", _with_noise("refine", "refine_boundaries")),
-    Pass("merge_planes", "merge", _with_noise("merge", "merge_planes")),
-    Pass("facets", "cut", _FACETS, after_any=("boundaries", "merge_planes")),
-    Pass("bridge", "assign", _BRIDGE, needs=("fill",),
+    Pass("split", "cut", "a component that fails the fit test is split at its creases "
+         "(normals, then planes by consensus) and regrown, in two rounds", _split,
+         shares_work=True),
+    Pass("recover", "cut", "a band of unlabelled pixels that one plane fits and no "
+         "neighbour does becomes a narrow face of its own", _recover, shares_work=True),
+    Pass("fill", "assign", "each edge pixel goes to the neighbouring surface that fits it "
+         "best within the growing bound (again after merge and recut)", _FILL,
+         uses_noise=False),
+    Pass("merge", "merge", "touching regions whose union one quadric fits within the fit "
+         "test become one", _with_noise("merge", "merge_regions")),
+    Pass("recut", "cut", "a region is cut along the straight line where a plane ends "
+         "(a tangent curved surface or another plane)", _with_noise("recut", "recut_regions"),
+         shares_work=True),
+    Pass("fill", "assign", "", _FILL, after_any=("merge", "recut"), uses_noise=False),
+    Pass("bridge", "assign", "an edge pixel still unlabelled goes to a planar region within "
+         "2 pixels whose plane explains it (runs again at the end)", _BRIDGE,
+         needs=("fill",), uses_noise=False),
+    Pass("chamfers", "cut", "a narrow face between two planes at a crease gets a region "
+         "when a plane between them explains the crease clearly better",
+         _with_noise("chamfer", "chamfer_faces")),
+    Pass("carve", "cut", "a narrow face grown into a planar region's border gets a region "
+         "when one plane fits it at a crease with the region's",
+         _with_noise("carve", "carve_faces")),
+    Pass("facets", "cut", "a region that fails the fit test is cut into the planes that "
+         "explain it when no quadric joins two of them (runs again after boundaries)",
+         _FACETS),
+    Pass("boundaries", "assign", "each boundary pixel moves to the neighbouring surface "
+         "that predicts it best, counting the neighbours it would disagree with "
+         "(smoothness)", _with_noise("refine", "refine_boundaries")),
+    Pass("merge_planes", "merge", "touching planar regions whose union one plane fits "
+         "become one", _with_noise("merge", "merge_planes")),
+    Pass("facets", "cut", "", _FACETS, after_any=("boundaries", "merge_planes")),
+    Pass("bridge", "assign", "", _BRIDGE, needs=("fill",),
          after_any=("chamfers", "carve", "boundaries", "merge_planes", "facets"),
          uses_noise=False),
-    Pass("join_occluded", "merge", _with_noise("occlusion", "join_occluded")),
+    Pass("join_occluded", "merge", "patches of one surface that something in front divides "
+         "get one label", _with_noise("occlusion", "join_occluded")),
 )
 assert {p.name for p in PASSES} == set(REFINE_PASSES)
 
