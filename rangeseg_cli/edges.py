@@ -35,23 +35,12 @@ the environment variable ``RANGESEG_PURE_NUMPY=1`` (or pass
 from __future__ import annotations
 
 import functools
-import importlib.util
-import os
 from dataclasses import dataclass
-from types import ModuleType
-from typing import Literal, get_args
 
 import numpy as np
 
+from .backend import Backend, select_kernels
 from .config import Config, RoofConfig, StepConfig
-
-Backend = Literal["auto", "numba", "numpy"]
-
-#: Whether ``backend="auto"`` uses the compiled kernels: numba is installed and
-#: ``RANGESEG_PURE_NUMPY`` is not ``1`` (``auto`` falls back to numpy when numba
-#: cannot be imported).
-_USE_NUMBA: bool = (os.environ.get("RANGESEG_PURE_NUMPY", "") != "1"
-                    and importlib.util.find_spec("numba") is not None)
 
 #: The four search directions of Fig. 8, as (row step, column step).
 DIRECTIONS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (1, 1), (1, -1))
@@ -257,43 +246,6 @@ def roof_edges(z: np.ndarray, step: np.ndarray, cfg: RoofConfig
     roof_b = _edges_pass(z, excluded, weights, cfg.threshold_b, cfg.search_radius,
                          cfg.truncation)
     return roof_a, roof_b
-
-
-@functools.cache
-def _compiled_kernels() -> ModuleType | None:
-    """:mod:`rangeseg_cli._kernels`, or None when numba is missing or cannot load."""
-    if importlib.util.find_spec("numba") is None:
-        return None
-    try:
-        from . import _kernels
-    except (ImportError, RuntimeError):  # numba too old/new for numpy, or no cache dir
-        return None
-    return _kernels
-
-
-_BACKENDS: tuple[str, ...] = get_args(Backend)
-
-
-def select_kernels(backend: str) -> ModuleType | None:
-    """The compiled kernels when ``backend`` selects them, else None; validates ``backend``.
-
-    The one switch of every stage with compiled kernels (edges, Sec. V-1 and
-    V-2; region growing, Sec. V-4): ``"numpy"`` gives None (the reference),
-    ``"numba"`` the kernels (an ImportError without numba), ``"auto"`` the
-    kernels when numba is installed and ``RANGESEG_PURE_NUMPY`` is not ``1``.
-    """
-    if backend not in _BACKENDS:
-        raise ValueError(f"`backend` ({backend!r}) must be one of {_BACKENDS}")
-    if backend == "numpy" or (backend == "auto" and not _USE_NUMBA):
-        return None
-    kernels = _compiled_kernels()
-    if kernels is None and backend == "numba":
-        raise ImportError("`backend` 'numba' needs the numba package, which is not installed "
-                          "or cannot be imported; use backend='numpy' or 'auto'")
-    return kernels
-
-
-_select_kernels = select_kernels  # the earlier private name
 
 
 def detect_edges(z: np.ndarray, config: Config, *, backend: Backend = "auto") -> EdgeMaps:

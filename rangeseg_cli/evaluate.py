@@ -245,11 +245,15 @@ def overlap_table(gt: np.ndarray, pred: np.ndarray, *,
                    machine_full=full[:, 1:].sum(axis=0), min_region=min_region)
 
 
-def _check_tolerance(tolerance: float) -> float:
+def check_tolerance(tolerance: float) -> float:
+    """The Hoover tolerance as a float; a ValueError unless it is a number from 0.5 to 1."""
     if not (isinstance(tolerance, int | float) and 0.5 <= tolerance <= 1.0):
         raise ValueError(f"`tolerance` {tolerance!r} must be a number from 0.5 to 1 "
                          "(Hoover et al. 1996)")
     return float(tolerance)
+
+
+_check_tolerance = check_tolerance  # cli.py's name until it imports check_tolerance
 
 
 def _correct_pairs(ov: Overlap, t: float) -> list[tuple[float, int, int]]:
@@ -306,7 +310,7 @@ def classify(ov: Overlap, tolerance: float = DEFAULT_TOLERANCE) -> Classificatio
     Classification
         Instances, missed, noise, small and ignored regions (rules in the module notes).
     """
-    t = _check_tolerance(tolerance)
+    t = check_tolerance(tolerance)
     g_idx = {int(v): i for i, v in enumerate(ov.gt_labels)}
     m_idx = {int(v): i for i, v in enumerate(ov.machine_labels)}
     free_g = np.ones(len(ov.gt_labels), bool)
@@ -816,10 +820,10 @@ def evaluate_folder(pred_dir: str | Path, gt_dir: str | Path, *,
     """
     from .errors import InputError, RangesegError
 
-    tolerance = _check_tolerance(tolerance)
+    tolerance = check_tolerance(tolerance)
     tolerances = tuple(tolerances)  # read twice: checked here, then counted
     for t in tolerances:
-        _check_tolerance(t)
+        check_tolerance(t)
     if not _is_int(min_region) or min_region < 0:
         raise ValueError(f"`min_region` {min_region!r} must be an integer >= 0")
     _check_max_tilt(max_tilt)

@@ -50,7 +50,7 @@ Notes
 5. Merge-back: while one quadric explains two touching pieces almost as
    well as their own surfaces (their union's squared error higher by less
    than ``MIN_GAIN * s^2`` per pixel, the recut's least gain of a cut:
-   :data:`~rangeseg_cli.recut._MIN_GAIN`), the pair with the least gain is
+   :data:`~rangeseg_cli.recut.MIN_GAIN`), the pair with the least gain is
    merged; a merged piece's own surface is its quadric. The strips of a
    curved surface come back together here.
 6. The cut is kept when two pieces or more are left and each one's plane
@@ -72,7 +72,8 @@ from .config import Config
 from .grow import EIGHT_NEIGHBOURS, region_fits, sums_of_squares, union_quadric_mse
 from .rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
 from .recover import consensus_plane, fit_plane, plane_height
-from .split import _raster_renumber, adjacent_pairs, failing_components
+from .regions import adjacent_pairs, raster_renumber
+from .split import failing_components
 
 #: A pixel fits a seed plane within this many times the fit-test level (Notes 2).
 SEED_FACTOR = 1.0
@@ -318,7 +319,7 @@ def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,
     assign = k_planes(z, rows, cols, planes, s2, mask.shape)
     if assign is None:
         return None
-    pieces = _raster_renumber(merge_back(z, _parts(assign, rows, cols, mask.shape, min_piece),
+    pieces = raster_renumber(merge_back(z, _parts(assign, rows, cols, mask.shape, min_piece),
                                           s2))
     k = int(pieces.max(initial=0))
     if k < 2:

@@ -37,8 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .backend import Backend, select_kernels
 from .config import GrowConfig
-from .edges import Backend, select_kernels
 from .grow import evaluate_quadric, fit_models, planar_regions
 from .rangeimage import chessboard_offsets, labels_on_valid
 

@@ -38,7 +38,7 @@ sums accumulated in the same raster order from the same float64 operations,
 so the fits, their e_A and hence every growing decision (a residual compared
 with ``error_factor * e_A``) are bitwise the same. ``RANGESEG_PURE_NUMPY=1``
 or ``backend="numpy"`` selects the reference, as for the edges
-(:func:`rangeseg_cli.edges.select_kernels`).
+(:func:`rangeseg_cli.backend.select_kernels`).
 """
 
 from __future__ import annotations
@@ -50,8 +50,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, special
 
+from .backend import Backend, select_kernels
 from .config import GrowConfig
-from .edges import Backend, select_kernels
 from .rangeimage import require_shape_of_z
 
 #: Number of terms of the quadric, of the plane and of the constant model.

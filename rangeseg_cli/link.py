@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .backend import Backend, select_kernels
 from .config import LinkConfig
 from .edges import (
     DIRECTIONS,
@@ -33,8 +34,6 @@ from .edges import (
     NO_EDGE,
     ROOF_EDGE,
     STEP_EDGE,
-    Backend,
-    select_kernels,
 )
 
 #: 4-connectivity structuring element for :func:`scipy.ndimage.label`.

@@ -55,7 +55,7 @@ from scipy import ndimage
 from .config import Config
 from .grow import evaluate_quadric, fit_models, fit_quadrics, planar_regions
 from .rangeimage import HALF_NEIGHBOUR_PAIRS, consecutive_labels, labels_on_valid
-from .split import _crease_angle
+from .regions import crease_angle, join_box
 
 
 def touching_pairs(labels: np.ndarray, coeffs: np.ndarray, max_gap: float
@@ -98,16 +98,10 @@ def touching_pairs(labels: np.ndarray, coeffs: np.ndarray, max_gap: float
 def _union_rms(z: np.ndarray, groups: np.ndarray, boxes: dict[int, tuple[slice, slice]],
                a: int, b: int, order: int = 2) -> float:
     """RMS error of one quadric (``order`` 2) or plane (1) fitted to the pixels of groups a, b."""
-    box = _join_box(boxes[a], boxes[b])
+    box = join_box(boxes[a], boxes[b])
     both = np.isin(groups[box], (a, b)).astype(np.int32)
     _, mse, _ = fit_quadrics(z[box], both, 1, order=order)
     return math.sqrt(max(float(mse[1]), 0.0))
-
-
-def _join_box(p: tuple[slice, slice], q: tuple[slice, slice]) -> tuple[slice, slice]:
-    """The bounding box of two boxes."""
-    return (slice(min(p[0].start, q[0].start), max(p[0].stop, q[0].stop)),
-            slice(min(p[1].start, q[1].start), max(p[1].stop, q[1].stop)))
 
 
 class _Groups:
@@ -130,7 +124,7 @@ class _Groups:
         """Merge groups a and b (roots) whose union fits with RMS error ``rms``."""
         keep, gone = min(a, b), max(a, b)
         self.parent[gone] = keep
-        box = _join_box(self.boxes[keep], self.boxes.pop(gone))
+        box = join_box(self.boxes[keep], self.boxes.pop(gone))
         self.boxes[keep] = box
         sub = self.labels[box]
         sub[sub == gone] = keep
@@ -241,7 +235,7 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
         bound = min(level, config.split.min_gain * max(groups.rms[a], groups.rms[b], floor))
         if union > bound:
             continue
-        if (flat[i] and flat[j] and _crease_angle(lab, planes, i, j) >= config.split.min_crease
+        if (flat[i] and flat[j] and crease_angle(lab, planes, i, j) >= config.split.min_crease
                 and _crease_shown(groups.excess(a, b, union), noise, config)):
             continue
         groups.join(a, b, union)

@@ -74,8 +74,9 @@ import math
 import numpy as np
 from scipy import special
 
+from .backend import Backend, select_kernels
 from .config import Config, InputConfig
-from .edges import Backend, gaussian_taps, select_kernels, small_filter_residuals
+from .edges import gaussian_taps, small_filter_residuals
 
 #: Depth units per pixel of lateral size assumed for the paper's 8-bit ERIM
 #: images (Sec. VI; module notes, 3): the scale the configured thresholds are in.

@@ -55,9 +55,9 @@ from .grow import (
     sums_of_squares,
     union_quadric_mse,
 )
-from .merge import _join_box, union_excess
+from .merge import union_excess
 from .rangeimage import consecutive_labels, labels_on_valid
-from .split import adjacent_pairs
+from .regions import adjacent_pairs, join_box
 
 #: Pixels between two patches must lie within this many ``s`` of the surface, or above it.
 OCCLUSION_MARGIN = 3.0
@@ -206,7 +206,7 @@ def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[float, int, int]],
         a, b = int(root[i]), int(root[j])
         if a == b or (a, b) == (i, j) and not one_surface(a, b, math.sqrt(mse_quadric)):
             continue  # the union's quadric fits no worse than its plane: a bound, no fit
-        box = _join_box(boxes[a], boxes[b])
+        box = join_box(boxes[a], boxes[b])
         union, c = _union_fit(z, groups, a, b, box, 1 if flat[i] and flat[j] else 2)
         if not one_surface(a, b, union) or not _occluded(z, groups, a, b, c, box, s):
             continue

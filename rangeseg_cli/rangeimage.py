@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from .backend import Backend, select_kernels
 from .config import MAX_DEPTH, InputConfig
-from .edges import Backend, select_kernels
 from .errors import InputError
 
 MIN_SIZE = 16

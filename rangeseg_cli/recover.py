@@ -24,7 +24,7 @@ Notes
    sqrt(grow.min_error))``, Sec. VIII) is a face. A group that fails -- two
    narrow faces meeting at a corner, a band and the pixels across a step --
    is cut into planes by consensus (:func:`plane_pieces`): every pixel's
-   local plane (:func:`~rangeseg_cli.split.local_planes`) is a hypothesis,
+   local plane (:func:`~rangeseg_cli.planes.local_planes`) is a hypothesis,
    the one that most pixels fit within twice that level wins and is refitted
    to them, its connected part becomes a piece, and the rest is cut again.
    Faces whose pixels some existing region's surface fits (the table seen
@@ -66,13 +66,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .backend import Backend, select_kernels
 from .config import Config
-from .edges import Backend, select_kernels
 from .grow import EIGHT_NEIGHBOURS, RCOND, evaluate_quadric, fit_quadrics
 from .noise import estimate_noise
 from .parallel import map_tasks
+from .planes import local_planes
 from .rangeimage import require_shape_of_z
-from .split import adjacent_pairs, local_planes
+from .regions import adjacent_pairs
 
 #: Chessboard reach (pixels) of the neighbours a label-0 pixel may be the boundary of.
 REACH = 2
@@ -334,7 +335,7 @@ def _drop_explained(z: np.ndarray, faces: np.ndarray, fits: _Fits, *,
     the face's pixels to the region's surface is below the region's growing
     bound (Sec. V-4). ``backend``: numpy calls per region (the reference) or
     :func:`rangeseg_cli._kernels.explained_faces` (the same faces), as
-    :func:`~rangeseg_cli.edges.select_kernels` chooses.
+    :func:`~rangeseg_cli.backend.select_kernels` chooses.
     """
     k = int(faces.max(initial=0))
     rows, cols = np.nonzero(faces)

@@ -42,13 +42,13 @@ Notes
    both sides have ``link.min_component`` pixels or more; the plane side is
    a plane passing the test; and the model lowers the sum of squared errors,
    per pixel and in units of ``s^2 = max(noise^2, grow.min_error)``, by
-   ``_MIN_GAIN`` or more against both one quadric and the same model with
+   ``MIN_GAIN`` or more against both one quadric and the same model with
    the knot before every pixel (one cubic across), and by ``_MIN_SMOOTH`` or
    more against a crease.
 4. Crease (:func:`split_crease`), when no smooth edge is found: the model's
    RMS error and each side's plane pass the fit test, both sides have
    ``link.min_component`` pixels or more. A single region is cut when the
-   model gains ``_MIN_GAIN`` against its quadric and the two planes meet at
+   model gains ``MIN_GAIN`` against its quadric and the two planes meet at
    ``split.min_crease`` degrees or more (the split's rule for keeping two
    planes apart); a pair is re-cut when the two sides' own planes fit
    within ``_PAIR_TOLERANCE`` times the sum of squared errors of the two
@@ -76,16 +76,16 @@ from typing import NamedTuple
 import numpy as np
 from scipy import ndimage
 
+from .backend import Backend, select_kernels
 from .config import Config, GrowConfig
-from .edges import Backend, select_kernels
 from .grow import fit_models, planar_regions, plane_angle
-from .merge import _join_box, touching_pairs
+from .merge import touching_pairs
 from .parallel import map_tasks
 from .rangeimage import consecutive_labels, labels_on_valid
-from .split import _area
+from .regions import box_area, join_box
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
-_MIN_GAIN = 0.15
+MIN_GAIN = 0.15
 #: Least gain of a smooth edge against a crease.
 _MIN_SMOOTH = 0.06
 #: A pair is re-cut at a crease when its new sides fit within this times the old SSE.
@@ -403,7 +403,7 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
     if quadric_sse is None:
         quadric_sse = _quadric_sse(z, mask, box)
     gain = (min(quadric_sse, sse_across) - sse) / s2n
-    if gain < _MIN_GAIN or (_crease_sse(pts) - sse) / s2n < _MIN_SMOOTH:
+    if gain < MIN_GAIN or (_crease_sse(pts) - sse) / s2n < _MIN_SMOOTH:
         return None
     return plane_side, gain
 
@@ -519,7 +519,7 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         bool (H, W) the side before the line, or None: the model or a side's
         plane fails the fit test, a side is under ``min_pixels``, the model
         lowers the squared error per pixel against one quadric by less than
-        ``_MIN_GAIN`` s^2, or the planes meet at less than ``min_crease``.
+        ``MIN_GAIN`` s^2, or the planes meet at less than ``min_crease``.
     """
     crease = _crease_planes(mask, z, min_pixels, level, box, pts)
     if crease is None:
@@ -528,7 +528,7 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         quadric_sse = _quadric_sse(z, mask, box)
     gain = ((quadric_sse - crease.sse)
             / (mask.sum() * max(noise ** 2, grow.min_error)))
-    if gain < _MIN_GAIN or plane_angle(crease.planes[1], crease.planes[2]) < min_crease:
+    if gain < MIN_GAIN or plane_angle(crease.planes[1], crease.planes[2]) < min_crease:
         return None
     return crease.side
 
@@ -577,7 +577,7 @@ def candidates(z: np.ndarray, labels: np.ndarray, config: Config, level: float
     boxes = ndimage.find_objects(labels)
     for i, j in touching_pairs(labels, coeffs, _MAX_GAP * level):
         if curved[i] or curved[j]:
-            box = _join_box(boxes[i - 1], boxes[j - 1])
+            box = join_box(boxes[i - 1], boxes[j - 1])
             union = _quadric_sse(z, _pixels(labels, i, j, box), box)
             out.append((i, j, union > level ** 2 * (sizes[i] + sizes[j]), union))
     return out
@@ -636,13 +636,13 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     zc = np.where(np.isfinite(z), z, 0.0)
     level = config.split.fit_factor * max(noise, math.sqrt(config.grow.min_error))
     boxes = ndimage.find_objects(lab)
-    tests = [(i, j, fails, sse, _join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1])
+    tests = [(i, j, fails, sse, join_box(boxes[i - 1], boxes[j - 1]) if j else boxes[i - 1])
              for i, j, fails, sse in candidates(zc, lab, config, level)]
     # The candidates are independent; their work is mostly Python, so many of them go to
     # processes (on threads they take turns on the GIL).
     cuts = map_tasks(
         lambda test: _recut_one(zc, lab, test, noise=noise, level=level, config=config),
-        tests, cost=[float(_area(t[4])) for t in tests])  # pixels of each box
+        tests, cost=[float(box_area(t[4])) for t in tests])  # pixels of each box
     found = [cut for cut in cuts if cut is not None]
     out = lab.copy()
     used: set[int] = set()

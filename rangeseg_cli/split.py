@@ -74,8 +74,8 @@ from types import ModuleType
 import numpy as np
 from scipy import ndimage
 
+from .backend import Backend, select_kernels
 from .config import Config, GrowConfig, SplitConfig
-from .edges import Backend, select_kernels
 from .grow import (
     EIGHT_NEIGHBOURS,
     Fits,
@@ -91,6 +91,10 @@ from .grow import (
 from .link import FOUR_CONNECTED
 from .noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
 from .parallel import map_bands, map_tasks, row_bands
+from .planes import blur_radius, blur_weights, local_gradients, local_planes
+from .recover import INLIER_FACTOR, consensus_plane, plane_pieces
+from .recut import MIN_GAIN, crease_side
+from .regions import adjacent_pairs, bounding_box, box_area, crease_angle, raster_renumber
 from .surfaces import label_boxes
 
 #: Bin width of the histogram of normals (x, y components) whose peak is the mode.
@@ -110,9 +114,6 @@ _FAR_SEARCH_RADIUS = 16
 
 #: Arrays of fewer pixels take the nearest labelled pixel from the feature transform.
 _SEARCH_MIN_PIXELS = 1 << 15
-
-#: The Gaussian weights of the local plane fits end at this many sigmas.
-_TRUNCATE = 3.0
 
 
 def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
@@ -150,180 +151,6 @@ def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
     bad = (mse > level * level) & (counts >= 2 * cfg.min_piece)
     bad[0] = False
     return np.flatnonzero(bad).astype(np.int64)
-
-
-def local_planes(z: np.ndarray, mask: np.ndarray, sigma: float, *,
-                 origin: tuple[float, float] | None = None, backend: Backend = "auto"
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gaussian-weighted local plane fits that use only ``mask`` pixels, at every pixel.
-
-    Parameters
-    ----------
-    z
-        float64 (H, W) heights.
-    mask
-        bool (H, W) pixels to use.
-    sigma
-        Gaussian sigma of the weights, pixels (truncated at 3 sigma:
-        :func:`blur_radius` pixels).
-    origin
-        (row, col) coordinates of pixel [0, 0] in the frame of the fits;
-        default ``(-H / 2, -W / 2)`` (the array's centre). A crop of a larger
-        array given that array's frame gives bit for bit the same values as
-        the whole array wherever no ``mask`` pixel outside the crop lies
-        within :func:`blur_radius` of the pixel.
-    backend
-        ``"numpy"``: scipy's blurs (the reference); ``"numba"``: the compiled
-        :func:`rangeseg_cli._kernels.plane_fit` (the same values bit for bit);
-        ``"auto"``: numba when available (:func:`~rangeseg_cli.edges.select_kernels`).
-
-    Returns
-    -------
-    height, gx, gy
-        float64 (H, W): the fitted plane's height at the pixel and its slopes
-        dz/dcol and dz/drow; NaN where fewer than a few ``mask`` pixels lie
-        within reach or they lie on a line (the fit is degenerate).
-    """
-    fit = _PlaneFit.of(z, mask, sigma, origin, backend)
-    return fit.mz + fit.gx * (fit.u - fit.mu) + fit.gy * (fit.v - fit.mv), fit.gx, fit.gy
-
-
-@dataclass(frozen=True)
-class _PlaneFit:
-    """The local plane fits of :func:`local_planes`: slopes and weighted centres.
-
-    ``u`` (1, W) and ``v`` (H, 1) are the column and row coordinates; ``mu``,
-    ``mv``, ``mz`` the weighted means of u, v and z; ``gx``, ``gy`` the slopes
-    (NaN where the fit is degenerate). All (H, W) but the coordinates.
-    """
-
-    u: np.ndarray
-    v: np.ndarray
-    mu: np.ndarray
-    mv: np.ndarray
-    mz: np.ndarray
-    gx: np.ndarray
-    gy: np.ndarray
-
-    @classmethod
-    def of(cls, z: np.ndarray, mask: np.ndarray, sigma: float,
-           origin: tuple[float, float] | None, backend: Backend = "auto") -> _PlaneFit:
-        """Fit the planes (weighted moments by Gaussian blurs of the masked products).
-
-        With the compiled kernels (``backend``, as
-        :func:`~rangeseg_cli.edges.select_kernels` selects them) the same
-        values bit for bit from :func:`rangeseg_cli._kernels.plane_fit`.
-        """
-        h, w = z.shape
-        v0, u0 = (-h / 2.0, -w / 2.0) if origin is None else origin
-        u = (np.arange(w, dtype=np.float64) + u0)[None, :]  # exact: integers and halves
-        v = (np.arange(h, dtype=np.float64) + v0)[:, None]
-        kernels = select_kernels(backend)
-        if kernels is not None:
-            mu, mv, mz, gx, gy = _compiled_plane_fit(
-                kernels, np.require(z, np.float64, ["C"]), np.require(mask, np.bool_, ["C"]),
-                _blur_weights(sigma), float(u0), float(v0), 1e-3 * sigma**4)
-            return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)
-        m = mask.astype(np.float64)
-        zc = np.where(mask, z, 0.0)
-        s = _blur(m, sigma)
-        ok = s > 1e-3
-        s = np.where(ok, s, 1.0)
-
-        def mean(a: np.ndarray) -> np.ndarray:
-            out = _blur(a, sigma)
-            out /= s
-            return out
-
-        mu_w, mv_w = m * u, m * v
-        mu, mv, mz = mean(mu_w), mean(mv_w), mean(zc)
-        cuu = mean(mu_w * u)
-        cuu -= mu * mu
-        cuv = mean(mu_w * v)
-        cuv -= mu * mv
-        cvv = mean(mv_w * v)
-        cvv -= mv * mv
-        cuz = mean(zc * u)
-        cuz -= mu * mz
-        cvz = mean(zc * v)
-        cvz -= mv * mz
-        det = cuu * cvv - cuv * cuv
-        ok &= det > 1e-3 * sigma**4
-        safe = np.where(ok, det, 1.0)
-        gx = np.where(ok, (cvv * cuz - cuv * cvz) / safe, np.nan)
-        gy = np.where(ok, (cuu * cvz - cuv * cuz) / safe, np.nan)
-        return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)
-
-
-def _compiled_plane_fit(kernels: ModuleType, z: np.ndarray, mask: np.ndarray, w: np.ndarray,
-                        u0: float, v0: float, min_det: float) -> tuple[np.ndarray, ...]:
-    """:func:`rangeseg_cli._kernels.plane_fit`, on row bands at once when there are threads.
-
-    A fit reads the rows within the blur's reach only, so a band with that
-    many rows more either side (and its own row origin, ``v0`` + its first
-    row: integers and halves, exact) gives its rows bit for bit
-    (:func:`~rangeseg_cli.parallel.map_bands`).
-    """
-    height, width = z.shape
-    reach = w.shape[0] // 2
-    if len(row_bands(height, width, reach)) == 1:
-        return tuple(kernels.plane_fit(z, mask, w, u0, v0, min_det))
-    out = tuple(np.empty((height, width)) for _ in range(5))
-
-    def band(first: int, stop: int, lo: int, hi: int) -> None:
-        parts = kernels.plane_fit(z[lo:hi], mask[lo:hi], w, u0, v0 + lo, min_det)
-        for whole, part in zip(out, parts, strict=True):
-            whole[first:stop] = part[first - lo: stop - lo]
-
-    map_bands(band, height, width, reach)
-    return out
-
-
-def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian blur of the local plane fits: zero outside, cut at :data:`_TRUNCATE` sigmas."""
-    return ndimage.gaussian_filter(a, sigma, mode="constant", truncate=_TRUNCATE)
-
-
-@functools.lru_cache(maxsize=16)
-def _blur_weights(sigma: float) -> np.ndarray:
-    """The taps of :func:`_blur` (its response to a unit impulse: scipy's weights exactly)."""
-    impulse = np.zeros(2 * blur_radius(sigma) + 1)
-    impulse[impulse.size // 2] = 1.0
-    weights = _blur(impulse, sigma)
-    weights.setflags(write=False)
-    return weights
-
-
-def blur_radius(sigma: float) -> int:
-    """Reach in pixels of the Gaussian weights of :func:`local_planes` (as scipy truncates)."""
-    return int(_TRUNCATE * sigma + 0.5)
-
-
-def local_gradients(z: np.ndarray, mask: np.ndarray, sigma: float, *,
-                    backend: Backend = "auto") -> tuple[np.ndarray, np.ndarray]:
-    """Slopes of Gaussian-weighted local plane fits that use only ``mask`` pixels.
-
-    Parameters
-    ----------
-    z
-        float64 (H, W) heights.
-    mask
-        bool (H, W) pixels to use (one component).
-    sigma
-        Gaussian sigma of the weights, pixels.
-    backend
-        As for :func:`local_planes`.
-
-    Returns
-    -------
-    gx, gy
-        float64 (H, W) slopes dz/dcol and dz/drow; 0 outside ``mask`` and
-        where the local fit is degenerate (the mask's pixels on a line).
-    """
-    fit = _PlaneFit.of(z, mask, sigma, None, backend)
-    gx, gy = fit.gx, fit.gy
-    keep = mask & np.isfinite(gx)
-    return np.where(keep, gx, 0.0), np.where(keep, gy, 0.0)
 
 
 #: Values from which :func:`_otsu` sorts by radix (below, ``np.sort`` is faster).
@@ -459,7 +286,7 @@ class _Frame:
         Gaussian sigma of the local planes that judge the pixels, pixels.
     backend
         Of the local planes, nearest-label searches and window filters
-        (:func:`~rangeseg_cli.edges.select_kernels`): the same results either way.
+        (:func:`~rangeseg_cli.backend.select_kernels`): the same results either way.
     """
 
     mask: np.ndarray
@@ -704,14 +531,6 @@ def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     return _fill_nearest(lut[parts], frame.mask, frame.backend)
 
 
-def _crop(where: np.ndarray, pad: int) -> tuple[slice, slice]:
-    """Bounding box of ``where``, grown by ``pad`` and clipped to the array."""
-    rows, cols = np.nonzero(where.any(axis=1))[0], np.nonzero(where.any(axis=0))[0]
-    h, w = where.shape
-    return (slice(max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, h)),
-            slice(max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, w)))
-
-
 def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     """Give each pixel near two or more parts to the one whose local plane predicts it best.
 
@@ -727,7 +546,7 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     doubt = frame.mask & (high > 0) & (low != high)
     if not doubt.any():
         return parts
-    box = _crop(doubt, frame.band + int(math.ceil(3.0 * frame.sigma)))
+    box = bounding_box(doubt, frame.band + int(math.ceil(3.0 * frame.sigma)))
     sub, zb, doubt = parts[box], z[box], doubt[box]
     core = _core(parts, frame)[box]
     rows, cols = np.nonzero(doubt)
@@ -758,7 +577,7 @@ def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray,
     ``reach`` only (the same values as on the whole array); with the compiled
     kernels (``backend``) it is :func:`_window_extremes`' maximum (the same pixels).
     """
-    box = _crop(where, reach)
+    box = bounding_box(where, reach)
     inside = ((rows >= box[0].start) & (rows < box[0].stop)
               & (cols >= box[1].start) & (cols < box[1].stop))
     out = np.zeros(rows.size, bool)
@@ -772,10 +591,10 @@ def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray,
 
 def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarray,
                    cols: np.ndarray, backend: Backend = "auto") -> np.ndarray:
-    """Heights at (rows, cols) of the local planes of ``mask`` (:func:`local_planes` on ``z``).
+    """Heights at (rows, cols) of the local planes of ``mask`` in ``z`` (:mod:`.planes`).
 
     Bit for bit the values of ``local_planes(z, mask, sigma)[0][rows, cols]``,
-    computed on the pixels within reach (:func:`blur_radius`) of both the
+    computed on the pixels within reach (:func:`~rangeseg_cli.planes.blur_radius`) of both the
     pixels asked for and ``mask``; NaN where no ``mask`` pixel is within reach.
     With the compiled kernels (``backend``) only at the pixels asked for
     (:func:`rangeseg_cli._kernels.plane_heights_at`, the same values bit for
@@ -798,7 +617,7 @@ def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarr
     if kernels is not None:  # the planes at the pixels asked for only
         out[inside] = _compiled_heights(
             kernels, np.require(z[r0:r1, c0:c1], np.float64, ["C"]),
-            np.require(mask[r0:r1, c0:c1], np.bool_, ["C"]), _blur_weights(sigma),
+            np.require(mask[r0:r1, c0:c1], np.bool_, ["C"]), blur_weights(sigma),
             (float(c0 - w / 2.0), float(r0 - h / 2.0), 1e-3 * sigma**4),
             np.ascontiguousarray(rows[inside] - r0, np.int64),
             np.ascontiguousarray(cols[inside] - c0, np.int64))
@@ -817,7 +636,7 @@ def _compiled_heights(kernels: ModuleType, z: np.ndarray, mask: np.ndarray, w: n
     The pixels (in raster order) are divided by row among the bands of
     :func:`~rangeseg_cli.parallel.map_bands`; each band's call sees its rows
     and the blur's reach either side, with its own row origin: the same
-    heights bit for bit (as :func:`_compiled_plane_fit`).
+    heights bit for bit (as the local plane fits of :mod:`rangeseg_cli.planes`).
     """
     u0, v0, min_det = frame
     height, width = z.shape
@@ -904,74 +723,6 @@ def _wide_parts(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray, frame: _
     return parts if parts.max(initial=0) >= 2 else None
 
 
-def adjacent_pairs(pieces: np.ndarray, reach: int = 2, *, backend: Backend = "auto"
-                   ) -> list[tuple[int, int]]:
-    """Pairs (i < j) of labels with pixels within chessboard distance ``reach``.
-
-    Parameters
-    ----------
-    pieces
-        int (h, w) labels, 0 = none.
-    reach
-        Largest chessboard distance between pixels of two neighbours (2: across
-        a one-pixel line).
-    backend
-        ``"numpy"``: shifted comparisons of the array (the reference);
-        ``"numba"``: the pixel pairs of :func:`rangeseg_cli._kernels.neighbour_pairs`
-        (the same pairs); ``"auto"``: as :func:`~rangeseg_cli.edges.select_kernels`.
-
-    Returns
-    -------
-    list of tuple
-        Sorted unique pairs.
-    """
-    kernels = select_kernels(backend)
-    if kernels is not None:
-        found = kernels.neighbour_pairs(np.require(pieces, np.int32, ["C"]), reach)
-        big = int(pieces.max(initial=0)) + 1
-        a, b = found[:, 4], found[:, 5]
-        uniq = np.unique(np.minimum(a, b) * big + np.maximum(a, b))
-        return [(int(k // big), int(k % big)) for k in uniq]
-    h, w = pieces.shape
-    padded = np.pad(pieces, reach)
-    keys = []
-    big = int(pieces.max(initial=0)) + 1
-    for dy in range(0, reach + 1):
-        for dx in range(-reach, reach + 1):
-            if dy == 0 and dx <= 0:
-                continue
-            other = padded[reach + dy: reach + dy + h, reach + dx: reach + dx + w]
-            hit = (pieces > 0) & (other > 0) & (pieces != other)
-            a, b = pieces[hit].astype(np.int64), other[hit].astype(np.int64)
-            keys.append(np.minimum(a, b) * big + np.maximum(a, b))
-    uniq = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
-    return [(int(k // big), int(k % big)) for k in uniq]
-
-
-def _crease_angle(pieces: np.ndarray, coeffs: np.ndarray, i: int, j: int) -> float:
-    """Median angle in degrees between the fits of pieces i and j along their boundary."""
-    square = np.ones((3, 3), bool)
-    box = _crop((pieces == i) | (pieces == j), 2)
-    sub = pieces[box]
-    near = (ndimage.binary_dilation(sub == i, structure=square, iterations=2)
-            & ndimage.binary_dilation(sub == j, structure=square, iterations=2))
-    rows, cols = np.nonzero(near)
-    if rows.size == 0:
-        return 0.0
-    rows = rows + box[0].start
-    cols = cols + box[1].start
-    cos = np.sum(_normals(coeffs[i], rows, cols) * _normals(coeffs[j], rows, cols), axis=1)
-    return float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))))
-
-
-def _normals(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """(N, 3) unit normals (-fx, -fy, 1) of one quadric (a0..a5) at pixels."""
-    fx = a[1] + 2.0 * a[3] * cols + a[4] * rows
-    fy = a[2] + a[4] * cols + 2.0 * a[5] * rows
-    n = np.stack([-fx, -fy, np.ones_like(fx)], axis=1)
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
-
-
 def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
                min_gain: float, min_crease: float, planar_tolerance: float,
                min_error: float, creases: float | None = None, excess: float | None = None,
@@ -1056,7 +807,7 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
             own = counts[i] * mse[i] + counts[j] * mse[j]
             apart = union * union * both - own > excess * both
         if not apart and flat[i] and flat[j]:
-            apart = _crease_angle(pieces, planes, i, j) >= min_crease
+            apart = crease_angle(pieces, planes, i, j) >= min_crease
         elif (not apart and creases is not None and mse_plane[i] <= level * level
               and mse_plane[j] <= level * level):
             apart = _two_planes(pieces, i, j, float(counts[i] * mse_plane[i]
@@ -1130,8 +881,6 @@ def _crease_cut(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
     meeting along a line, each passing the fit test, at ``min_crease``
     degrees or more, fitting better than one quadric.
     """
-    from .recut import crease_side  # recut builds on merge, which imports this module
-
     side = crease_side(z, mask, noise=noise, level=level, min_pixels=cfg.min_piece,
                        min_crease=cfg.min_crease, grow=grow)
     if side is None:
@@ -1142,12 +891,10 @@ def _crease_cut(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
 def _crease_gain(noise: float, cfg: SplitConfig, grow: GrowConfig) -> float | None:
     """The ``creases`` gain of :func:`merge_back`: the recut's least gain of a crease.
 
-    ``_MIN_GAIN`` of :mod:`rangeseg_cli.recut` times ``max(noise^2,
+    ``MIN_GAIN`` of :mod:`rangeseg_cli.recut` times ``max(noise^2,
     grow.min_error)``; None without ``split.crease_pieces``.
     """
-    from .recut import _MIN_GAIN  # recut builds on merge, which imports this module
-
-    return _MIN_GAIN * max(noise * noise, grow.min_error) if cfg.crease_pieces else None
+    return MIN_GAIN * max(noise * noise, grow.min_error) if cfg.crease_pieces else None
 
 
 def _two_planes(pieces: np.ndarray, i: int, j: int, sse_planes: float, union_rms: float,
@@ -1163,7 +910,7 @@ def _two_planes(pieces: np.ndarray, i: int, j: int, sse_planes: float, union_rms
     """
     n = int(((pieces == i) | (pieces == j)).sum())
     return (sse_planes + gain * n <= union_rms ** 2 * n
-            and _crease_angle(pieces, planes, i, j) >= min_crease)
+            and crease_angle(pieces, planes, i, j) >= min_crease)
 
 
 def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: SplitConfig,
@@ -1198,7 +945,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
         ``[split]`` and ``[grow]`` (``min_error``, ``error_factor``,
         ``planar_tolerance``).
     backend
-        Of the local plane fits (:func:`local_planes`): the same pieces either way.
+        Of the local plane fits (:func:`~.planes.local_planes`): the same pieces either way.
 
     Returns
     -------
@@ -1212,7 +959,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     quadric_passes: set[int] = set()  # pieces queued because their plane alone fails
     while queue and (n := int(pieces.max())) < cfg.max_pieces:
         k = queue.pop(0)
-        box = _crop(pieces == k, 0)
+        box = bounding_box(pieces == k, 0)
         sub = _split_once(z[box], pieces[box] == k, cfg, backend)
         if sub is None and cfg.crease_pieces:
             sub = _crease_cut(z[box], pieces[box] == k, noise=noise, level=level, cfg=cfg,
@@ -1267,8 +1014,6 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> np.ndarray
     Returns the pixels left out (bool, ``pieces``' shape), None when the
     piece is left as it is.
     """
-    from .recover import INLIER_FACTOR, consensus_plane  # recover imports this module
-
     mask = pieces == k
     tol = INLIER_FACTOR * level
     inliers = consensus_plane(z, mask, tol)
@@ -1309,8 +1054,6 @@ def _trimmed_faces(z: np.ndarray, pieces: np.ndarray, trimmed: np.ndarray, n: in
     all. :func:`merge_back` then judges them as any other piece; the rest
     of the trim is regrown.
     """
-    from .recover import plane_pieces  # recover imports this module
-
     groups, count = ndimage.label(trimmed, structure=EIGHT_NEIGHBOURS)
     sizes = np.bincount(groups.ravel(), minlength=count + 1)
     boxes = ndimage.find_objects(groups)
@@ -1368,8 +1111,6 @@ def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
     whole; where they hold it, :func:`merge_back` judges the planes as any
     other pieces. Returns whether the piece was cut.
     """
-    from .recover import plane_pieces  # recover imports this module
-
     mask = pieces == k
     faces = plane_pieces(z, mask, level=level, min_pixels=cfg.min_piece)
     held = sum(int(np.count_nonzero(f)) for f in faces)
@@ -1380,11 +1121,6 @@ def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
     for i, face in enumerate(faces):
         pieces[face] = k if i == 0 else n + i
     return True
-
-
-def _area(box: tuple[slice, slice]) -> int:
-    """Pixels of a box of slices with set ends."""
-    return int((box[0].stop - box[0].start) * (box[1].stop - box[1].start))
 
 
 def _separate(labels: np.ndarray) -> np.ndarray:
@@ -1404,28 +1140,6 @@ def _separate(labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def _raster_renumber(labels: np.ndarray, backend: Backend = "auto") -> np.ndarray:
-    """Renumber labels 1..K in raster order of their first pixel (as link does).
-
-    The first pixels come from ``np.unique`` (the reference) or, with the
-    compiled kernels (``backend``), from one sweep
-    (:func:`rangeseg_cli._kernels.first_pixels`): the same numbering.
-    """
-    kernels = select_kernels(backend)
-    if kernels is not None:
-        first = kernels.first_pixels(np.require(labels, np.int32, ["C"]),
-                                     int(labels.max(initial=0)))
-        ids = np.flatnonzero(first >= 0)
-        first = first[ids]
-    else:
-        ids, first = np.unique(labels.ravel(), return_index=True)
-    keep = ids > 0
-    order = ids[keep][np.argsort(first[keep], kind="stable")]
-    lut = np.zeros(int(ids.max(initial=0)) + 1, np.int32)
-    lut[order] = np.arange(1, order.size + 1, dtype=np.int32)
-    return lut[labels]
-
-
 def split_components(z: np.ndarray, components: np.ndarray, config: Config,
                      noise: float, *, backend: Backend = "auto", fits: Fits | None = None
                      ) -> np.ndarray | None:
@@ -1442,7 +1156,7 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
     noise
         Noise sigma of the image (:func:`estimate_noise`).
     backend
-        Of the local plane fits (:func:`local_planes`): the same result either way.
+        Of the local plane fits (:func:`~.planes.local_planes`): the same result either way.
     fits
         For :func:`failing_components` (the components' fits, when known).
 
@@ -1469,7 +1183,7 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
     tasks = list(zip(failing.tolist(), spans, strict=True))
     # The components are disjoint: split at once (many of them in processes: their work
     # is mostly Python), then numbered in order as one by one.
-    results = map_tasks(split_one, tasks, cost=[float(_area(box)) for box in spans])
+    results = map_tasks(split_one, tasks, cost=[float(box_area(box)) for box in spans])
     for (cid, box), pieces in zip(tasks, results, strict=True):
         inside = out[box] == cid
         k = int(pieces.max())
@@ -1480,7 +1194,7 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
         out[box] = np.where(inside, ids[pieces], out[box])
     if next_id == int(np.max(components, initial=0)) + 1:
         return None
-    return _raster_renumber(_separate(out), backend)
+    return raster_renumber(_separate(out), backend)
 
 
 def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
@@ -1504,7 +1218,7 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
     noise
         Noise sigma of ``z`` (:func:`estimate_noise`); estimated when None.
     backend
-        Of the local plane fits (:func:`local_planes`): the same labels either way.
+        Of the local plane fits (:func:`~.planes.local_planes`): the same labels either way.
     fits
         :func:`~rangeseg_cli.grow.component_fits` of ``z`` and ``components``
         when the caller has them (for the first round's fit test).

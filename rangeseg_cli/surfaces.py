@@ -52,8 +52,8 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from .backend import Backend, select_kernels
 from .config import Config, check_config
-from .edges import Backend, select_kernels
 from .grow import evaluate_quadric, planar_regions, region_fits, valid_labels
 from .models import Neighbor, Surface
 from .rangeimage import check_stage_arrays

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from conftest import box_scene, step_image
+from rangeseg_cli import backend as backend_module
 from rangeseg_cli import edges, io
 from rangeseg_cli.config import load_config
 from rangeseg_cli.edges import DIRECTIONS, absolute_residual, detect_edges, gaussian_taps
@@ -248,7 +249,7 @@ def test_run_pipeline_gives_identical_labels_with_both_backends(index, monkeypat
     stages = 3 if importlib.util.find_spec("rangeseg_cli.grow") else 2
     results = []
     for use_numba in (False, True):
-        monkeypatch.setattr(edges, "_USE_NUMBA", use_numba)
+        monkeypatch.setattr(backend_module, "_USE_NUMBA", use_numba)
         results.append(run_pipeline(image, CFG, stages=stages))
     ref, fast = results
     np.testing.assert_array_equal(ref.edges, fast.edges)
@@ -301,7 +302,7 @@ def run_both(image, config, monkeypatch):
     """``run_pipeline`` with every stage on numpy, then on the compiled kernels."""
     results = []
     for use_numba in (False, True):
-        monkeypatch.setattr(edges, "_USE_NUMBA", use_numba)
+        monkeypatch.setattr(backend_module, "_USE_NUMBA", use_numba)
         results.append(run_pipeline(image, config))
     return results
 
@@ -635,13 +636,13 @@ def test_unknown_backend_is_an_error_naming_the_allowed_values():
 def no_numba(monkeypatch):
     """Make numba look uninstalled (find_spec gives None, import fails)."""
     monkeypatch.setitem(sys.modules, "numba", None)
-    edges._compiled_kernels.cache_clear()
+    backend_module._compiled_kernels.cache_clear()
     yield
-    edges._compiled_kernels.cache_clear()
+    backend_module._compiled_kernels.cache_clear()
 
 
 def test_without_numba_auto_uses_numpy_and_numba_backend_is_an_error(no_numba, monkeypatch):
-    monkeypatch.setattr(edges, "_USE_NUMBA", True)
+    monkeypatch.setattr(backend_module, "_USE_NUMBA", True)
     maps = detect_edges(step_image(40.0), CFG)
     assert maps.step[:, 15:17].all()
     with pytest.raises(ImportError, match="needs the numba package"):
@@ -650,7 +651,7 @@ def test_without_numba_auto_uses_numpy_and_numba_backend_is_an_error(no_numba, m
 
 def test_without_numba_grow_and_surfaces_use_numpy_and_numba_backend_is_an_error(
         no_numba, monkeypatch):
-    monkeypatch.setattr(edges, "_USE_NUMBA", True)
+    monkeypatch.setattr(backend_module, "_USE_NUMBA", True)
     z, codes, components = _stage3(box_scene(noise=1.0, seed=2))
     labels = grow_regions(z, codes, components, NO_SPLIT.grow)
     assert len(describe_surfaces(z, labels, NO_SPLIT)) == 2
@@ -667,7 +668,7 @@ def test_unknown_backend_of_the_fits_is_an_error():
 
 
 def test_pure_numpy_environment_variable_turns_the_kernels_off():
-    code = "import rangeseg_cli.edges as e; print(e._USE_NUMBA)"
+    code = "import rangeseg_cli.backend as b; print(b._USE_NUMBA)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, env={**os.environ, "RANGESEG_PURE_NUMPY": "1"})
     assert out.stdout.strip() == "False"

@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rangeseg_cli import parallel
+from rangeseg_cli import parallel, planes
 from rangeseg_cli import split as split_module
 from rangeseg_cli.config import load_config
 from rangeseg_cli.edges import detect_edges
@@ -76,8 +76,8 @@ def test_edge_bands_with_fewer_rows_than_the_filter_reach(tiny_bands) -> None:
 def test_local_planes_on_bands_are_bitwise_those_of_one_call(tiny_bands, threads) -> None:
     z = np.nan_to_num(pile(noise=0.5), nan=40.0)
     mask = z > np.median(z)
-    whole = in_threads(1, split_module.local_planes, z, mask, 2.0)
-    banded = in_threads(threads, split_module.local_planes, z, mask, 2.0)
+    whole = in_threads(1, planes.local_planes, z, mask, 2.0)
+    banded = in_threads(threads, planes.local_planes, z, mask, 2.0)
     assert np.isfinite(whole[1]).sum() > 1000
     for a, b in zip(whole, banded, strict=True):
         np.testing.assert_array_equal(a, b)

@@ -12,16 +12,17 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from rangeseg_cli import noise as noise_module
+from rangeseg_cli import regions
 from rangeseg_cli import split as split_module
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.grow import fit_quadrics, grow_regions
 from rangeseg_cli.pipeline import run_pipeline, stage_edges, stage_grow
+from rangeseg_cli.planes import local_planes
 from rangeseg_cli.split import (
     estimate_noise,
     failing_components,
-    local_planes,
     merge_back,
     split_regions,
 )
@@ -617,8 +618,8 @@ def test_compiled_parts_and_raster_renumbering_equal_scipys_and_uniques() -> Non
         if trial % 3 == 0:  # blobs rather than speckle
             labels = np.repeat(np.repeat(labels[::4, ::4], 4, axis=0), 4, axis=1)[:h, :w]
         for a, b in ((split_module._parts(labels, "numba"), split_module._parts(labels, "numpy")),
-                     (split_module._raster_renumber(labels, "numba"),
-                      split_module._raster_renumber(labels, "numpy"))):
+                     (regions.raster_renumber(labels, "numba"),
+                      regions.raster_renumber(labels, "numpy"))):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
     assert split_module._parts(np.array([[1, 0, 1], [1, 2, 2]], np.int32), "numba").tolist() \
@@ -667,8 +668,8 @@ def test_compiled_label_extremes_holes_and_adjacent_pairs_equal_the_references()
         fast, slow = (split_module._holes(parts > 0, b) for b in ("numba", "numpy"))
         assert fast[1] == slow[1]
         np.testing.assert_array_equal(fast[0], slow[0])
-        assert split_module.adjacent_pairs(parts, reach, backend="numba") \
-            == split_module.adjacent_pairs(parts, reach, backend="numpy")
+        assert regions.adjacent_pairs(parts, reach, backend="numba") \
+            == regions.adjacent_pairs(parts, reach, backend="numpy")
         if parts.any():
             rows, cols = np.nonzero(rng.random((h, w)) < 0.5)
             np.testing.assert_array_equal(
