@@ -36,6 +36,7 @@ Notes
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from .backend import Backend, select_kernels
 from .config import GrowConfig
@@ -220,20 +221,25 @@ def bridge_gaps(z: np.ndarray, labels: np.ndarray, cfg: GrowConfig, *,
     bound = np.where(flat, cfg.error_factor * np.maximum(mse, cfg.min_error), 0.0)
     bound[0] = 0.0
     offsets = chessboard_offsets(reach)
-    rows, cols = np.nonzero(np.isfinite(z) & (out == 0))
+    open_ = np.isfinite(z) & (out == 0)
+    # only pixels within reach of a planar region can join
+    near = ndimage.maximum_filter(bound[out] > 0, size=2 * reach + 1, mode="constant")
+    rows, cols = np.nonzero(open_ & near)
     while rows.size:
         best, ratio = _best_neighbour(z, out, coeffs, bound, rows, cols, offsets)
         join = ratio < 1.0
         if not join.any():
             break
         out[rows[join], cols[join]] = best[join]
-        rows, cols = rows[~join], cols[~join]
+        open_[rows[join], cols[join]] = False
+        rows, cols = _frontier(open_, rows[join], cols[join], offsets)
     return out
 
 
-def _frontier(open_: np.ndarray, rows: np.ndarray, cols: np.ndarray
+def _frontier(open_: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+              offsets: tuple[tuple[int, int], ...] = NEIGHBOUR_OFFSETS
               ) -> tuple[np.ndarray, np.ndarray]:
-    """The open pixels 8-adjacent to the pixels ``rows, cols``, in raster order.
+    """The open pixels at ``offsets`` (8-adjacent) from the pixels ``rows, cols``, in raster order.
 
     Surfaces are fixed, so a pixel whose neighbours did not change in a pass
     gets the same test result in the next one: only the pixels next to the
@@ -241,8 +247,8 @@ def _frontier(open_: np.ndarray, rows: np.ndarray, cols: np.ndarray
     passes run a hundred times over a shrinking band).
     """
     h, w = open_.shape
-    r = (rows[:, None] + np.array([dr for dr, _ in NEIGHBOUR_OFFSETS])).ravel()
-    c = (cols[:, None] + np.array([dc for _, dc in NEIGHBOUR_OFFSETS])).ravel()
+    r = (rows[:, None] + np.array([dr for dr, _ in offsets])).ravel()
+    c = (cols[:, None] + np.array([dc for _, dc in offsets])).ravel()
     inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
     flat = np.unique(r[inside] * w + c[inside])
     flat = flat[open_.ravel()[flat]]
