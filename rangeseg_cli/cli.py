@@ -695,5 +695,31 @@ def _tolerance_not_nan(value: float) -> float:
         raise click.BadParameter(f"{value} is not in the range 0.5<=x<=1.0") from None
 
 
+@main.command(name="report")
+@outdir_arg
+@click.option("--json", "as_json", is_flag=True,
+              help="Print {index, images, site, nosite, failed, running} as JSON on stdout.")
+@verbosity_opts
+@click.pass_context
+def report_cmd(ctx: click.Context, out: str, as_json: bool, verbose: int, quiet: int) -> None:
+    """Write OUT/index.html: a static page of the batch in OUT.
+
+    The batch summary, then one card per image: its overlay, holdsite (or why
+    there is none) or error, and links to its files; a filter by status. No
+    server or network needed: open it from disk or from an object store.
+    """
+    from .errors import OutputError, StorageError
+    from .report_html import write_report
+
+    try:
+        result = write_report(_location(out))
+    except (OutputError, StorageError) as exc:
+        raise UsageProblem(str(exc)) from None
+    if as_json:
+        _echo_json(ctx, result)
+    elif not quiet:
+        click.echo(f"wrote {result['index']} ({result['images']} images)", err=True)
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()
