@@ -10,7 +10,8 @@ alike:
 * each stage of Sec. V and VII -- ``to_heights``, edges (compiled kernels and
   the numpy reference), the noise estimate (``noise.estimate_noise``, compiled
   and its numpy reference, which gives the same value), link, grow (+ surface
-  descriptions) with the ``[split]`` step (the default) and without it, and
+  descriptions) with the fit-test split (the pass ``split`` of ``[refine] passes``, on by
+  default) and without it, and
   the two parts of the latter (``grow_regions``, ``describe_surfaces``),
   holdsite -- and ``run_pipeline`` as a whole, with and without the split,
 
@@ -48,7 +49,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from rangeseg_cli import __version__, io, parallel
-from rangeseg_cli.config import Config, load_config
+from rangeseg_cli.config import REFINE_PASSES, Config, load_config
 from rangeseg_cli.edges import detect_edges
 from rangeseg_cli.grow import grow_regions
 from rangeseg_cli.noise import estimate_noise
@@ -112,14 +113,14 @@ def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
     """The timed calls for one frame, with the inputs of each stage precomputed.
 
     ``grow`` (``stage_grow``) and ``run_pipeline`` use ``config`` (every
-    step beyond the paper on by default); the ``_nosplit`` tasks the same
-    with ``[split] enabled = false`` (recovery, fill, merge and recut still
-    on), ``run_pipeline_norecut`` with ``[split] recut = false``,
-    ``run_pipeline_paper`` with all of them off (``--preset paper``), whose
-    growth is ``grow_regions`` + ``describe``.
+    pass beyond the paper on by default); the ``_nosplit`` tasks the same
+    with the pass ``split`` left out of ``[refine] passes`` (recovery, fill,
+    merge, recut and the others still on), ``run_pipeline_norecut`` with
+    ``recut`` left out, ``run_pipeline_paper`` with every pass left out
+    (``[refine] passes = []`` as ``--preset paper``), whose growth is
+    ``grow_regions`` + ``describe``.
     """
-    nosplit = dataclasses.replace(config, split=dataclasses.replace(config.split,
-                                                                    enabled=False))
+    nosplit = without_passes(config, "split")
     result = run_pipeline(image, config)
     z = result.heights
     plain = grow_regions(z, result.edges, result.components, config.grow)
@@ -141,14 +142,20 @@ def frame_tasks(image: np.ndarray, config: Config, numpy_edges: bool
     tasks["grow"] = lambda: stage_grow(z, result.edges, result.components, config)
     tasks["holdsite"] = lambda: stage_holdsite(z, result.labels, result.surfaces, config)
     tasks["run_pipeline_nosplit"] = lambda: run_pipeline(image, nosplit)
-    paper = dataclasses.replace(config, split=load_config(preset="paper").split)
+    paper = without_passes(config, *REFINE_PASSES)
     tasks["run_pipeline_paper"] = lambda: run_pipeline(image, paper)
-    norecut = dataclasses.replace(config, split=dataclasses.replace(config.split, recut=False))
+    norecut = without_passes(config, "recut")
     tasks["run_pipeline_norecut"] = lambda: run_pipeline(image, norecut)
     tasks["run_pipeline_paper_1thread"] = _one_thread(lambda: run_pipeline(image, paper))
     tasks["run_pipeline_1thread"] = _one_thread(lambda: run_pipeline(image, config))
     tasks["run_pipeline"] = lambda: run_pipeline(image, config)
     return tasks
+
+
+def without_passes(config: Config, *names: str) -> Config:
+    """``config`` with the passes ``names`` left out of its ``[refine] passes``."""
+    passes = tuple(p for p in config.refine.passes if p not in names)
+    return dataclasses.replace(config, refine=dataclasses.replace(config.refine, passes=passes))
 
 
 def _one_thread(fn: Callable[[], Any]) -> Callable[[], Any]:
@@ -226,7 +233,7 @@ def bench_real_frame(repeats: int) -> dict[str, Any]:
     image = read_image(str(REAL_FRAME))
     result = run_pipeline(image, config)
     z = result.heights
-    paper = dataclasses.replace(config, split=load_config(preset="paper").split)
+    paper = without_passes(config, *REFINE_PASSES)
     tasks: dict[str, Callable[[], Any]] = {
         "gaussian": lambda: gaussian_filter(np.nan_to_num(z), 4),
         "edges": lambda: stage_edges(z, config),
@@ -391,10 +398,11 @@ def markdown(report: dict[str, Any]) -> str:
         f"{report['machine']['numpy']}, numba {report['machine']['numba']}. Medians of "
         f"{report['frames'][0]['repeats']} interleaved runs after a warm-up; G = "
         "`gaussian_filter(z, 4)` on the same float64 frame in the same run. Cells: ms (x G). "
-        "`grow` and `run_pipeline` with the defaults, `_nosplit` with `[split] enabled = "
-        "false` (the fit-test split off; recovery, fill, merge and recut still on), "
-        "`run_pipeline_norecut` with `[split] recut = false`, `run_pipeline_paper` = "
-        "`--preset paper` (every step beyond the paper off); "
+        "`grow` and `run_pipeline` with the defaults, `_nosplit` with the pass `split` left "
+        "out of `[refine] passes` (the fit-test split off; recovery, fill, merge, recut and "
+        "the others still on), `run_pipeline_norecut` with `recut` left out, "
+        "`run_pipeline_paper` with `[refine] passes = []` as `--preset paper` (every pass "
+        "beyond the paper off); "
         "`grow_regions` + `describe` (surface descriptions) = the paper's growth; "
         "`noise` is the noise estimate (`noise.estimate_noise`) `run_pipeline` makes when "
         "its configuration uses it (the defaults, not `--preset paper`), `noise_numpy` "

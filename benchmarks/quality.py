@@ -15,7 +15,7 @@ Usage::
 
     .venv/bin/python benchmarks/quality.py                       # defaults
     .venv/bin/python benchmarks/quality.py --preset paper
-    .venv/bin/python benchmarks/quality.py --set split.merge=false --misses
+    .venv/bin/python benchmarks/quality.py --set refine.fit_factor=1.5 --misses
     .venv/bin/python benchmarks/quality.py --seeds 0,1,2 --widths
     .venv/bin/python benchmarks/quality.py --seeds 9,10,11 --noises 0,1,2,3
     .venv/bin/python benchmarks/quality.py --gt-parts   # each patch of a GT surface judged alone

@@ -22,7 +22,7 @@ OUT = ROOT / "docs" / "performance.md"
 #: bench.json task -> column heading of the main table.
 COLUMNS = {
     "edges": "edges", "holdsite": "holdsite", "run_pipeline_paper": "`--preset paper`",
-    "run_pipeline_norecut": "defaults, `split.recut=false`",
+    "run_pipeline_norecut": "defaults without `recut`",
     "run_pipeline_1thread": "defaults, 1 thread", "run_pipeline": "defaults",
 }
 
@@ -117,7 +117,8 @@ def _tradeoffs(t: dict[str, Any]) -> list[str]:
     seeds = t["seeds"]
     gt = t["correct"]["defaults"]["gt_regions"]
     lines = ["", "## Speed or quality", "",
-             f"Each step beyond the paper turned off alone: `run_pipeline`'s time (medians of "
+             f"Each pass beyond the paper left out alone (\"without `facets`\": `--set "
+             "refine.passes=[...]` with every other pass): `run_pipeline`'s time (medians of "
              f"{t['repeats']}) and correct detections over the twelve synthetic scenes, seeds "
              f"{seeds[0]}–{seeds[-1]} ({gt} GT regions per noise level; "
              "[quality.md](quality.md)).", "",
@@ -131,12 +132,14 @@ def _tradeoffs(t: dict[str, Any]) -> list[str]:
             d = correct[level] - base[level]
             cells.append(str(correct[level]) if variant == "defaults"
                          else f"{correct[level]} ({d:+d})")
-        name = variant if variant == "defaults" else f"`{variant}`"
+        name = (variant if variant == "defaults"
+                else f"without `{variant.removeprefix('without ')}`"
+                if variant.startswith("without ") else f"`{variant}`")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines += ["", "Where a holdsite is needed in well under a second, `--set split.rounds=1` "
-              "is the cheapest quality to give up, and `--set split.facets=false` saves most "
-              "on real frames; every row loses correct detections at some noise level or on "
-              "the held-out seeds, which is why each step is on by default."]
+    lines += ["", "Where a holdsite is needed in well under a second, the rows say which "
+              "passes cost the most time for the fewest correct detections: leave them out "
+              "of `[refine] passes`; every row loses correct detections at some noise level "
+              "or on the held-out seeds, which is why each pass is on by default."]
     return lines
 
 

@@ -1,11 +1,12 @@
-"""Speed against quality of the steps beyond the paper (issues 7 and 9), one step at a time.
+"""Speed against quality of the passes beyond the paper (issues 7 and 9), one pass at a time.
 
-The defaults add to the paper's pipeline (``--preset paper``) the fit-test
-split and its second round, the recovery of narrow faces, the fill of edge
-pixels, the merge and the recut (``[split]``). Each costs time and gains
+The defaults add to the paper's pipeline (``--preset paper``) the passes of
+``[refine] passes`` (the fit-test split, the recovery of narrow faces, the
+fill of edge pixels, the merges, the recut, ...). Each costs time and gains
 correct detections. For every variant of :data:`VARIANTS` -- the defaults,
-each step turned off alone (as ``--set`` would), and ``--preset paper`` --
-this script measures, in one process:
+each pass left out alone (``without facets``: ``--set refine.passes=[...]``
+with every other pass, :func:`without`), the numeric keys of :data:`SETS`
+and ``--preset paper`` -- this script measures, in one process:
 
 * the median time of ``run_pipeline`` (automatic threads) on the bench's
   frames: the 128x128 and 640x480 bin piles of ``bench_pipeline.py`` and the
@@ -51,24 +52,38 @@ from bench_pipeline import (  # noqa: E402
 )
 from quality import NOISES, measure, scene_list, seed_list  # noqa: E402
 
-from rangeseg_cli.config import PRESETS, Config, load_config, parse_settings  # noqa: E402
+from rangeseg_cli.config import (  # noqa: E402
+    PRESETS,
+    REFINE_PASSES,
+    Config,
+    load_config,
+    parse_settings,
+)
 from rangeseg_cli.io import read_image  # noqa: E402
 from rangeseg_cli.pipeline import run_pipeline  # noqa: E402
 from rangeseg_cli.synth import SCENES  # noqa: E402
 
-#: The steps turned off alone, as ``--set`` items.
-SETS: tuple[str, ...] = (
-    "split.rounds=1", "split.enabled=false", "split.trim_pieces=false",
-    "split.trim_faces=false", "split.plane_cut=false", "split.crease_pieces=false",
-    "split.recover=false", "split.fill_edges=false", "split.merge=false", "split.recut=false",
-    "split.bridge=false", "split.chamfers=false", "split.carve=false",
-    "split.refine_creases=false", "split.refine=false", "split.merge_planes=false",
-    "split.facets=false", "split.crease_evidence=0", "split.join_occluded=false")
 
-#: Name (as on the command line) and the overrides of each variant.
+def without(name: str) -> str:
+    """The ``--set`` item that leaves the pass ``name`` out of the defaults' ``[refine] passes``."""
+    if name not in REFINE_PASSES:
+        raise ValueError(f"{name!r} is not a pass of [refine] passes; allowed: "
+                         + ", ".join(REFINE_PASSES))
+    return "refine.passes=[" + ", ".join(f'"{p}"' for p in REFINE_PASSES if p != name) + "]"
+
+
+#: The numeric keys of ``[refine]`` set to turn a rule off, as ``--set`` items.
+SETS: tuple[str, ...] = ("refine.crease_evidence=0",)
+
+#: Name (``without <pass>``, or as on the command line) and the ``--set`` item of each
+#: variant between the defaults and the paper.
+ITEMS: dict[str, str] = {**{f"without {name}": without(name) for name in REFINE_PASSES},
+                         **{f"--set {item}": item for item in SETS}}
+
+#: Name and the overrides of each variant.
 VARIANTS: tuple[tuple[str, dict[str, dict[str, Any]]], ...] = (
     ("defaults", {}),
-    *((f"--set {item}", parse_settings([item])) for item in SETS),
+    *((name, parse_settings([item])) for name, item in ITEMS.items()),
     ("--preset paper", PRESETS["paper"]),
 )
 
@@ -122,7 +137,8 @@ def markdown(report: dict[str, Any]) -> str:
     head = ([f"{f} ms" for f in frame_names]
             + [f"correct σ = {n:g} (of {base['gt_regions']})" for n in NOISES])
     lines = [f"{report['date']}, seeds {','.join(map(str, report['seeds']))}, medians of "
-             f"{report['repeats']} interleaved runs (automatic threads).", "",
+             f"{report['repeats']} interleaved runs (automatic threads); \"without X\": "
+             "`--set refine.passes=[...]` with every pass but X.", "",
              "| variant | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
     for name, _ in VARIANTS:
         cells = [f"{ms[name][f]:.0f}" for f in frame_names]

@@ -7,10 +7,13 @@ import signal
 import subprocess
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
+
+if TYPE_CHECKING:
+    from rangeseg_cli.config import Config
 
 
 def tree_bytes(folder: Path) -> dict[str, bytes]:
@@ -52,11 +55,55 @@ def box_scene(size: int = 64, noise: float = 0.0, seed: int = 0) -> np.ndarray:
     return z
 
 
-def found_with(scene: str, noise: float, seed: int, face: str, **split: object
-               ) -> tuple[int, set[int]]:
-    """The GT id of ``scene``'s surface named ``face`` (or starting so, ending in "…"), and
-    the GT ids the defaults with these ``[split]`` overrides detect correctly (T = 0.8)."""
+def passes_without(*names: str, base: Config | None = None, **refine: Any) -> Config:
+    """``base`` (the defaults when None) with the ``[refine] passes`` ``names`` left out.
+
+    Other ``[refine]`` keys may be given too (``passes_without("merge", fit_factor=1.5)``).
+    """
+    from rangeseg_cli.config import REFINE_PASSES
+
+    unknown = set(names) - set(REFINE_PASSES)
+    assert not unknown, f"not a refine pass: {sorted(unknown)}"
+    on = REFINE_PASSES if base is None else base.refine.passes
+    return with_passes(*(p for p in on if p not in names), base=base, **refine)
+
+
+def with_passes(*names: str, base: Config | None = None, **refine: Any) -> Config:
+    """``base`` (the defaults when None) with ``[refine] passes`` = ``names`` exactly.
+
+    ``with_passes("fill", base=load_config(preset="paper"))`` is the paper with the fill.
+    """
     from rangeseg_cli.config import load_config
+
+    values = {} if base is None else base.to_dict()
+    values["refine"] = {**values.get("refine", {}), **refine, "passes": list(names)}
+    return load_config(overrides=values)
+
+
+@pytest.fixture
+def tuning(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None]:
+    """Set constants of the refinement for one test: ``tuning(trim_faces=False)``.
+
+    They are fields of ``rangeseg_cli.config.TUNING``, which ``Config.split`` reads
+    when it is accessed; each call starts again from the defaults.
+    """
+    import dataclasses
+
+    from rangeseg_cli import config
+
+    defaults = config.TUNING
+
+    def _set(**changes: Any) -> None:
+        monkeypatch.setattr(config, "TUNING", dataclasses.replace(defaults, **changes))
+
+    return _set
+
+
+def found_with(scene: str, noise: float, seed: int, face: str, *, without: tuple[str, ...] = (),
+               **refine: object) -> tuple[int, set[int]]:
+    """The GT id of ``scene``'s surface named ``face`` (or starting so, ending in "…"), and
+    the GT ids the defaults detect correctly (T = 0.8) with the ``[refine]`` passes
+    ``without`` left out and these ``[refine]`` overrides."""
     from rangeseg_cli.evaluate import hoover_compare
     from rangeseg_cli.pipeline import run_pipeline
     from rangeseg_cli.synth import render_scene
@@ -65,7 +112,7 @@ def found_with(scene: str, noise: float, seed: int, face: str, **split: object
     prefix = face.removesuffix("…")
     gt = next(s["id"] for s in rendered.info["surfaces"]
               if (s["name"].startswith(prefix) if face.endswith("…") else s["name"] == face))
-    labels = run_pipeline(rendered.image, load_config(overrides={"split": split})).labels
+    labels = run_pipeline(rendered.image, passes_without(*without, **refine)).labels
     result = hoover_compare(rendered.gt, labels)
     return gt, {g for i in result.instances if i.kind == "correct" for g in i.gt}
 

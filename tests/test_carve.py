@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 from conftest import found_with
 from rangeseg_cli.carve import carve_faces
 from rangeseg_cli.config import load_config
-from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.refine import refine_boundaries
 
@@ -114,17 +113,16 @@ def test_shapes_must_agree():
 
 
 def test_the_nuts_chamfer_facet_is_found_at_sigma_1_only_with_carving():
-    """Without the chamfer step (``split.chamfers``), which finds it too."""
-    facet, on = found_with("nut", 1.0, 0, "nut facet 11", carve=True, chamfers=False)
-    _, off = found_with("nut", 1.0, 0, "nut facet 11", carve=False, chamfers=False)
+    """Without the chamfer pass (``chamfers`` of ``[refine] passes``), which finds it too."""
+    facet, on = found_with("nut", 1.0, 0, "nut facet 11", without=("chamfers",))
+    _, off = found_with("nut", 1.0, 0, "nut facet 11", without=("carve", "chamfers"))
     assert facet in on and facet not in off
 
 
-def test_paper_preset_turns_it_off_and_the_key_is_validated():
+def test_paper_preset_turns_it_off():
+    # the old key [split] carve is refused naming refine.passes: tests/test_config.py
     assert load_config(preset="paper").split.carve is False
-    assert CONFIG.split.carve is True
-    with pytest.raises(ConfigError, match=r"\[split\] carve = 'no': expected true or false"):
-        load_config(overrides={"split": {"carve": "no"}})
+    assert CONFIG.split.carve is True and "carve" in CONFIG.refine.passes
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -89,8 +89,8 @@ def test_two_chamfers_meeting_at_a_corner_are_both_found(noise, seed):
 
 def test_the_nuts_narrowest_chamfer_is_found_at_sigma_1_only_with_this_step():
     """Facet 72, a strip 2 pixels wide, meets facet 11 at a corner of the top."""
-    facet, on = found_with("nut", 1.0, 1, "nut facet 72", chamfers=True)
-    _, off = found_with("nut", 1.0, 1, "nut facet 72", chamfers=False)
+    facet, on = found_with("nut", 1.0, 1, "nut facet 72")
+    _, off = found_with("nut", 1.0, 1, "nut facet 72", without=("chamfers",))
     assert facet in on and facet not in off
 
 
@@ -160,14 +160,15 @@ def test_chamfers_only_relabel_labelled_pixels_with_new_ids(seed, shape, regions
 
 @pytest.mark.parametrize("face", ["nut facet 11", "nut facet 35"])
 def test_the_nuts_chamfers_are_found_at_sigma_2_only_with_this_step(face):
-    facet, on = found_with("nut", 2.0, 5, face, chamfers=True)
-    _, off = found_with("nut", 2.0, 5, face, chamfers=False)
+    facet, on = found_with("nut", 2.0, 5, face)
+    _, off = found_with("nut", 2.0, 5, face, without=("chamfers",))
     assert facet in on and facet not in off
 
 
 def test_paper_preset_fits_no_chamfers_and_a_bad_value_is_one_line(tmp_path):
     assert load_config(preset="paper").split.chamfers is False
-    assert CONFIG.split.chamfers is True
-    with pytest.raises(ConfigError, match=r"\[split\] chamfers = 'maybe': expected true or false"):
-        load_config(overrides={"split": {"chamfers": "maybe"}})
-    assert "chamfers" in bad_setting_on_the_command_line(tmp_path, "split.chamfers=maybe")
+    assert CONFIG.split.chamfers is True and "chamfers" in CONFIG.refine.passes
+    with pytest.raises(ConfigError, match=r"\[refine\] passes = \['chamfer'\]: expected a list "
+                                          r"of distinct names among .*'chamfers'"):
+        load_config(overrides={"refine": {"passes": ["chamfer"]}})
+    assert "'chamfers'" in bad_setting_on_the_command_line(tmp_path, 'refine.passes=["chamfer"]')

@@ -70,8 +70,11 @@ def test_rerun_without_resume_or_overwrite_is_a_usage_error(runner, images, tmp_
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--set", "step.taps=4"], "[step] taps = 4: expected an integer >= 3 <= 41 odd"),
-    (["--set", "stepp.taps=5"], "unknown table [stepp]"),
+    (["--set", "step.sigma=0.1"], "[step] sigma = 0.1: expected a number >= 0.5 <= 10.0"),
+    (["--set", "stepp.sigma=5"], "unknown table [stepp]"),
+    (["--set", "step.taps=5"], "[step] taps is no longer a setting"),
+    (["--set", "split.recut=false"], "[split] recut is now the entry 'recut' of refine.passes"),
+    (["--set", "refine.passes=[\"nope\"]"], "[refine] passes = ['nope']: expected a list"),
     (["--set", "nonsense"], "expected TABLE.KEY=VALUE"),
     (["--preset", "cm"], "Invalid value for '--preset'"),
     (["--jobs", "0"], "Invalid value for '--jobs'"),

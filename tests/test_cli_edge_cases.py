@@ -8,6 +8,7 @@ import pytest
 
 from conftest import box_scene
 from rangeseg_cli.cli import main
+from rangeseg_cli.config import REFINE_PASSES
 
 
 def one_line_error(res) -> str:
@@ -155,7 +156,7 @@ def test_redone_edges_make_later_stages_out_of_date(runner, box_png, tmp_path):
     assert res.exit_code == 1
     assert "box: its `grow` result is missing, failed, not recorded in the manifest, older " \
            "than its earlier stages or made with other settings of [input], [output], [step], " \
-           "[roof], [link], [grow], [split] than these; run `rangeseg grow OUT --resume` " \
+           "[roof], [link], [grow], [refine] than these; run `rangeseg grow OUT --resume` " \
            "first, or give this command the settings that made it" in res.output
     for stage in ("link", "grow", "holdsite"):
         assert runner.invoke(main, [stage, str(out), "-j", "1", "-q"]).exit_code == 0
@@ -485,7 +486,7 @@ def test_run_pipeline_with_a_config_that_is_not_a_config_says_so(config):
     ("link.min_component=1" + "0" * 400, "[link] min_component = 1000000000"),
     ("step.threshold=1" + "0" * 400, "beyond the floating-point range"),
     ("link.min_component=100000000000000000000", "expected an integer >= 1 <= 2147483647"),
-    ("split.fit_factor=1e200", "[split] fit_factor = 1e+200: expected a number > 0.0 <= 1000.0"),
+    ("refine.fit_factor=1e200", "[refine] fit_factor = 1e+200: expected a number > 0.0 <= 1000.0"),
     ("holdsite.rotation_step=0.001", "expected a number >= 0.5 <= 90.0"),
 ])
 def test_out_of_range_number_on_the_command_line_is_one_line_exit_2(runner, box_png, tmp_path,
@@ -575,7 +576,8 @@ def test_new_settings_of_a_later_stage_keep_the_earlier_stages_current(runner, b
                                "--set", "holdsite.max_ar_std=2"])
     assert res.exit_code == 0, res.output
     assert _entry(out)["stages"] == ["edges", "link", "grow", "holdsite"]
-    res = runner.invoke(main, ["grow", str(out), "-j", "1", "--set", "split.facets=false"])
+    no_facets = json.dumps([p for p in REFINE_PASSES if p != "facets"])
+    res = runner.invoke(main, ["grow", str(out), "-j", "1", "--set", f"refine.passes={no_facets}"])
     assert res.exit_code == 0, res.output
     entry = _entry(out)
     assert entry["stages"] == ["edges", "link", "grow"]  # the holdsite came from old labels

@@ -9,9 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import bad_setting_on_the_command_line, found_with
+from conftest import found_with
 from rangeseg_cli.config import load_config
-from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.facets import cut_into_planes, facet_regions, merge_back
 from rangeseg_cli.grow import fit_quadrics
@@ -114,8 +113,8 @@ def test_other_regions_keep_their_ids_and_new_pieces_come_after_them():
 def test_the_small_frustum_of_a_pile_gets_its_faces_at_noise_2():
     """Pile seed 15, noise 2: the split leaves frustum 5's top with its -x and -y sides."""
     faces = ["frustum 5 top", "frustum 5 -x", "frustum 5 -y"]
-    gt_on = [found_with("pile", 2.0, 15, face, facets=True) for face in faces]
-    gt_off = [found_with("pile", 2.0, 15, face, facets=False) for face in faces]
+    gt_on = [found_with("pile", 2.0, 15, face) for face in faces]
+    gt_off = [found_with("pile", 2.0, 15, face, without=("facets",)) for face in faces]
     assert all(gt in good for gt, good in gt_on)
     assert not any(gt in good for gt, good in gt_off)
 
@@ -135,12 +134,10 @@ def test_the_facets_only_ever_divide_regions(seed, noise, cut):
         assert (out[labels == k] == k).any()
 
 
-def test_the_paper_preset_has_no_facets_and_the_key_is_validated(tmp_path):
-    assert CONFIG.split.facets
+def test_the_paper_preset_has_no_facets():
+    # the old key [split] facets is refused naming refine.passes: tests/test_config.py
+    assert CONFIG.split.facets and "facets" in CONFIG.refine.passes
     assert not load_config(preset="paper").split.facets
-    with pytest.raises(ConfigError, match=r"\[split\] facets"):
-        load_config(overrides={"split": {"facets": "yes"}})
-    assert "facets" in bad_setting_on_the_command_line(tmp_path, "split.facets=2")
 
 
 def test_a_region_beyond_the_bound_on_the_work_is_left_whole(monkeypatch):

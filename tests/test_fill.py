@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import bad_setting_on_the_command_line, found_with, random_labels
+from conftest import found_with, passes_without, random_labels
 from rangeseg_cli.config import load_config
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.fill import bridge_gaps, fill_edges
@@ -105,8 +105,7 @@ def test_filling_raises_correct_detections_on_a_noisy_cup():
     """The cup at noise 2: its walls lose a fifth of their pixels to edges without the fill."""
     scene = render_scene("cup", noise=2.0, seed=0)
     on = run_pipeline(scene.image, load_config(), stages=3)
-    off = run_pipeline(scene.image, load_config(overrides={"split": {"fill_edges": False}}),
-                       stages=3)
+    off = run_pipeline(scene.image, passes_without("fill"), stages=3)
     correct_on = hoover_compare(scene.gt, on.labels).counts()["correct"]
     correct_off = hoover_compare(scene.gt, off.labels).counts()["correct"]
     assert np.count_nonzero(on.labels == 0) < np.count_nonzero(off.labels == 0)
@@ -198,8 +197,7 @@ def test_compiled_fill_gives_the_labels_of_the_numpy_passes(seed, shape, regions
 @requires_numba
 @pytest.mark.parametrize("scene", ["pile", "cup", "part2", "cube-holes"])
 def test_compiled_fill_on_grown_scenes(scene):
-    cfg = load_config(overrides={"split": {"fill_edges": False, "merge": False,
-                                           "recut": False}})
+    cfg = passes_without("fill", "merge", "recut")
     result = run_pipeline(render_scene(scene, size=(96, 96), noise=2.0, seed=4).image, cfg)
     assert (result.labels == 0).sum() > 100  # bands to fill
     np.testing.assert_array_equal(fill_edges(result.heights, result.labels, GROW,
@@ -263,8 +261,8 @@ def test_bridging_keeps_the_input_and_invalid_pixels():
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_part1s_grazing_side_is_found_at_sigma_1_only_with_the_bridge(seed):
-    side, on = found_with("part1", 1.0, seed, "base +y…", bridge=True)
-    _, off = found_with("part1", 1.0, seed, "base +y…", bridge=False)
+    side, on = found_with("part1", 1.0, seed, "base +y…")
+    _, off = found_with("part1", 1.0, seed, "base +y…", without=("bridge",))
     assert side in on and side not in off
 
 
@@ -283,7 +281,7 @@ def test_the_bridge_runs_again_after_carving(monkeypatch, bridge):
     """A face carved after the first bridge (stubbed: B's columns 22-27) gets the edge
     pixels along it that its plane explains, by a last bridge; without ``bridge`` not."""
     import rangeseg_cli.carve
-    from rangeseg_cli.pipeline import _after_the_fill
+    from rangeseg_cli.refinement import Scene, refine_regions
 
     z, labels, b = two_faces()
 
@@ -293,9 +291,12 @@ def test_the_bridge_runs_again_after_carving(monkeypatch, bridge):
         return out
 
     monkeypatch.setattr(rangeseg_cli.carve, "carve_faces", carve)
-    config = load_config(overrides={"split": {"merge": False, "recut": False, "refine": False,
-                                              "carve": True, "bridge": bridge}})
-    out = _after_the_fill(z, labels, config, 0.0)
+    # the passes after growing but the split and recovery, which need components
+    config = passes_without("split", "recover", "merge", "recut", "boundaries",
+                            *(() if bridge else ("bridge",)))
+    assert "carve" in config.refine.passes
+    none = np.zeros_like(labels)
+    out = refine_regions(Scene(z, none, none, config, 0.0), labels)
     assert np.all(out[~b] == 1)
     if bridge:
         assert np.all(out[b] == 2)
@@ -338,11 +339,3 @@ def test_bridge_only_labels_unlabelled_valid_pixels_from_planes_within_reach(see
         window = padded[r:r + 5, c:c + 5].copy()
         window[2, 2] = 0
         assert out[r, c] in window  # within two pixels of a pixel of its region
-
-
-def test_a_bad_bridge_key_is_one_line_on_the_command_line(tmp_path):
-    from rangeseg_cli.errors import ConfigError
-
-    with pytest.raises(ConfigError, match=r"\[split\] bridge = 'maybe': expected true or false"):
-        load_config(overrides={"split": {"bridge": "maybe"}})
-    assert "bridge" in bad_setting_on_the_command_line(tmp_path, "split.bridge=maybe")

@@ -7,6 +7,8 @@ import re
 import numpy as np
 import pytest
 
+from conftest import passes_without
+from rangeseg_cli import holdsite as holdsite_module
 from rangeseg_cli.config import load_config
 from rangeseg_cli.holdsite import HoldsiteResult, find_holdsite, footprint, window_ar_std
 from rangeseg_cli.io import to_jsonable
@@ -189,7 +191,7 @@ def test_camera_point_and_approach_for_known_intrinsics():
     raw[16:48, 16:48] = 5000
     raw[0, :5] = 0  # no reading: never part of a window
     config = load_config(preset="tenth-mm-depth", overrides={
-        "input": {"fx": 400.0, "fy": 400.0, "cx": 31.5, "cy": 31.5}})
+        "input": {"intrinsics": [400.0, 400.0, 31.5, 31.5]}})
     site = run_pipeline(raw, config).holdsite.holdsite
     x, y, zc = site.point_camera
     assert zc == pytest.approx(0.5, abs=1e-6)
@@ -210,7 +212,7 @@ def test_camera_approach_of_tilted_plane_is_minus_its_3d_normal():
     raw = np.full(depth.shape, 8000.0)
     raw[12:52, 16:64] = depth[12:52, 16:64] * 10.0
     config = load_config(preset="tenth-mm-depth",
-                         overrides={"input": {"fx": fx, "fy": fy, "cx": cx, "cy": cy}})
+                         overrides={"input": {"intrinsics": [fx, fy, cx, cy]}})
     site = run_pipeline(np.round(raw).astype(np.uint16), config).holdsite.holdsite
     np.testing.assert_allclose(site.approach_camera, -n, atol=5e-3)
     assert site.point_camera[2] == pytest.approx(depth[site.row, site.col] / 1000, abs=5e-4)
@@ -251,7 +253,7 @@ def test_split_table_at_the_same_level_is_all_background():
     z = table()
     z[:, 30:34] = 150.0  # a wall across the image splits the table in two
     z[8:24, 6:22] = 100.0
-    apart = load_config(overrides={"split": {"join_occluded": False}})
+    apart = passes_without("join_occluded")
     result = run_pipeline(noisy(z), apart)
     left, right = result.labels[50, 5], result.labels[50, 60]
     assert left != right and set(result.holdsite.background) == {left, right}
@@ -270,7 +272,8 @@ def test_result_dict_follows_the_file_contract_and_is_json_ready():
     json.dumps(to_jsonable(doc))
     raw = np.full((64, 64), 6000, dtype=np.uint16)
     raw[16:48, 16:48] = 5000
-    config = load_config(preset="mm-depth", overrides={"input": {"fx": 500.0, "fy": 500.0}})
+    config = load_config(preset="mm-depth",
+                         overrides={"input": {"intrinsics": [500.0, 500.0, 0.0, 0.0]}})
     camera_doc = run_pipeline(raw, config).holdsite.to_dict()
     assert set(camera_doc["holdsite"]) == CONTRACT_KEYS | {"point_camera", "approach_camera"}
 
@@ -407,11 +410,21 @@ def test_a_level_table_split_by_a_wall_still_joins_by_mean_height():
     # a level table divided by a wall is still all background (two regions, one level)
     z = np.full((96, 96), 20.0)
     z[:, 44:52] = 90.0  # a wall from top to bottom splits the table
-    result = run_pipeline(z, load_config(overrides={"split": {"join_occluded": False}}))
+    result = run_pipeline(z, passes_without("join_occluded"))
     assert len(result.holdsite.background) == 2
 
 
-# --- Step 6: the pose of a site on a curved surface (holdsite.pose) ------------------
+# --- Step 6: the pose of a site on a curved surface (a local quadric) -------------------
+
+
+def run_with_pose(z, pose, monkeypatch):
+    """``run(z)`` with Step 6 as it is (``"local"``: a curved surface's site takes a local
+    quadric) or with every site on its surface's own fit (``"surface"``: the setting
+    ``holdsite.pose = "surface"`` of before, now gone)."""
+    with monkeypatch.context() as patch:
+        if pose == "surface":
+            patch.setattr(holdsite_module, "_local_pose_used", lambda scene, s: False)
+        return run(z)
 
 
 def _true_pose_errors(scene, site):
@@ -423,13 +436,13 @@ def _true_pose_errors(scene, site):
 
 
 @pytest.mark.parametrize("noise", [0.0, 1.0])
-def test_sites_on_a_sphere_take_the_pose_of_the_sphere_under_the_gripper(noise):
+def test_sites_on_a_sphere_take_the_pose_of_the_sphere_under_the_gripper(noise, monkeypatch):
     from rangeseg_cli.synth import render_scene
 
     scene = render_scene("sphere", noise=noise, seed=0)
     errors = {}
     for pose in ("local", "surface"):
-        result = run(scene.image, pose=pose)
+        result = run_with_pose(scene.image, pose, monkeypatch)
         sites = (result.holdsite.holdsite, *result.holdsite.candidates)
         assert len(sites) >= 4 and all(s.surface_type == "curved" for s in sites)
         errors[pose] = np.array([_true_pose_errors(scene, s) for s in sites])
@@ -439,10 +452,11 @@ def test_sites_on_a_sphere_take_the_pose_of_the_sphere_under_the_gripper(noise):
     assert errors["local"][:, 0].max() < 0.5 and errors["local"][:, 1].max() < 4.0
 
 
-def test_a_site_on_a_plane_keeps_the_plane_of_the_whole_face():
+def test_a_site_on_a_plane_keeps_the_plane_of_the_whole_face(monkeypatch):
     z = table()
     z[12:52, 12:52] = 60.0 + 0.5 * np.arange(64)[None, 12:52]  # a ramp: planar, tilted
-    local, whole = (run(noisy(z, 1.0), pose=p).holdsite for p in ("local", "surface"))
+    local, whole = (run_with_pose(noisy(z, 1.0), p, monkeypatch).holdsite
+                    for p in ("local", "surface"))
     assert local.holdsite.surface_type == "planar"
     assert local.to_dict() == whole.to_dict()
 
@@ -466,13 +480,6 @@ def test_local_pose_needs_enough_pixels_and_is_exact_on_a_quadric():
     line = np.zeros(z.shape, np.int32)
     line[20, :] = 1
     assert local_pose(z, line, s, 20, 20, 7) is None  # one row: no quadric
-
-
-def test_pose_setting_is_checked():
-    from rangeseg_cli.errors import ConfigError
-
-    with pytest.raises(ConfigError, match=r"\[holdsite\] pose = 'plane'.*local.*surface"):
-        load_config(overrides={"holdsite": {"pose": "plane"}})
 
 
 def test_local_poses_match_a_least_squares_fit_at_every_site_border_and_holes_included():
@@ -608,7 +615,7 @@ def test_max_tilt_without_depth_in_front_of_the_camera_says_so():
     depth = np.full((64, 64), -800.0)  # a depth map behind the camera: no tilt anywhere
     depth[20:44, 20:44] = -900.0
     config = load_config(overrides={
-        "input": {"fx": 500.0, "fy": 500.0, "cx": 32.0, "cy": 32.0, "larger_is_closer": False},
+        "input": {"intrinsics": [500.0, 500.0, 32.0, 32.0], "larger_is_closer": False},
         "holdsite": {"max_tilt": 45.0}})
     found = run_pipeline(noisy(depth, 0.3), config).holdsite
     assert found.holdsite is None

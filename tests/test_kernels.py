@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import box_scene, step_image
+from conftest import box_scene, passes_without, step_image
 from rangeseg_cli import backend as backend_module
 from rangeseg_cli import edges, io
 from rangeseg_cli.config import load_config
@@ -119,10 +119,10 @@ def test_random_noisy_scenes_give_identical_maps(seed, shape):
 @pytest.mark.parametrize("seed", range(3))
 def test_non_default_filters_give_identical_maps(seed):
     config = load_config(overrides={
-        "step": {"sigma": 1.5, "taps": 7, "threshold": 3.0},
-        "roof": {"sigma": 2.5, "taps": 11, "threshold_a": 2.0, "threshold_b": 1.0,
-                 "search_radius": 4},
+        "step": {"sigma": 1.5, "threshold": 3.0},
+        "roof": {"sigma": 2.5, "threshold_a": 2.0, "threshold_b": 1.0, "search_radius": 4},
     })
+    assert (config.step.taps, config.roof.taps) == (7, 11)
     assert_same_edges(random_boxes(45, 61, seed=seed, noise=2.0), config)
 
 
@@ -133,8 +133,9 @@ def test_pass_2b_reusing_2a_away_from_its_roof_edges_gives_identical_maps(taps, 
     # edges of 2a and reuses 2a's elsewhere: wide scenes (many blocks), and lags
     # set by the mask (taps // 2) or by the search radius.
     config = load_config(overrides={"roof": {
-        "sigma": taps / 4.0, "taps": taps, "threshold_a": 3.0, "threshold_b": 1.5,
+        "sigma": (taps - 1) / 4.0, "threshold_a": 3.0, "threshold_b": 1.5,
         "search_radius": radius}})
+    assert config.roof.taps == taps
     for seed in range(3):
         z = random_boxes(70, 150, seed=seed, noise=1.0, holes=0.005)
         ref = assert_same_edges(z, config)
@@ -263,7 +264,7 @@ def test_run_pipeline_gives_identical_labels_with_both_backends(index, monkeypat
 
 SAMPLES = sorted((Path(__file__).resolve().parent.parent / "sample_data" / "synthetic")
                  .glob("*.png"))
-NO_SPLIT = load_config(overrides={"split": {"enabled": False}})
+NO_SPLIT = passes_without("split")
 
 
 def _stage3(z, config=NO_SPLIT):
@@ -311,7 +312,7 @@ def run_both(image, config, monkeypatch):
 @pytest.mark.parametrize("split", [False, True])
 @pytest.mark.parametrize("path", SAMPLES, ids=lambda p: p.stem)
 def test_sample_scenes_give_identical_labels_surfaces_and_holdsites(path, split, monkeypatch):
-    config = load_config(overrides={"split": {"enabled": split}})
+    config = load_config() if split else NO_SPLIT
     ref, fast = run_both(io.read_image(path), config, monkeypatch)
     assert_same_results(ref, fast)
     assert len(ref.surfaces) >= 3 and ref.holdsite.holdsite is not None

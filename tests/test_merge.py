@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from conftest import bad_setting_on_the_command_line, found_with, random_labels
+from conftest import found_with, passes_without, random_labels
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.evaluate import hoover_compare
@@ -112,8 +112,7 @@ def test_part1_base_is_one_region_at_noise_2():
                 if i.kind == "correct"}
 
     assert base in found(CONFIG)
-    assert base not in found(load_config(overrides={"split": {"merge": False,
-                                                              "merge_planes": False}}))
+    assert base not in found(passes_without("merge", "merge_planes"))
 
 
 def test_paper_preset_does_not_merge():
@@ -185,16 +184,15 @@ def test_plane_merge_only_joins_whole_regions(seed, shape, regions, holes, inval
                          [(0, 1.0, "base +x"), (8, 1.0, "base +y…"), (0, 2.0, "base +y…")])
 def test_part1s_sides_are_found_only_with_the_plane_merge(seed, noise, face):
     """The recut, carving and refinement leave these sides in two coplanar pieces."""
-    side, on = found_with("part1", noise, seed, face, merge_planes=True)
-    _, off = found_with("part1", noise, seed, face, merge_planes=False)
+    side, on = found_with("part1", noise, seed, face)
+    _, off = found_with("part1", noise, seed, face, without=("merge_planes",))
     assert side in on and side not in off
 
 
-def test_paper_preset_does_not_merge_planes(tmp_path):
+def test_paper_preset_does_not_merge_planes():
+    # the old key [split] merge_planes is refused naming refine.passes: tests/test_config.py
     assert load_config(preset="paper").split.merge_planes is False
-    assert CONFIG.split.merge_planes is True
-    assert "merge_planes" in bad_setting_on_the_command_line(tmp_path,
-                                                             "split.merge_planes=maybe")
+    assert CONFIG.split.merge_planes is True and "merge_planes" in CONFIG.refine.passes
 
 
 def _strip_split(seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -208,7 +206,7 @@ def _strip_split(seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 def test_a_narrow_piece_tilted_only_by_noise_is_merged_back():
     """The strip's own plane tilts by 10 degrees or more on some seeds; one plane fits both."""
-    off = load_config(overrides={"split": {"crease_evidence": 0.0}})
+    off = load_config(overrides={"refine": {"crease_evidence": 0.0}})
     apart = [int(merge_planes(*_strip_split(s), off, noise=2.0).max()) for s in range(12)]
     assert 2 in apart  # the angle alone keeps such a strip apart
     merged = [int(merge_planes(*_strip_split(s), CONFIG, noise=2.0).max()) for s in range(12)]
@@ -231,7 +229,7 @@ def test_a_nut_top_in_a_pile_at_noise_2_is_one_region():
     top = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "nut 3 facet 13")
     share = {}
     for evidence in (16.0, 0.0):
-        config = load_config(overrides={"split": {"crease_evidence": evidence}})
+        config = load_config(overrides={"refine": {"crease_evidence": evidence}})
         labels = run_pipeline(scene.image, config).labels[scene.gt == top]
         share[evidence] = np.bincount(labels).max() / labels.size
     assert share[16.0] > 0.99
@@ -240,4 +238,4 @@ def test_a_nut_top_in_a_pile_at_noise_2_is_one_region():
 
 def test_crease_evidence_is_checked():
     with pytest.raises(ConfigError, match="crease_evidence"):
-        load_config(overrides={"split": {"crease_evidence": -1.0}})
+        load_config(overrides={"refine": {"crease_evidence": -1.0}})

@@ -92,7 +92,8 @@ def test_the_thresholds_rise_with_the_noise_above_the_papers() -> None:
 
 
 def test_lateral_scale_is_the_footprint_at_the_median_depth_or_units_per_pixel() -> None:
-    camera = load_config(preset="mm-depth", overrides={"input": {"fx": 500.0, "fy": 500.0}}).input
+    camera = load_config(preset="mm-depth",
+                         overrides={"input": {"intrinsics": [500.0, 500.0, 0.0, 0.0]}}).input
     depth = np.full((40, 50), 600.0)
     depth[:5] = 2000.0  # a few far pixels and no readings do not move it
     depth[-4:] = 0.0
@@ -119,7 +120,7 @@ def test_one_scene_in_two_depth_units_gives_the_same_edges(noise: float) -> None
 
 def test_one_scene_seen_from_twice_as_far_with_a_camera_gives_the_same_edges() -> None:
     """A scene twice as large at twice the distance: the same pixels, depths doubled."""
-    camera = {"fx": 600.0, "fy": 600.0, "cx": 48.0, "cy": 48.0}
+    camera = {"intrinsics": [600.0, 600.0, 48.0, 48.0]}
     config = load_config(preset="mm-depth", overrides={"input": camera})
     depth = 700.0 - scene(0.5, seed=5)  # mm, closer = smaller
     near = to_heights(depth, config.input)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from conftest import bad_setting_on_the_command_line
+from conftest import passes_without
 from rangeseg_cli.config import load_config
 from rangeseg_cli.occlusion import join_occluded
 from rangeseg_cli.pipeline import run_pipeline
@@ -73,7 +73,7 @@ def test_a_plane_and_a_slightly_tilted_one_under_a_bar_stay_apart():
     z, labels = _scene(_plane(), _plane() + 0.04 * (x - 47), 120.0, 1.0, seed=4)
     out = join_occluded(z, labels, CONFIG, noise=1.0)
     np.testing.assert_array_equal(out, labels)
-    untested = load_config(overrides={"split": {"crease_evidence": 0.0}})
+    untested = load_config(overrides={"refine": {"crease_evidence": 0.0}})
     assert len(np.unique(join_occluded(z, labels, untested, noise=1.0))) == 2
 
 
@@ -96,17 +96,13 @@ def test_a_cylinder_crossed_by_another_part_in_a_pile_is_one_region():
     side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "cylinder 2 side")
     found = {}
     for on in (True, False):
-        config = load_config(overrides={"split": {"join_occluded": on}})
+        config = CONFIG if on else passes_without("join_occluded")
         labels = run_pipeline(scene.image, config).labels[scene.gt == side]
         found[on] = len(np.unique(labels[labels > 0]))
     assert found == {True: 1, False: 2}
 
 
 def test_the_paper_preset_joins_nothing():
+    # the old key [split] join_occluded is refused naming refine.passes: tests/test_config.py
     assert load_config(preset="paper").split.join_occluded is False
-    assert CONFIG.split.join_occluded is True
-
-
-def test_join_occluded_must_be_a_boolean(tmp_path):
-    last = bad_setting_on_the_command_line(tmp_path, "split.join_occluded=3")
-    assert "join_occluded" in last and "true or false" in last
+    assert CONFIG.split.join_occluded is True and "join_occluded" in CONFIG.refine.passes

@@ -50,8 +50,9 @@ def test_width_classes_cover_every_width_once() -> None:
     (["--scenes", "nut,teapot"], "teapot"),
     (["--size", "8x128"], "'8x128'"),
     (["--set", "rounds=1"], "'rounds=1'"),
-    (["--set", "split.nope=1"], "nope"),
-    (["--set", "split.rounds=0"], "rounds = 0"),
+    (["--set", "refine.nope=1"], "nope"),
+    (["--set", "refine.min_region=0"], "min_region = 0"),
+    (["--set", "refine.passes=[\"nope\"]"], "passes = ['nope']"),
     (["--preset", "fast"], "'fast'"),
 ])
 def test_a_bad_option_gets_one_line_naming_it_and_exit_code_2(
@@ -65,12 +66,26 @@ def test_a_bad_option_gets_one_line_naming_it_and_exit_code_2(
     assert not any("Traceback" in line for line in err)
 
 
+@pytest.mark.parametrize(("item", "named"), [
+    ("split.merge=false", "refine.passes"), ("split.fit_factor=1.5", "refine.fit_factor"),
+    ("split.rounds=1", "no longer a setting"),
+])
+def test_an_old_split_key_gets_one_line_naming_the_new_one(
+        item: str, named: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stop:
+        quality.main(["--set", item])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert named in err[-1] and f"[split] {item.split('.')[1].split('=')[0]} " in err[-1]
+    assert not any("Traceback" in line for line in err)
+
+
 def test_the_options_are_parsed_into_seeds_scenes_and_size() -> None:
     assert quality.seed_list("3,0,12") == (3, 0, 12)
     assert quality.scene_list("nut, cup") == ["nut", "cup"]
     assert quality.frame_size("480X640") == (480, 640)
     assert quality.frame_size("64") == (64, 64)
-    assert quality.set_item("split.rounds=1") == "split.rounds=1"
+    assert quality.set_item("refine.fit_factor=1.5") == "refine.fit_factor=1.5"
 
 
 def test_best_overlap_is_the_smaller_share_of_the_nearest_region() -> None:

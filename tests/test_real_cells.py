@@ -28,8 +28,7 @@ CAMERAS = ("suction", "bin")
 
 def _config(camera: str):
     k = read_intrinsics(ARC / f"{camera}-camera-intrinsics.txt")
-    return load_config(preset="tenth-mm-depth",
-                       overrides={"input": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}})
+    return load_config(preset="tenth-mm-depth", overrides=k.settings())
 
 
 def _depth_mm(raw: np.ndarray) -> np.ndarray:

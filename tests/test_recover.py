@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import passes_without
 from rangeseg_cli import recover
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
@@ -15,7 +16,7 @@ from rangeseg_cli.synth import render_scene
 
 N = 128
 ON = load_config()  # recovery is on by default
-OFF = load_config(overrides={"split": {"recover": False}})
+OFF = passes_without("recover")
 PAPER = load_config(preset="paper")
 
 
@@ -141,10 +142,9 @@ def test_nothing_is_recovered_above_the_noise_limit() -> None:
 def test_recovery_never_takes_component_pixels_or_invalid_ones() -> None:
     z, _ = tilted_box(sigma=1.0, seed=3)
     z[:, 90:93] = np.nan
-    unrefined = {"refine": False}  # the last step moves boundary pixels of any region
-    before = run_pipeline(z, load_config(overrides={"split": {**unrefined, "recover": False}}),
-                          stages=3)
-    after = run_pipeline(z, load_config(overrides={"split": unrefined}), stages=3).labels
+    # without the boundary refinement: the last step moves boundary pixels of any region
+    before = run_pipeline(z, passes_without("boundaries", "recover"), stages=3)
+    after = run_pipeline(z, passes_without("boundaries"), stages=3).labels
     inside = before.components > 0
     np.testing.assert_array_equal(after[inside], before.labels[inside])
     assert np.all(after[np.isnan(z)] == 0)
@@ -173,16 +173,26 @@ def test_recover_checks_the_shapes() -> None:
 
 def test_recovery_is_on_by_default_and_off_in_the_paper_preset() -> None:
     assert Config().split.recover and not PAPER.split.recover
+    assert "recover" in Config().refine.passes and not OFF.split.recover
 
 
+# the old keys [split] recover, recover_passes, recover_max_noise: tests/test_config.py
 @pytest.mark.parametrize(("values", "match"), [
-    ({"split": {"recover": 1}}, r"\[split\] recover = 1: expected true or false"),
-    ({"split": {"recover_passes": -1}}, r"\[split\] recover_passes = -1"),
-    ({"split": {"recover_max_noise": -0.5}}, r"\[split\] recover_max_noise = -0.5"),
+    ({"refine": {"max_noise": -0.5}}, r"\[refine\] max_noise = -0.5"),
+    ({"refine": {"max_noise": "2.5"}}, r"\[refine\] max_noise = '2.5': expected a number"),
 ])
 def test_recover_keys_are_validated(values: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         load_config(overrides=values)
+
+
+def test_max_noise_is_the_recoverys_noise_limit() -> None:
+    z, _ = tilted_box(sigma=1.0, seed=2)
+    result = run_pipeline(z, OFF, stages=3)
+    strict = load_config(overrides={"refine": {"max_noise": 0.5}})
+    assert strict.split.recover_max_noise == 0.5
+    assert recover_faces(result.heights, result.components, result.labels, strict,
+                         noise=1.0) is result.labels
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -250,7 +260,8 @@ def test_at_sigma_2_a_recovered_grazing_side_is_found_once_the_refinement_settle
     side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "block +x")
     found = {}
     for on, refine in ((True, True), (False, True), (True, False)):
-        config = load_config(overrides={"split": {"recover": on, "refine": refine}})
+        config = passes_without(*(() if on else ("recover",)),
+                                *(() if refine else ("boundaries",)))
         result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
         found[on, refine] = any(i.kind == "correct" and side in i.gt
                                      for i in result.instances)

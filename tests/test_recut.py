@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
+from conftest import passes_without
 from rangeseg_cli.config import load_config
 from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.pipeline import run_pipeline
@@ -14,7 +13,7 @@ from rangeseg_cli.recut import recut_regions, split_crease, split_tangent
 from rangeseg_cli.synth import render_scene
 
 CONFIG = load_config()
-OFF = load_config(overrides={"split": {"recut": False}})
+OFF = passes_without("recut")
 KNOT = 24.0
 RADIUS = 16.0
 #: Depth units per pixel of the model, about part1's (its fillet drops 39 units over 14 px).
@@ -147,10 +146,9 @@ def test_pile_frustum_top_and_side_one_region_at_sigma_2_are_cut():
 def test_part2_chamfer_gets_its_strip_back_at_sigma_2():
     # Without the boundary refinement or the recovery, which also give the strip back
     # (test_refine.py; recovery runs up to noise 2.5).
-    alone = load_config(overrides={"split": {"refine": False, "recover": False}})
+    alone = passes_without("boundaries", "recover")
     assert "base chamfer" in _found("part2", 2.0, 1, alone)
-    assert "base chamfer" not in _found("part2", 2.0, 1, replace(
-        alone, split=replace(alone.split, recut=False)))
+    assert "base chamfer" not in _found("part2", 2.0, 1, passes_without("recut", base=alone))
 
 
 def test_paper_preset_turns_it_off():

@@ -53,13 +53,13 @@ def test_a_narrow_face_gets_back_the_column_its_neighbour_took(lost):
     np.testing.assert_array_equal(out, truth)
 
 
-def test_smoothness_keeps_noisy_pixels_from_crossing_the_crease():
+def test_smoothness_keeps_noisy_pixels_from_crossing_the_crease(tuning):
     # the crease rule alone puts every pixel right here: off, to test the smoothness
     z, truth = roof(noise=2.0, seed=4)
-    smooth = refine_boundaries(z, truth, load_config(overrides={"split": {
-        "refine_creases": False}}), noise=2.0)
-    rough = refine_boundaries(z, truth, load_config(overrides={"split": {
-        "refine_smoothness": 0.0, "refine_creases": False}}), noise=2.0)
+    tuning(refine_creases=False)
+    smooth = refine_boundaries(z, truth, CONFIG, noise=2.0)
+    rough = refine_boundaries(z, truth, load_config(overrides={"refine": {
+        "smoothness": 0.0}}), noise=2.0)
     assert np.count_nonzero(smooth != truth) < np.count_nonzero(rough != truth)
 
 
@@ -89,19 +89,20 @@ def test_regions_too_far_apart_have_no_crease_kind():
 
 
 @pytest.mark.parametrize("seed", [2, 4])
-def test_the_crease_rule_keeps_noisy_pixels_on_their_side_of_the_crease(seed):
+def test_the_crease_rule_keeps_noisy_pixels_on_their_side_of_the_crease(seed, tuning):
     z, truth = roof(noise=2.0, seed=seed)
-    plain = refine_boundaries(z, truth, load_config(overrides={"split": {
-        "refine_creases": False}}), noise=2.0)
     creased = refine_boundaries(z, truth, CONFIG, noise=2.0)
+    tuning(refine_creases=False)
+    plain = refine_boundaries(z, truth, CONFIG, noise=2.0)
     assert np.count_nonzero(plain != truth) >= 10  # the residual alone moves them
     np.testing.assert_array_equal(creased, truth)
 
 
-def test_the_crease_rule_finds_part2s_narrow_side_at_sigma_2():
+def test_the_crease_rule_finds_part2s_narrow_side_at_sigma_2(tuning):
     # the bridge (rangeseg_cli.fill.bridge_gaps) also finds it: off, to test the rule
-    side, on = found_with("part2", 2.0, 0, "base -y side", bridge=False)
-    _, off = found_with("part2", 2.0, 0, "base -y side", bridge=False, refine_creases=False)
+    side, on = found_with("part2", 2.0, 0, "base -y side", without=("bridge",))
+    tuning(refine_creases=False)
+    _, off = found_with("part2", 2.0, 0, "base -y side", without=("bridge",))
     assert side in on and side not in off
 
 
@@ -132,22 +133,22 @@ def test_shapes_must_agree():
 
 
 def test_part2s_chamfer_is_found_at_sigma_2_by_the_refinement_alone():
-    chamfer, on = found_with("part2", 2.0, 1, "base chamfer", recut=False, recover=False)
-    _, off = found_with("part2", 2.0, 1, "base chamfer", recut=False, recover=False,
-                        refine=False)
+    chamfer, on = found_with("part2", 2.0, 1, "base chamfer", without=("recut", "recover"))
+    _, off = found_with("part2", 2.0, 1, "base chamfer",
+                        without=("recut", "recover", "boundaries"))
     assert chamfer in on and chamfer not in off
 
 
 def test_paper_preset_turns_it_off():
     assert load_config(preset="paper").split.refine is False
-    assert CONFIG.split.refine is True
+    assert CONFIG.split.refine is True and "boundaries" in CONFIG.refine.passes
 
 
+# the old keys [split] refine, refine_passes, refine_smoothness, refine_creases:
+# tests/test_config.py
 @pytest.mark.parametrize(("values", "match"), [
-    ({"split": {"refine": "yes"}}, r"\[split\] refine = 'yes': expected true or false"),
-    ({"split": {"refine_passes": 0}}, r"\[split\] refine_passes = 0"),
-    ({"split": {"refine_smoothness": -1.0}}, r"\[split\] refine_smoothness = -1.0"),
-    ({"split": {"refine_creases": 1}}, r"\[split\] refine_creases = 1: expected true or false"),
+    ({"refine": {"smoothness": -1.0}}, r"\[refine\] smoothness = -1.0"),
+    ({"refine": {"smoothness": "1"}}, r"\[refine\] smoothness = '1': expected a number"),
 ])
 def test_refine_keys_are_validated(values, match):
     with pytest.raises(ConfigError, match=match):
@@ -155,5 +156,5 @@ def test_refine_keys_are_validated(values, match):
 
 
 def test_a_bad_refine_key_on_the_command_line_is_one_line(tmp_path):
-    assert "refine_passes = 0" in bad_setting_on_the_command_line(tmp_path,
-                                                                  "split.refine_passes=0")
+    assert "smoothness = -1" in bad_setting_on_the_command_line(tmp_path,
+                                                                "refine.smoothness=-1")

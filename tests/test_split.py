@@ -11,6 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
+from conftest import passes_without
 from rangeseg_cli import noise as noise_module
 from rangeseg_cli import regions
 from rangeseg_cli import split as split_module
@@ -226,7 +227,7 @@ def test_trim_leaves_out_a_sliver_that_a_piece_cannot_be_split_at() -> None:
     np.testing.assert_array_equal(pieces, np.where(sliver, 0, 1))  # the sliver, to regrow
 
 
-def test_trimming_finds_part1s_grazing_base_side() -> None:
+def test_trimming_finds_part1s_grazing_base_side(tuning) -> None:
     # part1's base +y is a strip 1-2 pixels wide seen at a grazing angle (flush with the
     # block's +y side and the fillet's end: one GT surface); without the trim its pixels
     # stay in a piece of the block's side and base top (docs/quality.md).
@@ -235,9 +236,10 @@ def test_trimming_finds_part1s_grazing_base_side() -> None:
     scene = render_scene("part1", size=(128, 128), noise=0.0, seed=0)
     side = next(s["id"] for s in scene.info["surfaces"] if s["name"].startswith("base +y &"))
     found = {}
+    # the bridge (rangeseg_cli.fill.bridge_gaps) finds it without the trim: off
+    config = passes_without("bridge")
     for trim in (True, False):
-        # the bridge (rangeseg_cli.fill.bridge_gaps) finds it without the trim: off
-        config = replace(SPLIT, split=replace(SPLIT.split, trim_pieces=trim, bridge=False))
+        tuning(trim_pieces=trim)
         result = hoover_compare(scene.gt, run_pipeline(scene.image, config, stages=3).labels)
         found[trim] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
     assert side in found[True] and side not in found[False]
@@ -314,18 +316,20 @@ def test_min_excess_is_off_by_default_and_reaches_merge_back(monkeypatch) -> Non
     z, _ = crease_scene(change=1.0)
     mask = np.ones(z.shape, bool)
     for value in (0.0, 8.0):
-        cfg = load_config(overrides={"split": {"min_excess": value}})
-        split_module.split_component(z, mask, noise=1.0, cfg=cfg.split, grow=cfg.grow)
+        split_module.split_component(z, mask, noise=1.0, cfg=replace(SPLIT.split,
+                                                                     min_excess=value),
+                                     grow=SPLIT.grow)
     assert load_config().split.min_excess == 0.0
     assert seen[0] is None and seen[1] == pytest.approx(8.0 * 1.25**2)
 
 
-def test_max_pieces_bounds_the_split() -> None:
+def test_max_pieces_bounds_the_split(tuning) -> None:
     z, _ = frustum_scene()
+    many = len(large_regions(run_pipeline(z, SPLIT, stages=3).labels))
     # the carving would give the two pieces' absorbed sides regions again: off, to count
     # the split's own pieces
-    config = load_config(overrides={"split": {"max_pieces": 2, "carve": False}})
-    many = len(large_regions(run_pipeline(z, SPLIT, stages=3).labels))
+    config = passes_without("carve")
+    tuning(max_pieces=2)
     few = len(large_regions(run_pipeline(z, config, stages=3).labels))
     assert few == 2 < many == 6
 
@@ -431,23 +435,19 @@ def test_split_pieces_are_numbered_in_raster_order_and_never_cover_invalid_pixel
 # ------------------------------------------------------------------ config, thresholds
 
 
+# the old [split] keys (max_pieces, min_gain, trim_pieces, ...): tests/test_config.py
 @pytest.mark.parametrize(("values", "match"), [
-    ({"split": {"fit_factor": 0}}, r"\[split\] fit_factor = 0"),
-    ({"split": {"max_pieces": 1}}, r"\[split\] max_pieces = 1: expected an integer >= 2"),
-    ({"split": {"min_gain": 0.5}}, r"\[split\] min_gain = 0.5"),
-    ({"split": {"enable": True}}, r"unknown key \[split\] enable"),
+    ({"refine": {"fit_factor": 0}}, r"\[refine\] fit_factor = 0"),
     ({"input": {"auto_thresholds": 1}}, r"\[input\] auto_thresholds = 1: expected true"),
-    ({"split": {"trim_pieces": "maybe"}}, r"\[split\] trim_pieces = 'maybe': expected true"),
-    ({"split": {"trim_faces": 2}}, r"\[split\] trim_faces = 2: expected true"),
-    ({"split": {"plane_cut": "yes"}}, r"\[split\] plane_cut = 'yes': expected true"),
 ])
-def test_split_and_auto_threshold_keys_are_validated(values: dict, match: str) -> None:
+def test_fit_factor_and_auto_threshold_keys_are_validated(values: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         load_config(overrides=values)
 
 
 def test_split_is_on_by_default_and_off_in_the_paper_preset() -> None:
     assert Config().split.enabled and not PAPER.split.enabled
+    assert "split" in Config().refine.passes and not passes_without("split").split.enabled
     assert Config().input.auto_thresholds and not PAPER.input.auto_thresholds  # issue 32
 
 
@@ -464,7 +464,7 @@ def test_auto_thresholds_drop_noise_edges_on_a_noisy_plane() -> None:
 
 def test_split_handles_small_holed_and_flat_images_deterministically() -> None:
     rng = np.random.default_rng(123)
-    eager = load_config(overrides={"split": {"fit_factor": 0.5}})  # split whatever it can
+    eager = load_config(overrides={"refine": {"fit_factor": 0.5}})  # split whatever it can
     for trial in range(12):
         h, w = (int(v) for v in rng.integers(16, 60, size=2))
         y, x = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -783,7 +783,7 @@ def test_smallest_sorted_equals_the_head_of_a_full_sort() -> None:
         assert noise_module._smallest_sorted(x, k).tobytes() == np.sort(x)[:k].tobytes()
 
 
-def test_a_second_round_splits_what_the_first_left_whole() -> None:
+def test_a_second_round_splits_what_the_first_left_whole(tuning) -> None:
     """Frustum at noise 2: round one leaves the top with its -x side (the component held the table)."""
     from rangeseg_cli.synth import render_scene
 
@@ -795,8 +795,8 @@ def test_a_second_round_splits_what_the_first_left_whole() -> None:
         # crease_pieces off: it cuts the top from its side in round one (a piece whose plane
         # fails the fit test is split again); facets off: it cuts the region round one
         # leaves into its planes
-        config = load_config(overrides={"split": {"rounds": rounds, "recut": False,
-                                                  "crease_pieces": False, "facets": False}})
+        tuning(rounds=rounds, crease_pieces=False)
+        config = passes_without("recut", "facets")
         labels = run_pipeline(scene.image, config, stages=3).labels
         return {names[i.gt[0]] for i in hoover_compare(scene.gt, labels).instances
                 if i.kind == "correct"}
@@ -805,12 +805,6 @@ def test_a_second_round_splits_what_the_first_left_whole() -> None:
     assert {"frustum top", "frustum -x"} <= two
     assert not {"frustum top", "frustum -x"} & one
     assert one <= two
-
-
-@pytest.mark.parametrize("value", [0, 6, 1.5])
-def test_split_rounds_are_validated(value) -> None:
-    with pytest.raises(ConfigError, match=r"\[split\] rounds"):
-        load_config(overrides={"split": {"rounds": value}})
 
 
 def _pile_faces(seed: int, config) -> set[str]:
@@ -822,7 +816,8 @@ def _pile_faces(seed: int, config) -> set[str]:
     return {names[g] for i in result.instances if i.kind == "correct" for g in i.gt}
 
 
-def test_small_frustums_whose_pieces_pass_as_quadrics_are_cut_at_their_creases() -> None:
+def test_small_frustums_whose_pieces_pass_as_quadrics_are_cut_at_their_creases(
+        tuning) -> None:
     """Pile, sigma 2, seed 5: two frustums came out as one region each (top and sides).
 
     A piece holding a frustum's top and one side passed the fit test as a
@@ -836,10 +831,10 @@ def test_small_frustums_whose_pieces_pass_as_quadrics_are_cut_at_their_creases()
     # the side beside it at their shallow crease (385 pixels, 261 on the top's 297).
     # Without the facets (rangeseg_cli.facets), which cut such a region into its planes
     # later on: this tests the split alone.
-    alone = {"refine": False, "facets": False}
-    assert faces <= _pile_faces(5, load_config(overrides={"split": alone}))
-    assert not faces & _pile_faces(5, load_config(overrides={"split": {**alone,
-                                                                       "crease_pieces": False}}))
+    alone = passes_without("boundaries", "facets")
+    assert faces <= _pile_faces(5, alone)
+    tuning(crease_pieces=False)
+    assert not faces & _pile_faces(5, alone)
 
 
 def test_merge_back_keeps_two_planes_apart_that_fit_better_than_one_quadric() -> None:
@@ -890,7 +885,7 @@ def test_the_paper_pipeline_estimates_the_noise_only_when_asked(monkeypatch) -> 
                         lambda z: calls.append(1) or estimate_noise(z))
     z = tilted_plane(2.0, 5)
     paper = load_config(preset="paper")
-    fill_only = load_config(preset="paper", overrides={"split": {"fill_edges": True}})
+    fill_only = load_config(preset="paper", overrides={"refine": {"passes": ["fill"]}})
     assert not pipeline.uses_noise(paper) and not pipeline.uses_noise(fill_only)
     assert pipeline.uses_noise(load_config())
     assert pipeline.uses_noise(load_config(preset="paper",
@@ -923,18 +918,18 @@ def chamfered_block_scene(width: int = 3, slope: float = 1.5) -> tuple[np.ndarra
     return np.clip(np.round(z), 0.0, 255.0), truth.astype(np.int32)
 
 
-def test_trimmed_chamfers_become_faces_of_their_own() -> None:
+def test_trimmed_chamfers_become_faces_of_their_own(tuning) -> None:
     # The top's component holds its chamfers (too narrow for the normals to divide, no
     # straight crease around four sides); the trim leaves them out, and with
-    # split.trim_faces the planes among them become regions instead of being regrown
-    # into the top.
+    # trim_faces (a constant: config.TUNING) the planes among them become regions instead
+    # of being regrown into the top.
     image, truth = chamfered_block_scene()
     regions = {}
+    # the carving (rangeseg_cli.carve) and the facets (rangeseg_cli.facets) would find
+    # the chamfers too: off, to test the trim
+    config = passes_without("carve", "facets")
     for faces in (True, False):
-        # the carving (rangeseg_cli.carve) and the facets (rangeseg_cli.facets) would find
-        # the chamfers too: off, to test the trim
-        config = replace(SPLIT, split=replace(SPLIT.split, trim_faces=faces, carve=False,
-                                              facets=False))
+        tuning(trim_faces=faces)
         regions[faces] = run_pipeline(image, config, stages=3).labels
     on, off = regions[True], regions[False]
     top = {g for i in hoover_compare(truth, on).instances if i.kind == "correct" for g in i.gt}
@@ -996,7 +991,7 @@ def test_plane_cut_stays_within_max_pieces() -> None:
     assert set(np.unique(pieces).tolist()) <= {0, 1, 2, 3}
 
 
-def test_a_small_frustum_in_a_pile_is_cut_into_its_faces() -> None:
+def test_a_small_frustum_in_a_pile_is_cut_into_its_faces(tuning) -> None:
     # Pile seed 12, frustum 3 (noise-free): its sides are 4-7 pixels wide. The split
     # divides its component, but one piece holds two sides and a strip of the top; it
     # fails the fit test, nothing divides it, and merge_back glued every other piece to
@@ -1007,8 +1002,8 @@ def test_a_small_frustum_in_a_pile_is_cut_into_its_faces() -> None:
     faces = {s["id"] for s in scene.info["surfaces"] if s["name"].startswith("frustum 3 ")}
     found = {}
     for cut in (True, False):
-        config = replace(SPLIT, split=replace(SPLIT.split, plane_cut=cut))
-        result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
+        tuning(plane_cut=cut)
+        result = hoover_compare(scene.gt, run_pipeline(scene.image, SPLIT).labels)
         found[cut] = {g for i in result.instances if i.kind == "correct" for g in i.gt}
     assert len(faces) == 5 and not faces & found[False]
     assert len(faces & found[True]) >= 4

@@ -12,20 +12,42 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import tradeoffs  # noqa: E402
 
-from rangeseg_cli.config import load_config  # noqa: E402
+from rangeseg_cli.config import REFINE_PASSES, load_config, parse_settings  # noqa: E402
 
 
-def test_each_set_variant_changes_the_one_split_key_its_name_gives() -> None:
+def test_each_set_variant_changes_the_one_refine_key_its_name_gives() -> None:
     defaults = load_config()
+    sets = [name for name, _ in tradeoffs.VARIANTS if name.startswith("--set ")]
+    assert sets == [f"--set {item}" for item in tradeoffs.SETS] and sets
     for name, overrides in tradeoffs.VARIANTS:
         if not name.startswith("--set "):
             continue
-        key, value = name.removeprefix("--set split.").split("=")
-        assert overrides == {"split": {key: tomllib.loads(f"v = {value}")["v"]}}
+        key, value = name.removeprefix("--set refine.").split("=")
+        assert overrides == {"refine": {key: tomllib.loads(f"v = {value}")["v"]}}
         config = tradeoffs.variant_config(None, overrides)
-        assert (getattr(config.split, key) == overrides["split"][key]
-                != getattr(defaults.split, key))
+        assert (getattr(config.refine, key) == overrides["refine"][key]
+                != getattr(defaults.refine, key))
         assert config.grow == defaults.grow and config.step == defaults.step
+        assert config.refine.passes == defaults.refine.passes
+
+
+def test_each_pass_is_left_out_alone_once() -> None:
+    defaults = load_config()
+    left_out = []
+    for name, overrides in tradeoffs.VARIANTS:
+        if not name.startswith("without "):
+            continue
+        config = tradeoffs.variant_config(None, overrides)
+        gone = set(defaults.refine.passes) - set(config.refine.passes)
+        assert gone == {name.removeprefix("without ")}, name
+        assert config == load_config(overrides={"refine": {"passes": [
+            p for p in REFINE_PASSES if p not in gone]}})
+        # the name's --set item on the command line gives the same
+        assert overrides == parse_settings([tradeoffs.without(*gone)])
+        left_out.append(*gone)
+    assert left_out == list(REFINE_PASSES)
+    with pytest.raises(ValueError, match="'nope' is not a pass"):
+        tradeoffs.without("nope")
 
 
 def test_the_paper_variant_is_the_paper_preset_and_the_defaults_are_the_defaults() -> None:
@@ -33,8 +55,10 @@ def test_the_paper_variant_is_the_paper_preset_and_the_defaults_are_the_defaults
     assert tradeoffs.variant_config(None, variants["--preset paper"]) == load_config(
         preset="paper")
     assert tradeoffs.variant_config(None, variants["defaults"]) == load_config()
-    real = tradeoffs.variant_config(tradeoffs.REAL_CONFIG, variants["--set split.rounds=1"])
-    assert real.step == load_config(tradeoffs.REAL_CONFIG).step and real.split.rounds == 1
+    real = tradeoffs.variant_config(tradeoffs.REAL_CONFIG, variants["without facets"])
+    assert real.step == load_config(tradeoffs.REAL_CONFIG).step
+    assert real.input == load_config(tradeoffs.REAL_CONFIG).input and real.input.has_intrinsics
+    assert "facets" not in real.refine.passes and not real.split.facets
 
 
 def test_the_table_gives_each_variant_its_change_against_the_defaults() -> None:
@@ -51,8 +75,8 @@ def test_the_table_gives_each_variant_its_change_against_the_defaults() -> None:
             if line.startswith("| ") and not line.startswith("| variant")}
     assert list(rows) == names
     assert rows["defaults"].endswith("| 50 | 40 | 30 |")
-    assert rows["--set split.rounds=1"].endswith("| 49 (-1) | 41 (+1) | 30 (+0) |")
-    assert "| 11 | 11 |" in rows["--set split.rounds=1"]
+    assert rows["without split"].endswith("| 49 (-1) | 41 (+1) | 30 (+0) |")
+    assert "| 11 | 11 |" in rows["without split"]
     assert "correct σ = 0 (of 60)" in lines[2]
 
 

@@ -42,12 +42,12 @@ def noisy(z, sigma=0.5, seed=0):
 
 
 def camera(**kw):
-    return InputConfig(fx=FX, fy=FX, cx=CX, cy=CY, larger_is_closer=False, invalid=0.0,
+    return InputConfig(intrinsics=(FX, FX, CX, CY), larger_is_closer=False, invalid=0.0,
                        metres_per_unit=0.001, **kw)
 
 
 def cam_config(**tables):
-    over: dict = {"input": {"fx": FX, "fy": FX, "cx": CX, "cy": CY}}
+    over: dict = {"input": {"intrinsics": [FX, FX, CX, CY]}}
     for table, values in tables.items():
         over.setdefault(table, {}).update(values)
     return load_config(preset="mm-depth", overrides=over)
@@ -366,16 +366,19 @@ def test_the_paper_preset_has_no_workspace_and_picks_the_highest_surface():
     (20.0, 1200.0, 11),  # 10 px at twice the depth
 ])
 def test_footprint_pixels_are_odd_and_scale_with_depth(mm, depth, expected):
-    cam = InputConfig(fx=600.0, fy=600.0, larger_is_closer=False, metres_per_unit=0.001)
+    cam = InputConfig(intrinsics=(600.0, 600.0, 0.0, 0.0), larger_is_closer=False,
+                      metres_per_unit=0.001)
     cfg = HoldsiteConfig(footprint_mm=(mm, mm))
     assert footprint_pixels(cfg, cam, depth) == (expected, expected)
 
 
 def test_footprint_pixels_rows_follow_fy_and_cols_fx_and_need_intrinsics():
-    cam = InputConfig(fx=600.0, fy=300.0, larger_is_closer=False, metres_per_unit=0.001)
+    cam = InputConfig(intrinsics=(600.0, 300.0, 0.0, 0.0), larger_is_closer=False,
+                      metres_per_unit=0.001)
     cfg = HoldsiteConfig(footprint_mm=(40.0, 20.0))
     assert footprint_pixels(cfg, cam, 600.0) == (21, 21)
-    metres = InputConfig(fx=600.0, fy=600.0, larger_is_closer=False, metres_per_unit=1.0)
+    metres = InputConfig(intrinsics=(600.0, 600.0, 0.0, 0.0), larger_is_closer=False,
+                         metres_per_unit=1.0)
     assert footprint_pixels(cfg, metres, 0.6) == (41, 21)  # depth in metres
     assert footprint_pixels(cfg, InputConfig(), 600.0) == cfg.size
     assert footprint_pixels(HoldsiteConfig(size=(5, 9)), cam, 600.0) == (5, 9)
@@ -484,7 +487,8 @@ def test_flat_limit_defaults():
     hold = HoldsiteConfig()
     assert flat_limit(hold, InputConfig(), 0.5) == pytest.approx(2.0)
     assert flat_limit(hold, camera(), 0.5) == pytest.approx(2.0)  # + 1 mm, in mm
-    metres = InputConfig(fx=FX, fy=FX, larger_is_closer=False, metres_per_unit=1.0)
+    metres = InputConfig(intrinsics=(FX, FX, 0.0, 0.0), larger_is_closer=False,
+                         metres_per_unit=1.0)
     assert flat_limit(hold, metres, 0.0005) == pytest.approx(0.002)
     assert flat_limit(HoldsiteConfig(max_flat_rms=0.3), camera(), 5.0) == 0.3
     paper = load_config(preset="paper").holdsite
@@ -533,7 +537,8 @@ def test_footprint_mm_rounds_to_the_nearest_odd_count(side, expected):
     from rangeseg_cli.config import HoldsiteConfig, InputConfig
     from rangeseg_cli.holdsite import footprint_pixels
 
-    camera = InputConfig(larger_is_closer=False, metres_per_unit=0.001, fx=600.0, fy=600.0)
+    camera = InputConfig(larger_is_closer=False, metres_per_unit=0.001,
+                         intrinsics=(600.0, 600.0, 0.0, 0.0))
     cfg = HoldsiteConfig(footprint_mm=(side, side))
     assert footprint_pixels(cfg, camera, 600.0) == (expected, expected)
 
