@@ -19,6 +19,9 @@ grow       ``labels.npy``, ``labels.png``, ``surfaces.json``
 holdsite   ``holdsite.json``, ``overlay.png``
 ========== ==========================================================
 
+With ``[output] ply``, ``grow`` writes ``points.ply`` and ``holdsite``
+``holdsite.ply`` (when a site was found): :mod:`.pointcloud`.
+
 Later stages read what the earlier ones wrote, so running the stages one
 after another gives the same bytes as running them all at once.
 
@@ -83,6 +86,10 @@ STAGE_PICTURES: dict[str, tuple[str, ...]] = {
     "link": ("components.png", "linked.png"),
     "grow": ("labels.png",),
     "holdsite": ("overlay.png",),
+}
+#: Point clouds of ``[output] ply`` (``holdsite.ply`` only when a site was found).
+STAGE_CLOUDS: dict[str, tuple[str, ...]] = {
+    "edges": (), "link": (), "grow": ("points.ply",), "holdsite": ("holdsite.ply",),
 }
 
 
@@ -225,7 +232,9 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
         record.input_stamp = state.get("input_stamp")
         _remove_outputs(base, STAGES[STAGES.index(stages[-1]) + 1:])  # they no longer match
         if not config.output.png:  # pictures of an earlier run would show other results
-            _remove_outputs(base, stages, pictures_only=True)
+            _remove_outputs(base, stages, only=STAGE_PICTURES)
+        if not config.output.ply:  # and so would its point clouds
+            _remove_outputs(base, stages, only=STAGE_CLOUDS)
     except RangesegError as exc:
         record.status, record.error = "failed", str(exc)
     except MemoryError:
@@ -255,12 +264,12 @@ def remove_failed_outputs(out: Location, record: Record, first: str) -> None:
         record.error = f"{record.error}; its outputs of an earlier run remain ({exc})"
 
 
-def _remove_outputs(base: Location, stages: Iterable[str], *, pictures_only: bool = False
-                    ) -> None:
-    """Delete the image's files (or only its pictures) of ``stages``; missing ones are fine."""
+def _remove_outputs(base: Location, stages: Iterable[str], *,
+                    only: dict[str, tuple[str, ...]] | None = None) -> None:
+    """Delete the image's files (or only those of ``only``) of ``stages``; missing ones are fine."""
     for stage in stages:
-        names = STAGE_PICTURES[stage] if pictures_only else (STAGE_FILES[stage]
-                                                             + STAGE_PICTURES[stage])
+        names = only[stage] if only else (STAGE_FILES[stage] + STAGE_PICTURES[stage]
+                                          + STAGE_CLOUDS[stage])
         for name in names:
             io.remove_file(_p(base, name))
 
@@ -371,6 +380,11 @@ def _run_grow(state: dict[str, Any], base: Location, config: Config) -> None:
                   config.output.float_digits)
     if config.output.png:
         io.write_png(_p(base, "labels.png"), render.label_colors(labels))
+    if config.output.ply:
+        from .pointcloud import points_ply
+
+        io.write_bytes(_p(base, "points.ply"), points_ply(state["z"], labels, surfaces,
+                                                         config.input))
 
 
 def _run_holdsite(state: dict[str, Any], base: Location, config: Config) -> None:
@@ -382,6 +396,13 @@ def _run_holdsite(state: dict[str, Any], base: Location, config: Config) -> None
     if config.output.png:
         io.write_png(_p(base, "overlay.png"),
                      render.overlay(state["labels"], result, heights=state["z"]))
+    if config.output.ply and result.holdsite is not None:
+        from .pointcloud import holdsite_ply
+
+        io.write_bytes(_p(base, "holdsite.ply"), holdsite_ply(result.holdsite.to_dict(),
+                                                             config.input))
+    else:  # no site: the file of an earlier run would show one
+        io.remove_file(_p(base, "holdsite.ply"))
 
 
 _STAGE_RUNNERS: dict[str, Callable[[dict[str, Any], Location, Config], None]] = {
@@ -396,6 +417,8 @@ def expected_files(rel: str, stages: Iterable[str], config: Config) -> list[str]
         names += STAGE_FILES[stage]
         if config.output.png:
             names += STAGE_PICTURES[stage]
+        if config.output.ply:  # holdsite.ply only when a site was found
+            names += [n for n in STAGE_CLOUDS[stage] if n != "holdsite.ply"]
     return names
 
 
@@ -571,7 +594,7 @@ def _touched_files(jobs: list[Job], out: Location, stages: tuple[str, ...]
                    ) -> dict[str, Job]:
     """The output files of the jobs with a source, by :func:`_output_keys`: their jobs."""
     names = [n for s in STAGES[STAGES.index(stages[0]):]
-             for n in STAGE_FILES[s] + STAGE_PICTURES[s]]
+             for n in STAGE_FILES[s] + STAGE_PICTURES[s] + STAGE_CLOUDS[s]]
     folders: dict[str, list[str]] = {}
     touched: dict[str, Job] = {}
     for job in (j for j in jobs if j.source is not None):

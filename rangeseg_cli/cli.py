@@ -71,6 +71,9 @@ scheduler_opt = click.option("--scheduler", metavar="ADDRESS",
                                   "at the same paths or URLs.")
 json_opt = click.option("--json", "as_json", is_flag=True,
                         help="Print the batch summary as JSON on stdout.")
+ply_opt = click.option("--ply", is_flag=True,
+                       help="Also write labelled point clouds, OUT/<rel>.points.ply and "
+                            "holdsite.ply: sets [output] ply = true (before --set).")
 
 
 def _not_empty(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
@@ -96,6 +99,10 @@ def _name_filter(ctx: click.Context, param: click.Parameter, value: tuple[str, .
     return value
 
 
+rerun_opt = click.option(
+    "--rerun", metavar="FILE.rrd", type=click.Path(dir_okay=False), callback=_not_empty,
+    help="Write a log for the Rerun viewer after the batch: per image its depth, labels, "
+         "point cloud coloured by surface and holdsite (pip install 'rangeseg[rerun]').")
 include_opt = click.option(
     "--include", "include", multiple=True, metavar="GLOB", callback=_name_filter,
     help="Read only the files of INPUTS folders that GLOB matches (repeatable). A GLOB "
@@ -132,8 +139,8 @@ def _config_options(f: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _batch_options(f: Callable[..., Any]) -> Callable[..., Any]:
-    for opt in (json_opt, overwrite_opt, resume_opt, scheduler_opt, executor_opt, threads_opt,
-                jobs_opt):
+    for opt in (json_opt, rerun_opt, ply_opt, overwrite_opt, resume_opt, scheduler_opt,
+                executor_opt, threads_opt, jobs_opt):
         f = opt(f)
     return verbosity_opts(_config_options(f))
 
@@ -158,7 +165,7 @@ def _parse_settings(settings: tuple[str, ...]) -> dict[str, dict[str, Any]]:
 
 
 def _shorthands(opts: dict[str, Any]) -> tuple[dict[str, dict[str, Any]], Any]:
-    """The tables --intrinsics, --background and --roi set, and the intrinsics read.
+    """The tables --intrinsics, --background, --roi and --ply set, and the intrinsics read.
 
     The workspace files are recorded as absolute paths (URLs as given), so the
     stage commands, which read the configuration from OUT's manifest, find
@@ -183,6 +190,8 @@ def _shorthands(opts: dict[str, Any]) -> tuple[dict[str, dict[str, Any]], Any]:
         name = opts.get(f"{key}_path")
         if name is not None:
             tables.setdefault("workspace", {})[key] = absolute_name(name) if name else ""
+    if opts.get("ply"):
+        tables.setdefault("output", {})["ply"] = True
     return tables, intrinsics
 
 
@@ -229,6 +238,8 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
         raise click.UsageError("--resume and --overwrite exclude each other: --resume "
                                "completes what is missing, --overwrite redoes every image")
     _set_threads(opts["threads"])
+    if opts.get("rerun"):
+        _check_rerun(opts["rerun"])
     _say_if_compiling(opts)
     reporter = BatchReporter(quiet=opts["quiet"] > 0, verbose=opts["verbose"])
     # Dask: --jobs caps the images in flight; without it the cluster sets the parallelism.
@@ -247,9 +258,38 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
     finally:
         reporter.stop()
     reporter.summary(summary)
+    if opts.get("rerun"):
+        _write_rerun(opts["rerun"], jobs, out, config, summary)
     if opts["as_json"]:
         _echo_json(ctx, summary.to_dict())
     _exit(ctx, summary)
+
+
+def _check_rerun(path: str) -> None:
+    """``--rerun``: the SDK installed and FILE writable, before any work (exit code 2)."""
+    from .errors import ConfigError, OutputError
+    from .io import check_writable
+    from .rerun_log import require_rerun
+
+    try:
+        require_rerun()
+        check_writable(Path(path))
+    except (ConfigError, OutputError) as exc:
+        raise UsageProblem(str(exc)) from None
+
+
+def _write_rerun(path: str, jobs: list[Any], out: Any, config: Any, summary: Any) -> None:
+    """``--rerun``: the log of the images done (or resumed), in input order (exit 1 if not)."""
+    from .errors import OutputError
+    from .rerun_log import write_log
+
+    status = {r.rel: r.status for r in summary.records}
+    images = [(k, job.rel) for k, job in enumerate(jobs)
+              if status.get(job.rel) in ("done", "skipped")]
+    try:
+        write_log(Path(path), out, images, config.input)
+    except OutputError as exc:
+        raise click.ClickException(str(exc)) from None
 
 
 def _say_if_compiling(opts: dict[str, Any]) -> None:

@@ -1071,3 +1071,8 @@ def read_json(path: Location) -> Any:
 def write_text(path: Location, text: str) -> None:
     """Write text atomically."""
     _atomic_write(path, lambda fh: fh.write(text.encode()))
+
+
+def write_bytes(path: Location, data: bytes) -> None:
+    """Write bytes (a PLY file) atomically."""
+    _atomic_write(path, lambda fh: fh.write(data))
