@@ -69,8 +69,8 @@ def read_frame(data: Path, frame: str) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 def configs(camera: np.ndarray) -> dict[str, Config]:
     """The hand-tuned settings and the preset with the intrinsics alone."""
-    intrinsics = {"fx": float(camera[0, 0]), "fy": float(camera[1, 1]),
-                  "cx": float(camera[0, 2]), "cy": float(camera[1, 2])}
+    intrinsics = {"intrinsics": [float(camera[0, 0]), float(camera[1, 1]),
+                                 float(camera[0, 2]), float(camera[1, 2])]}
     return {
         "hand-tuned": load_config(preset="tenth-mm-depth", overrides={
             **HAND_TUNED, "input": {**HAND_TUNED["input"], **intrinsics}}),
@@ -160,8 +160,7 @@ def sweep(scene: np.ndarray, empty: np.ndarray, config: Config) -> list[dict[str
     rows = []
     for m in SWEEP:
         fixed = load_config(preset="tenth-mm-depth", overrides={
-            "input": {"auto_thresholds": False, "fx": config.input.fx, "fy": config.input.fy,
-                      "cx": config.input.cx, "cy": config.input.cy},
+            "input": {"auto_thresholds": False, "intrinsics": list(config.input.intrinsics)},
             "step": {"threshold": base.step.threshold * m},
             "roof": {"threshold_a": base.roof.threshold_a * m,
                      "threshold_b": base.roof.threshold_b * m}})

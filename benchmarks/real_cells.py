@@ -4,7 +4,7 @@ Renders held-out seeds of the camera scenes of ``rangeseg synth`` (an
 SR300-like camera over piles on a table, in totes, with a gripper in view,
 and empty totes) at 640x480 into a temporary folder, reads each frame back
 from its PNG and runs the library's pipeline on it with ``--preset
-tenth-mm-depth`` and the frame's intrinsics (``[input] fx, fy, cx, cy``),
+tenth-mm-depth`` and the frame's intrinsics (``[input] intrinsics``),
 plus any ``--set`` given here; with ``--background`` the frame of the empty
 tote or table is passed too. Each holdsite is scored by the object-level
 check of ``rangeseg eval`` (:func:`rangeseg_cli.evaluate.check_object_holdsite`):
@@ -62,7 +62,8 @@ def parse_seeds(text: str) -> list[int]:
 def frame_settings(info: dict[str, Any], extra: list[str]) -> list[str]:
     """The frame's intrinsics as ``--set`` items, then the extra ones (which win)."""
     cam = info["camera"]
-    return [f"input.{k}={float(cam[k])!r}" for k in ("fx", "fy", "cx", "cy")] + extra
+    values = ", ".join(repr(float(cam[k])) for k in ("fx", "fy", "cx", "cy"))
+    return [f"input.intrinsics=[{values}]"] + extra
 
 
 def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str]

@@ -32,7 +32,7 @@ def panels(camera: str) -> list[np.ndarray]:
     """The three overlays of one camera (with background, alone, empty tote)."""
     k = read_intrinsics(ARC / f"{camera}-camera-intrinsics.txt")
     config = load_config(preset="tenth-mm-depth",
-                         overrides={"input": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}})
+                         overrides=k.settings())
     scene = io.read_image(ARC / f"{camera}-scene.depth.png")
     empty = io.read_image(ARC / "empty" / f"{camera}-background.depth.png")
     out = []
