@@ -12,7 +12,8 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from .batch import BatchSummary, Record
+from .batch import BatchSummary
+from .jobs import Record
 
 
 class BatchReporter:

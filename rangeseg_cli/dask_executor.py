@@ -1,8 +1,8 @@
 """Run a batch on an existing Dask distributed cluster: one task per image (issue 10).
 
 :func:`execute_on_dask` is the cluster counterpart of the local process pool
-of :mod:`rangeseg_cli.batch`: it submits :func:`~rangeseg_cli.batch.process_image`
-once per image and hands each :class:`~rangeseg_cli.batch.Record` back as its
+of :mod:`rangeseg_cli.batch`: it submits :func:`~rangeseg_cli.jobs.process_image`
+once per image and hands each :class:`~rangeseg_cli.jobs.Record` back as its
 task completes, so the manifest and the progress bar are fed exactly as in a
 local run.
 
@@ -49,7 +49,11 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 from . import __version__, io
-from .batch import (
+from .config import Config
+from .errors import ClusterError, ClusterLost, RangesegError
+from .frames import SharedFrames
+from .io import Location
+from .jobs import (
     Job,
     Record,
     StopFlag,
@@ -57,10 +61,6 @@ from .batch import (
     remove_failed_outputs,
     remove_stale_temporaries,
 )
-from .config import Config
-from .errors import ClusterError, ClusterLost, RangesegError
-from .frames import SharedFrames
-from .io import Location
 
 if TYPE_CHECKING:  # pragma: no cover
     from distributed import Client, Future

@@ -303,7 +303,7 @@ def test_eval_does_not_score_labels_the_manifest_records_as_failed(runner, cup_s
 
 def test_image_failing_at_a_later_stage_keeps_no_results_of_an_earlier_run(
         runner, box_png, tmp_path, monkeypatch):
-    from rangeseg_cli import batch
+    from rangeseg_cli import jobs
     from rangeseg_cli.errors import InputError
 
     out = tmp_path / "out"
@@ -312,7 +312,7 @@ def test_image_failing_at_a_later_stage_keeps_no_results_of_an_earlier_run(
     def broken(*args):
         raise InputError("box: no surface fits")
 
-    monkeypatch.setitem(batch._STAGE_RUNNERS, "grow", broken)
+    monkeypatch.setitem(jobs._STAGE_RUNNERS, "grow", broken)
     res = runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1", "-q",
                                "--overwrite", "--set", "step.threshold=20"])
     assert res.exit_code == 1 and "box: no surface fits" in res.output

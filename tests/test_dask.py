@@ -22,9 +22,9 @@ from distributed.diagnostics.plugin import SchedulerPlugin
 
 from conftest import box_scene, tree_bytes
 from rangeseg_cli import cli_report, dask_executor, load_config
-from rangeseg_cli.batch import Job
 from rangeseg_cli.cli import main
 from rangeseg_cli.dask_executor import ClusterError, execute_on_dask
+from rangeseg_cli.jobs import Job
 from rangeseg_cli.pipeline import STAGES
 
 N_IMAGES = 16
