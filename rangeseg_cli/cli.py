@@ -722,15 +722,15 @@ def _plot(total: dict[str, Any], path: Path) -> None:
 
 
 def _tolerance_not_nan(value: float) -> float:
-    """``eval --tolerance`` by the library's check (``evaluate._check_tolerance``).
+    """``eval --tolerance`` by the library's check (``evaluate.check_tolerance``).
 
     NaN, which click's FloatRange lets through, is refused in click's words
     for a value out of range.
     """
-    from .evaluate import _check_tolerance
+    from .evaluate import check_tolerance
 
     try:
-        return _check_tolerance(value)
+        return check_tolerance(value)
     except ValueError:
         raise click.BadParameter(f"{value} is not in the range 0.5<=x<=1.0") from None
 

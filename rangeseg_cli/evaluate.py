@@ -253,9 +253,6 @@ def check_tolerance(tolerance: float) -> float:
     return float(tolerance)
 
 
-_check_tolerance = check_tolerance  # cli.py's name until it imports check_tolerance
-
-
 def _correct_pairs(ov: Overlap, t: float) -> list[tuple[float, int, int]]:
     o = ov.table.astype(float)
     ok = (o > 0) & (o >= t * ov.machine_size[None, :]) & (o >= t * ov.gt_size[:, None])

@@ -20,8 +20,6 @@ NAME = "rangeseg_cli"
 #: Only the backend choice loads the compiled kernels.
 PRIVATE_ALLOWED = {
     ("rangeseg_cli.backend", "_kernels"),
-    # cli.py's until it imports evaluate.check_tolerance (issue 33).
-    ("rangeseg_cli.cli", "_check_tolerance"),
 }
 
 
