@@ -128,11 +128,6 @@ class BatchSummary:
             {"percent_encoded": encoded} if encoded else {})
 
 
-def artifact(out: Location, rel: str, name: str) -> Location:
-    """Path of artefact ``name`` (e.g. ``"labels.npy"``) of image ``rel``."""
-    return out / f"{rel}.{name}"
-
-
 def stage_range(first: str, last: str) -> tuple[str, ...]:
     """Stages from ``first`` to ``last`` inclusive."""
     i, j = STAGES.index(first), STAGES.index(last)

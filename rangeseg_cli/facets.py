@@ -72,6 +72,7 @@ from .config import Config
 from .grow import EIGHT_NEIGHBOURS, region_fits, sums_of_squares, union_quadric_mse
 from .rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
 from .recover import consensus_plane, fit_plane, plane_height
+from .recut import MIN_GAIN  # the least gain of a cut, s^2 per pixel (Notes 5)
 from .regions import adjacent_pairs, raster_renumber
 from .split import failing_components
 
@@ -96,9 +97,6 @@ PASSES = 8
 
 #: A plane the others explain within this many ``s^2`` per pixel of its pixels is dropped.
 DROP_GAIN = 1.0
-
-#: Least gain of two pieces against one quadric of their union, ``s^2`` per pixel (Notes 5).
-MIN_GAIN = 0.15
 
 _OFFSETS = chessboard_offsets(1)
 
