@@ -47,6 +47,16 @@ spread, then moments), without any per-pixel temporaries;
 sweep; :func:`grow_pass` is one simultaneous growing pass (8-neighbourhood
 test and residual test fused).
 
+Compile time. The first run after installing compiles every kernel it calls
+(:mod:`rangeseg_cli.kernel_cache` has the figures), so the kernels are written
+to compile little: each is compiled for one signature (callers pass
+:data:`_ZERO`, an int64, where a literal ``0`` would have numba compile the
+callee once more for the type ``Literal[int](0)``; the call sites cast arrays to
+C-contiguous, writeable float64 or int32); helpers called from one place are
+inlined into it (``inline="always"``: no compilation of their own); and loops
+stand where slice assignment, ``np.full``, ``.max()`` or array arithmetic
+would compile numba's generic implementations.
+
 Importing this module imports numba and needs it; :mod:`rangeseg_cli.edges`
 imports it lazily and only when numba is installed.
 """
@@ -58,18 +68,24 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from .kernel_cache import compile_ahead_when_cold
 from .parallel import map_bands, row_bands
 
 #: Options of the helpers that allocate nothing and only use views of the arrays they
 #: are given: no reference counts (numba's ``_nrt`` target option; see the Notes).
 _NO_REFCOUNTS: dict[str, Any] = {"_nrt": False}
 
+#: 0 for the counters and offsets that kernels pass to other kernels: an int64 like
+#: their other values, where a literal 0 would have the callee compiled once more (see
+#: the Notes).
+_ZERO: int = np.int64(0)  # type: ignore[assignment]
+
 #: Row and column steps of the four directions of Fig. 8 (as ``edges.DIRECTIONS``).
 _DY = np.array([0, 1, 1, 1], dtype=np.int64)
 _DX = np.array([1, 0, 1, -1], dtype=np.int64)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", **_NO_REFCOUNTS)
 def _reach_row(okp: np.ndarray, row: int, pad: int, dy: int, dx: int, half: int, c0: int,
                c1: int, run: np.ndarray, reach: np.ndarray) -> None:  # pragma: no cover
     """Consecutive usable pixels from each pixel (row, c0..c1-1) along (dy, dx), at most ``half``.
@@ -90,7 +106,7 @@ def _reach_row(okp: np.ndarray, row: int, pad: int, dy: int, dx: int, half: int,
             reach[c] += run[c]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _den_table(w: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """Sum of kept weights for each (reach +d, reach -d), added in the reference's order.
 
@@ -152,7 +168,7 @@ def _ar_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, dy: int, dx: in
         res[c] = ar if ok0[c] else 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", **_NO_REFCOUNTS)
 def _is_local_max(ring: np.ndarray, q: int, c: int, dy: int, dx: int, radius: int,
                   height: int, level: float) -> bool:  # pragma: no cover - compiled
     """Whether ``level`` is >= every AR within +-``radius`` of (q, c) along (dy, dx)."""
@@ -232,8 +248,8 @@ def edges_pass(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray, thresho
     for r in range(height + radius):
         if r < height:
             for d in range(4):
-                _ar_row(zp, okp, r, pad, _DY[d], _DX[d], w, den_table, symmetric, 0, width,
-                        work, num, ring[d, r % nring])
+                _ar_row(zp, okp, r, pad, _DY[d], _DX[d], w, den_table, symmetric, _ZERO,
+                        width, work, num, ring[d, r % nring])
         q = r - radius
         if q >= 0:
             ok_row = okp[q + pad, pad: pad + width]
@@ -258,12 +274,12 @@ def absolute_residuals(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray,
     den_table = _den_table(w)
     for r in range(height):
         for d in range(4):
-            _ar_row(zp, okp, r, pad, _DY[d], _DX[d], w, den_table, symmetric, 0, width, work,
-                    num, out[d, r])
+            _ar_row(zp, okp, r, pad, _DY[d], _DX[d], w, den_table, symmetric, _ZERO, width,
+                    work, num, out[d, r])
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", **_NO_REFCOUNTS)
 def _ar_rows(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
              den_table: np.ndarray, symmetric: bool, c0: int, c1: int, work: np.ndarray,
              num: np.ndarray, ring: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -274,7 +290,7 @@ def _ar_rows(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
                 ring[d, row % depth])
 
 
-@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", **_NO_REFCOUNTS)
 def _max_rows(ring: np.ndarray, q: int, radius: int, height: int, threshold: float,
               ok_row: np.ndarray, cand: np.ndarray, found_row: np.ndarray
               ) -> None:  # pragma: no cover - compiled
@@ -284,7 +300,7 @@ def _max_rows(ring: np.ndarray, q: int, radius: int, height: int, threshold: flo
                  found_row)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", **_NO_REFCOUNTS)
 def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, q: int, half: int,
                  lo: np.ndarray, hi: np.ndarray) -> None:  # pragma: no cover - compiled
     """Make the edges of row ``q`` unusable; widen the spans whose AR they change.
@@ -295,10 +311,9 @@ def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, q: int, half: int,
     hold every such pixel of that row.
     """
     height, width = lo.shape[1], found_row.shape[0]
-    flags = found_row.view(np.uint8)
     count = 0
     for c in range(width):
-        count += flags[c]
+        count += found_row[c]
     if count == 0:
         return
     for c in range(width):
@@ -314,7 +329,7 @@ def _exclude_row(found_row: np.ndarray, ok_row: np.ndarray, q: int, half: int,
                     hi[d, r] = max(hi[d, r], cc)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", **_NO_REFCOUNTS)
 def _second_pass_row(zp: np.ndarray, okp: np.ndarray, row: int, pad: int, w: np.ndarray,
                      den_table: np.ndarray, symmetric: bool, lo: np.ndarray, hi: np.ndarray,
                      work: np.ndarray, num: np.ndarray, ring: np.ndarray
@@ -361,13 +376,16 @@ def roof_passes(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray, thresh
     cand = np.zeros(8 * ((width + 7) // 8), dtype=np.uint8)
     den_table = _den_table(w)
     okp_b = okp.copy()
-    lo = np.full((4, height), width, dtype=np.int64)  # columns of 2b's AR to recompute
-    hi = np.full((4, height), -1, dtype=np.int64)
+    lo = np.empty((4, height), dtype=np.int64)  # columns of 2b's AR to recompute
+    hi = np.empty((4, height), dtype=np.int64)
+    for d in range(4):
+        for q in range(height):
+            lo[d, q], hi[d, q] = width, -1
     roof_a = np.zeros((height, width), dtype=np.bool_)
     roof_b = np.zeros((height, width), dtype=np.bool_)
     for r in range(height + 2 * radius + lag):
         if r < height:
-            _ar_rows(zp, okp, r, pad, w, den_table, symmetric, 0, width, work, num, ring)
+            _ar_rows(zp, okp, r, pad, w, den_table, symmetric, _ZERO, width, work, num, ring)
         qa = r - radius
         if 0 <= qa < height:  # Step 2a: roof edges, high threshold (Sec. V-2a)
             _max_rows(ring, qa, radius, height, threshold_a, okp[qa + pad, pad: pad + width],
@@ -385,35 +403,26 @@ def roof_passes(zp: np.ndarray, okp: np.ndarray, pad: int, w: np.ndarray, thresh
     return roof_a, roof_b
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _pad(z: np.ndarray, pad: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+def _pad(z: np.ndarray, pad: int) -> tuple[np.ndarray, np.ndarray]:
     """Heights padded with 0 and the usable (not NaN) mask padded with False."""
     height, width = z.shape
     zp = np.zeros((height + 2 * pad, width + 2 * pad))
     okp = np.zeros((height + 2 * pad, width + 2 * pad), dtype=np.bool_)
-    for r in range(height):
-        for c in range(width):
-            v = z[r, c]
-            zp[r + pad, c + pad] = v
-            okp[r + pad, c + pad] = not np.isnan(v)
+    zp[pad: pad + height, pad: pad + width] = z
+    np.logical_not(np.isnan(z), out=okp[pad: pad + height, pad: pad + width])
     return zp, okp
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _exclude(okp: np.ndarray, pad: int, edges: np.ndarray) -> None:  # pragma: no cover
+def _exclude(okp: np.ndarray, pad: int, edges: np.ndarray) -> None:
     """Mark ``edges`` as unusable for later passes (Sec. V-2: masks stop before them)."""
     height, width = edges.shape
-    for r in range(height):
-        for c in range(width):
-            if edges[r, c]:
-                okp[r + pad, c + pad] = False
+    okp[pad: pad + height, pad: pad + width] &= ~edges
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
 def edge_maps(z: np.ndarray, w_step: np.ndarray, step_threshold: float, w_roof: np.ndarray,
               threshold_a: float, threshold_b: float, radius: int, step_symmetric: bool,
               roof_symmetric: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Steps 1, 2a and 2b of Sec. V in three fused passes (compiled; see detect_edges_numba).
+    """Steps 1, 2a and 2b of Sec. V in three compiled passes (see detect_edges_numba).
 
     Returns
     -------
@@ -431,18 +440,6 @@ def edge_maps(z: np.ndarray, w_step: np.ndarray, step_threshold: float, w_roof: 
     roof_a, roof_b = roof_passes(zp, okp, pad, w_roof, threshold_a, threshold_b, radius,
                                  roof_symmetric)
     return step, roof_a, roof_b
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def edge_codes(step: np.ndarray, roof_a: np.ndarray, roof_b: np.ndarray
-               ) -> np.ndarray:  # pragma: no cover - compiled
-    """uint8 codes of ``edges.EdgeMaps``: 1 step, else 2 roof (either pass), else 0."""
-    height, width = step.shape
-    codes = np.empty((height, width), dtype=np.uint8)
-    for r in range(height):
-        for c in range(width):
-            codes[r, c] = 1 if step[r, c] else (2 if roof_a[r, c] or roof_b[r, c] else 0)
-    return codes
 
 
 def detect_edges_numba(z: np.ndarray, w_step: np.ndarray, step_threshold: float,
@@ -567,12 +564,15 @@ def run_moments(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, n
     ``grow.region_fits`` makes the runs once for this and :func:`run_sse`.
     """
     counts, cx, cy = _region_centres(runs, n, r0, c0)
-    scale = _region_scale(runs, cx, cy, np.maximum(counts, 1.0), r0, c0)
+    safe = np.empty(n + 1)
+    for lab in range(n + 1):
+        safe[lab] = max(counts[lab], 1.0)
+    scale = _region_scale(runs, cx, cy, safe, r0, c0)
     sums, rhs = _region_sums(z, runs, cx, cy, scale, r0, c0)
     return counts, cx, cy, scale, sums, rhs
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _run_end(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no cover - compiled
     """One past the last column of the run of equal labels starting at (r, c)."""
     lab = labels[r, c]
@@ -606,7 +606,7 @@ def fitted_runs(z: np.ndarray, labels: np.ndarray
     first = np.empty(count, dtype=np.int64)
     stop = np.empty(count, dtype=np.int64)
     labs = np.empty(count, dtype=np.int64)
-    k = 0
+    k = _ZERO
     for r in range(height):
         if _run_flags(z[r], labels[r], fit, starts, ends) == 0:
             continue
@@ -618,7 +618,7 @@ def fitted_runs(z: np.ndarray, labels: np.ndarray
     return rows, first, stop, labs
 
 
-@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", **_NO_REFCOUNTS)
 def _run_flags(zr: np.ndarray, lab: np.ndarray, fit: np.ndarray, starts: np.ndarray,
                ends: np.ndarray) -> int:  # pragma: no cover - compiled
     """Flag where the runs of :func:`fitted_runs` of one row start and end; their number.
@@ -641,7 +641,7 @@ def _run_flags(zr: np.ndarray, lab: np.ndarray, fit: np.ndarray, starts: np.ndar
     return count + starts[0]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", **_NO_REFCOUNTS)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", **_NO_REFCOUNTS)
 def _put_flagged(flags: np.ndarray, out: np.ndarray, k: int) -> int:  # pragma: no cover
     """Write the indices of the set bytes of ``flags`` (length a multiple of 8) from ``out[k]``.
 
@@ -657,7 +657,7 @@ def _put_flagged(flags: np.ndarray, out: np.ndarray, k: int) -> int:  # pragma: 
     return k
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _region_centres(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], n: int,
                     r0: int, c0: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
@@ -676,11 +676,16 @@ def _region_centres(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
         counts[lab] += length
         sx[lab] += length * (a + b - 1) // 2 + length * c0
         sy[lab] += length * (rows[k] + r0)
-    safe = np.maximum(counts, 1).astype(np.float64)
-    return counts.astype(np.float64), sx / safe, sy / safe
+    pixels, cx, cy = np.empty(n + 1), np.empty(n + 1), np.empty(n + 1)
+    for lab in range(n + 1):
+        safe = np.float64(max(counts[lab], 1))
+        pixels[lab] = np.float64(counts[lab])
+        cx[lab] = sx[lab] / safe
+        cy[lab] = sy[lab] / safe
+    return pixels, cx, cy
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _region_scale(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
                   cx: np.ndarray, cy: np.ndarray, safe: np.ndarray, r0: int, c0: int
                   ) -> np.ndarray:  # pragma: no cover - compiled
@@ -702,10 +707,13 @@ def _region_scale(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
             ax += dx * dx
             ay += dy2
         vx[lab], vy[lab] = ax, ay
-    return np.maximum(np.sqrt((vx + vy) / (2.0 * safe)), 1.0)
+    for lab in range(vx.shape[0]):  # np.maximum(np.sqrt(...), 1.0), NaN kept
+        spread = np.sqrt((vx[lab] + vy[lab]) / (2.0 * safe[lab]))
+        vx[lab] = 1.0 if spread < 1.0 else spread
+    return vx
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _region_sums(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
                  cx: np.ndarray, cy: np.ndarray, scale: np.ndarray, r0: int, c0: int
                  ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
@@ -865,7 +873,7 @@ def _squares_run(zrun: np.ndarray, c0: int, x0: float, v: float, s: float, a: np
         out[i] = res * res
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _single_neighbour(labels: np.ndarray, r: int, c: int) -> int:  # pragma: no cover
     """The one label in the 3x3 neighbourhood of (r, c); 0 for none or two and more."""
     height, width = labels.shape
@@ -926,6 +934,15 @@ def valid_labels(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, int]:  
     return out, int(top)
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _doubled(a: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """A copy of 1-D ``a`` in an array twice as long (the second half uninitialised)."""
+    out = np.empty(2 * a.shape[0], dtype=a.dtype)
+    for i in range(a.shape[0]):
+        out[i] = a[i]
+    return out
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.ndarray,
               limit: np.ndarray) -> int:  # pragma: no cover - compiled
@@ -954,9 +971,7 @@ def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.n
             res = z[r, c] - fit
             if res * res < limit[lab]:
                 if joined == rows.shape[0]:
-                    rows = np.concatenate((rows, np.empty_like(rows)))
-                    cols = np.concatenate((cols, np.empty_like(cols)))
-                    tags = np.concatenate((tags, np.empty_like(tags)))
+                    rows, cols, tags = _doubled(rows), _doubled(cols), _doubled(tags)
                 rows[joined], cols[joined], tags[joined] = r, c, lab
                 joined += 1
     for k in range(joined):
@@ -967,7 +982,7 @@ def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.n
 # --------------------------------------------------------------------------- neighbours
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _half_offsets(reach: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """(dy, dx) of half of the offsets within ``reach``, in the reference's order."""
     count = reach + (2 * reach + 1) * reach
@@ -982,7 +997,7 @@ def _half_offsets(reach: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no co
     return dys, dxs
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _label_runs(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
                                               ]:  # pragma: no cover - compiled
     """Runs of equal positive labels along the rows: (row starts, first, stop, label).
@@ -1084,7 +1099,7 @@ def neighbour_pairs(labels: np.ndarray, reach: int) -> np.ndarray:  # pragma: no
 # --------------------------------------------------------------------------- local planes
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _blur_plane(pad: np.ndarray, w: np.ndarray, acc: np.ndarray, out: np.ndarray
                 ) -> None:  # pragma: no cover - compiled
     """Separable Gaussian blur of ``pad`` (zero-padded by ``len(w) // 2`` on every side).
@@ -1139,7 +1154,7 @@ def _factor(kind: int, u: float, v: float) -> float:  # pragma: no cover - compi
     return 1.0 if kind == 0 else (u if kind == 1 else v)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _masked_product(z: np.ndarray, mask: np.ndarray, u0: float, v0: float, which: int,
                     radius: int, pad: np.ndarray) -> None:  # pragma: no cover - compiled
     """Write product ``which`` of :data:`_PRODUCTS` into the interior of ``pad``.
@@ -1599,15 +1614,17 @@ def label_extremes(a: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]: 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _symmetric_residual(z: np.ndarray, r: int, c0: int, dy: int, dx: int, w: np.ndarray,
-                        out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """|correlate1d - z| along (dy, dx) at (r, c0 ..), summed as scipy sums a symmetric mask.
+def _symmetric_residual(z: np.ndarray, r: int, axis: int, w: np.ndarray, out: np.ndarray
+                        ) -> None:  # pragma: no cover - compiled
+    """|correlate1d - z| along ``axis`` at row ``r``, summed as scipy sums a symmetric mask.
 
     The centre tap, then the pairs of taps from the farthest in:
     ``x0 w0 + (x_-h + x_h) w_-h + ... + (x_-1 + x_1) w_-1``; ``out`` is as
-    long as the stretch of row ``r``, whose masks must lie inside ``z``.
+    long as the stretch of row ``r`` whose masks lie inside ``z``: from
+    column 0 along axis 0, from column ``half`` along axis 1.
     """
     half, n = w.shape[0] // 2, out.shape[0]
+    c0, dy, dx = (0, 1, 0) if axis == 0 else (half, 0, 1)
     centre = z[r, c0: c0 + n]
     for c in range(n):
         out[c] = centre[c] * w[half]
@@ -1621,7 +1638,7 @@ def _symmetric_residual(z: np.ndarray, r: int, c0: int, dy: int, dx: int, w: np.
         out[c] = abs(out[c] - centre[c])
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _residual_row(z: np.ndarray, r: int, axis: int, w: np.ndarray, out: np.ndarray
                   ) -> None:  # pragma: no cover - compiled
     """AR of ``correlate1d(z, w)`` along ``axis`` for row ``r`` where the mask is inside.
@@ -1631,12 +1648,12 @@ def _residual_row(z: np.ndarray, r: int, axis: int, w: np.ndarray, out: np.ndarr
     half = w.shape[0] // 2
     height, width = z.shape
     if axis == 0 and half <= r < height - half:
-        _symmetric_residual(z, r, 0, 1, 0, w, out)
+        _symmetric_residual(z, r, axis, w, out)
     elif axis == 1 and width > 2 * half:
-        _symmetric_residual(z, r, half, 0, 1, w, out[half: width - half])
+        _symmetric_residual(z, r, axis, w, out[half: width - half])
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _take_kept(whole: np.ndarray, ar: np.ndarray, i: int, j: int, step: int, out: np.ndarray
                ) -> tuple[int, int]:  # pragma: no cover - compiled
     """Copy the kept values of one row (every ``step``-th whole pixel) to ``out``.
@@ -1666,11 +1683,14 @@ def noise_residuals(z: np.ndarray, w: np.ndarray, max_samples: int
     height, width = z.shape
     half = w.shape[0] // 2
     whole, counts = _whole_masks(z, half)
-    total = counts.sum()
+    total = 0
+    for axis in range(2):
+        for r in range(height):
+            total += counts[axis, r]
     step = total // max_samples if total > max_samples else 1
     out = np.empty((total + step - 1) // step)
     ar = np.empty(width)
-    i = j = 0  # whole pixels seen; values kept
+    i = j = _ZERO  # whole pixels seen; values kept
     for axis in range(2):
         for r in range(height):
             count = counts[axis, r]
@@ -1682,7 +1702,7 @@ def noise_residuals(z: np.ndarray, w: np.ndarray, max_samples: int
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _whole_masks(z: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
     """Which pixels' masks along each axis are whole (valid), per row, and their counts.
 
@@ -1725,7 +1745,7 @@ def _whole_masks(z: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
 _RADIX_BITS = 13
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _radix_pass(src: np.ndarray, dst: np.ndarray, shift: int) -> bool:  # pragma: no cover
     """One stable counting-sort pass of ``src`` into ``dst`` by the digit at ``shift``.
 
@@ -1737,8 +1757,9 @@ def _radix_pass(src: np.ndarray, dst: np.ndarray, shift: int) -> bool:  # pragma
     count = np.zeros(size + 1, dtype=np.int64)
     for i in range(src.shape[0]):
         count[((src[i] >> sh) & mask) + 1] += 1
-    if count.max() == src.shape[0]:
-        return False
+    for d in range(size):
+        if count[d + 1] == src.shape[0]:
+            return False
     for d in range(size):
         count[d + 1] += count[d]
     for i in range(src.shape[0]):
@@ -1748,16 +1769,20 @@ def _radix_pass(src: np.ndarray, dst: np.ndarray, shift: int) -> bool:  # pragma
     return True
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def smallest_sorted(x: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover - compiled
+def smallest_sorted(x: np.ndarray, k: int) -> np.ndarray:
     """``np.sort(x)[:k]`` for finite non-negative float64 ``x`` (e.g. |AR| values).
 
     The bit patterns of non-negative floats sort as unsigned integers: the
     values at or below the top-16-bit bucket of the k-th smallest are picked,
     then sorted by a least-significant-digit radix sort (digits that are the
-    same in every value are skipped).
+    same in every value are skipped; :func:`smallest_keys`).
     """
-    keys = x.view(np.uint64)
+    return smallest_keys(np.require(x, np.float64, ["C"]).view(np.uint64), k).view(np.float64)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def smallest_keys(keys: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover - compiled
+    """The ``k`` smallest of the uint64 ``keys``, sorted (see :func:`smallest_sorted`)."""
     top = np.zeros(1 << 16, dtype=np.int64)
     for i in range(keys.shape[0]):
         top[keys[i] >> np.uint64(48)] += 1
@@ -1775,7 +1800,7 @@ def smallest_sorted(x: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover - 
     for shift in range(0, 64, _RADIX_BITS):
         if _radix_pass(src, dst, shift):
             src, dst = dst, src
-    return src[:k].view(np.float64)
+    return src[:k]
 
 
 # --------------------------------------------------------------------------- region pairs
@@ -1817,11 +1842,16 @@ def pair_medians(lo: np.ndarray, hi: np.ndarray, n: int, values: np.ndarray
         ``0.5 (v[(c - 1) // 2] + v[c // 2])`` of the sorted values of each
         group of c pairs (as ``np.unique`` and ``np.lexsort`` give them).
     """
+    order = np.empty(lo.shape[0], dtype=np.int64)
+    for i in range(lo.shape[0]):
+        order[i] = i
     if (n + 1) * (n + 1) <= 4 * lo.shape[0] + 4096:  # few labels: one pass on (lo, hi)
-        order = _counting_order(lo * (n + 1) + hi, (n + 1) * (n + 1) - 1,
-                                np.arange(lo.shape[0]))
+        keys = np.empty(lo.shape[0], dtype=np.int64)
+        for i in range(lo.shape[0]):
+            keys[i] = lo[i] * (n + 1) + hi[i]
+        order = _counting_order(keys, (n + 1) * (n + 1) - 1, order)
     else:
-        order = _counting_order(hi, n, np.arange(lo.shape[0]))
+        order = _counting_order(hi, n, order)
         order = _counting_order(lo, n, order)
     starts = np.empty(order.shape[0] + 1, dtype=np.int64)
     groups = 0
@@ -1844,7 +1874,7 @@ def pair_medians(lo: np.ndarray, hi: np.ndarray, n: int, values: np.ndarray
     return group_lo, group_hi, medians
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _select(x: np.ndarray, k: int) -> float:  # pragma: no cover - compiled
     """The k-th smallest of ``x`` (0-based), partitioning ``x`` in place around it.
 
@@ -1875,12 +1905,19 @@ def _select(x: np.ndarray, k: int) -> float:  # pragma: no cover - compiled
     return x[k]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _median(x: np.ndarray) -> float:  # pragma: no cover - compiled
     """``0.5 (v[(c - 1) // 2] + v[c // 2])`` of ``v = np.sort(x)``, by selection (reorders x)."""
     c = x.shape[0]
     upper = _select(x, c // 2)
-    lower = upper if c % 2 else x[: c // 2].max()  # the largest of the c // 2 smallest
+    lower = upper
+    if c % 2 == 0:  # the largest of the c // 2 smallest, as numba's max: the first
+        lower = x[0]  # of equal values, and NaN once one is met
+        i = 1
+        while i < c // 2 and lower == lower:
+            if not x[i] <= lower:
+                lower = x[i]
+            i += 1
     return 0.5 * (lower + upper)
 
 
@@ -1891,9 +1928,11 @@ def label_boxes(labels: np.ndarray, n: int) -> np.ndarray:  # pragma: no cover -
     Row 0 and absent labels hold (-1, -1, -1, -1); as ``scipy.ndimage.find_objects``.
     """
     height, width = labels.shape
-    boxes = np.full((n + 1, 4), -1, dtype=np.int64)
+    boxes = np.empty((n + 1, 4), dtype=np.int64)
+    for i in range(n + 1):
+        boxes[i, 0] = boxes[i, 1] = boxes[i, 2] = boxes[i, 3] = -1
     for r in range(height):
-        c = 0
+        c = _ZERO
         while c < width:
             lab = labels[r, c]
             end = _run_end(labels, r, c)
@@ -1907,207 +1946,19 @@ def label_boxes(labels: np.ndarray, n: int) -> np.ndarray:  # pragma: no cover -
     return boxes
 
 
-# --------------------------------------------------------------------------- Sec. VII
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _envelope_row(f: np.ndarray, out: np.ndarray, v: np.ndarray, z: np.ndarray
-                  ) -> None:  # pragma: no cover - compiled
-    """1-D squared distance transform of the sampled function ``f`` (Felzenszwalb & Huttenlocher).
-
-    ``out[x] = min_q (x - q)^2 + f[q]``, exactly (integers): the lower envelope
-    of the parabolas rooted at each q; ``v`` and ``z`` are work buffers. The
-    intersections are rationals of small integers, so their float64 values
-    compare as the rationals do.
-    """
-    n = f.shape[0]
-    k = 0
-    v[0] = 0
-    z[0] = -np.inf
-    z[1] = np.inf
-    for q in range(1, n):
-        s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
-        while s <= z[k]:
-            k -= 1
-            s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
-        k += 1
-        v[k] = q
-        z[k] = s
-        z[k + 1] = np.inf
-    k = 0
-    for x in range(n):
-        while z[k + 1] < x:
-            k += 1
-        d = x - v[k]
-        out[x] = d * d + f[v[k]]
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _column_distances(mask: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """Squared distance along each column to the nearest pixel off ``mask`` (rows swept)."""
-    height, width = mask.shape
-    far = np.int64(height + width + 1)
-    up = np.empty((height, width), dtype=np.int64)  # rows to the nearest one above
-    prev = np.full(width, far, dtype=np.int64)
-    for r in range(height):
-        row = mask[r]
-        for c in range(width):
-            prev[c] = prev[c] + 1 if row[c] else 0
-        up[r, :] = prev
-    prev[:] = far
-    for r in range(height - 1, -1, -1):
-        row, dist = mask[r], up[r]
-        for c in range(width):
-            prev[c] = prev[c] + 1 if row[c] else 0
-            d = min(dist[c], prev[c])
-            dist[c] = d * d
-    return up
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def distance_transform(mask: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """Euclidean distance of each pixel of ``mask`` to the nearest pixel off it.
-
-    As :func:`scipy.ndimage.distance_transform_edt`: ``sqrt`` of the exact
-    integer squared distance (0 off the mask). ``mask`` must have a pixel
-    off it in every row and column (e.g. a zero border).
-    """
-    height, width = mask.shape
-    col = _column_distances(mask)
-    out = np.empty((height, width))
-    d2 = np.empty(width, dtype=np.int64)
-    v = np.empty(width, dtype=np.int64)
-    z = np.empty(width + 1)
-    for r in range(height):
-        _envelope_row(col[r], d2, v, z)
-        for c in range(width):
-            out[r, c] = np.sqrt(np.float64(d2[c]))
-    return out
-
-
 # --------------------------------------------------------------------------- Sec. V-3
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _find(parent: np.ndarray, x: int) -> int:  # pragma: no cover - compiled
-    """Root of ``x`` (the smallest label of its set), compressing the path."""
-    root = x
-    while parent[root] != root:
-        root = parent[root]
-    while parent[x] != root:
-        parent[x], x = root, parent[x]
-    return root
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _free_runs(free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
-    """Runs of ``free`` pixels along the rows: (row starts, first column, stop column)."""
-    height, width = free.shape
-    count = 0
-    for r in range(height):
-        row = free[r]
-        count += width > 0 and row[0]
-        for c in range(1, width):
-            count += row[c] & (not row[c - 1])
-    starts = np.zeros(height + 1, dtype=np.int64)
-    first = np.empty(count, dtype=np.int64)
-    stop = np.empty(count, dtype=np.int64)
-    k = 0
-    for r in range(height):
-        row = free[r]
-        c = 0
-        while c < width:
-            if not row[c]:
-                c += 1
-                continue
-            e = c + 1
-            while e < width and row[e]:
-                e += 1
-            first[k], stop[k] = c, e
-            k += 1
-            c = e
-        starts[r + 1] = k
-    return starts, first, stop
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _provisional_labels(starts: np.ndarray, first: np.ndarray, stop: np.ndarray,
-                        parent: np.ndarray, lab: np.ndarray) -> int:  # pragma: no cover
-    """First pass of two-pass 4-connected labelling of runs; the number of provisional labels.
-
-    A run touches the runs of the row above that share a column with it.
-    Labels are created in raster order; joined sets keep the smaller label
-    as root, so a component's root is the label of its first run, which
-    holds its first pixel.
-    """
-    n = 0
-    for r in range(starts.shape[0] - 1):
-        j, j_end = (starts[r - 1], starts[r]) if r > 0 else (0, 0)
-        for k in range(starts[r], starts[r + 1]):
-            while j < j_end and stop[j] <= first[k]:
-                j += 1
-            label = 0
-            jj = j
-            while jj < j_end and first[jj] < stop[k]:
-                root = _find(parent, lab[jj])
-                if label == 0:
-                    label = root
-                elif root != label:
-                    parent[max(root, label)] = min(root, label)
-                    label = min(root, label)
-                jj += 1
-            if label == 0:
-                n += 1
-                parent[n] = n
-                label = n
-            lab[k] = label
-    return n
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def label_components(free: np.ndarray, min_size: int) -> np.ndarray:  # pragma: no cover
-    """4-connected components of ``free`` with at least ``min_size`` pixels (Sec. V-3).
-
-    As ``link.label_components``' reference: int32 labels 1..K in raster
-    order of each component's first pixel, 0 elsewhere. Two passes over the
-    runs of free pixels along the rows (:func:`_free_runs`) with a
-    union-find of provisional labels: the work goes with the runs.
-    """
-    height, width = free.shape
-    starts, first, stop = _free_runs(free)
-    runs = first.shape[0]
-    parent = np.empty(runs + 1, dtype=np.int64)
-    parent[0] = 0
-    lab = np.empty(runs, dtype=np.int64)
-    n = _provisional_labels(starts, first, stop, parent, lab)
-    size = np.zeros(n + 1, dtype=np.int64)
-    for k in range(runs):
-        lab[k] = _find(parent, lab[k])
-        size[lab[k]] += stop[k] - first[k]
-    lut = np.zeros(n + 1, dtype=np.int32)
-    kept = 0
-    for k in range(1, n + 1):  # roots in increasing order: raster order of first pixels
-        if parent[k] == k and size[k] >= min_size:
-            kept += 1
-            lut[k] = kept
-    out = np.zeros((height, width), dtype=np.int32)
-    for r in range(height):
-        for k in range(starts[r], starts[r + 1]):
-            value = lut[lab[k]]
-            if value:
-                out[r, first[k]:stop[k]] = value
-    return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def link_edges(codes: np.ndarray, valid: np.ndarray, min_size: int
+def link_codes(codes: np.ndarray, valid: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Step 3 (Sec. V-3) as ``link.link_edges`` does it, in one call: the same arrays.
+    """Step 3 (Sec. V-3) up to the labelling, as ``link.link_edges`` does it: the same arrays.
 
     Edges are the valid pixels coded 1 (step) or 2 (roof); a valid non-edge
     pixel with edges on both sides along one of the four directions of
     Fig. 8 (outside the image: no edge) is a closed gap (code 3); the other
-    valid non-edge pixels form the components (:func:`label_components`).
+    valid non-edge pixels are returned as the bool mask to label
+    (``link.label_components``).
     """
     height, width = codes.shape
     out = np.zeros((height, width), dtype=np.uint8)
@@ -2128,7 +1979,10 @@ def link_edges(codes: np.ndarray, valid: np.ndarray, min_size: int
             usable = ok[c] & (mid[c + 1] == 0)
             o[c] = 3 if usable & (gap != 0) else o[c]
             f[c] = usable & (gap == 0)
-    return out, label_components(free, min_size)
+    return out, free
+
+
+# --------------------------------------------------------------------------- Sec. VII
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -2160,209 +2014,20 @@ def ar_2d(z: np.ndarray, w: np.ndarray) -> np.ndarray:  # pragma: no cover - com
     return num
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _uniform_columns(a: np.ndarray, size: int, out: np.ndarray) -> None:  # pragma: no cover
-    """``scipy.ndimage.uniform_filter1d(a, size, axis=0, mode="constant")``, bitwise.
-
-    scipy's running sum on the line extended by zeros (``size // 2`` before):
-    the first window summed in order, then ``+= new - old`` per step, each
-    output the sum divided by ``size`` (scipy 1.17; a test compares); here
-    for all columns at once, row by row.
-    """
-    height, width = a.shape
-    before = size // 2
-    tmp = np.zeros(width)
-    zero = np.zeros(width)
-    for ll in range(size):
-        src = a[ll - before] if 0 <= ll - before < height else zero
-        for c in range(width):
-            tmp[c] += src[c]
-    for ll in range(height):
-        if ll > 0:
-            new = a[ll - before + size - 1] if ll - before + size - 1 < height else zero
-            old = a[ll - 1 - before] if ll - 1 - before >= 0 else zero
-            for c in range(width):
-                tmp[c] += new[c] - old[c]
-        row = out[ll]
-        for c in range(width):
-            row[c] = tmp[c] / size
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _uniform_rows(a: np.ndarray, size: int, out: np.ndarray) -> None:  # pragma: no cover
-    """``scipy.ndimage.uniform_filter1d(a, size, axis=1, mode="constant")``, bitwise."""
-    height, width = a.shape
-    before = size // 2
-    for r in range(height):
-        row = a[r]
-        tmp = 0.0
-        for ll in range(size):
-            c = ll - before
-            tmp += row[c] if 0 <= c < width else 0.0
-        out[r, 0] = tmp / size
-        for ll in range(1, width):
-            c_new, c_old = ll - before + size - 1, ll - 1 - before
-            new = row[c_new] if c_new < width else 0.0
-            old = row[c_old] if c_old >= 0 else 0.0
-            tmp += new - old
-            out[r, ll] = tmp / size
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _box_mean(a: np.ndarray, rows: int, cols: int, tmp: np.ndarray
-              ) -> None:  # pragma: no cover - compiled
-    """``scipy.ndimage.uniform_filter(a, (rows, cols), mode="constant")`` in place, bitwise.
-
-    Axis 0, then axis 1; an axis of size 1 is skipped, as scipy does.
-    """
-    if rows > 1:
-        _uniform_columns(a, rows, tmp)
-        _copy_into(tmp, a)
-    if cols > 1:
-        _uniform_rows(a, cols, tmp)
-        _copy_into(tmp, a)
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _copy_into(src: np.ndarray, dst: np.ndarray) -> None:  # pragma: no cover - compiled
-    """``dst[...] = src`` for two (h, w) float64 arrays."""
-    for r in range(src.shape[0]):
-        for c in range(src.shape[1]):
-            dst[r, c] = src[r, c]
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def window_std(ar: np.ndarray, rows: int, cols: int) -> np.ndarray:  # pragma: no cover
-    """``holdsite.window_ar_std`` for a full ``rows`` x ``cols`` footprint, bitwise.
-
-    The window means of AR and AR^2 (NaN counted as 0) by :func:`_box_mean`;
-    ``sqrt(max(E[AR^2] - E[AR]^2, 0))``.
-    """
-    height, width = ar.shape
-    m1 = np.empty((height, width))
-    m2 = np.empty((height, width))
-    for r in range(height):
-        for c in range(width):
-            x = ar[r, c]
-            x = 0.0 if np.isnan(x) else x
-            m1[r, c] = x
-            m2[r, c] = x * x
-    tmp = np.empty((height, width))
-    _box_mean(m1, rows, cols, tmp)
-    _box_mean(m2, rows, cols, tmp)
-    for r in range(height):
-        for c in range(width):
-            m1[r, c] = np.sqrt(max(m2[r, c] - m1[r, c] * m1[r, c], 0.0))
-    return m1
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def erode_rect(mask: np.ndarray, rows: int, cols: int) -> np.ndarray:  # pragma: no cover
-    """Centres where an odd ``rows`` x ``cols`` rectangle lies wholly on ``mask``.
-
-    Binary erosion with everything outside the image off (as
-    ``scipy.ndimage.minimum_filter(mask, (rows, cols), mode="constant")``):
-    runs of the mask along the rows, then runs of that along the columns.
-    """
-    height, width = mask.shape
-    half_r, half_c = rows // 2, cols // 2
-    along = np.zeros((height, width), dtype=np.bool_)
-    for r in range(height):
-        run = 0
-        for c in range(width):
-            run = run + 1 if mask[r, c] else 0
-            if run >= cols:
-                along[r, c - half_c] = True
-    out = np.zeros((height, width), dtype=np.bool_)
-    runs = np.zeros(width, dtype=np.int64)
-    for r in range(height):
-        src = along[r]
-        for c in range(width):
-            runs[c] = runs[c] + 1 if src[c] else 0
-        if r >= rows - 1:
-            dst = out[r - half_r]
-            for c in range(width):
-                dst[c] = runs[c] >= rows
-    return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def surface_clearance(labels: np.ndarray, valid: np.ndarray, sid: int, r0: int, r1: int,
-                      c0: int, c1: int) -> tuple[np.ndarray, np.ndarray, float]:  # pragma: no cover
-    """Mask and clearance of surface ``sid`` in the crop rows r0..r1-1, columns c0..c1-1.
-
-    The mask (``labels == sid`` at valid pixels) padded by one pixel of
-    False, its :func:`distance_transform` and the largest distance:
-    ``holdsite.surface_windows``' ``mask``, ``edt`` and ``max_clearance`` in one call.
-    """
-    mask = np.zeros((r1 - r0 + 2, c1 - c0 + 2), dtype=np.bool_)
-    for r in range(r0, r1):
-        for c in range(c0, c1):
-            mask[r - r0 + 1, c - c0 + 1] = labels[r, c] == sid and valid[r, c]
-    edt = distance_transform(mask)
-    return mask, edt, edt.max()
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def accept_windows(mask: np.ndarray, z: np.ndarray, r0: int, c0: int, w: np.ndarray,
-                   rows: int, cols: int, max_ar_std: float
-                   ) -> tuple[np.ndarray, np.ndarray, int, float]:  # pragma: no cover
-    """Step 4 of ``holdsite`` at one angle for a full odd ``rows`` x ``cols`` footprint.
-
-    ``holdsite._accept_angle`` in one call, the same values: the 2-D AR of
-    the crop whose padded ``mask`` starts at image (r0, c0) (:func:`ar_2d`
-    with the 1-D Gaussian ``w`` on the crop grown by ``w``'s half-width,
-    which equals the whole image's AR there), the centres where the
-    footprint lies wholly on ``mask`` (:func:`erode_rect`), the AR std over
-    it (:func:`window_std`), and those whose std is at most ``max_ar_std``.
-
-    Returns
-    -------
-    ok, std
-        bool and float64 of ``mask``'s shape: accepted centres, AR std (inf
-        everywhere when no window fits).
-    fitting, min_ar_std
-        Centres where the footprint fits, and their lowest AR std (inf: none).
-    """
-    height, width = mask.shape
-    inside = erode_rect(mask, rows, cols)
-    fitting = 0
-    for r in range(height):
-        for c in range(width):
-            fitting += inside[r, c]
-    if fitting == 0:
-        return inside, np.full((height, width), np.inf), 0, np.inf
-    m = w.shape[0] // 2
-    r1, c1 = r0 + height - 2, c0 + width - 2
-    g0, g1 = max(r0 - m, 0), min(r1 + m, z.shape[0])
-    h0, h1 = max(c0 - m, 0), min(c1 + m, z.shape[1])
-    ar = ar_2d(np.ascontiguousarray(z[g0:g1, h0:h1]), w)
-    arp = np.zeros((height, width))
-    arp[1:-1, 1:-1] = ar[r0 - g0: r1 - g0, c0 - h0: c1 - h0]
-    std = window_std(arp, rows, cols)
-    lowest = np.inf
-    for r in range(height):
-        for c in range(width):
-            if inside[r, c]:
-                lowest = min(lowest, std[r, c])
-                inside[r, c] = std[r, c] <= max_ar_std
-    return inside, std, fitting, lowest
-
-
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _quadric_at(a: np.ndarray, y: float, x: float) -> float:  # pragma: no cover - compiled
     """``grow.evaluate_quadric`` at one point: the same operations in the same order."""
     return a[0] + a[1] * x + a[2] * y + a[3] * x * x + a[4] * x * y + a[5] * y * y
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _coeff_at(coeffs: np.ndarray, lab: int, y: float, x: float) -> float:  # pragma: no cover
     """:func:`_quadric_at` of row ``lab`` of ``coeffs``, without a view of the row."""
     return (coeffs[lab, 0] + coeffs[lab, 1] * x + coeffs[lab, 2] * y + coeffs[lab, 3] * x * x
             + coeffs[lab, 4] * x * y + coeffs[lab, 5] * y * y)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _unit_normal(coeffs: np.ndarray, lab: int, y: float, x: float, out: np.ndarray, k: int
                  ) -> None:  # pragma: no cover - compiled
     """``surfaces._unit_normals`` of one quadric at a point, into ``out[k]`` (same operations)."""
@@ -2459,7 +2124,7 @@ def step_gaps(labels: np.ndarray, reach: int, coeffs: np.ndarray
 # --------------------------------------------------------------------------- recut knot search
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _plane_sums(x: np.ndarray, y: np.ndarray, zs: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """Upper triangle of ``sum a a^T`` and ``sum a z`` for ``a = (1, x, y)``, in pixel order."""
@@ -2485,7 +2150,7 @@ def _knot_power(q: float, p: int) -> float:  # pragma: no cover - compiled
     return q if p == 1 else (q * q if p == 2 else q * q * q)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _one_knot_term(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, c: float,
                    p: int, g: np.ndarray, r: np.ndarray) -> None:  # pragma: no cover
     """Column 3 (``a = q**p``) of one knot's normal equations, in scalar accumulators."""
@@ -2503,7 +2168,7 @@ def _one_knot_term(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, 
     g[0, 3], g[1, 3], g[2, 3], g[3, 3], r[3] = g03, g13, g23, g33, r3
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _two_knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, c: float,
                     p1: int, p2: int, g: np.ndarray, r: np.ndarray) -> None:  # pragma: no cover
     """Columns 3, 4 (``q**p1``, ``q**p2``) of one knot's normal equations."""
@@ -2531,7 +2196,7 @@ def _two_knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
     g[0, 4], g[1, 4], g[2, 4], g[3, 4], g[4, 4], r[4] = g04, g14, g24, g34, g44, r4
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def knot_normal_equations(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
                           knots: np.ndarray, powers: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
@@ -2549,8 +2214,10 @@ def knot_normal_equations(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.nd
     rhs = np.zeros((nk, t))
     for k in range(nk):
         g, r = gram[k], rhs[k]
-        g[:3, :3] = plane
-        r[:3] = plane_rhs
+        for i in range(3):
+            for j in range(3):
+                g[i, j] = plane[i, j]
+            r[i] = plane_rhs[i]
         if t == 4:
             _one_knot_term(u, x, y, zs, knots[k], powers[0], g, r)
         else:
@@ -2561,7 +2228,7 @@ def knot_normal_equations(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.nd
     return gram, rhs
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def projected_sse(gram: np.ndarray, rhs: np.ndarray, zz: float, tol: float
                   ) -> np.ndarray:  # pragma: no cover - compiled
     """``max(0, zz - b^T A^+ b)`` per system: least-squares SSE from normal equations.
@@ -2573,13 +2240,12 @@ def projected_sse(gram: np.ndarray, rhs: np.ndarray, zz: float, tol: float
     """
     nk, t = gram.shape[0], gram.shape[1]
     out = np.empty(nk)
-    low = np.zeros((t, t))
     w = np.zeros(t)
     s = np.empty(t)
     for k in range(nk):
         for i in range(t):
             s[i] = np.sqrt(max(gram[k, i, i], 1e-300))
-        low[:, :] = 0.0
+        low = np.zeros((t, t))
         explained = 0.0
         for j in range(t):
             acc = 0.0
@@ -2643,7 +2309,7 @@ def plane_votes(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: np.n
 # --------------------------------------------------------------------------- fill (edge pixels)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _fill_choice(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound: np.ndarray,
                  r: int, c: int) -> int:  # pragma: no cover - compiled
     """``fill._best_neighbour`` of one pixel: the joining label, or 0 (ratio >= 1 or none).
@@ -2696,7 +2362,7 @@ def fill_passes(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound: np
         n = _fill_frontier(z, labels, join, m, cand, seen)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _open_pixels(z: np.ndarray, labels: np.ndarray, out: np.ndarray
                  ) -> int:  # pragma: no cover - compiled
     """Flat indices of the unlabelled finite pixels into ``out``; their number."""
@@ -2710,7 +2376,7 @@ def _open_pixels(z: np.ndarray, labels: np.ndarray, out: np.ndarray
     return n
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _fill_decide(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound: np.ndarray,
                  cand: np.ndarray, n: int, join: np.ndarray, to: np.ndarray
                  ) -> int:  # pragma: no cover - compiled
@@ -2725,7 +2391,7 @@ def _fill_decide(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, bound: n
     return m
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _fill_frontier(z: np.ndarray, labels: np.ndarray, join: np.ndarray, m: int,
                    out: np.ndarray, seen: np.ndarray) -> int:  # pragma: no cover - compiled
     """The open pixels 8-adjacent to the ``m`` joined ones, each once, into ``out``."""
@@ -2759,11 +2425,13 @@ def explained_faces(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, ids: np.n
     size = np.zeros(k + 1, np.int64)
     for i in range(ids.size):
         size[ids[i]] += 1
-    size = np.maximum(size, 1)
+    for f in range(k + 1):
+        size[f] = max(size[f], 1)
     explained = np.zeros(k + 1, np.bool_)
     acc = np.empty(k + 1)
     for region in regions:
-        acc[:] = 0.0
+        for f in range(k + 1):
+            acc[f] = 0.0
         a = coeffs[region]
         for i in range(ids.size):
             r = z[rows[i], cols[i]] - _quadric_at(a, float(rows[i]), float(cols[i]))
@@ -2772,3 +2440,6 @@ def explained_faces(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, ids: np.n
             if acc[f] / size[f] < limit[region]:
                 explained[f] = True
     return explained
+
+
+compile_ahead_when_cold()

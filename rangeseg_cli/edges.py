@@ -281,10 +281,9 @@ def detect_edges(z: np.ndarray, config: Config, *, backend: Backend = "auto") ->
             z, gaussian_taps(config.step.sigma, config.step.taps), config.step.threshold,
             gaussian_taps(config.roof.sigma, config.roof.taps), config.roof.threshold_a,
             config.roof.threshold_b, config.roof.search_radius, config.roof.truncation)
-        return EdgeMaps(step=step, roof_a=roof_a, roof_b=roof_b,
-                        codes=kernels.edge_codes(step, roof_a, roof_b))  # as below
-    step = step_edges(z, config.step, truncation=config.roof.truncation)
-    roof_a, roof_b = roof_edges(z, step, config.roof)
+    else:
+        step = step_edges(z, config.step, truncation=config.roof.truncation)
+        roof_a, roof_b = roof_edges(z, step, config.roof)
     codes = np.zeros(z.shape, dtype=np.uint8)
     codes[roof_a | roof_b] = ROOF_EDGE
     codes[step] = STEP_EDGE

@@ -123,7 +123,7 @@ from scipy import ndimage
 
 from .backend import Backend, select_kernels
 from .config import MAX_DEPTH, Config, HoldsiteConfig, InputConfig, check_config
-from .edges import ar_2d, gaussian_taps
+from .edges import ar_2d
 from .errors import InputError
 from .grow import RCOND, evaluate_quadric, valid_labels
 from .models import Surface
@@ -947,24 +947,7 @@ def window_mean(a: np.ndarray, fp: np.ndarray) -> np.ndarray:
     return total / fp.sum()
 
 
-@functools.cache
-def _compiled_box_means() -> bool:
-    """Whether the compiled box mean is bitwise scipy's ``uniform_filter`` here (checked once).
-
-    scipy has summed the running window in more than one way over its
-    versions; the compiled :func:`rangeseg_cli._kernels.window_std` follows
-    scipy 1.17's, and is used only where it gives the same values.
-    """
-    kernels = select_kernels("numba")
-    rng = np.random.default_rng(0)
-    probe = rng.random((13, 11))
-    probe[2, 3] = np.nan
-    fp = np.ones((7, 5), dtype=bool)
-    ref = window_ar_std(probe, fp, backend="numpy")
-    return kernels is not None and bool(np.array_equal(kernels.window_std(probe, 7, 5), ref))
-
-
-def window_ar_std(ar: np.ndarray, fp: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
+def window_ar_std(ar: np.ndarray, fp: np.ndarray) -> np.ndarray:
     """Standard deviation of the 2-D AR over the footprint at each pixel (Sec. VII).
 
     Parameters
@@ -973,22 +956,13 @@ def window_ar_std(ar: np.ndarray, fp: np.ndarray, *, backend: Backend = "auto") 
         float64 (H, W) AR of :func:`~rangeseg_cli.edges.ar_2d`; NaN (invalid)
         counts as 0, and such windows are never candidates anyway.
     fp
-        Boolean footprint.
-
-    backend
-        For a full rectangle: ``"numba"`` computes the box means in one
-        compiled pass, summed as ``scipy.ndimage.uniform_filter`` sums them
-        (bitwise the same; :func:`_compiled_box_means` checks it once against
-        the installed scipy and falls back to it); ``"numpy"`` the reference.
+        Boolean footprint (the window means of :func:`window_mean`).
 
     Returns
     -------
     numpy.ndarray
         float64 (H, W) ``sqrt(E[AR^2] - E[AR]^2)`` over the window.
     """
-    kernels = select_kernels(backend)
-    if kernels is not None and fp.all() and _compiled_box_means():
-        return kernels.window_std(np.require(ar, np.float64, ["C"]), *fp.shape)
     a = np.where(np.isnan(ar), 0.0, ar)
     m1 = window_mean(a, fp)
     m2 = window_mean(a * a, fp)
@@ -998,17 +972,13 @@ def window_ar_std(ar: np.ndarray, fp: np.ndarray, *, backend: Backend = "auto") 
 def erode(mask: np.ndarray, fp: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
     """Centres where the footprint lies wholly on ``mask`` (binary erosion, outside = False).
 
-    A full rectangle is eroded as a running minimum, which is separable (a
-    row segment, then a column segment: the same result at a seventh of the
-    cost for 7x7), compiled (:func:`rangeseg_cli._kernels.erode_rect`) for odd
-    sizes unless ``backend`` is ``"numpy"``; other footprints (rotated ones)
-    by :func:`erode_runs` (``backend="numpy"``:
-    :func:`scipy.ndimage.binary_erosion`, the reference; the same result).
+    A full rectangle is eroded as a running minimum
+    (:func:`scipy.ndimage.minimum_filter`, which is separable: a row segment,
+    then a column segment); other footprints (rotated ones) by
+    :func:`erode_runs` (``backend="numpy"``: :func:`scipy.ndimage.binary_erosion`,
+    the reference; the same result).
     """
     if fp.all():
-        kernels = select_kernels(backend)
-        if kernels is not None and fp.shape[0] % 2 and fp.shape[1] % 2:
-            return kernels.erode_rect(np.require(mask, np.bool_, ["C"]), *fp.shape)
         out = ndimage.minimum_filter(mask.view(np.uint8), size=fp.shape, mode="constant",
                                      cval=0)
         return out.view(bool)
@@ -1073,29 +1043,21 @@ def _footprint_runs(shape: tuple[int, ...], data: bytes) -> list[tuple[int, int,
     return [(int(rows[k]), int(starts[k]), int(ends[k] - starts[k])) for k in order]
 
 
-def clearance_map(mask: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
+def clearance_map(mask: np.ndarray) -> np.ndarray:
     """Euclidean distance of each pixel to the nearest pixel off ``mask`` (step 5's clearance).
 
     Parameters
     ----------
     mask
         bool (h, w) with a border of False (a padded crop of one surface).
-    backend
-        ``"numpy"``: :func:`scipy.ndimage.distance_transform_edt` (the
-        reference); ``"numba"``: :func:`rangeseg_cli._kernels.distance_transform`,
-        the exact squared distances of Felzenszwalb & Huttenlocher's lower
-        envelopes (the same values); ``"auto"``: as
-        :func:`~rangeseg_cli.edges.detect_edges`.
 
     Returns
     -------
     numpy.ndarray
-        float64 (h, w) distances in pixels; 0 off the mask.
+        float64 (h, w) distances in pixels, 0 off the mask
+        (:func:`scipy.ndimage.distance_transform_edt`).
     """
-    kernels = select_kernels(backend)
-    if kernels is None:
-        return ndimage.distance_transform_edt(mask)
-    return kernels.distance_transform(np.require(mask, np.bool_, ["C"]))
+    return ndimage.distance_transform_edt(mask)
 
 
 def _window_sums(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -1168,11 +1130,6 @@ def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:
 AR_MARGIN = 2
 
 
-def _ar_taps() -> np.ndarray:
-    """The 1-D Gaussian of the 2-D AR of Sec. VII (:func:`~rangeseg_cli.edges.ar_2d`'s default)."""
-    return gaussian_taps(1.0, 2 * AR_MARGIN + 1)
-
-
 def footprint_in_mm(cfg: HoldsiteConfig, camera: InputConfig) -> bool:
     """Whether ``footprint_mm`` applies: set, with intrinsics and metric depth."""
     return (any(cfg.footprint_mm) and camera.has_intrinsics and camera.metres_per_unit > 0
@@ -1214,22 +1171,6 @@ class _Scene:
     _sized: dict[tuple[int, int], _Scene] = field(default_factory=dict)
     _ar_area: int = 0
     _ar_whole: np.ndarray | None = None
-    _kernels: Any = False  # not chosen yet
-
-    def compiled_windows(self) -> Any:
-        """The compiled kernels when step 4 can run them (else None); chosen once.
-
-        One angle with a full footprint of odd sides (:func:`erode`'s
-        compiled case), and box means that are scipy's here
-        (:func:`_compiled_box_means`).
-        """
-        if self._kernels is False:
-            kernels = select_kernels(self.backend)
-            rows, cols = self.cfg.size
-            usable = (kernels is not None and len(self.angles) == 1 and rows % 2 and cols % 2
-                      and self.footprint(self.angles[0]).all() and _compiled_box_means())
-            self._kernels = kernels if usable else None
-        return self._kernels
 
     def for_surface(self, s: Surface) -> _Scene:
         """The scene with the footprint in pixels at ``s``'s depth (``footprint_mm``)."""
@@ -1345,7 +1286,7 @@ def _accept_angle(scene: _Scene, inside: np.ndarray, ar: np.ndarray, heights: np
     if not inside.any():
         return inside, np.full(inside.shape, np.inf)
     fp = scene.footprint(angle)
-    std = window_ar_std(ar, fp, backend=scene.backend)
+    std = window_ar_std(ar, fp)
     hits.fitting += int(inside.sum())
     hits.min_ar_std = min(hits.min_ar_std, float(std[inside].min()))
     return _flat_enough(scene, heights, fp, inside & (std <= scene.cfg.max_ar_std), hits), std
@@ -1394,11 +1335,8 @@ def _level_windows(scene: _Scene, s: Surface) -> _Hits:
     """:func:`surface_windows` before the tilt test."""
     rows, cols = scene.cfg.size
     sl, offset = _crop(scene, s, max(rows, cols) // 2 + 2)
-    kernels = scene.compiled_windows()
-    if kernels is not None:
-        return _compiled_windows(kernels, scene, s, sl, offset)
     mask = _pad1((scene.labels[sl] == s.id) & scene.valid[sl])
-    edt = clearance_map(mask, backend=scene.backend)
+    edt = clearance_map(mask)
     none = np.zeros(0, dtype=np.int64)
     hits = _Hits(s, none, none, none.astype(np.float64), max_clearance=float(edt.max()))
     if hits.max_clearance < (min(rows, cols) + 1) / 2:
@@ -1421,33 +1359,6 @@ def _level_windows(scene: _Scene, s: Surface) -> _Hits:
     hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
     hits.offset, hits.edt, hits.ok = offset, edt, ok
     hits.std = np.stack([std for _, std in accepted])
-    return hits
-
-
-def _compiled_windows(kernels: Any, scene: _Scene, s: Surface, sl: tuple[slice, slice],
-                      offset: tuple[int, int]) -> _Hits:
-    """:func:`surface_windows` of one full rectangle in two compiled calls (the same hits).
-
-    :func:`rangeseg_cli._kernels.surface_clearance` (mask and clearance) and,
-    when the footprint's short side fits,
-    :func:`rangeseg_cli._kernels.accept_windows` (AR of the crop, erosion,
-    AR std and the test).
-    """
-    rows, cols = scene.cfg.size
-    mask, edt, top = kernels.surface_clearance(scene.labels, scene.valid, s.id, sl[0].start,
-                                               sl[0].stop, sl[1].start, sl[1].stop)
-    if top < (min(rows, cols) + 1) / 2:  # not even the footprint's short side fits
-        none = np.zeros(0, dtype=np.int64)
-        return _Hits(s, none, none, none.astype(np.float64), max_clearance=float(top))
-    ok, std, fitting, lowest = kernels.accept_windows(
-        mask, scene.z, sl[0].start, sl[1].start, _ar_taps(), rows, cols,
-        float(scene.cfg.max_ar_std))
-    hits = _Hits(s, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), offset, edt,
-                 ok[None], std[None], float(top), fitting, min(math.inf, lowest))
-    ok = _flat_enough(scene, _pad_nan(scene.z[sl]), np.ones((rows, cols), dtype=bool), ok, hits)
-    r, c = np.nonzero(ok)
-    hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
-    hits.ok = ok[None]
     return hits
 
 

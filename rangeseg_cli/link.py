@@ -82,8 +82,7 @@ def close_gaps(edge: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return gaps & ~edge & valid
 
 
-def label_components(free: np.ndarray, min_size: int, *, backend: Backend = "auto"
-                     ) -> np.ndarray:
+def label_components(free: np.ndarray, min_size: int) -> np.ndarray:
     """4-connected components of ``free`` of at least ``min_size`` pixels (Sec. V-3).
 
     Parameters
@@ -92,11 +91,6 @@ def label_components(free: np.ndarray, min_size: int, *, backend: Backend = "aut
         bool (H, W) pixels to label (valid, non-edge).
     min_size
         Smaller components are dropped (label 0).
-    backend
-        ``"numpy"``: :func:`scipy.ndimage.label` and a renumbering (the
-        reference); ``"numba"``: :func:`rangeseg_cli._kernels.label_components`,
-        two passes over the runs of free pixels with a union-find (the same labels); ``"auto"``: as
-        :func:`~rangeseg_cli.edges.detect_edges`.
 
     Returns
     -------
@@ -104,21 +98,13 @@ def label_components(free: np.ndarray, min_size: int, *, backend: Backend = "aut
         int32 (H, W) labels 1..K, numbered in raster order of each
         component's first pixel; 0 elsewhere.
     """
-    kernels = select_kernels(backend)
-    if kernels is not None:
-        return kernels.label_components(np.require(free, np.bool_, ["C"]), int(min_size))
+    # scipy numbers the components in raster order of their first pixel: its
+    # provisional labels grow in raster order and a merge keeps the smaller one
     raw, n = ndimage.label(free, structure=FOUR_CONNECTED)
-    flat = raw.ravel()
-    sizes = np.bincount(flat, minlength=n + 1)
-    # First pixel (raster order) of each raw label: the smallest flat index carrying it
-    # (one unbuffered minimum per pixel; sorting the image with np.unique costs 4x more).
-    first = np.full(n + 1, flat.size, dtype=np.intp)
-    np.minimum.at(first, flat, np.arange(flat.size, dtype=np.intp))
-    ids = np.flatnonzero(sizes)
-    keep = (ids > 0) & (sizes[ids] >= min_size)
-    kept_ids = ids[keep][np.argsort(first[ids[keep]], kind="stable")]
+    keep = np.bincount(raw.ravel(), minlength=n + 1) >= min_size
+    keep[0] = False
     lut = np.zeros(n + 1, dtype=np.int32)
-    lut[kept_ids] = np.arange(1, len(kept_ids) + 1, dtype=np.int32)
+    lut[keep] = np.arange(1, np.count_nonzero(keep) + 1, dtype=np.int32)
     return lut[raw]
 
 
@@ -136,10 +122,10 @@ def link_edges(codes: np.ndarray, valid: np.ndarray, cfg: LinkConfig, *,
     cfg
         ``[link]``: ``min_component`` (20 in the paper, Sec. VI).
     backend
-        ``"numpy"``: array operations and :func:`label_components`' reference;
-        ``"numba"``: :func:`rangeseg_cli._kernels.link_edges`, the same steps
-        in one compiled call (the same arrays); ``"auto"``: as
-        :func:`~rangeseg_cli.edges.detect_edges`.
+        ``"numpy"``: array operations; ``"numba"``: the codes and the pixels
+        to label in one compiled sweep (:func:`rangeseg_cli._kernels.link_codes`,
+        the same arrays); ``"auto"``: as :func:`~rangeseg_cli.edges.detect_edges`.
+        Either way :func:`label_components` labels the components.
 
     Returns
     -------
@@ -158,10 +144,9 @@ def link_edges(codes: np.ndarray, valid: np.ndarray, cfg: LinkConfig, *,
     codes, valid = _check_inputs(codes, valid)
     kernels = select_kernels(backend)
     if kernels is not None:
-        out, components = kernels.link_edges(np.require(codes, np.uint8, ["C"]),
-                                             np.require(valid, np.bool_, ["C"]),
-                                             int(cfg.min_component))
-        return out, components
+        out, free = kernels.link_codes(np.require(codes, np.uint8, ["C"]),
+                                       np.require(valid, np.bool_, ["C"]))
+        return out, label_components(free, cfg.min_component)
     is_step = (codes == STEP_EDGE) & valid
     is_roof = (codes == ROOF_EDGE) & valid
     edge = is_step | is_roof

@@ -101,7 +101,8 @@ class _PlaneFit:
         if kernels is not None:
             mu, mv, mz, gx, gy = _compiled_plane_fit(
                 kernels, np.require(z, np.float64, ["C"]), np.require(mask, np.bool_, ["C"]),
-                blur_weights(sigma), float(u0), float(v0), 1e-3 * sigma**4)
+                np.require(blur_weights(sigma), np.float64, ["C", "W"]), float(u0), float(v0),
+                1e-3 * sigma**4)
             return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)
         m = mask.astype(np.float64)
         zc = np.where(mask, z, 0.0)

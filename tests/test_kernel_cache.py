@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 from pathlib import Path
@@ -78,3 +79,89 @@ def test_a_warm_cache_says_nothing(tmp_path, monkeypatch):
     image = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic" / "part1-n0.png"
     done = CliRunner().invoke(main, ["run", str(image), "-o", str(tmp_path / "o"), "--json"])
     assert done.exit_code == 0 and "compiling" not in done.stderr
+
+
+requires_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
+                                    reason="numba is not installed")
+
+
+@requires_numba
+def test_the_kernels_compiled_ahead_are_those_a_default_run_calls(monkeypatch):
+    """FIRST_RUN: the kernels a default run calls from Python, their types, in that order.
+
+    The helper compiles exactly these signatures into the cache, for the run to load.
+    """
+    from numba import typeof
+    from numba.core.registry import CPUDispatcher
+    from numba.core.sigutils import normalize_signature
+
+    from rangeseg_cli import _kernels
+    from rangeseg_cli.pipeline import run_pipeline
+    from rangeseg_cli.synth import render_scene
+
+    monkeypatch.delenv("RANGESEG_PURE_NUMPY", raising=False)
+    monkeypatch.setenv("RANGESEG_THREADS", "1")
+    calls: list[tuple[str, tuple]] = []
+
+    def recording(name, dispatcher):
+        def call(*args):
+            key = (name, tuple(typeof(a) for a in args))
+            if key not in calls:
+                calls.append(key)
+            return dispatcher(*args)
+        return call
+
+    for name, value in vars(_kernels).copy().items():
+        if isinstance(value, CPUDispatcher):
+            monkeypatch.setattr(_kernels, name, recording(name, value))
+    run_pipeline(render_scene("pile", size=(128, 128), noise=1.0, seed=0).image)
+    listed = [(name, tuple(normalize_signature(sig)[0])) for name, sig in kernel_cache.FIRST_RUN]
+    assert [c for c in calls if c[0] != "heights"] == listed
+
+
+class _Dispatcher:
+    """A stand-in for the dispatcher of numba's ``numba:compile`` event."""
+
+    def __init__(self, module):
+        self.py_func = type("F", (), {"__module__": module})()
+
+
+def test_the_first_kernel_compiled_starts_one_helper(monkeypatch):
+    started = []
+    monkeypatch.setattr(kernel_cache, "_start_helper", lambda: started.append(1))
+    monkeypatch.setattr(kernel_cache, "_asked", False)
+    kernel_cache._on_compile(_Dispatcher("numba.np.arraymath"))
+    assert started == []  # numba's own code does not count
+    for _ in range(2):
+        kernel_cache._on_compile(_Dispatcher("rangeseg_cli._kernels"))
+    assert started == [1]
+
+
+@pytest.mark.parametrize("variable", ["RANGESEG_COMPILE_AHEAD", "RANGESEG_COMPILING_AHEAD"])
+def test_no_helper_when_switched_off_or_in_the_helper(monkeypatch, variable):
+    monkeypatch.setenv(variable, "0" if variable == "RANGESEG_COMPILE_AHEAD" else "1")
+    monkeypatch.setattr(kernel_cache, "_start_helper", lambda: pytest.fail("helper started"))
+    kernel_cache.compile_ahead_when_cold()  # registers nothing, so starts nothing
+
+
+def test_one_helper_per_cache(tmp_path, monkeypatch):
+    pytest.importorskip("fcntl")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    held = kernel_cache._lock()
+    assert held
+    assert kernel_cache._lock() is False
+    held.close()
+    again = kernel_cache._lock()
+    assert again
+    again.close()
+
+
+@requires_numba
+def test_the_helper_stops_once_its_run_has_ended(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+
+    class Kernels:
+        def __getattr__(self, name):
+            pytest.fail(f"{name} compiled for a run that has ended")
+
+    kernel_cache.compile_ahead(Kernels(), parent=-1)  # not this process's parent

@@ -445,37 +445,6 @@ def test_label_boxes_are_those_of_find_objects():
 
 
 @requires_numba
-@pytest.mark.parametrize("seed", range(4))
-def test_clearance_map_is_bitwise_the_distance_transform(seed):
-    from rangeseg_cli.holdsite import clearance_map
-
-    rng = np.random.default_rng(seed)
-    for _ in range(25):
-        mask = np.zeros(rng.integers(3, 70, 2), dtype=bool)
-        mask[1:-1, 1:-1] = rng.random((mask.shape[0] - 2, mask.shape[1] - 2)) < rng.uniform(0.2, 1)
-        ref = clearance_map(mask, backend="numpy")
-        np.testing.assert_array_equal(_bits(clearance_map(mask, backend="numba")), _bits(ref))
-
-
-@requires_numba
-@pytest.mark.parametrize("seed", range(3))
-def test_label_components_gives_the_reference_labels(seed):
-    from rangeseg_cli.link import label_components
-
-    rng = np.random.default_rng(seed)
-    comb = np.ones((30, 40), dtype=bool)  # a comb: its teeth join only at the bottom
-    comb[:25, 1::2] = False
-    masks = [comb, np.zeros((5, 7), bool), np.ones((1, 9), bool)]
-    masks += [rng.random(rng.integers(1, 60, 2)) < p for p in (0.3, 0.55, 0.8) for _ in range(8)]
-    for free in masks:
-        for min_size in (1, 4, 20):
-            ref = label_components(free, min_size, backend="numpy")
-            fast = label_components(free, min_size, backend="numba")
-            assert ref.dtype == fast.dtype
-            np.testing.assert_array_equal(ref, fast)
-
-
-@requires_numba
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.float32, np.float64])
 @pytest.mark.parametrize("larger_is_closer", [True, False])
 def test_compiled_heights_are_bitwise_the_reference(dtype, larger_is_closer):
@@ -535,34 +504,13 @@ def test_compiled_linking_gives_the_reference_codes_and_components(seed):
 
 @requires_numba
 @pytest.mark.parametrize("seed", range(3))
-def test_ar_2d_and_window_std_are_bitwise_the_references(seed):
-    from rangeseg_cli.holdsite import _compiled_box_means, window_ar_std
-
-    assert _compiled_box_means()  # the installed scipy sums box means as the kernel does
+def test_ar_2d_is_bitwise_the_reference(seed):
     rng = np.random.default_rng(seed)
     for _ in range(20):
         z = rng.normal(100.0, 3.0, rng.integers(1, 45, 2))
         z[rng.random(z.shape) < 0.1] = np.nan
         ref = edges.ar_2d(z, backend="numpy")
         np.testing.assert_array_equal(_bits(edges.ar_2d(z, backend="numba")), _bits(ref))
-        for size in [(7, 7), (5, 9), (1, 3), (4, 1), (1, 1)]:
-            fp = np.ones(size, dtype=bool)
-            np.testing.assert_array_equal(_bits(window_ar_std(ref, fp, backend="numba")),
-                                          _bits(window_ar_std(ref, fp, backend="numpy")))
-
-
-@requires_numba
-@pytest.mark.parametrize("seed", range(3))
-def test_rectangle_erosion_is_the_reference(seed):
-    from rangeseg_cli.holdsite import erode
-
-    rng = np.random.default_rng(seed)
-    for _ in range(25):
-        mask = rng.random(rng.integers(1, 50, 2)) < rng.uniform(0.5, 1.0)
-        for size in [(7, 7), (5, 9), (1, 3), (3, 1), (1, 1), (11, 5)]:
-            fp = np.ones(size, dtype=bool)
-            np.testing.assert_array_equal(erode(mask, fp, backend="numba"),
-                                          erode(mask, fp, backend="numpy"))
 
 
 @requires_numba

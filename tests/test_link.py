@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from rangeseg_cli.config import LinkConfig
 from rangeseg_cli.edges import DIRECTIONS, LINKED_EDGE, ROOF_EDGE, STEP_EDGE
-from rangeseg_cli.link import link_edges
+from rangeseg_cli.link import FOUR_CONNECTED, label_components, link_edges
 
 CFG = LinkConfig()
 
@@ -125,6 +126,23 @@ def test_components_are_numbered_in_raster_order_of_first_pixel() -> None:
     _, comps = link_edges(codes, _valid((30, 30)), CFG)
     assert comps[0, 0] == 1 and comps[0, 15] == 2 and comps[0, 25] == 3
     assert comps[29, 0] == 4
+
+
+def test_components_keep_their_first_pixels_order_where_parts_join_late() -> None:
+    # label_components takes scipy's numbering as that order; a comb's teeth meet
+    # only at the bottom, and random masks join runs in every way
+    rng = np.random.default_rng(3)
+    comb = np.ones((30, 40), dtype=bool)
+    comb[:25, 1::2] = False
+    for free in [comb, *(rng.random((37, 53)) < p for p in (0.45, 0.6, 0.75))]:
+        raw, _ = ndimage.label(free, structure=FOUR_CONNECTED)
+        ids, first, sizes = np.unique(raw, return_index=True, return_counts=True)
+        for min_size in (1, 4):
+            kept = [i for i in ids[np.argsort(first)] if i and sizes[ids == i][0] >= min_size]
+            expected = np.zeros(raw.shape, dtype=np.int32)
+            for k, i in enumerate(kept, start=1):
+                expected[raw == i] = k
+            np.testing.assert_array_equal(label_components(free, min_size), expected)
 
 
 def test_invalid_pixels_are_never_edges_nor_labelled() -> None:
