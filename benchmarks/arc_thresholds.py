@@ -5,7 +5,7 @@ and ``bin-scene``, depth in 0.1 mm, Zeng et al. 2018) twice: with the
 hand-tuned settings that ``sample_data/arc/suction.toml`` held before issue 32
 (step 2, roof 2 / 1.5 mm, fixed) and with ``--preset tenth-mm-depth`` and the
 frame's intrinsics alone (the thresholds of Sec. V-1, V-2 scaled to the
-lateral scale and the noise: :mod:`rangeseg_cli.noise`). Writes one PNG per
+lateral scale and the noise: :mod:`rangeseg_cli.stages.noise`). Writes one PNG per
 frame, depth and the two label images side by side, and the numbers below.
 
 There is no ground truth; the empty tote of the same camera
@@ -41,10 +41,10 @@ from typing import Any
 
 import numpy as np
 
-from rangeseg_cli import io, render
+from rangeseg_cli.batch import io, render
 from rangeseg_cli.config import Config, load_config
-from rangeseg_cli.noise import lateral_scale, sensor_config
 from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.stages.noise import lateral_scale, sensor_config
 
 FRAMES = ("suction", "bin")
 #: ``sample_data/arc/suction.toml`` before issue 32 (its intrinsics: the frame's own).

@@ -7,7 +7,7 @@ script; its start-up is reported on its own):
 
 * ``cli``: the real command, interpreter start-up, imports and I/O included,
   ``rangeseg run DIR -o OUT -q --jobs 2`` or ``... --executor dask --scheduler ADDR``;
-* ``library``: :func:`rangeseg_cli.batch.run_batch` in this process, which
+* ``library``: :func:`rangeseg_cli.batch.runner.run_batch` in this process, which
   leaves out the start-up and shows the executor's own overhead.
 
 Runs alternate between the four so that load on the machine hits all alike;
@@ -52,7 +52,7 @@ def timed_run(folder: Path, out: Path, extra: list[str]) -> float:
 
 def library_run(folder: Path, out: Path, executor: str, scheduler: str) -> float:
     from rangeseg_cli import load_config
-    from rangeseg_cli.batch import jobs_from_inputs, run_batch
+    from rangeseg_cli.batch.runner import jobs_from_inputs, run_batch
     from rangeseg_cli.pipeline import STAGES
 
     jobs, _ = jobs_from_inputs([folder], out)

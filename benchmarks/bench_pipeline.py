@@ -1,7 +1,7 @@
 """Speed of the pipeline (issue 7): per-stage medians, Gaussian-pass ratios, batch throughput.
 
 For synthetic bin scenes of 128x128, 640x480, 1280x1024 and 1920x1200 pixels
-(``rangeseg_cli.synth`` ``pile``, 8-bit, noise 1, fixed seeds) it measures,
+(``rangeseg_cli.synth.scenes`` ``pile``, 8-bit, noise 1, fixed seeds) it measures,
 interleaved within every repeat so that load on the machine hits all figures
 alike:
 
@@ -21,7 +21,7 @@ start-up cost with a warm cache, each in a fresh interpreter, and the batch
 throughput of the real CLI, ``rangeseg run DIR -o OUT --jobs N -q``, on a
 folder of 128x128 PNGs (``--jobs 1``, ``--jobs 2`` and ``--jobs 1 --threads
 1``, I/O and interpreter start-up included). Stages run with the automatic
-threads of :mod:`rangeseg_cli.parallel` (every core); the ``_1thread``
+threads of :mod:`rangeseg_cli.kernels.parallel` (every core); the ``_1thread``
 columns with one.
 
 Run ``.venv/bin/python benchmarks/bench_pipeline.py`` (or ``make bench``);
@@ -48,11 +48,10 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from rangeseg_cli import __version__, io, parallel
+from rangeseg_cli import __version__
+from rangeseg_cli.batch import io
 from rangeseg_cli.config import REFINE_PASSES, Config, load_config
-from rangeseg_cli.edges import detect_edges
-from rangeseg_cli.grow import grow_regions
-from rangeseg_cli.noise import estimate_noise
+from rangeseg_cli.kernels import parallel
 from rangeseg_cli.pipeline import (
     run_pipeline,
     stage_edges,
@@ -60,8 +59,11 @@ from rangeseg_cli.pipeline import (
     stage_holdsite,
     stage_link,
 )
-from rangeseg_cli.rangeimage import to_heights
-from rangeseg_cli.surfaces import describe_surfaces
+from rangeseg_cli.stages.edges import detect_edges
+from rangeseg_cli.stages.grow import grow_regions
+from rangeseg_cli.stages.noise import estimate_noise
+from rangeseg_cli.stages.rangeimage import to_heights
+from rangeseg_cli.stages.surfaces import describe_surfaces
 
 #: Frame sizes as (rows, cols): the paper's 128x128 and common sensor formats.
 SIZES: tuple[tuple[int, int], ...] = ((128, 128), (480, 640), (1024, 1280), (1200, 1920))
@@ -76,7 +78,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def bin_scene(rows: int, cols: int, seed: int, noise: float = 1.0) -> np.ndarray:
     """8-bit range image of a bin pile (``synth`` ``pile``), or random boxes without synth."""
     try:
-        from rangeseg_cli.synth import render_scene
+        from rangeseg_cli.synth.scenes import render_scene
     except ImportError:
         return _random_boxes(rows, cols, seed, noise)
     return render_scene("pile", size=(rows, cols), noise=noise, seed=seed).image
@@ -227,7 +229,7 @@ def bench_real_frame(repeats: int) -> dict[str, Any]:
     with every task on threads, ``run_pipeline_1thread`` on one thread, and
     ``--preset paper`` with the frame's settings.
     """
-    from rangeseg_cli.io import read_image
+    from rangeseg_cli.batch.io import read_image
 
     config = load_config(REAL_CONFIG)
     image = read_image(str(REAL_FRAME))
@@ -268,7 +270,8 @@ _STARTUP = """
 import json, time
 t0 = time.perf_counter()
 import numpy as np
-from rangeseg_cli import _kernels, run_pipeline
+from rangeseg_cli import run_pipeline
+from rangeseg_cli.kernels import compiled as _kernels
 from rangeseg_cli.config import load_config
 t1 = time.perf_counter()
 z = np.full((64, 64), 20.0)
@@ -308,7 +311,8 @@ def write_batch(folder: Path, count: int, size: int = 128) -> None:
 
 def _cli() -> list[str]:
     exe = shutil.which("rangeseg", path=str(Path(sys.executable).parent))
-    return [exe] if exe else [sys.executable, "-c", "from rangeseg_cli.cli import main; main()"]
+    run = "from rangeseg_cli.cli.main import main; main()"
+    return [exe] if exe else [sys.executable, "-c", run]
 
 
 #: The batch commands timed: name, and the options after ``rangeseg run DIR -o OUT -q``.
@@ -410,7 +414,7 @@ def markdown(report: dict[str, Any]) -> str:
         f"automatic threads ({report['machine'].get('threads', '?')} here: row bands of "
         "the edge passes and the split's plane fits, the split's components and the "
         "recut's candidates at once, on threads or, 24 or more, in forked processes; "
-        "`rangeseg_cli.parallel`) but the `_1thread` ones (`--threads 1`).",
+        "`rangeseg_cli.kernels.parallel`) but the `_1thread` ones (`--threads 1`).",
         "",
         "| frame | G ms | " + " | ".join(COLUMNS) + " | pipeline ms/Mpx |",
         "|---" * (len(COLUMNS) + 3) + "|",

@@ -7,7 +7,7 @@ The batch is made from two real results, run once: the paper's ``part1-n0``
 170 with a holdsite, 10 without (their ``holdsite.json`` with ``null``), 20
 failed (a one-line error, no files), with the manifest entries to match.
 Then the page is built ``--runs`` times in this process
-(:func:`rangeseg_cli.report_html.write_report`) and as the command a user
+(:func:`rangeseg_cli.batch.report.write_report`) and as the command a user
 types (a new process each time: imports included). Medians go to
 ``benchmarks/results/report.json``. Usage::
 
@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from rangeseg_cli import __version__
-from rangeseg_cli.report_html import write_report
+from rangeseg_cli.batch.report import write_report
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"

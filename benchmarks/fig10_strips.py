@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rangeseg_cli import io, load_config, render, run_pipeline
+from rangeseg_cli import load_config, run_pipeline
+from rangeseg_cli.batch import io, render
 from rangeseg_cli.config import Config
 from rangeseg_cli.pipeline import PipelineResult
 

@@ -130,7 +130,7 @@ def _profile_child(image: Path, out: Path) -> None:
     """In this (cold) interpreter: the command with numba's events recorded, as JSON."""
     from numba.core import event
 
-    from rangeseg_cli.cli import main
+    from rangeseg_cli.cli.main import main
 
     rec = _Recorder()
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from rangeseg_cli.config import load_config
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth import SCENES, Scene, render_scene
+from rangeseg_cli.synth.scenes import SCENES, Scene, render_scene
 
 
 def pose_errors(scene: Scene, site: object) -> tuple[float, float] | None:

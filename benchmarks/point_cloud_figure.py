@@ -25,7 +25,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from plyfile import PlyData  # noqa: E402
 
-from rangeseg_cli.render import label_colors  # noqa: E402
+from rangeseg_cli.batch.render import label_colors  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 ARC = ROOT / "sample_data" / "arc"

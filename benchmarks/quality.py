@@ -1,6 +1,6 @@
 """Segmentation quality over all synthetic scenes, in one process.
 
-Renders every scene of ``rangeseg_cli.synth.SCENES`` at noise 0, 1, 2 (or
+Renders every scene of ``rangeseg_cli.synth.scenes.SCENES`` at noise 0, 1, 2 (or
 the levels of ``--noises``) for seeds 0, 1, 2 (the same images ``rangeseg
 synth OUT --noise 0,1,2 --seed S`` writes), runs ``run_pipeline`` up to the
 labels with the given configuration and scores them with Hoover et al.
@@ -38,14 +38,14 @@ from scipy import ndimage
 
 from rangeseg_cli.config import load_config, parse_settings
 from rangeseg_cli.errors import ConfigError
-from rangeseg_cli.evaluate import (
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.synth.evaluate import (
     CURVE_TOLERANCES,
     connected_parts,
     correct_curve,
     hoover_compare,
 )
-from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth import SCENES, parse_scenes, parse_size, render_scene
+from rangeseg_cli.synth.scenes import SCENES, parse_scenes, parse_size, render_scene
 
 NOISES = (0.0, 1.0, 2.0)
 SEEDS = (0, 1, 2)

@@ -7,7 +7,7 @@ from its PNG and runs the library's pipeline on it with ``--preset
 tenth-mm-depth`` and the frame's intrinsics (``[input] intrinsics``),
 plus any ``--set`` given here; with ``--background`` the frame of the empty
 tote or table is passed too. Each holdsite is scored by the object-level
-check of ``rangeseg eval`` (:func:`rangeseg_cli.evaluate.check_object_holdsite`):
+check of ``rangeseg eval`` (:func:`rangeseg_cli.synth.evaluate.check_object_holdsite`):
 usable = the gripper window wholly on valid pixels of one pickable object
 and the approach within the tilt limit of the optical axis; on an empty
 tote, no holdsite is the right answer.
@@ -39,11 +39,11 @@ from typing import Any
 import numpy as np
 
 from rangeseg_cli import __version__
+from rangeseg_cli.batch.io import read_image, read_json
 from rangeseg_cli.config import load_config, parse_settings
-from rangeseg_cli.evaluate import DEFAULT_MAX_TILT, check_object_holdsite, footprint_at_depth
-from rangeseg_cli.io import read_image, read_json
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth_camera import CAMERA_SCENES, camera_stem, write_camera_scenes
+from rangeseg_cli.synth.camera import CAMERA_SCENES, camera_stem, write_camera_scenes
+from rangeseg_cli.synth.evaluate import DEFAULT_MAX_TILT, check_object_holdsite, footprint_at_depth
 
 RESULTS = Path(__file__).parent / "results"
 PRESET = "tenth-mm-depth"

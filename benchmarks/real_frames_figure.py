@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rangeseg_cli import io, load_config, render, run_pipeline
-from rangeseg_cli.intrinsics import read_intrinsics
+from rangeseg_cli import load_config, run_pipeline
+from rangeseg_cli.batch import io, render
+from rangeseg_cli.cell.intrinsics import read_intrinsics
 
 ARC = Path(__file__).resolve().parent.parent / "sample_data" / "arc"
 GAP = 8

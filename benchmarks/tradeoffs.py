@@ -52,6 +52,7 @@ from bench_pipeline import (  # noqa: E402
 )
 from quality import NOISES, measure, scene_list, seed_list  # noqa: E402
 
+from rangeseg_cli.batch.io import read_image  # noqa: E402
 from rangeseg_cli.config import (  # noqa: E402
     PRESETS,
     REFINE_PASSES,
@@ -59,9 +60,8 @@ from rangeseg_cli.config import (  # noqa: E402
     load_config,
     parse_settings,
 )
-from rangeseg_cli.io import read_image  # noqa: E402
 from rangeseg_cli.pipeline import run_pipeline  # noqa: E402
-from rangeseg_cli.synth import SCENES  # noqa: E402
+from rangeseg_cli.synth.scenes import SCENES  # noqa: E402
 
 
 def without(name: str) -> str:

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from rangeseg_cli.config import PRESETS, key_reference
-from rangeseg_cli.refinement import PASSES
+from rangeseg_cli.refine.passes import PASSES
 
 OUT = Path(__file__).with_name("configuration.md")
 

@@ -38,7 +38,7 @@ BackgroundRule = Literal["lowest-border", "largest-border", "none"]
 # that no product or square the stages form overflows (a fit level squared,
 # error_factor x e_A, a focal length times a depth; counts in int32).
 #: Depth units (thresholds, noise levels): the largest height accepted
-#: (:data:`~rangeseg_cli.rangeimage.MAX_ABS_HEIGHT`).
+#: (:data:`~rangeseg_cli.stages.rangeimage.MAX_ABS_HEIGHT`).
 MAX_DEPTH = 1e12
 #: Factors on an RMS error or a noise level; squared ratios go to its square.
 MAX_FACTOR = 1e3
@@ -179,7 +179,7 @@ class GrowConfig:
 
 
 #: The passes of the refinement after growing, in the order they run
-#: (:data:`rangeseg_cli.refinement.PASSES`): each one cuts, merges or assigns.
+#: (:data:`rangeseg_cli.refine.passes.PASSES`): each one cuts, merges or assigns.
 REFINE_PASSES = ("split", "recover", "fill", "merge", "recut", "bridge", "chamfers", "carve",
                  "facets", "boundaries", "merge_planes", "join_occluded")
 
@@ -710,7 +710,7 @@ def check_value(table: str, key: str, value: Any) -> Any:
 def from_json(values: dict[str, Any]) -> dict[str, Any]:
     """Tables read from JSON, with ``null`` as NaN where a key may be NaN.
 
-    JSON has no NaN: :func:`~rangeseg_cli.io.to_jsonable` writes it as
+    JSON has no NaN: :func:`~rangeseg_cli.batch.io.to_jsonable` writes it as
     ``null``, and the one key that may be NaN is ``[input] invalid`` (no
     no-data value besides NaN). A ``null`` elsewhere stays ``None``, so that
     :func:`build_config` names it as it is in the file.

@@ -3,17 +3,17 @@
 Notes
 -----
 1. Step edges, small filter (Sec. V-1) and 2. roof edges, large adaptive
-   filter in passes 2a and 2b (Sec. V-2): :mod:`rangeseg_cli.edges`.
-3. Linking and 4-connected components (Sec. V-3): :mod:`rangeseg_cli.link`.
-4. Least-squares quadratic region growing (Sec. V-4): :mod:`rangeseg_cli.grow`;
-   surface descriptions: :mod:`rangeseg_cli.surfaces`.
-5. Holdsite on the highest surface (Sec. VII): :mod:`rangeseg_cli.holdsite`.
+   filter in passes 2a and 2b (Sec. V-2): :mod:`rangeseg_cli.stages.edges`.
+3. Linking and 4-connected components (Sec. V-3): :mod:`rangeseg_cli.stages.link`.
+4. Least-squares quadratic region growing (Sec. V-4): :mod:`rangeseg_cli.stages.grow`;
+   surface descriptions: :mod:`rangeseg_cli.stages.surfaces`.
+5. Holdsite on the highest surface (Sec. VII): :mod:`rangeseg_cli.stages.holdsite`.
 
 Each stage is a pure function of the arrays the earlier stages produced, so
 running the stages one by one from files gives the same results as
 :func:`run_pipeline`. Each stage function checks its arguments before any
 work: ``ValueError`` for arrays that are not what it takes
-(:func:`~rangeseg_cli.rangeimage.check_stage_arrays`; a label of 2^31 would
+(:func:`~rangeseg_cli.stages.rangeimage.check_stage_arrays`; a label of 2^31 would
 size tables of gigabytes), ``ConfigError`` or ``TypeError`` for a
 configuration value out of range or a table of the wrong class
 (:func:`~rangeseg_cli.config.check_config`: a table built by hand).
@@ -28,14 +28,14 @@ from typing import Any
 
 import numpy as np
 
-from . import refinement
+from .cell.frames import SharedFrames, check_frame_size, read_workspace_frames, roi_mask
 from .config import Config, check_config, load_config
-from .edges import EdgeMaps, detect_edges
-from .frames import SharedFrames, check_frame_size, read_workspace_frames, roi_mask
+from .kernels.parallel import blas_one_thread, row_bands
 from .models import Surface
-from .noise import estimate_noise
-from .parallel import blas_one_thread, row_bands
-from .rangeimage import check_array, check_stage_arrays, require_shape_of_z, to_heights
+from .refine import passes as refinement
+from .stages.edges import EdgeMaps, detect_edges
+from .stages.noise import estimate_noise
+from .stages.rangeimage import check_array, check_stage_arrays, require_shape_of_z, to_heights
 
 #: Stage names in order.
 STAGES = ("edges", "link", "grow", "holdsite")
@@ -65,7 +65,7 @@ class PipelineResult:
         Seconds spent per stage.
     noise_sigma
         Estimated noise of the heights, depth units
-        (:func:`~rangeseg_cli.noise.estimate_noise`): estimated while the
+        (:func:`~rangeseg_cli.stages.noise.estimate_noise`): estimated while the
         pipeline runs when its configuration uses it (:func:`uses_noise`),
         else on first use of this attribute (the paper's pipeline, ``--preset
         paper``, does not need it: about a tenth of its time at 640x480).
@@ -94,7 +94,7 @@ def uses_noise(config: Config) -> bool:
 
     The thresholds that follow the sensor (``[input] auto_thresholds``, Sec. V-1, V-2)
     and the passes of ``[refine]`` that read it
-    (:func:`~rangeseg_cli.refinement.uses_noise`: all but the fill and the bridge).
+    (:func:`~rangeseg_cli.refine.passes.uses_noise`: all but the fill and the bridge).
     """
     return config.input.auto_thresholds or refinement.uses_noise(config)
 
@@ -103,13 +103,13 @@ def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) ->
     """Steps 1 and 2 (Sec. V-1, V-2) on heights ``z``.
 
     With ``[input] auto_thresholds`` the thresholds follow the lateral scale
-    and the noise of ``z`` (:func:`~rangeseg_cli.noise.sensor_config`):
+    and the noise of ``z`` (:func:`~rangeseg_cli.stages.noise.sensor_config`):
     ``noise`` when the caller has estimated it, computed here otherwise.
     """
     check_stage_arrays(z)
     check_config(config)
     if config.input.auto_thresholds:
-        from .noise import sensor_config
+        from .stages.noise import sensor_config
 
         config = sensor_config(config, z, estimate_noise(z) if noise is None else noise)
     return detect_edges(z, config)
@@ -118,7 +118,7 @@ def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) ->
 def stage_link(z: np.ndarray, codes: np.ndarray, config: Config
                ) -> tuple[np.ndarray, np.ndarray]:
     """Step 3 (Sec. V-3): linked edge codes and connected components."""
-    from .link import link_edges
+    from .stages.link import link_edges
 
     check_stage_arrays(z, edges=codes)
     check_config(config)
@@ -140,18 +140,18 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
                         ) -> tuple[np.ndarray, list[Surface], dict[tuple[int, int], float]]:
     """Step 4 (Sec. V-4): final labels, their surface descriptions and step gaps.
 
-    The step gaps (:func:`~rangeseg_cli.surfaces.describe_surfaces_and_gaps`)
+    The step gaps (:func:`~rangeseg_cli.stages.surfaces.describe_surfaces_and_gaps`)
     are what :func:`stage_holdsite` would compute again from the labels and
     surfaces: pass them on (``gaps=``).
 
     With ``[refine] passes``, the refinement's passes follow growing, in
-    the order of :data:`~rangeseg_cli.refinement.PASSES` (cut, merge and
+    the order of :data:`~rangeseg_cli.refine.passes.PASSES` (cut, merge and
     assign: beyond the paper); without, this is the paper's step 4.
-    ``noise`` is :func:`~rangeseg_cli.noise.estimate_noise` of ``z`` when the
+    ``noise`` is :func:`~rangeseg_cli.stages.noise.estimate_noise` of ``z`` when the
     caller has it already (it is computed here otherwise).
     """
-    from .grow import component_fits, grow_regions
-    from .surfaces import describe_surfaces_and_gaps
+    from .stages.grow import component_fits, grow_regions
+    from .stages.surfaces import describe_surfaces_and_gaps
 
     check_stage_arrays(z, edges=edges, components=components)
     check_config(config)
@@ -182,7 +182,7 @@ def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     background
         The raw (H, W) frame of the empty workspace, in the units of the image
         ``z`` was made from: converted to heights by ``[input]`` as the image
-        was (:func:`~rangeseg_cli.rangeimage.to_heights`); ``None``: none.
+        was (:func:`~rangeseg_cli.stages.rangeimage.to_heights`); ``None``: none.
     roi
         (H, W) mask, non-zero where a site may be (integers or booleans);
         ``None``: everywhere.
@@ -193,9 +193,9 @@ def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         When ``background`` or ``roi`` is not of the shape of ``z``.
     InputError
         When ``background`` is no usable range image, or ``roi`` no mask
-        (:func:`~rangeseg_cli.frames.roi_mask`).
+        (:func:`~rangeseg_cli.cell.frames.roi_mask`).
     """
-    from .holdsite import find_holdsite
+    from .stages.holdsite import find_holdsite
 
     bg_heights = roi_bool = None
     if background is not None:
@@ -243,7 +243,7 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
         The raw (H, W) frame of the empty tote or table, in the units of
         ``image`` (converted to heights by ``[input]`` as ``image`` is);
         ``None``: the file ``[workspace] background`` names, read through
-        :mod:`rangeseg_cli.io`, if any. Used by the holdsite stage only.
+        :mod:`rangeseg_cli.batch.io`, if any. Used by the holdsite stage only.
     roi
         (H, W) mask, non-zero where a site may be (integers or booleans);
         ``None``: the file ``[workspace] roi`` names, if any.
@@ -265,7 +265,7 @@ def run_pipeline(image: Any, config: Config | None = None, *, stages: int = len(
         When a value of ``config`` is of the wrong type or out of range (a
         table built by hand: :func:`~rangeseg_cli.config.check_config`), or
         a file ``[workspace]`` names cannot be read or used
-        (:func:`~rangeseg_cli.frames.read_workspace_frames`).
+        (:func:`~rangeseg_cli.cell.frames.read_workspace_frames`).
     ValueError
         When ``stages`` is not an integer from 1 to 4.
     """
@@ -303,8 +303,8 @@ def shares_threads(shape: tuple[int, ...] | None, config: Config) -> bool:
     """Whether :func:`run_pipeline` may run work of one image on several threads at once.
 
     The edge passes of an image of more than one row band
-    (:func:`~rangeseg_cli.parallel.row_bands`), and the split, recovery and
-    recut, which share their pieces out (:func:`~rangeseg_cli.refinement.shares_work`);
+    (:func:`~rangeseg_cli.kernels.parallel.row_bands`), and the split, recovery and
+    recut, which share their pieces out (:func:`~rangeseg_cli.refine.passes.shares_work`);
     ``shape`` None (not known yet) counts as yes. The paper's pipeline on a
     128x128 frame runs in the calling thread alone.
     """

@@ -104,9 +104,9 @@ def found_with(scene: str, noise: float, seed: int, face: str, *, without: tuple
     """The GT id of ``scene``'s surface named ``face`` (or starting so, ending in "…"), and
     the GT ids the defaults detect correctly (T = 0.8) with the ``[refine]`` passes
     ``without`` left out and these ``[refine]`` overrides."""
-    from rangeseg_cli.evaluate import hoover_compare
     from rangeseg_cli.pipeline import run_pipeline
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.evaluate import hoover_compare
+    from rangeseg_cli.synth.scenes import render_scene
 
     rendered = render_scene(scene, noise=noise, seed=seed)
     prefix = face.removesuffix("…")
@@ -125,8 +125,8 @@ def bad_setting_on_the_command_line(tmp_path: Path, setting: str) -> str:
     import imageio.v3 as iio
     from click.testing import CliRunner
 
-    from rangeseg_cli.cli import main
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.cli.main import main
+    from rangeseg_cli.synth.scenes import render_scene
 
     image = tmp_path / "in.png"
     iio.imwrite(image, render_scene("box", size=(32, 32)).image)
@@ -141,7 +141,7 @@ def bad_setting_on_the_command_line(tmp_path: Path, setting: str) -> str:
 def _automatic_threads():
     """``--threads`` or a test may set the process's thread count: back to automatic after."""
     yield
-    from rangeseg_cli import parallel
+    from rangeseg_cli.kernels import parallel
 
     parallel.set_threads(None)
 

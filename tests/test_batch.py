@@ -16,7 +16,7 @@ from hypothesis.extra import numpy as hnp
 
 from conftest import box_scene, tree_bytes
 from rangeseg_cli import run_pipeline
-from rangeseg_cli.cli import main
+from rangeseg_cli.cli.main import main
 from rangeseg_cli.errors import InputError
 
 
@@ -128,7 +128,7 @@ def _two_workers(pid: int) -> set[int]:
 def test_resume_after_sigkill_completes_with_identical_bytes(tmp_path, write_png, spawn):
     folder = _many(tmp_path, write_png, 24)
     ref, out = tmp_path / "ref", tmp_path / "out"
-    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "1", "-q"]
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", "1", "-q"]
     subprocess.run([*cmd, "-o", str(ref)], check=True, capture_output=True)
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
@@ -257,7 +257,7 @@ def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path
                                                                         code, said):
     folder = _many(tmp_path, write_png, 30)
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", jobs, "-q"]
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", jobs, "-q"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
@@ -284,7 +284,7 @@ def test_a_run_killed_with_new_settings_leaves_nothing_certified_under_the_old(
     # settings, and --resume with the old settings kept their new files, exit 0.
     folder = _many(tmp_path, write_png, 24)
     out, fresh = tmp_path / "out", tmp_path / "fresh"
-    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "1", "-q"]
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", "1", "-q"]
     assert subprocess.run([*cmd, "-o", str(out)], capture_output=True).returncode == 0
     before = {p: p.stat().st_mtime_ns for p in out.glob("*.holdsite.json")}
     proc = spawn([*cmd, "-o", str(out), "--overwrite", "--set", "step.threshold=8"],
@@ -345,7 +345,7 @@ def test_workers_do_not_outlive_a_batch_killed_with_sigkill(tmp_path, write_png,
     # and the workers used to wait for work for ever, each holding its memory.
     folder = _many(tmp_path, write_png, 40)
     out = tmp_path / "out"
-    proc = spawn([sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder),
+    proc = spawn([sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder),
                              "-o", str(out), "-j", "2", "-q"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     workers = _two_workers(proc.pid)
@@ -367,7 +367,7 @@ def test_a_worker_killed_mid_batch_fails_its_images_and_the_batch_goes_on(tmp_pa
     # BrokenProcessPool traceback, the images after it never run.
     folder = _many(tmp_path, write_png, 30)
     out, fresh = tmp_path / "out", tmp_path / "fresh"
-    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "2", "-q"]
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", "2", "-q"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     workers = _two_workers(proc.pid)
@@ -393,7 +393,7 @@ def test_sigterm_to_the_whole_group_stops_as_sigterm_to_the_batch(tmp_path, writ
     # systemd or a container runtime signals every process: the workers die with the pool
     folder = _many(tmp_path, write_png, 30)
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder), "-j", "2", "-q"]
+    cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", "2", "-q"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 60
@@ -415,7 +415,7 @@ def _die_at_start(*args, **kwargs):
 
 def test_workers_that_die_before_any_image_fail_the_batch_instead_of_looping(
         tmp_path, write_png, monkeypatch):
-    from rangeseg_cli import batch
+    from rangeseg_cli.batch import runner as batch
     from rangeseg_cli.config import load_config
 
     folder = tmp_path / "in"
@@ -441,7 +441,7 @@ def test_pool_workers_keep_blas_to_one_thread():
     # Two workers with a BLAS thread per core each would spin against each other.
     from concurrent.futures import ProcessPoolExecutor
 
-    from rangeseg_cli.batch import _init_worker
+    from rangeseg_cli.batch.runner import _init_worker
 
     with ProcessPoolExecutor(max_workers=2, initializer=_init_worker) as pool:
         threads = pool.submit(_blas_threads).result()
@@ -449,7 +449,7 @@ def test_pool_workers_keep_blas_to_one_thread():
 
 
 def _kernel_threads() -> int:
-    from rangeseg_cli import parallel
+    from rangeseg_cli.kernels import parallel
 
     return parallel.thread_count()
 
@@ -457,14 +457,14 @@ def _kernel_threads() -> int:
 def test_pool_workers_get_their_share_of_the_cores():
     from concurrent.futures import ProcessPoolExecutor
 
-    from rangeseg_cli.batch import _init_worker
+    from rangeseg_cli.batch.runner import _init_worker
 
     with ProcessPoolExecutor(max_workers=2, initializer=_init_worker, initargs=(3,)) as pool:
         assert pool.submit(_kernel_threads).result() == 3
 
 
 def test_threads_option_gives_the_same_bytes(good_folder, tmp_path, monkeypatch):
-    from rangeseg_cli import parallel
+    from rangeseg_cli.kernels import parallel
 
     monkeypatch.setattr(parallel, "MIN_BAND_ROWS", 1)  # the small images are cut into bands too
     monkeypatch.setattr(parallel, "MIN_BAND_PIXELS", 1)
@@ -487,7 +487,8 @@ def test_absurd_job_counts_are_one_line_range_errors(good_folder, tmp_path, jobs
 
 
 def test_cli_and_library_agree_on_the_most_jobs():
-    from rangeseg_cli import batch, cli
+    from rangeseg_cli.batch import runner as batch
+    from rangeseg_cli.cli import main as cli
 
     assert cli.MAX_JOBS == batch.MAX_JOBS
 
@@ -495,7 +496,7 @@ def test_cli_and_library_agree_on_the_most_jobs():
 def test_pool_has_at_most_one_worker_per_image(good_folder, tmp_path, monkeypatch):
     from concurrent.futures import ProcessPoolExecutor
 
-    from rangeseg_cli import batch
+    from rangeseg_cli.batch import runner as batch
 
     started = []
 
@@ -513,7 +514,7 @@ def test_pool_has_at_most_one_worker_per_image(good_folder, tmp_path, monkeypatc
 
 def test_run_batch_refuses_n_jobs_out_of_range(good_folder, tmp_path):
     from rangeseg_cli import load_config
-    from rangeseg_cli.batch import MAX_JOBS, jobs_from_inputs, run_batch
+    from rangeseg_cli.batch.runner import MAX_JOBS, jobs_from_inputs, run_batch
     from rangeseg_cli.pipeline import STAGES
 
     jobs, _ = jobs_from_inputs([good_folder], tmp_path / "o")
@@ -534,7 +535,7 @@ def test_bad_thread_counts_are_usage_errors(good_folder, tmp_path, monkeypatch):
 
 
 def test_a_file_named_and_inside_a_named_folder_is_one_image(tmp_path, write_png):
-    from rangeseg_cli.batch import jobs_from_inputs
+    from rangeseg_cli.batch.runner import jobs_from_inputs
 
     folder = tmp_path / "in"
     (folder / "a").mkdir(parents=True)

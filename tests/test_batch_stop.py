@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from conftest import box_scene, tree_bytes
-from rangeseg_cli.outlock import LOCK
+from rangeseg_cli.batch.outlock import LOCK
 
-CLI = [sys.executable, "-m", "rangeseg_cli.cli", "run"]
+CLI = [sys.executable, "-m", "rangeseg_cli.cli.main", "run"]
 
 
 @pytest.fixture
@@ -116,7 +116,8 @@ def test_a_lock_left_by_a_killed_run_is_taken_over(folder, tmp_path):
 
 def test_the_lock_is_held_in_this_process_too(folder, tmp_path):
     """The library's batch refuses a folder another batch of this process holds."""
-    from rangeseg_cli import batch, outlock
+    from rangeseg_cli.batch import outlock
+    from rangeseg_cli.batch import runner as batch
     from rangeseg_cli.config import load_config
     from rangeseg_cli.errors import OutputError
 

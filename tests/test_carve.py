@@ -1,4 +1,4 @@
-"""Narrow faces grown into a planar region's border get regions of their own (rangeseg_cli.carve)."""
+"""Narrow faces grown into a planar region's border get regions of their own (rangeseg_cli.refine.carve)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import found_with
-from rangeseg_cli.carve import carve_faces
 from rangeseg_cli.config import load_config
-from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.refine import refine_boundaries
+from rangeseg_cli.refine.boundaries import refine_boundaries
+from rangeseg_cli.refine.carve import carve_faces
+from rangeseg_cli.synth.evaluate import hoover_compare
 
 CONFIG = load_config()
 CHAMFER = (40, 44)  # columns of the chamfer
@@ -80,7 +80,7 @@ def test_a_band_parallel_to_the_plane_is_no_crease():
 
 def test_a_piece_an_earlier_face_took_is_skipped(monkeypatch):
     # a piece whose pixels an earlier face's extension took (here: every piece twice)
-    import rangeseg_cli.carve as carve
+    import rangeseg_cli.refine.carve as carve
 
     z, _, grown = chamfered(1.0, 0)
     once = carve_faces(z, grown, CONFIG, noise=1.0)

@@ -1,4 +1,4 @@
-"""A chamfer between two planes at a crease gets a region of its own (rangeseg_cli.chamfer)."""
+"""A chamfer between two planes at a crease gets a region of its own (rangeseg_cli.refine.chamfer)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import bad_setting_on_the_command_line, found_with, random_labels
-from rangeseg_cli.chamfer import chamfer_faces, touching_boxes
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError
+from rangeseg_cli.refine.chamfer import chamfer_faces, touching_boxes
 
 CONFIG = load_config()
 

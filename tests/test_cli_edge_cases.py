@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import box_scene
-from rangeseg_cli.cli import main
+from rangeseg_cli.cli.main import main
 from rangeseg_cli.config import REFINE_PASSES
 
 
@@ -69,7 +69,7 @@ def test_output_subfolder_blocked_by_a_file_fails_that_image_only(runner, tmp_pa
 
 def test_full_disk_is_one_line_per_image_and_leaves_no_temporary(runner, box_png, tmp_path,
                                                                  monkeypatch):
-    import rangeseg_cli.io as rio
+    import rangeseg_cli.batch.io as rio
 
     real_replace = rio.os.replace
 
@@ -89,7 +89,7 @@ def test_full_disk_is_one_line_per_image_and_leaves_no_temporary(runner, box_png
 
 def test_manifest_that_cannot_be_written_is_one_line_exit_2(runner, box_png, tmp_path,
                                                             monkeypatch):
-    import rangeseg_cli.io as rio
+    import rangeseg_cli.batch.io as rio
 
     def read_only(src, dst):
         raise OSError(errno.EROFS, "Read-only file system")
@@ -255,7 +255,7 @@ def outputs_of(out, stem: str) -> list[str]:
 @pytest.fixture
 def cup_scene(tmp_path):
     """A synthetic cup (PNG in ``in/``) and its ground truth (in ``gt/``)."""
-    from rangeseg_cli.synth import write_scenes
+    from rangeseg_cli.synth.scenes import write_scenes
 
     write_scenes(tmp_path / "scene", ["cup"], [0.0], seed=0, size=(64, 64))
     (tmp_path / "in").mkdir()
@@ -303,7 +303,7 @@ def test_eval_does_not_score_labels_the_manifest_records_as_failed(runner, cup_s
 
 def test_image_failing_at_a_later_stage_keeps_no_results_of_an_earlier_run(
         runner, box_png, tmp_path, monkeypatch):
-    from rangeseg_cli import jobs
+    from rangeseg_cli.batch import jobs
     from rangeseg_cli.errors import InputError
 
     out = tmp_path / "out"
@@ -501,7 +501,7 @@ def test_out_of_range_number_on_the_command_line_is_one_line_exit_2(runner, box_
 @pytest.fixture
 def scored(tmp_path):
     """``(pred, gt)`` folders: one scene and its own truth as the labels."""
-    from rangeseg_cli.synth import write_scenes
+    from rangeseg_cli.synth.scenes import write_scenes
 
     gt, pred = tmp_path / "gt", tmp_path / "pred"
     write_scenes(gt, ["box"], [0], seed=0, size=(32, 32))
@@ -529,8 +529,8 @@ def test_eval_plot_that_cannot_be_written_stops_before_scoring(runner, scored, t
 def test_eval_plot_write_failing_after_scoring_is_one_line(runner, scored, tmp_path,
                                                            monkeypatch):
     # the table, then a traceback ending in OutputError: cannot write
-    from rangeseg_cli import evaluate
     from rangeseg_cli.errors import OutputError
+    from rangeseg_cli.synth import evaluate
 
     def fail(curve, path, **kwargs):
         raise OutputError(f"{path}: cannot write (No space left on device)")
@@ -644,7 +644,7 @@ def test_a_hand_edited_edge_or_height_map_is_named_not_an_internal_error(
 
 def test_ctrl_c_before_the_batch_exits_130_not_aborted(runner, box_png, tmp_path,
                                                        monkeypatch):
-    import rangeseg_cli.cli as cli
+    import rangeseg_cli.cli.main as cli
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt  # Ctrl-C while the config is read or IMAGES are listed
@@ -664,11 +664,11 @@ def test_ctrl_c_while_the_modules_load_exits_130_without_a_traceback(monkeypatch
 
     class Interrupt(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path, target=None):
-            if name == "rangeseg_cli.cli":
+            if name == "rangeseg_cli.cli.main":
                 raise KeyboardInterrupt
             return None
 
-    monkeypatch.delitem(sys.modules, "rangeseg_cli.cli")
+    monkeypatch.delitem(sys.modules, "rangeseg_cli.cli.main")
     monkeypatch.setattr(sys, "meta_path", [Interrupt(), *sys.meta_path])
     with pytest.raises(SystemExit) as stop:
         _entry.main()
@@ -703,7 +703,7 @@ def test_a_stage_command_refuses_an_image_the_manifest_does_not_list(runner, box
 
 
 def test_eval_does_not_score_an_image_a_killed_run_left_running(runner, tmp_path):
-    from rangeseg_cli.synth import write_scenes
+    from rangeseg_cli.synth.scenes import write_scenes
 
     gt = tmp_path / "gt"
     write_scenes(gt, ["box"], [0], 0, size=(48, 48))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import box_scene
-from rangeseg_cli.cli import main
+from rangeseg_cli.cli.main import main
 
 
 def no_traceback(res) -> None:
@@ -81,7 +81,7 @@ def test_a_symlink_loop_named_as_input_is_one_line_exit_2(runner, tmp_path):
 
 
 def test_png_bytes_named_npy_say_what_they_are_not_numpys_pickle_hint(tmp_path, box_png):
-    from rangeseg_cli import io
+    from rangeseg_cli.batch import io
     from rangeseg_cli.errors import InputError
 
     fake = tmp_path / "x.npy"
@@ -236,7 +236,7 @@ def test_json_prints_one_object_on_a_usage_error(runner, tmp_path, args, message
 
 def test_json_prints_one_object_on_ctrl_c_before_the_first_image(runner, box_png, tmp_path,
                                                                  monkeypatch):
-    import rangeseg_cli.cli as cli
+    import rangeseg_cli.cli.main as cli
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt  # Ctrl-C while IMAGES are listed

@@ -459,7 +459,7 @@ def _at_limits() -> list[tuple[str, str, Any]]:
 def test_pipeline_runs_with_any_key_at_the_end_of_its_range(table, key, value):
     # no overflow (warnings are errors here) nor internal error at any limit
     from rangeseg_cli.pipeline import run_pipeline
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     overrides: dict[str, dict[str, Any]] = {table: {key: value}}
     if table == "input" and key == "intrinsics":

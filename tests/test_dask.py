@@ -21,10 +21,12 @@ from distributed import Client, LocalCluster
 from distributed.diagnostics.plugin import SchedulerPlugin
 
 from conftest import box_scene, tree_bytes
-from rangeseg_cli import cli_report, dask_executor, load_config
-from rangeseg_cli.cli import main
-from rangeseg_cli.dask_executor import ClusterError, execute_on_dask
-from rangeseg_cli.jobs import Job
+from rangeseg_cli import load_config
+from rangeseg_cli.batch import dask as dask_executor
+from rangeseg_cli.batch.dask import ClusterError, execute_on_dask
+from rangeseg_cli.batch.jobs import Job
+from rangeseg_cli.cli import progress as cli_report
+from rangeseg_cli.cli.main import main
 from rangeseg_cli.pipeline import STAGES
 
 N_IMAGES = 16
@@ -279,7 +281,7 @@ def many(tmp_path_factory):
 
 
 def start_cli(spawn, folder: Path, out: Path, address: str) -> subprocess.Popen:
-    return spawn([sys.executable, "-m", "rangeseg_cli.cli", "run", str(folder),
+    return spawn([sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder),
                              "-o", str(out), "-q", "--executor", "dask", "--scheduler", address],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

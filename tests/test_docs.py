@@ -118,7 +118,7 @@ def _batch(args: list[str]) -> bool:
 def test_rangeseg_config_cites_the_docs_and_says_what_it_shows():
     from click.testing import CliRunner
 
-    from rangeseg_cli.cli import main
+    from rangeseg_cli.cli.main import main
 
     defaults = CliRunner().invoke(main, ["config"])
     assert defaults.exit_code == 0

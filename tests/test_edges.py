@@ -3,7 +3,7 @@ import pytest
 
 from conftest import step_image
 from rangeseg_cli.config import load_config
-from rangeseg_cli.edges import (
+from rangeseg_cli.stages.edges import (
     DIRECTIONS,
     absolute_residual,
     ar_2d,

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rangeseg_cli.evaluate import (
+from rangeseg_cli.batch.io import write_json, write_npy
+from rangeseg_cli.synth.camera import write_camera_scenes
+from rangeseg_cli.synth.evaluate import (
     CURVE_TOLERANCES,
     check_holdsite,
     check_object_holdsite,
@@ -17,9 +19,7 @@ from rangeseg_cli.evaluate import (
     overlap_table,
     plot_curve,
 )
-from rangeseg_cli.io import write_json, write_npy
-from rangeseg_cli.synth import render_scene, write_scenes
-from rangeseg_cli.synth_camera import write_camera_scenes
+from rangeseg_cli.synth.scenes import render_scene, write_scenes
 
 
 def counts(gt, pred, **kw):
@@ -276,7 +276,7 @@ def test_plot_curve_writes_a_png(tmp_path):
 ])
 def test_malformed_json_beside_the_labels_is_one_line_naming_the_file(tmp_path, file, text,
                                                                       message):
-    from rangeseg_cli.cli import main
+    from rangeseg_cli.cli.main import main
 
     for d in ("pred", "gt"):
         (tmp_path / d).mkdir()
@@ -314,7 +314,7 @@ def test_tolerances_may_be_any_iterable(tmp_path):
 
 
 def test_labels_of_another_shape_name_both_files(tmp_path):
-    from rangeseg_cli.cli import main
+    from rangeseg_cli.cli.main import main
 
     for d in ("pred", "gt"):
         (tmp_path / d).mkdir()
@@ -368,7 +368,7 @@ def test_a_surface_in_two_patches_is_correct_only_when_judged_by_patch():
 
 
 def test_eval_gt_parts_option_judges_patches_and_says_so(tmp_path):
-    from rangeseg_cli.cli import main
+    from rangeseg_cli.cli.main import main
 
     for d in ("pred", "gt"):
         (tmp_path / d).mkdir()

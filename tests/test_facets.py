@@ -1,4 +1,4 @@
-"""A region that fails the fit test is cut into the planes that explain it (rangeseg_cli.facets)."""
+"""A region that fails the fit test is cut into the planes that explain it (rangeseg_cli.refine.facets)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 
 from conftest import found_with
 from rangeseg_cli.config import load_config
-from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.facets import cut_into_planes, facet_regions, merge_back
-from rangeseg_cli.grow import fit_quadrics
+from rangeseg_cli.refine.facets import cut_into_planes, facet_regions, merge_back
+from rangeseg_cli.stages.grow import fit_quadrics
+from rangeseg_cli.synth.evaluate import hoover_compare
 
 CONFIG = load_config()
 
@@ -141,7 +141,7 @@ def test_the_paper_preset_has_no_facets():
 
 
 def test_a_region_beyond_the_bound_on_the_work_is_left_whole(monkeypatch):
-    import rangeseg_cli.facets as facets
+    import rangeseg_cli.refine.facets as facets
 
     z, _ = corner(0.0, 0)
     one = np.ones(z.shape, np.int32)

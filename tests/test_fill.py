@@ -1,4 +1,4 @@
-"""Edge pixels left after growing go to the surface that fits them best (rangeseg_cli.fill)."""
+"""Edge pixels left after growing go to the surface that fits them best (rangeseg_cli.refine.fill)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from hypothesis import strategies as st
 
 from conftest import found_with, passes_without, random_labels
 from rangeseg_cli.config import load_config
-from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.fill import bridge_gaps, fill_edges
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth import render_scene
+from rangeseg_cli.refine.fill import bridge_gaps, fill_edges
+from rangeseg_cli.synth.evaluate import hoover_compare
+from rangeseg_cli.synth.scenes import render_scene
 
 GROW = load_config().grow
 
@@ -149,7 +149,7 @@ def test_fill_only_labels_unlabelled_valid_pixels_from_their_neighbours(seed, sh
 
 def _fill_every_pixel_every_pass(z, labels, cfg):
     """Reference: the fill of fill.py's Notes, testing every open pixel in every pass."""
-    from rangeseg_cli.fill import _best_neighbour, surface_models
+    from rangeseg_cli.refine.fill import _best_neighbour, surface_models
 
     valid = np.isfinite(z)
     out = np.where(valid, labels, 0).astype(np.int32)
@@ -280,8 +280,8 @@ def two_faces() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def test_the_bridge_runs_again_after_carving(monkeypatch, bridge):
     """A face carved after the first bridge (stubbed: B's columns 22-27) gets the edge
     pixels along it that its plane explains, by a last bridge; without ``bridge`` not."""
-    import rangeseg_cli.carve
-    from rangeseg_cli.refinement import Scene, refine_regions
+    import rangeseg_cli.refine.carve
+    from rangeseg_cli.refine.passes import Scene, refine_regions
 
     z, labels, b = two_faces()
 
@@ -290,7 +290,7 @@ def test_the_bridge_runs_again_after_carving(monkeypatch, bridge):
         out[:, 22:28] = 2
         return out
 
-    monkeypatch.setattr(rangeseg_cli.carve, "carve_faces", carve)
+    monkeypatch.setattr(rangeseg_cli.refine.carve, "carve_faces", carve)
     # the passes after growing but the split and recovery, which need components
     config = passes_without("split", "recover", "merge", "recut", "boundaries",
                             *(() if bridge else ("bridge",)))
@@ -322,7 +322,7 @@ def test_paper_preset_does_not_bridge():
 def test_bridge_only_labels_unlabelled_valid_pixels_from_planes_within_reach(seed, shape,
                                                                             regions, holes,
                                                                             invalid):
-    from rangeseg_cli.fill import fit_surfaces
+    from rangeseg_cli.refine.fill import fit_surfaces
 
     z, labels = random_labels(seed, shape, regions, holes, invalid)
     out = bridge_gaps(z, labels, GROW)

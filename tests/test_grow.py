@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from rangeseg_cli.config import GrowConfig, load_config
-from rangeseg_cli.grow import (
+from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.stages.grow import (
     fit_quadrics,
     grow_regions,
     region_fits,
     sums_of_squares,
     union_quadric_mse,
 )
-from rangeseg_cli.pipeline import run_pipeline
 
 N = 128
 TABLE, BOX_TOP = 20.0, 120.0
@@ -319,7 +319,7 @@ def test_noisy_scene_gives_the_right_number_of_regions(scene, expected: int,
 def test_gentle_roof_at_sigma_2_gives_two_regions() -> None:
     # The paper's parameters alone leave one region (the thin roof line jitters by two
     # columns between rows, a knight's-move gap one-pixel linking cannot close); the
-    # fit-test split of issue 9 (rangeseg_cli.split, Sec. VIII) recovers the crease.
+    # fit-test split of issue 9 (rangeseg_cli.refine.split, Sec. VIII) recovers the crease.
     labels = run_pipeline(roof_scene(2.5, sigma=2.0, seed=0), stages=3).labels
     assert len(large_regions(labels)) == 2
 
@@ -337,7 +337,7 @@ def test_more_passes_never_unlabel_a_pixel() -> None:
 def _small_fits(rng: np.random.Generator, shape: tuple[int, int], curvature: float,
                 sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(mse_quad, mse_plane, counts) of one small noisy region z = plane + curvature x^2."""
-    from rangeseg_cli.grow import fit_models
+    from rangeseg_cli.stages.grow import fit_models
 
     y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
     z = 50.0 + 0.5 * x - 0.3 * y + curvature * (x - x.mean()) ** 2
@@ -352,7 +352,7 @@ def test_the_noise_test_keeps_small_noisy_planes_planar(shape):
     """On 30-40 pixels at sigma 2 the quadric's three more terms lower the error by about
     10 % from the noise alone: the tolerance alone calls about a third of such planes
     curved, the F test at 1 % about one in a hundred."""
-    from rangeseg_cli.grow import planar
+    from rangeseg_cli.stages.grow import planar
 
     rng = np.random.default_rng(7)
     alone, tested = 0, 0
@@ -366,7 +366,7 @@ def test_the_noise_test_keeps_small_noisy_planes_planar(shape):
 @pytest.mark.parametrize(("shape", "curvature", "sigma"),
                          [((3, 10), 0.5, 2.0), ((20, 20), 0.02, 0.0), ((20, 20), 0.02, 1.0)])
 def test_the_noise_test_leaves_curved_surfaces_curved(shape, curvature, sigma):
-    from rangeseg_cli.grow import planar
+    from rangeseg_cli.stages.grow import planar
 
     rng = np.random.default_rng(3)
     for _ in range(20):
@@ -375,7 +375,7 @@ def test_the_noise_test_leaves_curved_surfaces_curved(shape, curvature, sigma):
 
 
 def test_the_noise_test_needs_more_than_six_pixels_and_is_a_config_switch():
-    from rangeseg_cli.grow import planar, planar_regions
+    from rangeseg_cli.stages.grow import planar, planar_regions
 
     mse_quad, mse_plane = np.array([0.0, 0.0, 0.0]), np.array([0.0, 4.0, 4.0])
     counts = np.array([0, 6, 7])  # 6 pixels: a quadric fits any; 7: one degree of freedom
@@ -393,9 +393,9 @@ def test_the_noise_test_needs_more_than_six_pixels_and_is_a_config_switch():
 def test_part2s_side_is_found_at_sigma_2_only_with_the_noise_test():
     """Its two pieces (66 and 33 pixels) are called curved by the tolerance alone, so
     neither the merges nor the bridge take them as planes."""
-    from rangeseg_cli.evaluate import hoover_compare
     from rangeseg_cli.pipeline import run_pipeline
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.evaluate import hoover_compare
+    from rangeseg_cli.synth.scenes import render_scene
 
     scene = render_scene("part2", noise=2.0, seed=1)
     side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "base -y side")

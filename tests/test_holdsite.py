@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from conftest import passes_without
-from rangeseg_cli import holdsite as holdsite_module
+from rangeseg_cli.batch.io import to_jsonable
+from rangeseg_cli.batch.render import overlay
 from rangeseg_cli.config import load_config
-from rangeseg_cli.holdsite import HoldsiteResult, find_holdsite, footprint, window_ar_std
-from rangeseg_cli.io import to_jsonable
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.render import overlay
+from rangeseg_cli.stages import holdsite as holdsite_module
+from rangeseg_cli.stages.holdsite import HoldsiteResult, find_holdsite, footprint, window_ar_std
 
 CONTRACT_KEYS = {"row", "col", "elevation", "normal", "approach", "surface", "surface_type",
                  "object", "clearance", "ar_std", "score", "angle", "size", "flat_rms"}
@@ -326,7 +326,7 @@ def test_overlay_fills_the_site_white_and_outlines_runners_up():
 
 
 def test_window_mean_of_large_rotated_footprint_matches_shift_sum():
-    from rangeseg_cli.holdsite import window_mean
+    from rangeseg_cli.stages.holdsite import window_mean
 
     a = np.random.default_rng(2).random((40, 50))
     fp = footprint((9, 21), 30.0)
@@ -338,9 +338,9 @@ def test_window_mean_of_large_rotated_footprint_matches_shift_sum():
 @pytest.mark.parametrize("backend", ["numpy", "auto"])
 @pytest.mark.parametrize("seed", range(3))
 def test_step_gaps_given_with_the_surfaces_are_those_the_search_computes(backend, seed):
-    from rangeseg_cli.holdsite import _coefficient_table, step_gaps
-    from rangeseg_cli.surfaces import describe_surfaces, describe_surfaces_and_gaps
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.stages.holdsite import _coefficient_table, step_gaps
+    from rangeseg_cli.stages.surfaces import describe_surfaces, describe_surfaces_and_gaps
+    from rangeseg_cli.synth.scenes import render_scene
 
     config = load_config(preset="paper")
     result = run_pipeline(render_scene("pile", noise=1.0, seed=seed).image, config)
@@ -367,8 +367,8 @@ def test_a_plateau_clipped_at_255_is_not_gripped_a_measured_surface_is():
     # measures, and the check against the ground truth (0 where clipped) passes.
     from dataclasses import replace
 
-    from rangeseg_cli.evaluate import check_holdsite
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.evaluate import check_holdsite
+    from rangeseg_cli.synth.scenes import render_scene
 
     scene = render_scene("pile", noise=1.0, seed=9)
     assert scene.info["saturated"] > 0
@@ -437,7 +437,7 @@ def _true_pose_errors(scene, site):
 
 @pytest.mark.parametrize("noise", [0.0, 1.0])
 def test_sites_on_a_sphere_take_the_pose_of_the_sphere_under_the_gripper(noise, monkeypatch):
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     scene = render_scene("sphere", noise=noise, seed=0)
     errors = {}
@@ -462,8 +462,8 @@ def test_a_site_on_a_plane_keeps_the_plane_of_the_whole_face(monkeypatch):
 
 
 def test_local_pose_needs_enough_pixels_and_is_exact_on_a_quadric():
-    from rangeseg_cli.holdsite import LOCAL_FIT_MIN_PIXELS, local_pose
     from rangeseg_cli.models import Surface
+    from rangeseg_cli.stages.holdsite import LOCAL_FIT_MIN_PIXELS, local_pose
 
     rows, cols = np.mgrid[0:40, 0:40].astype(float)
     z = 50.0 + 0.3 * cols - 0.2 * rows + 0.01 * (cols - 20) ** 2 + 0.02 * (rows - 20) * cols
@@ -483,8 +483,8 @@ def test_local_pose_needs_enough_pixels_and_is_exact_on_a_quadric():
 
 
 def test_local_poses_match_a_least_squares_fit_at_every_site_border_and_holes_included():
-    from rangeseg_cli.holdsite import local_pose, local_poses
     from rangeseg_cli.models import Surface
+    from rangeseg_cli.stages.holdsite import local_pose, local_poses
 
     rng = np.random.default_rng(3)
     rows, cols = np.mgrid[0:30, 0:40].astype(float)
@@ -522,7 +522,7 @@ def _sites(found):
 
 def test_max_tilt_is_tested_only_with_the_lateral_scale_of_the_image():
     from rangeseg_cli.errors import ConfigError
-    from rangeseg_cli.holdsite import effective_holdsite
+    from rangeseg_cli.stages.holdsite import effective_holdsite
 
     assert load_config().holdsite.max_tilt == 45.0
     assert effective_holdsite(load_config()).max_tilt == 90.0  # no scale: not testable
@@ -538,7 +538,7 @@ def test_max_tilt_is_tested_only_with_the_lateral_scale_of_the_image():
 
 @pytest.mark.parametrize("scene_name", ["part1", "cup", "nut"])
 def test_max_tilt_keeps_every_site_within_the_limit(scene_name):
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     image = render_scene(scene_name, noise=1.0, seed=0).image
     free = run(image, max_tilt=90.0, units_per_pixel=2.0)
@@ -552,7 +552,7 @@ def test_max_tilt_keeps_every_site_within_the_limit(scene_name):
 
 
 def test_max_tilt_with_no_level_window_says_so():
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     found = run(render_scene("wedge", noise=0.0, seed=0).image, max_tilt=45.0,
                 units_per_pixel=2.0).holdsite
@@ -562,7 +562,7 @@ def test_max_tilt_with_no_level_window_says_so():
 
 
 def test_max_tilt_with_a_camera_takes_the_optical_axis():
-    from rangeseg_cli.io import read_image
+    from rangeseg_cli.batch.io import read_image
 
     image = read_image("sample_data/arc/suction-scene.depth.png")
     angles = {}
@@ -577,7 +577,7 @@ def test_max_tilt_with_a_camera_takes_the_optical_axis():
 
 
 def test_tilts_of_a_camera_agree_with_the_reported_approach():
-    from rangeseg_cli.holdsite import camera_pose, tilts
+    from rangeseg_cli.stages.holdsite import camera_pose, tilts
 
     camera = load_config("sample_data/arc/suction.toml").input
     rng = np.random.default_rng(0)
@@ -592,8 +592,8 @@ def test_tilts_of_a_camera_agree_with_the_reported_approach():
 
 def test_a_small_footprint_still_takes_its_local_pose_from_enough_pixels():
     # a 3x3 footprint's own 7x7 square held a quadric of 49 noisy pixels: 16-24 degrees off
-    from rangeseg_cli.holdsite import LOCAL_MIN_REACH, local_reach
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.stages.holdsite import LOCAL_MIN_REACH, local_reach
+    from rangeseg_cli.synth.scenes import render_scene
 
     assert local_reach((3, 3)) == LOCAL_MIN_REACH == local_reach((7, 1))
     assert local_reach((21, 7)) == 21
@@ -624,8 +624,8 @@ def test_max_tilt_without_depth_in_front_of_the_camera_says_so():
 
 
 def test_tilts_computed_a_chunk_at_a_time_choose_as_all_at_once(monkeypatch):
-    from rangeseg_cli import holdsite
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.stages import holdsite
+    from rangeseg_cli.synth.scenes import render_scene
 
     for name in ("cup", "part1", "sphere"):
         image = render_scene(name, noise=1.0, seed=2).image

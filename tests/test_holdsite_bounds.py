@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from rangeseg_cli import io, run_pipeline
+from rangeseg_cli import run_pipeline
+from rangeseg_cli.batch import io
+from rangeseg_cli.batch.stopping import checkpoint, stop_checks
 from rangeseg_cli.config import load_config
-from rangeseg_cli.holdsite import erode_runs, find_holdsite, footprint
-from rangeseg_cli.stopping import checkpoint, stop_checks
+from rangeseg_cli.stages.holdsite import erode_runs, find_holdsite, footprint
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from rangeseg_cli.cli import main
+from rangeseg_cli.cell.intrinsics import Intrinsics, read_intrinsics
+from rangeseg_cli.cli.main import main
 from rangeseg_cli.errors import ConfigError
-from rangeseg_cli.intrinsics import Intrinsics, read_intrinsics
 
 FX, FY, CX, CY = 616.521545, 616.521606, 311.354492, 231.087402
 

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import tifffile
 
-from rangeseg_cli import io
+from rangeseg_cli.batch import io
 from rangeseg_cli.config import InputConfig, load_config
 from rangeseg_cli.errors import InputError
-from rangeseg_cli.rangeimage import clipped_value, to_heights
+from rangeseg_cli.stages.rangeimage import clipped_value, to_heights
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
@@ -225,7 +225,7 @@ def test_an_image_clipped_everywhere_is_a_one_line_error(tmp_path, write_png):
     write_png(tmp_path / "in" / "white.png", np.full((16, 16), 255, np.uint8))
     from click.testing import CliRunner
 
-    from rangeseg_cli.cli import main
+    from rangeseg_cli.cli.main import main
 
     result = CliRunner().invoke(main, ["run", str(tmp_path / "in"), "-o", str(tmp_path / "out")])
     assert result.exit_code != 0
@@ -235,7 +235,7 @@ def test_an_image_clipped_everywhere_is_a_one_line_error(tmp_path, write_png):
 def test_the_manifest_counts_the_clipped_pixels(tmp_path, write_png):
     from click.testing import CliRunner
 
-    from rangeseg_cli.cli import main
+    from rangeseg_cli.cli.main import main
 
     (tmp_path / "in").mkdir()
     image = np.full((32, 32), 40, np.uint8)

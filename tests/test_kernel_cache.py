@@ -10,14 +10,14 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from rangeseg_cli import kernel_cache
-from rangeseg_cli.cli import main
+from rangeseg_cli.cli.main import main
+from rangeseg_cli.kernels import cache as kernel_cache
 
 
 @pytest.fixture
 def package(tmp_path, monkeypatch):
     """A copy of the kernels' source with an empty cache beside it."""
-    source = tmp_path / "_kernels.py"
+    source = tmp_path / "compiled.py"
     source.write_text("# kernels\n")
     (tmp_path / "__pycache__").mkdir()
     monkeypatch.setattr(kernel_cache, "SOURCE", source)
@@ -27,9 +27,9 @@ def package(tmp_path, monkeypatch):
 
 
 def index(folder: Path, age: float = 0.0) -> Path:
-    path = folder / "_kernels.edges_pass-196.py311.nbi"
+    path = folder / "compiled.edges_pass-196.py311.nbi"
     path.write_bytes(b"")
-    stamp = (folder.parent / "_kernels.py").stat().st_mtime + age
+    stamp = (folder.parent / "compiled.py").stat().st_mtime + age
     os.utime(path, (stamp, stamp))
     return path
 
@@ -51,7 +51,7 @@ def test_an_index_older_than_the_source_is_cold(package):
 def test_a_cache_under_numba_cache_dir_counts(package, tmp_path, monkeypatch):
     elsewhere = tmp_path / "cache" / "some" / "path"
     elsewhere.mkdir(parents=True)
-    path = elsewhere / "_kernels.edges_pass-196.py311.nbi"
+    path = elsewhere / "compiled.edges_pass-196.py311.nbi"
     path.write_bytes(b"")
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
     assert not kernel_cache.cold_kernel_cache()
@@ -95,9 +95,9 @@ def test_the_kernels_compiled_ahead_are_those_a_default_run_calls(monkeypatch):
     from numba.core.registry import CPUDispatcher
     from numba.core.sigutils import normalize_signature
 
-    from rangeseg_cli import _kernels
+    from rangeseg_cli.kernels import compiled as _kernels
     from rangeseg_cli.pipeline import run_pipeline
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     monkeypatch.delenv("RANGESEG_PURE_NUMPY", raising=False)
     monkeypatch.setenv("RANGESEG_THREADS", "1")
@@ -133,7 +133,7 @@ def test_the_first_kernel_compiled_starts_one_helper(monkeypatch):
     kernel_cache._on_compile(_Dispatcher("numba.np.arraymath"))
     assert started == []  # numba's own code does not count
     for _ in range(2):
-        kernel_cache._on_compile(_Dispatcher("rangeseg_cli._kernels"))
+        kernel_cache._on_compile(_Dispatcher("rangeseg_cli.kernels.compiled"))
     assert started == [1]
 
 

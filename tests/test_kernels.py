@@ -1,4 +1,4 @@
-"""The compiled kernels (rangeseg_cli._kernels) give exactly the numpy reference's results.
+"""The compiled kernels (rangeseg_cli.kernels.compiled) give exactly the numpy reference's results.
 
 Edges (Sec. V-1, V-2): identical maps. Region growing and surfaces (Sec. V-4)
 and holdsites (Sec. VII): identical moment sums, labels, boundary pairs and
@@ -16,13 +16,14 @@ import numpy as np
 import pytest
 
 from conftest import box_scene, passes_without, step_image
-from rangeseg_cli import backend as backend_module
-from rangeseg_cli import edges, io
+from rangeseg_cli.batch import io
 from rangeseg_cli.config import load_config
-from rangeseg_cli.edges import DIRECTIONS, absolute_residual, detect_edges, gaussian_taps
-from rangeseg_cli.grow import grow_regions, region_fits
+from rangeseg_cli.kernels import backend as backend_module
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.surfaces import describe_surfaces, neighbour_pairs
+from rangeseg_cli.stages import edges
+from rangeseg_cli.stages.edges import DIRECTIONS, absolute_residual, detect_edges, gaussian_taps
+from rangeseg_cli.stages.grow import grow_regions, region_fits
+from rangeseg_cli.stages.surfaces import describe_surfaces, neighbour_pairs
 
 CFG = load_config()
 ONE_SIDED = load_config(overrides={"roof": {"truncation": "one-sided"}})
@@ -161,7 +162,7 @@ def test_noise_free_integer_scene_with_exact_ties_gives_identical_maps():
 @requires_numba
 @pytest.mark.parametrize("truncation", ["symmetric", "one-sided"])
 def test_absolute_residuals_are_bitwise_equal_to_the_reference(truncation):
-    from rangeseg_cli import _kernels
+    from rangeseg_cli.kernels import compiled as _kernels
 
     z = random_boxes(41, 59, seed=5)
     excluded = detect_edges(z, CFG, backend="numpy").step
@@ -197,7 +198,7 @@ def test_small_filter_residuals_are_bitwise_equal_to_the_reference(shape, max_sa
 
 @requires_numba
 def test_smallest_sorted_is_the_start_of_numpy_sort():
-    from rangeseg_cli import _kernels
+    from rangeseg_cli.kernels import compiled as _kernels
 
     rng = np.random.default_rng(7)
     samples = [np.abs(rng.normal(size=5000)), np.round(np.abs(rng.normal(size=999)) * 4) / 4,
@@ -210,7 +211,7 @@ def test_smallest_sorted_is_the_start_of_numpy_sort():
 
 @requires_numba
 def test_compiled_noise_estimate_is_the_numpy_one_bit_for_bit():
-    from rangeseg_cli.noise import estimate_noise
+    from rangeseg_cli.stages.noise import estimate_noise
 
     scenes = [io.read_image(p).astype(np.float64) for p in SAMPLES[:4]]
     scenes += [random_boxes(200, 260, seed=1, noise=n, holes=0.02) for n in (0.0, 0.5, 2.0)]
@@ -233,8 +234,8 @@ def test_compiled_noise_estimate_is_the_numpy_one_bit_for_bit():
 
 def pipeline_scenes():
     scenes = [box_scene(noise=1.0, seed=1), random_boxes(96, 80, seed=3)]
-    if importlib.util.find_spec("rangeseg_cli.synth") is not None:
-        from rangeseg_cli.synth import render_scene
+    if importlib.util.find_spec("rangeseg_cli.synth.scenes") is not None:
+        from rangeseg_cli.synth.scenes import render_scene
 
         scenes.append(render_scene("pile", size=(96, 112), noise=1.0, seed=2).image)
     return scenes
@@ -245,9 +246,9 @@ def pipeline_scenes():
 def test_run_pipeline_gives_identical_labels_with_both_backends(index, monkeypatch):
     scenes = pipeline_scenes()
     if index >= len(scenes):
-        pytest.skip("rangeseg_cli.synth (the pile scene) is not there")
+        pytest.skip("rangeseg_cli.synth.scenes (the pile scene) is not there")
     image = scenes[index]
-    stages = 3 if importlib.util.find_spec("rangeseg_cli.grow") else 2
+    stages = 3 if importlib.util.find_spec("rangeseg_cli.stages.grow") else 2
     results = []
     for use_numba in (False, True):
         monkeypatch.setattr(backend_module, "_USE_NUMBA", use_numba)
@@ -330,7 +331,7 @@ def test_random_noisy_scenes_give_identical_labels_surfaces_and_holdsites(seed, 
 @requires_numba
 @pytest.mark.parametrize("size", [(7, 7), (5, 5), (3, 9)])
 def test_compiled_window_search_gives_the_hits_of_the_reference(size, monkeypatch):
-    from rangeseg_cli import holdsite
+    from rangeseg_cli.stages import holdsite
 
     config = load_config(preset="paper", overrides={"holdsite": {"size": list(size),
                                                                  "rotation_step": 90}})
@@ -355,8 +356,8 @@ def test_compiled_window_search_gives_the_hits_of_the_reference(size, monkeypatc
 @requires_numba
 @pytest.mark.parametrize("seed", range(4))
 def test_region_fits_are_bitwise_equal_to_the_reference(seed):
-    from rangeseg_cli import _kernels
-    from rangeseg_cli.grow import _reference_moments
+    from rangeseg_cli.kernels import compiled as _kernels
+    from rangeseg_cli.stages.grow import _reference_moments
 
     z, _, components = _stage3(random_boxes(70, 90, seed=seed))
     n = int(components.max())
@@ -416,7 +417,7 @@ def test_neighbour_pairs_of_arrays_narrower_than_the_reach_are_identical(reach):
 @requires_numba
 @pytest.mark.parametrize("seed", range(3))
 def test_pair_medians_are_identical_to_the_lexsort_reference(seed):
-    from rangeseg_cli.surfaces import pair_medians
+    from rangeseg_cli.stages.surfaces import pair_medians
 
     rng = np.random.default_rng(seed)
     size = int(rng.integers(1, 3000))
@@ -433,7 +434,7 @@ def test_pair_medians_are_identical_to_the_lexsort_reference(seed):
 
 @requires_numba
 def test_label_boxes_are_those_of_find_objects():
-    from rangeseg_cli.surfaces import label_boxes
+    from rangeseg_cli.stages.surfaces import label_boxes
 
     labels = np.random.default_rng(3).integers(0, 6, (29, 41)).astype(np.int32)
     labels[labels == 4] = 0  # an absent label
@@ -449,7 +450,7 @@ def test_label_boxes_are_those_of_find_objects():
 @pytest.mark.parametrize("larger_is_closer", [True, False])
 def test_compiled_heights_are_bitwise_the_reference(dtype, larger_is_closer):
     from rangeseg_cli.config import InputConfig
-    from rangeseg_cli.rangeimage import to_heights
+    from rangeseg_cli.stages.rangeimage import to_heights
 
     rng = np.random.default_rng(3)
     raw = (rng.random((20, 24)) * 250).astype(dtype)
@@ -470,7 +471,7 @@ def test_compiled_heights_are_bitwise_the_reference(dtype, larger_is_closer):
 @requires_numba
 @pytest.mark.parametrize("dtype", [np.int32, np.int64, np.uint16, np.bool_])
 def test_valid_labels_are_those_of_the_reference(dtype):
-    from rangeseg_cli.grow import valid_labels
+    from rangeseg_cli.stages.grow import valid_labels
 
     rng = np.random.default_rng(5)
     z = rng.normal(size=(23, 31))
@@ -487,7 +488,7 @@ def test_valid_labels_are_those_of_the_reference(dtype):
 @pytest.mark.parametrize("seed", range(3))
 def test_compiled_linking_gives_the_reference_codes_and_components(seed):
     from rangeseg_cli.config import LinkConfig
-    from rangeseg_cli.link import link_edges
+    from rangeseg_cli.stages.link import link_edges
 
     rng = np.random.default_rng(20 + seed)
     for _ in range(12):
@@ -516,7 +517,7 @@ def test_ar_2d_is_bitwise_the_reference(seed):
 @requires_numba
 @pytest.mark.parametrize("seed", range(3))
 def test_pair_measures_are_bitwise_the_reference(seed):
-    from rangeseg_cli.surfaces import pair_measures
+    from rangeseg_cli.stages.surfaces import pair_measures
 
     rng = np.random.default_rng(seed)
     labels = rng.integers(0, 7, (40, 50)).astype(np.int32)
@@ -532,7 +533,7 @@ def test_pair_measures_are_bitwise_the_reference(seed):
 @requires_numba
 @pytest.mark.parametrize("seed", range(3))
 def test_compiled_step_gaps_are_bitwise_the_reference(seed):
-    from rangeseg_cli.holdsite import step_gaps
+    from rangeseg_cli.stages.holdsite import step_gaps
 
     rng = np.random.default_rng(10 + seed)
     labels = rng.integers(0, 7, (40, 50)).astype(np.int32)
@@ -617,7 +618,7 @@ def test_unknown_backend_of_the_fits_is_an_error():
 
 
 def test_pure_numpy_environment_variable_turns_the_kernels_off():
-    code = "import rangeseg_cli.backend as b; print(b._USE_NUMBA)"
+    code = "import rangeseg_cli.kernels.backend as b; print(b._USE_NUMBA)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, env={**os.environ, "RANGESEG_PURE_NUMPY": "1"})
     assert out.stdout.strip() == "False"
@@ -663,7 +664,8 @@ def _knot_problem(seed: int, n: int = 300):
 @pytest.mark.parametrize("powers", [(1,), (2, 3), (2,), (3,)])
 @pytest.mark.parametrize("seed", range(3))
 def test_knot_search_kernels_are_bitwise_equal_to_the_reference(seed, powers):
-    from rangeseg_cli import _kernels, recut
+    from rangeseg_cli.kernels import compiled as _kernels
+    from rangeseg_cli.refine import recut
 
     rows, cols, zs, d, u, knots = _knot_problem(seed)
     x, y = cols - cols.mean(), rows - rows.mean()
@@ -681,7 +683,7 @@ def test_knot_search_kernels_are_bitwise_equal_to_the_reference(seed, powers):
 @pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
 @pytest.mark.parametrize("powers", [(1,), (2, 3)])
 def test_knot_sse_is_the_least_squares_error_at_every_knot(powers, backend):
-    from rangeseg_cli.recut import knot_sse
+    from rangeseg_cli.refine.recut import knot_sse
 
     rows, cols, zs, d, u, knots = _knot_problem(7)
     got = knot_sse(rows, cols, zs, d, knots, powers, backend=backend)

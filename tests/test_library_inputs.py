@@ -24,9 +24,9 @@ from rangeseg_cli.config import (
     load_config,
 )
 from rangeseg_cli.errors import ConfigError, InputError
-from rangeseg_cli.holdsite import find_holdsite
 from rangeseg_cli.pipeline import run_pipeline, stage_edges, stage_grow, stage_link
-from rangeseg_cli.surfaces import describe_surfaces
+from rangeseg_cli.stages.holdsite import find_holdsite
+from rangeseg_cli.stages.surfaces import describe_surfaces
 
 CFG = load_config()
 

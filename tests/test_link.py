@@ -7,8 +7,8 @@ import pytest
 from scipy import ndimage
 
 from rangeseg_cli.config import LinkConfig
-from rangeseg_cli.edges import DIRECTIONS, LINKED_EDGE, ROOF_EDGE, STEP_EDGE
-from rangeseg_cli.link import FOUR_CONNECTED, label_components, link_edges
+from rangeseg_cli.stages.edges import DIRECTIONS, LINKED_EDGE, ROOF_EDGE, STEP_EDGE
+from rangeseg_cli.stages.link import FOUR_CONNECTED, label_components, link_edges
 
 CFG = LinkConfig()
 

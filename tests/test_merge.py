@@ -1,4 +1,4 @@
-"""Touching regions that one surface fits are merged (rangeseg_cli.merge)."""
+"""Touching regions that one surface fits are merged (rangeseg_cli.refine.merge)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ from hypothesis import strategies as st
 from conftest import found_with, passes_without, random_labels
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError
-from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.merge import merge_planes, merge_regions, touching_pairs
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth import render_scene
+from rangeseg_cli.refine.merge import merge_planes, merge_regions, touching_pairs
+from rangeseg_cli.synth.evaluate import hoover_compare
+from rangeseg_cli.synth.scenes import render_scene
 
 CONFIG = load_config()
 

@@ -1,4 +1,4 @@
-"""Issue 32: step and roof thresholds that follow the sensor (rangeseg_cli.noise, Sec. V-1, V-2).
+"""Issue 32: step and roof thresholds that follow the sensor (rangeseg_cli.stages.noise, Sec. V-1, V-2).
 
 Constructed cases with known answers: the paper's thresholds at the paper's
 scale and noise, thresholds in proportion to the lateral scale, rising with
@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from rangeseg_cli.config import Config, load_config
-from rangeseg_cli.noise import (
+from rangeseg_cli.pipeline import stage_edges, uses_noise
+from rangeseg_cli.stages.noise import (
     NOISE_SLOPE,
     PAPER_NOISE,
     PAPER_UNITS_PER_PIXEL,
@@ -24,8 +25,7 @@ from rangeseg_cli.noise import (
     sensor_config,
     threshold_factor,
 )
-from rangeseg_cli.pipeline import stage_edges, uses_noise
-from rangeseg_cli.rangeimage import to_heights
+from rangeseg_cli.stages.rangeimage import to_heights
 
 AUTO = load_config()  # auto_thresholds is on by default
 FIXED = load_config(overrides={"input": {"auto_thresholds": False}})

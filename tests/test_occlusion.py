@@ -1,4 +1,4 @@
-"""Patches of one surface divided by something in front are joined (rangeseg_cli.occlusion)."""
+"""Patches of one surface divided by something in front are joined (rangeseg_cli.refine.occlusion)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 
 from conftest import passes_without
 from rangeseg_cli.config import load_config
-from rangeseg_cli.occlusion import join_occluded
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth import render_scene
+from rangeseg_cli.refine.occlusion import join_occluded
+from rangeseg_cli.synth.scenes import render_scene
 
 CONFIG = load_config()
 BAR = slice(25, 35)  # columns of the strip between the two patches

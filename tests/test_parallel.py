@@ -1,4 +1,4 @@
-"""Threads within one image (rangeseg_cli.parallel): row bands give the same bits as one call.
+"""Threads within one image (rangeseg_cli.kernels.parallel): row bands give the same bits as one call.
 
 Every kernel run on bands (edges of Sec. V-1, V-2; the split's local plane
 fits) is checked against one call on the whole image, with bands of a few
@@ -17,12 +17,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rangeseg_cli import parallel, planes
-from rangeseg_cli import split as split_module
 from rangeseg_cli.config import load_config
-from rangeseg_cli.edges import detect_edges
+from rangeseg_cli.kernels import parallel
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth import render_scene
+from rangeseg_cli.refine import planes
+from rangeseg_cli.refine import split as split_module
+from rangeseg_cli.stages.edges import detect_edges
+from rangeseg_cli.synth.scenes import render_scene
 
 CFG = load_config()
 

@@ -8,9 +8,9 @@ import pytest
 from plyfile import PlyData
 
 from conftest import box_scene
-from rangeseg_cli.cli import main
+from rangeseg_cli.batch.pointcloud import holdsite_vertices
+from rangeseg_cli.cli.main import main
 from rangeseg_cli.config import InputConfig
-from rangeseg_cli.pointcloud import holdsite_vertices
 
 
 def _xyz(vertex) -> np.ndarray:
@@ -111,7 +111,7 @@ def test_a_rerun_without_ply_removes_the_point_clouds_of_an_earlier_run(runner, 
 ])
 def test_ply_on_a_read_only_output_is_one_line(runner, box_png, tmp_path, monkeypatch,
                                                refused, code, line):
-    import rangeseg_cli.io as rio
+    import rangeseg_cli.batch.io as rio
 
     real_replace = rio.os.replace
 

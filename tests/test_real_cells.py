@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rangeseg_cli import io, load_config, run_pipeline
-from rangeseg_cli.intrinsics import read_intrinsics
-from rangeseg_cli.workspace import find_support, points
+from rangeseg_cli import load_config, run_pipeline
+from rangeseg_cli.batch import io
+from rangeseg_cli.cell.intrinsics import read_intrinsics
+from rangeseg_cli.cell.workspace import find_support, points
 
 ARC = Path(__file__).resolve().parent.parent / "sample_data" / "arc"
 CAMERAS = ("suction", "bin")

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rangeseg_cli import io, load_config, run_pipeline
+from rangeseg_cli import load_config, run_pipeline
+from rangeseg_cli.batch import io
 
 ARC = Path(__file__).resolve().parent.parent / "sample_data" / "arc"
 
@@ -67,7 +68,7 @@ def test_real_frame_holdsite_is_above_the_tote_floor_not_on_it(result):
 
 def test_real_frame_labels_are_the_same_with_forked_processes_and_one_thread(result,
                                                                               monkeypatch):
-    from rangeseg_cli import parallel
+    from rangeseg_cli.kernels import parallel
 
     raw, config, _ = result
     forks = []

@@ -1,4 +1,4 @@
-"""Narrow faces recovered from the unlabelled band (rangeseg_cli.recover, beyond Sec. V-4)."""
+"""Narrow faces recovered from the unlabelled band (rangeseg_cli.refine.recover, beyond Sec. V-4)."""
 
 from __future__ import annotations
 
@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from conftest import passes_without
-from rangeseg_cli import recover
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
-from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.pipeline import run_pipeline, stage_grow
-from rangeseg_cli.recover import plane_pieces, recover_faces
-from rangeseg_cli.synth import render_scene
+from rangeseg_cli.refine import recover
+from rangeseg_cli.refine.recover import plane_pieces, recover_faces
+from rangeseg_cli.synth.evaluate import hoover_compare
+from rangeseg_cli.synth.scenes import render_scene
 
 N = 128
 ON = load_config()  # recovery is on by default
@@ -197,7 +197,7 @@ def test_max_noise_is_the_recoverys_noise_limit() -> None:
 
 @pytest.mark.parametrize("seed", range(6))
 def test_compiled_explained_faces_equal_the_numpy_reference(seed):
-    from rangeseg_cli import recover
+    from rangeseg_cli.refine import recover
 
     rng = np.random.default_rng(seed)
     h, w = 40, 50
@@ -218,7 +218,7 @@ def test_compiled_explained_faces_equal_the_numpy_reference(seed):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_compiled_consensus_votes_equal_the_numpy_reference(seed: int) -> None:
-    from rangeseg_cli import recover
+    from rangeseg_cli.refine import recover
 
     rng = np.random.default_rng(seed)
     h, w = 30, 40

@@ -1,4 +1,4 @@
-"""Regions are cut along the straight line where a plane ends (rangeseg_cli.recut)."""
+"""Regions are cut along the straight line where a plane ends (rangeseg_cli.refine.recut)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pytest
 
 from conftest import passes_without
 from rangeseg_cli.config import load_config
-from rangeseg_cli.evaluate import hoover_compare
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.recut import recut_regions, split_crease, split_tangent
-from rangeseg_cli.synth import render_scene
+from rangeseg_cli.refine.recut import recut_regions, split_crease, split_tangent
+from rangeseg_cli.synth.evaluate import hoover_compare
+from rangeseg_cli.synth.scenes import render_scene
 
 CONFIG = load_config()
 OFF = passes_without("recut")

@@ -1,4 +1,4 @@
-"""Boundary pixels settle on the surface that predicts them best (rangeseg_cli.refine)."""
+"""Boundary pixels settle on the surface that predicts them best (rangeseg_cli.refine.boundaries)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import pytest
 from conftest import bad_setting_on_the_command_line, found_with
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError
-from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.fill import surface_models
-from rangeseg_cli.refine import crease_kinds, refine_boundaries
+from rangeseg_cli.refine.boundaries import crease_kinds, refine_boundaries
+from rangeseg_cli.refine.fill import surface_models
+from rangeseg_cli.synth.evaluate import hoover_compare
 
 CONFIG = load_config()
 
@@ -99,7 +99,7 @@ def test_the_crease_rule_keeps_noisy_pixels_on_their_side_of_the_crease(seed, tu
 
 
 def test_the_crease_rule_finds_part2s_narrow_side_at_sigma_2(tuning):
-    # the bridge (rangeseg_cli.fill.bridge_gaps) also finds it: off, to test the rule
+    # the bridge (rangeseg_cli.refine.fill.bridge_gaps) also finds it: off, to test the rule
     side, on = found_with("part2", 2.0, 0, "base -y side", without=("bridge",))
     tuning(refine_creases=False)
     _, off = found_with("part2", 2.0, 0, "base -y side", without=("bridge",))

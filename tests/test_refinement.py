@@ -1,4 +1,4 @@
-"""Issue 33: cut, merge and assign of the refinement (rangeseg_cli.refinement) with known answers.
+"""Issue 33: cut, merge and assign of the refinement (rangeseg_cli.refine.passes) with known answers.
 
 Every scene is built here with numpy from analytic surfaces (heights in depth
 units, larger = closer), optionally with Gaussian noise of a fixed seed, and
@@ -7,7 +7,7 @@ with the defaults and without the refinement (``--preset paper``, or the
 defaults with ``[refine] passes = []``), and the labels are compared with the
 truth. Angles are between the normals of the height map ``z(row, col)`` with
 one depth unit per pixel, as the refinement measures them
-(:func:`rangeseg_cli.grow.plane_angle`, ``[refine] min_crease``).
+(:func:`rangeseg_cli.stages.grow.plane_angle`, ``[refine] min_crease``).
 """
 
 from __future__ import annotations
@@ -18,9 +18,10 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from rangeseg_cli import pipeline, refinement
+from rangeseg_cli import pipeline
 from rangeseg_cli.config import REFINE_PASSES, Config, load_config
 from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.refine import passes as refinement
 
 N = 128
 DEFAULTS = load_config()

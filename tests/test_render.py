@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rangeseg_cli import load_config, run_pipeline
-from rangeseg_cli.render import label_colors, overlay, shade_by_height
+from rangeseg_cli.batch.render import label_colors, overlay, shade_by_height
 
 
 def two_boxes() -> np.ndarray:

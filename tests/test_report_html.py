@@ -15,8 +15,8 @@ from urllib.parse import unquote_to_bytes
 import pytest
 from click.testing import CliRunner
 
-from rangeseg_cli.cli import main
-from rangeseg_cli.report_html import tilt, write_report
+from rangeseg_cli.batch.report import tilt, write_report
+from rangeseg_cli.cli.main import main
 
 SITE = {"row": 12, "col": 34, "clearance": 7.5, "surface": 3, "surface_type": "planar",
         "normal": [0.6, 0.0, 0.8], "approach": [-0.6, 0.0, -0.8]}
@@ -183,7 +183,7 @@ def test_bad_out_is_one_line_naming_it_and_exit_code_2(tmp_path, make, expected)
 def test_a_batch_on_an_object_store_gets_its_page_there(tmp_path):
     import fsspec
 
-    from rangeseg_cli.io import location
+    from rangeseg_cli.batch.io import location
 
     local = make_out(tmp_path / "out", {"a": done(), "b": {"status": "failed", "error": "x"}},
                      {"a": SITE})

@@ -6,7 +6,7 @@ import numpy as np
 from rerun.chunk import RrdReader
 
 from conftest import box_scene
-from rangeseg_cli.cli import main
+from rangeseg_cli.cli.main import main
 
 
 def _steps(rrd) -> dict[str, dict[int, object]]:

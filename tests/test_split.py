@@ -1,4 +1,4 @@
-"""Issue 9: the quality-of-fit split of Sec. VIII and the noise estimate (rangeseg_cli.split)."""
+"""Issue 9: the quality-of-fit split of Sec. VIII and the noise estimate (rangeseg_cli.refine.split)."""
 
 from __future__ import annotations
 
@@ -12,21 +12,21 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from conftest import passes_without
-from rangeseg_cli import noise as noise_module
-from rangeseg_cli import regions
-from rangeseg_cli import split as split_module
 from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
-from rangeseg_cli.evaluate import hoover_compare
-from rangeseg_cli.grow import fit_quadrics, grow_regions
 from rangeseg_cli.pipeline import run_pipeline, stage_edges, stage_grow
-from rangeseg_cli.planes import local_planes
-from rangeseg_cli.split import (
+from rangeseg_cli.refine import regions
+from rangeseg_cli.refine import split as split_module
+from rangeseg_cli.refine.planes import local_planes
+from rangeseg_cli.refine.split import (
     estimate_noise,
     failing_components,
     merge_back,
     split_regions,
 )
+from rangeseg_cli.stages import noise as noise_module
+from rangeseg_cli.stages.grow import fit_quadrics, grow_regions
+from rangeseg_cli.synth.evaluate import hoover_compare
 
 N = 128
 SPLIT = load_config()  # the split is on by default
@@ -231,12 +231,12 @@ def test_trimming_finds_part1s_grazing_base_side(tuning) -> None:
     # part1's base +y is a strip 1-2 pixels wide seen at a grazing angle (flush with the
     # block's +y side and the fillet's end: one GT surface); without the trim its pixels
     # stay in a piece of the block's side and base top (docs/quality.md).
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     scene = render_scene("part1", size=(128, 128), noise=0.0, seed=0)
     side = next(s["id"] for s in scene.info["surfaces"] if s["name"].startswith("base +y &"))
     found = {}
-    # the bridge (rangeseg_cli.fill.bridge_gaps) finds it without the trim: off
+    # the bridge (rangeseg_cli.refine.fill.bridge_gaps) finds it without the trim: off
     config = passes_without("bridge")
     for trim in (True, False):
         tuning(trim_pieces=trim)
@@ -489,7 +489,7 @@ def test_far_nearest_label_search_breaks_ties_as_the_feature_transform_does() ->
     # on a grid (many equally near ones), against scipy's feature transform.
     from scipy import ndimage
 
-    from rangeseg_cli import _kernels
+    from rangeseg_cli.kernels import compiled as _kernels
 
     rng = np.random.default_rng(31)
     dr, dc = split_module._FAR_OFFSETS
@@ -549,8 +549,8 @@ def test_plane_heights_at_the_asked_pixels_equal_the_whole_arrays_bit_for_bit() 
 
 @pytest.mark.parametrize("scene", ["part1", "frustum"])
 def test_the_components_fits_given_by_the_caller_change_nothing(scene: str) -> None:
-    from rangeseg_cli.grow import component_fits
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.stages.grow import component_fits
+    from rangeseg_cli.synth.scenes import render_scene
 
     image = render_scene(scene, size=(96, 128), noise=1.0, seed=0).image
     result = run_pipeline(image, PAPER, stages=3)
@@ -574,7 +574,7 @@ def test_the_components_fits_given_by_the_caller_change_nothing(scene: str) -> N
 @requires_numba
 @pytest.mark.parametrize("scene", ["part1", "wedge", "frustum"])
 def test_split_numba_and_numpy_paths_give_identical_labels(scene: str) -> None:
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     image = render_scene(scene, size=(96, 128), noise=1.0, seed=0).image
     result = run_pipeline(image, PAPER, stages=3)
@@ -785,7 +785,7 @@ def test_smallest_sorted_equals_the_head_of_a_full_sort() -> None:
 
 def test_a_second_round_splits_what_the_first_left_whole(tuning) -> None:
     """Frustum at noise 2: round one leaves the top with its -x side (the component held the table)."""
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     scene = render_scene("frustum", noise=2.0, seed=1)
     names = {s["id"]: s["name"] for s in scene.info["surfaces"]}
@@ -808,7 +808,7 @@ def test_a_second_round_splits_what_the_first_left_whole(tuning) -> None:
 
 
 def _pile_faces(seed: int, config) -> set[str]:
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     scene = render_scene("pile", noise=2.0, seed=seed)
     names = {f["id"]: f["name"] for f in scene.info["surfaces"]}
@@ -829,7 +829,7 @@ def test_small_frustums_whose_pieces_pass_as_quadrics_are_cut_at_their_creases(
              "frustum 2 -y", "frustum 2 top"}
     # Without the boundary refinement: with it, frustum 1's top region takes a strip of
     # the side beside it at their shallow crease (385 pixels, 261 on the top's 297).
-    # Without the facets (rangeseg_cli.facets), which cut such a region into its planes
+    # Without the facets (rangeseg_cli.refine.facets), which cut such a region into its planes
     # later on: this tests the split alone.
     alone = passes_without("boundaries", "facets")
     assert faces <= _pile_faces(5, alone)
@@ -925,7 +925,7 @@ def test_trimmed_chamfers_become_faces_of_their_own(tuning) -> None:
     # of being regrown into the top.
     image, truth = chamfered_block_scene()
     regions = {}
-    # the carving (rangeseg_cli.carve) and the facets (rangeseg_cli.facets) would find
+    # the carving (rangeseg_cli.refine.carve) and the facets (rangeseg_cli.refine.facets) would find
     # the chamfers too: off, to test the trim
     config = passes_without("carve", "facets")
     for faces in (True, False):
@@ -996,7 +996,7 @@ def test_a_small_frustum_in_a_pile_is_cut_into_its_faces(tuning) -> None:
     # divides its component, but one piece holds two sides and a strip of the top; it
     # fails the fit test, nothing divides it, and merge_back glued every other piece to
     # it: the whole frustum came out as one region (docs/quality.md).
-    from rangeseg_cli.synth import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
     scene = render_scene("pile", size=(128, 128), noise=0.0, seed=12)
     faces = {s["id"] for s in scene.info["surfaces"] if s["name"].startswith("frustum 3 ")}

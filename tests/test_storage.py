@@ -23,8 +23,9 @@ from distributed import LocalCluster
 from moto.server import ThreadedMotoServer
 
 from conftest import box_scene, tree_bytes
-from rangeseg_cli import io, run_pipeline
-from rangeseg_cli.cli import main
+from rangeseg_cli import run_pipeline
+from rangeseg_cli.batch import io
+from rangeseg_cli.cli.main import main
 from rangeseg_cli.errors import StorageError
 
 BUCKET = "frames"
@@ -332,8 +333,8 @@ def test_writes_to_a_filesystem_without_atomic_puts_go_through_a_moved_temporary
 
 @pytest.mark.parametrize("name", ["file://", "file://localhost", "FILE://"])
 def test_a_file_url_without_a_path_is_refused_not_the_current_folder(name):
+    from rangeseg_cli.batch.io import location
     from rangeseg_cli.errors import StorageError
-    from rangeseg_cli.io import location
 
     with pytest.raises(StorageError, match="without a path"):
         location(name)
@@ -341,10 +342,10 @@ def test_a_file_url_without_a_path_is_refused_not_the_current_folder(name):
 
 
 def test_run_batch_refuses_an_out_it_cannot_write_before_any_work(tmp_path):
-    from rangeseg_cli.batch import run_batch
+    from rangeseg_cli.batch.io import check_output_protocol, location
+    from rangeseg_cli.batch.runner import run_batch
     from rangeseg_cli.config import load_config
     from rangeseg_cli.errors import StorageError
-    from rangeseg_cli.io import check_output_protocol, location
 
     with pytest.raises(StorageError, match="https:// URLs can be read, not written"):
         run_batch([], location("https://example.com/out"), load_config(), ("edges",))

@@ -9,7 +9,7 @@ import pytest
 
 from rangeseg_cli.config import Config
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.surfaces import curvatures, describe_surfaces, hk_shape, surfaces_to_json
+from rangeseg_cli.stages.surfaces import curvatures, describe_surfaces, hk_shape, surfaces_to_json
 
 N = 128
 CONFIG = Config()

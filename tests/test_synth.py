@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rangeseg_cli.cli import main
-from rangeseg_cli.synth import (
+from rangeseg_cli.cli.main import main
+from rangeseg_cli.synth.scenes import (
     PAPER_SCENES,
     SCENES,
     coplanar_groups,

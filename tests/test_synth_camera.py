@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rangeseg_cli.cli import CAMERA_NAMES, DEPTH_UNIT_NAMES, main
-from rangeseg_cli.io import find_images, read_image
-from rangeseg_cli.synth import box, pose, sphere
-from rangeseg_cli.synth_camera import (
+from rangeseg_cli.batch.io import find_images, read_image
+from rangeseg_cli.cli.main import CAMERA_NAMES, DEPTH_UNIT_NAMES, main
+from rangeseg_cli.synth.camera import (
     CAMERA_SCENES,
     CAMERAS,
     DEPTH_UNITS,
@@ -29,6 +28,7 @@ from rangeseg_cli.synth_camera import (
     support_plane,
     write_camera_scenes,
 )
+from rangeseg_cli.synth.scenes import box, pose, sphere
 
 SMALL = (120, 160)
 

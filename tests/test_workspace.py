@@ -10,16 +10,7 @@ import numpy as np
 import pytest
 
 from rangeseg_cli import load_config, run_pipeline
-from rangeseg_cli.config import ConfigError, HoldsiteConfig, InputConfig, WorkspaceConfig
-from rangeseg_cli.holdsite import (
-    effective_holdsite,
-    flat_limit,
-    footprint,
-    footprint_pixels,
-    site_flat_rms,
-    window_flat_rms,
-)
-from rangeseg_cli.workspace import (
+from rangeseg_cli.cell.workspace import (
     BACKGROUND_REACH,
     MAX_BELOW,
     assess,
@@ -28,6 +19,15 @@ from rangeseg_cli.workspace import (
     points,
     polygon_mask,
     region_of_interest,
+)
+from rangeseg_cli.config import ConfigError, HoldsiteConfig, InputConfig, WorkspaceConfig
+from rangeseg_cli.stages.holdsite import (
+    effective_holdsite,
+    flat_limit,
+    footprint,
+    footprint_pixels,
+    site_flat_rms,
+    window_flat_rms,
 )
 
 # --- helpers ---------------------------------------------------------------------------
@@ -535,7 +535,7 @@ def test_a_steep_ramp_in_a_height_map_counts_only_with_units_per_pixel():
                                             (22.4, 23)])
 def test_footprint_mm_rounds_to_the_nearest_odd_count(side, expected):
     from rangeseg_cli.config import HoldsiteConfig, InputConfig
-    from rangeseg_cli.holdsite import footprint_pixels
+    from rangeseg_cli.stages.holdsite import footprint_pixels
 
     camera = InputConfig(larger_is_closer=False, metres_per_unit=0.001,
                          intrinsics=(600.0, 600.0, 0.0, 0.0))
@@ -568,7 +568,7 @@ def test_a_flat_finger_from_the_border_over_an_empty_table_is_not_picked():
 
 def test_workspace_arrays_of_another_shape_are_one_input_error():
     from rangeseg_cli.errors import InputError
-    from rangeseg_cli.holdsite import find_holdsite
+    from rangeseg_cli.stages.holdsite import find_holdsite
 
     z = np.full((32, 32), 20.0)
     labels = np.ones((32, 32), dtype=np.int32)

@@ -7,12 +7,12 @@ import pytest
 from click.testing import CliRunner
 
 from conftest import box_scene, tree_bytes
-from rangeseg_cli import holdsite as holdsite_module
 from rangeseg_cli import run_pipeline
-from rangeseg_cli.cli import main
+from rangeseg_cli.cli.main import main
 from rangeseg_cli.config import load_config
 from rangeseg_cli.errors import ConfigError, InputError
-from rangeseg_cli.rangeimage import to_heights
+from rangeseg_cli.stages import holdsite as holdsite_module
+from rangeseg_cli.stages.rangeimage import to_heights
 
 
 def two_boxes(size: int = 48) -> np.ndarray:

@@ -1,0 +1,1 @@
+"""Compiled (numba) kernels, the choice of backend, their cache and the threads."""

@@ -1,0 +1,234 @@
+"""The compiled kernels' cache, and the first run after installing, which fills it.
+
+numba compiles :mod:`rangeseg_cli.kernels.compiled` on first use and caches the
+machine code beside the package, in ``__pycache__`` (or under
+``NUMBA_CACHE_DIR``), one index file (``compiled.<function>-<line>.py311.nbi``)
+per kernel; later processes load them in about half a second. The command
+line asks :func:`cold_kernel_cache` before a batch so that it can say why the
+first image takes long (:data:`MESSAGE`). The check only lists a folder: it
+imports nothing.
+
+Notes
+-----
+The first run: ``rangeseg run`` of a 128x128 image with the defaults, on two
+idle cores, cache empty (``benchmarks/first_run.py``, medians of 3). It took
+29.3 s, nearly all of it compiling 88 signatures of 79 kernels (and about 90
+of numba's own functions); it takes 8.3 s now (14.9 s in one process), by
+two means, chosen by measuring each:
+
+1. Less to compile: 30 kernels of one signature each (29.3 s to 14.9 s).
+   A literal ``0`` or ``1`` passed to another kernel, or a read-only array,
+   compiled that kernel once more; helpers called from one place are
+   inlined into their caller (``inline="always"``: compiling a function on
+   its own costs about 0.1 s more than typing it within its caller);
+   kernels that only chained others are Python; loops stand where slice
+   assignment, ``np.full``, ``.max()`` or array arithmetic compiled numba's
+   generic code; and the labelling of the components, the clearance, box
+   means and erosion of the holdsite search are :mod:`scipy.ndimage`'s, as
+   their numpy references were (their compiled twins took 5 s). The outputs
+   are the same bytes, and warm runs as fast.
+2. Compiling in two processes (14.9 s to 8.3 s): on a cold cache, the
+   first kernel compiled starts one helper process (:func:`compile_ahead`)
+   that compiles :data:`FIRST_RUN` from its end while the run compiles from
+   its start; each loads from the cache what the other has compiled. It
+   stops when done or when the process that started it ends
+   (``RANGESEG_COMPILE_AHEAD=0``: no helper).
+
+Measured and not taken: numba's options (``error_model="python"``,
+reference counts everywhere, no ``nogil``, no inlining: each within 1 s of
+31 s); LLVM's optimisation level (``NUMBA_OPT=1``: 10 % less, but it is
+numba's setting for the whole process; at 0 numba cannot cache);
+numba's ahead-of-time compiler (``numba.pycc``, pending deprecation in numba
+0.68, and a C compiler at install); a cache built at install (pip runs no
+step after installing a wheel, a build hook runs in a throw-away
+environment, and numba keys its cache on the source file's modification
+time and on the CPU).
+"""
+
+from __future__ import annotations
+
+import atexit
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+SOURCE = Path(__file__).with_name("compiled.py")
+
+#: What the command line prints on stderr when the cache is cold.
+MESSAGE = ("rangeseg: compiling the numba kernels (first run after installing only, "
+           "about 10 s; later runs load them in under a second)...")
+
+#: The kernels a default run calls from Python, with the argument types its call
+#: sites give them, in the order of first call (``heights``, whose type follows
+#: the input, is compiled first by the run itself). A test checks the list
+#: against a run; ``benchmarks/first_run.py --profile`` shows what compiles.
+FIRST_RUN: tuple[tuple[str, str], ...] = (
+    ("noise_residuals", "(float64[:, ::1], float64[::1], int64)"),
+    ("smallest_keys", "(uint64[::1], int64)"),
+    ("edges_pass", "(float64[:, ::1], boolean[:, ::1], int64, float64[::1], float64, int64,"
+                   " boolean)"),
+    ("roof_passes", "(float64[:, ::1], boolean[:, ::1], int64, float64[::1], float64, float64,"
+                    " int64, boolean)"),
+    ("link_codes", "(uint8[:, ::1], boolean[:, ::1])"),
+    ("valid_labels", "(float64[:, ::1], int32[:, ::1])"),
+    ("fitted_runs", "(float64[:, ::1], int32[:, ::1])"),
+    ("run_moments", "(float64[:, ::1], UniTuple(int64[::1], 4), int64, int64, int64)"),
+    ("run_sse", "(float64[:, ::1], UniTuple(int64[::1], 4), float64[::1], float64[::1],"
+                " float64[::1], float64[:, :, ::1], int64, int64)"),
+    ("image_coefficients", "(float64[:, :, ::1], float64[::1], float64[::1], float64[::1])"),
+    ("grow_pass", "(float64[:, ::1], boolean[:, ::1], int32[:, ::1], float64[:, ::1],"
+                  " float64[::1])"),
+    ("plane_fit", "(float64[:, ::1], boolean[:, ::1], float64[::1], float64, float64, float64)"),
+    ("plane_votes", "(float64[::1], int64[:], int64[:], float64[::1], float64[::1],"
+                    " float64[::1], int64[::1], int64[::1], float64)"),
+    ("explained_faces", "(float64[:, ::1], int64[:], int64[:], int64[::1], int64,"
+                        " float64[:, ::1], float64[::1], int64[::1])"),
+    ("neighbour_pairs", "(int32[:, ::1], int64)"),
+    ("fill_passes", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[::1])"),
+    ("knot_sse", "(float64[::1], float64[::1], float64[::1], float64[::1], float64[::1],"
+                 " int64[::1], float64)"),
+    ("boundary_measures", "(int32[:, ::1], int64, float64[:, ::1])"),
+    ("pair_medians", "(int64[::1], int64[::1], int64, float64[:, ::1])"),
+    ("label_boxes", "(int32[:, ::1], int64)"),
+    ("ar_2d", "(float64[:, ::1], float64[::1])"),
+)
+
+#: Set in the helper's environment: it compiles, it starts no helper.
+_HELPER = "RANGESEG_COMPILING_AHEAD"
+
+_helper: subprocess.Popen[bytes] | None = None
+_asked = False  # whether this process has started (or tried to start) the helper
+
+
+def _cache_dirs() -> list[Path]:
+    dirs = [SOURCE.parent / "__pycache__"]
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]))
+    return dirs
+
+
+def cold_kernel_cache() -> bool:
+    """True when the kernels will be compiled, not loaded, by this process's first call.
+
+    False without numba or with ``RANGESEG_PURE_NUMPY=1`` (nothing is compiled),
+    and when an index file of the kernels is newer than their source (numba
+    recompiles a kernel whose source changed since it was cached).
+    """
+    if os.environ.get("RANGESEG_PURE_NUMPY") == "1" or importlib.util.find_spec("numba") is None:
+        return False
+    try:
+        stamp = SOURCE.stat().st_mtime
+    except OSError:
+        return False
+    for folder in _cache_dirs():
+        pattern = "compiled.*.nbi"
+        found = folder.glob(pattern) if folder.name == "__pycache__" else folder.rglob(pattern)
+        try:
+            if any(p.stat().st_mtime >= stamp for p in found):
+                return False
+        except OSError:
+            continue
+    return True
+
+
+def compile_ahead_when_cold() -> None:
+    """Start :func:`compile_ahead` in a helper process at this process's first compile.
+
+    Called once by :mod:`rangeseg_cli.kernels.compiled` on import: numba's
+    ``numba:compile`` event, which it sends only when a kernel is not in the
+    cache, starts the helper (not in the helper itself, nor with
+    ``RANGESEG_COMPILE_AHEAD=0``). The helper is ended when this process exits.
+    """
+    if (os.environ.get(_HELPER) or os.environ.get("RANGESEG_COMPILE_AHEAD") == "0"
+            or getattr(sys, "frozen", False)):  # a frozen app's executable is not python
+        return
+    from numba.core import event
+
+    class Compiles(event.Listener):
+        def on_start(self, ev: event.Event) -> None:
+            _on_compile(ev.data["dispatcher"])
+
+        def on_end(self, ev: event.Event) -> None:
+            pass
+
+    event.register("numba:compile", Compiles())
+
+
+def _on_compile(dispatcher: Any) -> None:
+    """At the first compilation of a kernel (not of numba's own code), start the helper."""
+    global _asked
+    module = getattr(dispatcher.py_func, "__module__", "")
+    if not _asked and module == "rangeseg_cli.kernels.compiled":
+        _asked = True
+        _start_helper()
+
+
+def _start_helper() -> None:
+    """The helper process of :func:`compile_ahead` (kept, and ended at exit)."""
+    global _helper
+    code = ("from rangeseg_cli.kernels.backend import select_kernels\n"
+            "from rangeseg_cli.kernels.cache import compile_ahead\n"
+            f"compile_ahead(select_kernels('numba'), {os.getpid()})")
+    try:
+        _helper = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                   env={**os.environ, _HELPER: "1"})
+    except OSError:  # no process to spare: the run compiles alone
+        return
+    atexit.register(_end_helper)
+
+
+def _end_helper() -> None:
+    if _helper is not None and _helper.poll() is None:
+        _helper.terminate()
+        _helper.wait()
+
+
+def compile_ahead(kernels: ModuleType, parent: int) -> None:
+    """Compile :data:`FIRST_RUN` of ``kernels`` into the cache, last first, while ``parent`` lives.
+
+    The run that started the helper compiles from the first kernel on; once
+    one reaches what the other has compiled, numba loads it from the cache.
+    One helper per cache at a time (a lock file beside the cache, where the
+    platform has ``fcntl``).
+    """
+    lock = _lock()
+    if lock is False:
+        return  # another helper compiles
+    from numba.core.sigutils import normalize_signature
+
+    try:
+        for name, signature in reversed(FIRST_RUN):
+            if os.getppid() != parent:
+                return
+            args, _ = normalize_signature(signature)
+            # a tuple of types, as a call from Python gives: the cache's key is what
+            # compile gets
+            getattr(kernels, name).compile(tuple(args))
+    finally:
+        if lock is not None:
+            lock.close()
+
+
+def _lock() -> Any:
+    """An exclusive lock (an open file) for the helper of this cache; False when held."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    folder = Path(os.environ.get("NUMBA_CACHE_DIR") or SOURCE.parent / "__pycache__")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        handle = open(folder / "rangeseg-compile-ahead.lock", "w")  # noqa: SIM115
+    except OSError:
+        return None
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.close()
+        return False
+    return handle

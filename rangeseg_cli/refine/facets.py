@@ -1,0 +1,375 @@
+"""Cut a region that fails the fit test into the planes that explain it.
+
+Beyond Al-Hujazi & Sood (1990). The paper's conclusion (Sec. VIII) asks for
+a quality-of-fit test that splits a region whose quadratic fit absorbs a
+crease; :mod:`rangeseg_cli.refine.split` is that test on the linked components,
+with pieces from clustering surface normals. At noise sigma 2 a small
+frustum in a bin pile (sides 4-7 pixels wide) defeats it: the normals blend
+across the narrow sides, the pieces hold a few pixels of their neighbours,
+and the merge-back glues them together again (a piece's own error, raised
+by those pixels, makes the union look "about as bad"). The region that
+results fails the fit test -- its quadric leaves about 1.5 times the noise
+-- while three or four planes explain it to the noise. This step, on the
+final regions, looks for those planes; a curved surface that fails the
+test too (a sphere, a lying cylinder) is cut into planes that one quadric
+joins again, and is left whole.
+
+Notes
+-----
+1. Regions: those the split's fit test fails
+   (:func:`~rangeseg_cli.refine.split.failing_components`: ``2 * split.min_piece``
+   pixels or more, quadric RMS error above the level ``split.fit_factor *
+   s``, with ``s = max(noise, sqrt(grow.min_error))``), of ``MAX_REGION``
+   pixels or fewer: a bound on the work, which grows with the region's
+   pixels (a small frustum's faces at 128 x 128 are a few hundred pixels,
+   at 640 x 480 a few thousand; with ``split.enabled = false`` the failing
+   components of a 640 x 480 pile, tens of thousands of pixels each, took
+   0.7 s without it).
+2. Seeds: planes by consensus (:func:`~rangeseg_cli.refine.recover.consensus_plane`,
+   each pixel within ``SEED_FACTOR`` times the level), each from the pixels
+   the ones before leave, up to ``MAX_PLANES``; those of ``split.min_piece``
+   pixels or more are kept, and two are needed, whose inliers hold
+   ``SEED_COVER`` of the region or more. (Where the surface is rougher than
+   the noise estimate says -- a real camera that smooths its noise reads
+   low, as the SR300 frame of ``sample_data/arc`` -- planes fitting within
+   the level hold a quarter of a region's pixels or so; those regions are
+   left whole without the work of the passes.)
+3. k planes: each pixel takes the plane of least cost ``r^2 / s^2 +
+   SMOOTHNESS * m``, with ``r`` its residual and ``m`` the number of its
+   8-neighbours in the region that another plane holds; the planes are
+   fitted again to their pixels, for up to ``PASSES`` passes or until no
+   pixel moves. This is the boundary refinement's iterated conditional
+   modes (:mod:`rangeseg_cli.refine.boundaries`, Besag 1986) with planes as the
+   labels; the first pass has no neighbour term. A plane left with fewer
+   than 3 pixels is dropped; so is, after the passes, a plane whose pixels
+   another plane explains within ``DROP_GAIN * s^2`` per pixel of its own
+   fit (a seed that fitted the noise on the top's pixels), and the passes
+   start again.
+4. Pieces: the 8-connected parts of each plane's pixels; a part under
+   ``split.min_piece`` pixels goes to the nearest larger one.
+5. Merge-back: while one quadric explains two touching pieces almost as
+   well as their own surfaces (their union's squared error higher by less
+   than ``MIN_GAIN * s^2`` per pixel, the recut's least gain of a cut:
+   :data:`~rangeseg_cli.refine.recut.MIN_GAIN`), the pair with the least gain is
+   merged; a merged piece's own surface is its quadric. The strips of a
+   curved surface come back together here.
+6. The cut is kept when two pieces or more are left and each one's plane
+   passes the fit test; otherwise the region is left as it was.
+
+New regions are numbered after the existing ones, in the order of the
+regions they are cut from; a cut region keeps its id for its first piece in
+raster order.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from ..config import Config
+from ..stages.grow import EIGHT_NEIGHBOURS, region_fits, sums_of_squares, union_quadric_mse
+from ..stages.rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
+from .recover import consensus_plane, fit_plane, plane_height
+from .recut import MIN_GAIN  # the least gain of a cut, s^2 per pixel (Notes 5)
+from .regions import adjacent_pairs, raster_renumber
+from .split import failing_components
+
+#: A pixel fits a seed plane within this many times the fit-test level (Notes 2).
+SEED_FACTOR = 1.0
+
+#: The seed planes' inliers hold at least this share of the region (Notes 2).
+SEED_COVER = 0.5
+
+#: Most seed planes, and planes, of one region (Notes 2; 6 gains one region in 1,926 on
+#: the held-out scenes for 60 % more time on the SR300 frame).
+MAX_PLANES = 4
+
+#: Regions with more pixels are left whole (a bound on the work, Notes 1).
+MAX_REGION = 20_000
+
+#: Cost of each 8-neighbour a pixel would disagree with, in units of ``s^2`` (Notes 3).
+SMOOTHNESS = 1.0
+
+#: Most passes of the k-planes assignment (Notes 3).
+PASSES = 8
+
+#: A plane the others explain within this many ``s^2`` per pixel of its pixels is dropped.
+DROP_GAIN = 1.0
+
+_OFFSETS = chessboard_offsets(1)
+
+
+def _seeds(z: np.ndarray, mask: np.ndarray, tol: float, min_piece: int) -> list[np.ndarray]:
+    """Consensus planes (a0, a1, a2) of ``min_piece`` pixels or more; none below the cover."""
+    left = mask.copy()
+    planes = []
+    held = 0
+    need = SEED_COVER * np.count_nonzero(mask)
+    for _ in range(MAX_PLANES):
+        if np.count_nonzero(left) < min_piece or held + np.count_nonzero(left) < need:
+            break
+        piece = consensus_plane(z, left, tol)
+        if piece is None:
+            break
+        left &= ~piece
+        size = int(np.count_nonzero(piece))
+        if size >= min_piece:
+            planes.append(fit_plane(z, *np.nonzero(piece)))
+            held += size
+    if held < need:
+        return []
+    return planes
+
+
+def _disagreeing(assign: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                 shape: tuple[int, int], k: int) -> np.ndarray:
+    """(k, N): for each plane, the pixel's 8-neighbours in the region another plane holds."""
+    grid = np.full((shape[0] + 2, shape[1] + 2), -1, np.int64)
+    grid[rows + 1, cols + 1] = assign
+    same = np.zeros((k, rows.size))
+    held = np.zeros(rows.size)
+    index = np.arange(rows.size)
+    for dr, dc in _OFFSETS:
+        near = grid[rows + 1 + dr, cols + 1 + dc]
+        inside = near >= 0
+        held += inside
+        np.add.at(same, (near[inside], index[inside]), 1.0)
+    return held - same
+
+
+def k_planes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.ndarray],
+             s2: float, shape: tuple[int, int]) -> np.ndarray | None:
+    """Plane index of each pixel after the k-planes passes (Notes 3), or None.
+
+    After the passes, the plane whose pixels the other planes explain best
+    is dropped when they explain them within ``DROP_GAIN * s^2`` per pixel
+    of its own fit (a plane that fits the noise on another plane's pixels),
+    and the passes start again with the planes left.
+
+    Parameters
+    ----------
+    z
+        float64 (h, w) heights.
+    rows, cols
+        The region's pixels.
+    planes
+        Seed planes (a0, a1, a2), two or more.
+    s2
+        ``s^2``, the unit of the squared residuals.
+    shape
+        ``(h, w)``.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        int (N,) indices 0..k-1 of the planes left; None when fewer than two are left.
+    """
+    zs = z[rows, cols]
+    while True:
+        passed = _passes(z, rows, cols, planes, s2, shape)
+        if passed is None:
+            return None
+        assign, planes = passed
+        k = len(planes)
+        r2 = np.stack([(zs - plane_height(p, rows, cols)) ** 2 for p in planes]) / s2
+        gains = [float(np.mean(np.delete(r2[:, assign == i], i, axis=0).min(axis=0)
+                               - r2[i, assign == i])) for i in range(k)]
+        weakest = int(np.argmin(gains))
+        if gains[weakest] >= DROP_GAIN:
+            return assign
+        if k == 2:
+            return None
+        del planes[weakest]
+
+
+def _passes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.ndarray],
+            s2: float, shape: tuple[int, int]) -> tuple[np.ndarray, list[np.ndarray]] | None:
+    """The passes of :func:`k_planes`: each pixel's plane 0..k-1, and the planes; or None.
+
+    None when fewer than two planes are left; the planes are those fitted to
+    the returned indices.
+    """
+    zs = z[rows, cols]
+    assign: np.ndarray | None = None
+    for _ in range(PASSES):
+        cost = np.stack([(zs - plane_height(p, rows, cols)) ** 2 for p in planes]) / s2
+        if assign is not None:
+            cost += SMOOTHNESS * _disagreeing(assign, rows, cols, shape, len(planes))
+        new = np.argmin(cost, axis=0)
+        counts = np.bincount(new, minlength=len(planes))
+        if (counts < 3).any():
+            keep = counts >= 3
+            if np.count_nonzero(keep) < 2:
+                return None
+            planes = [p for p, kept in zip(planes, keep, strict=True) if kept]
+            new = np.argmin(cost[keep], axis=0)
+        elif assign is not None and np.array_equal(new, assign):
+            break
+        assign = new
+        planes = [fit_plane(z, rows[assign == i], cols[assign == i]) for i in range(len(planes))]
+    return None if assign is None else (assign, planes)
+
+
+def _parts(assign: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int],
+           min_piece: int) -> np.ndarray:
+    """Pieces 1..m (int (h, w)): 8-connected parts, small ones given to the nearest (Notes 4)."""
+    pieces = np.zeros(shape, np.int32)
+    grid = np.full(shape, -1)
+    grid[rows, cols] = assign
+    n = 0
+    for i in range(int(assign.max()) + 1):
+        parts, m = ndimage.label(grid == i, structure=EIGHT_NEIGHBOURS)
+        pieces[parts > 0] = parts[parts > 0] + n
+        n += m
+    big = np.bincount(pieces.ravel(), minlength=n + 1) >= min_piece
+    big[0] = False
+    kept = big[pieces]
+    if not kept.any():
+        return np.zeros(shape, np.int32)
+    small = (pieces > 0) & ~kept
+    if small.any():
+        _, (near_r, near_c) = ndimage.distance_transform_edt(~kept, return_indices=True)
+        pieces[small] = pieces[near_r[small], near_c[small]]
+    return consecutive_labels(pieces)
+
+
+def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float) -> np.ndarray:
+    """Merge touching pieces one quadric explains almost as well, least gain first (Notes 5).
+
+    Parameters
+    ----------
+    z
+        float64 (h, w) heights.
+    pieces
+        int (h, w) pieces 1..m, 0 = none; each piece's own surface is its plane.
+    s2
+        ``s^2``, the unit of the gain.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (h, w) pieces renumbered 1..k in the order of their ids.
+    """
+    pieces = consecutive_labels(pieces)
+    n = int(pieces.max(initial=0))
+    quadric = np.zeros(n + 1, bool)  # a piece's own surface: its quadric, not its plane
+    fits = _Fits(z, pieces, n, quadric)
+    gains = {(i, j): fits.gain(i, j, s2) for i, j in adjacent_pairs(pieces, 1)}
+    while gains:
+        gain, (i, j) = min((g, pair) for pair, g in gains.items())
+        if gain >= MIN_GAIN:
+            break
+        pieces[pieces == j] = i
+        quadric[i] = True
+        fits = _Fits(z, pieces, n, quadric)
+        near = {k for pair in gains if i in pair or j in pair for k in pair} - {i, j}
+        gains = {pair: g for pair, g in gains.items() if i not in pair and j not in pair}
+        gains.update({(min(i, k), max(i, k)): fits.gain(i, k, s2) for k in near})
+    return consecutive_labels(pieces)
+
+
+class _Fits:
+    """The pieces' own squared errors and the moments for their unions (:func:`merge_back`)."""
+
+    def __init__(self, z: np.ndarray, pieces: np.ndarray, n: int, quadric: np.ndarray) -> None:
+        fitted = region_fits(z, pieces, n, (2, 1))
+        ((_, mse), (_, mse_plane)), self.counts = fitted.fits, fitted.counts
+        self.own = self.counts * np.where(quadric, mse, mse_plane)
+        self.moments = fitted.moments
+        self.squares = sums_of_squares(z, pieces, n)
+
+    def gain(self, i: int, j: int, s2: float) -> float:
+        """Squared error per pixel, in ``s2``, one quadric of i and j adds to their own."""
+        both = self.counts[i] + self.counts[j]
+        union = union_quadric_mse(self.moments, self.squares, i, j) * both
+        return float(union - self.own[i] - self.own[j]) / (both * s2)
+
+
+def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,
+                    min_piece: int) -> np.ndarray | None:
+    """Pieces of a region that fails the fit test, one plane each, or None (Notes 2-6).
+
+    Parameters
+    ----------
+    z
+        float64 (h, w) heights, finite on ``mask``.
+    mask
+        bool (h, w) the region's pixels.
+    level
+        RMS error of the fit test, depth units.
+    s2
+        ``s^2 = max(noise^2, grow.min_error)``.
+    min_piece
+        ``split.min_piece``: the smallest seed plane and piece.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        int32 (h, w) pieces 1..k (k >= 2), 0 outside ``mask``; None when
+        the region is to be left whole.
+    """
+    planes = _seeds(z, mask, SEED_FACTOR * level, min_piece)
+    if len(planes) < 2:
+        return None
+    rows, cols = np.nonzero(mask)
+    assign = k_planes(z, rows, cols, planes, s2, mask.shape)
+    if assign is None:
+        return None
+    pieces = raster_renumber(merge_back(z, _parts(assign, rows, cols, mask.shape, min_piece),
+                                          s2))
+    k = int(pieces.max(initial=0))
+    if k < 2:
+        return None
+    (_, mse_plane), = region_fits(z, pieces, k, (1,)).fits
+    return pieces if (mse_plane[1:] <= level * level).all() else None
+
+
+def facet_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
+                  ) -> np.ndarray:
+    """Cut each region that fails the fit test into the planes that explain it (Notes).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) regions 1..n, 0 = none.
+    config
+        ``[split] fit_factor`` and ``min_piece``; ``[grow] min_error``.
+    noise
+        Noise sigma of ``z`` (:func:`~rangeseg_cli.stages.noise.estimate_noise`);
+        NaN counts as 0.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W): ``labels`` with the new pieces numbered n+1, n+2, ...
+
+    Raises
+    ------
+    ValueError
+        When the shapes of ``z`` and ``labels`` differ.
+    """
+    z, out = labels_on_valid(z, labels)
+    sigma = 0.0 if math.isnan(noise) else noise
+    s2 = max(sigma * sigma, config.grow.min_error)
+    level = config.split.fit_factor * math.sqrt(s2)
+    failing = failing_components(z, out, sigma, config.split, config.grow)
+    if failing.size == 0:
+        return out
+    boxes = ndimage.find_objects(out)
+    next_id = int(out.max(initial=0)) + 1
+    counts = np.bincount(out.ravel(), minlength=int(out.max(initial=0)) + 1)
+    for k in failing[counts[failing] <= MAX_REGION].tolist():
+        box = boxes[k - 1]
+        mask = out[box] == k
+        pieces = cut_into_planes(z[box], mask, level=level, s2=s2,
+                                 min_piece=config.split.min_piece)
+        if pieces is None:
+            continue
+        for i in range(2, int(pieces.max()) + 1):
+            out[box][pieces == i] = next_id
+            next_id += 1
+    return out

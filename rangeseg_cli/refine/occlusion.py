@@ -1,0 +1,220 @@
+"""Join the patches of one surface that an object lying across it divides.
+
+Beyond Al-Hujazi & Sood (1990). Region growing (Sec. V-4) labels connected
+components (Sec. V-3), so a surface that something closer to the sensor
+crosses -- a lying cylinder under a part laid across it, a box top half
+covered, the table seen through a nut's bore -- comes out as two regions,
+each of them a good fit. They are one surface, with one description
+(``surfaces.json``): its extent, its fit and its holdsite clearance are those
+of the whole. This module gives such patches one label.
+
+Notes
+-----
+1. Candidates. Regions of at least ``link.min_component`` pixels whose
+   surface (plane when planar, else quadric; the rule of
+   :func:`~rangeseg_cli.refine.fill.surface_models`) passes the fit test of the
+   split (RMS error within ``split.fit_factor * s``, ``s = max(noise,
+   sqrt(grow.min_error))``, Sec. VIII), taken in pairs that do not touch
+   (8-neighbours), one of whose surfaces predicts the other's height at its
+   centroid within ``SCREEN`` fit levels, and one quadric of whose union
+   passes the fit test (from the moment sums).
+2. One surface. One surface of the pair's model (a plane when both are
+   planes, else a quadric) fits the union within the fit test and at most
+   ``split.min_gain`` times the larger of the two RMS errors: the rules by
+   which :mod:`rangeseg_cli.refine.merge` joins touching regions; and it leaves
+   less than ``split.crease_evidence`` times ``s^2`` of squared error beyond
+   the two patches' own surfaces (the chi-square bound of the merges'
+   crease rule: two nearly coplanar faces of different parts pass the fit
+   test at noise 2, not this; 0 = not tested).
+3. Occlusion. Along the shortest straight segment from one patch to the
+   other, every valid pixel between them lies on that surface (within
+   ``OCCLUSION_MARGIN * s``) or above it (closer to the sensor), and some
+   pixel lies clearly above: the surface goes on under something in front
+   of it. A pixel clearly below it means the surface is seen to end there
+   (two coplanar box tops with the floor between them): not joined.
+4. Order: pairs by increasing RMS error of their union; a pair whose regions
+   already belong to groups is tested again on the groups. A joined region
+   keeps the smallest id; ids are then made consecutive.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from ..config import Config
+from ..stages.grow import (
+    RegionFits,
+    evaluate_quadric,
+    fit_models,
+    planar_regions,
+    region_fits,
+    sums_of_squares,
+    union_quadric_mse,
+)
+from ..stages.rangeimage import consecutive_labels, labels_on_valid
+from .merge import union_excess
+from .regions import adjacent_pairs, join_box
+
+#: Pixels between two patches must lie within this many ``s`` of the surface, or above it.
+OCCLUSION_MARGIN = 3.0
+
+#: Screen of the pairs: one surface predicts the other's centroid within this many fit levels.
+SCREEN = 10.0
+
+
+def join_occluded(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
+                  ) -> np.ndarray:
+    """Give separate patches of one surface, divided by something in front, one label.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) final regions 1..n, 0 = none.
+    config
+        Uses ``[split]`` (``fit_factor``, ``min_gain``, ``crease_evidence``), ``[link]``
+        (``min_component``) and ``[grow]`` (``min_error``, ``planar_tolerance``).
+    noise
+        The image's noise estimate, depth units (NaN: nothing is joined).
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W) labels 1..k; regions joined take the smallest id, ids
+        made consecutive; pixels never change between labelled and 0.
+    """
+    z, lab = labels_on_valid(z, labels)
+    n = int(lab.max(initial=0))
+    if n < 2 or not math.isfinite(noise):
+        return lab
+    s = max(noise, math.sqrt(config.grow.min_error))
+    level = config.split.fit_factor * s
+    zc = np.where(np.isfinite(z), z, 0.0)
+    fits = region_fits(zc, lab, n, (2, 1))
+    ((quad, mse_quad), (plane, mse_plane)) = fits.fits
+    flat = planar_regions(mse_quad, mse_plane, fits.counts, config.grow)
+    coeffs = np.where(flat[:, None], plane, quad)  # the rule of fill.surface_models
+    rms = np.sqrt(np.maximum(np.where(flat, mse_plane, mse_quad), 0.0))
+    pairs = _candidate_pairs(zc, lab, fits, coeffs, rms, level, config.link.min_component)
+    if not pairs:
+        return lab
+    joined = _join(z, lab, pairs, flat, rms, fits.counts, s, config)
+    return consecutive_labels(joined) if joined is not lab else lab
+
+
+def _candidate_pairs(z: np.ndarray, lab: np.ndarray, fits: RegionFits, coeffs: np.ndarray,
+                     rms: np.ndarray, level: float, min_pixels: int
+                     ) -> list[tuple[float, int, int]]:
+    """Pairs (i < j) of well-fitted regions that do not touch and may be one surface (Notes 1).
+
+    Screens, cheapest first: one of the two surfaces predicts the other's
+    height at its centroid within :data:`SCREEN` times the level (all pairs
+    at once; a narrow patch's quadric extrapolates badly, the wide one's does
+    not), and one quadric of the union passes the fit test, from the regions'
+    moment sums (:func:`~rangeseg_cli.stages.grow.union_quadric_mse`, without
+    visiting a pixel; a plane of the union fits no better).
+
+    Returns
+    -------
+    list of (float, int, int)
+        The union quadric's mean squared error and the pair, in increasing order.
+    """
+    n = rms.size - 1
+    ids = np.nonzero((fits.counts >= min_pixels) & (rms <= level))[0]
+    ids = ids[ids > 0]
+    if ids.size < 2:
+        return []
+    rows, cols = fits.centroid_row[ids], fits.centroid_col[ids]
+    at = evaluate_quadric(coeffs[ids][:, None, :], rows[None, :], cols[None, :])
+    off = np.abs(at - np.diag(at)[None, :])  # i's surface at j's centroid against j's own
+    first, second = np.nonzero(np.triu(np.minimum(off, off.T) <= SCREEN * level, 1))
+    if first.size == 0:
+        return []
+    squares = sums_of_squares(z, lab, n)
+    touching = set(adjacent_pairs(lab, 1))
+    pairs = [(int(ids[a]), int(ids[b])) for a, b in zip(first, second, strict=True)]
+    scored = [(union_quadric_mse(fits.moments, squares, i, j), i, j) for i, j in pairs
+              if (i, j) not in touching]
+    return sorted(t for t in scored if t[0] <= level * level)
+
+
+def _union_fit(z: np.ndarray, groups: np.ndarray, a: int, b: int, box: tuple[slice, slice],
+               order: int) -> tuple[float, np.ndarray]:
+    """RMS error and image coefficients of one surface of groups a, b (both within ``box``)."""
+    both = np.isin(groups[box], (a, b)).astype(np.int32)
+    zs = z[box]
+    ((coeffs, mse),), _ = fit_models(np.where(np.isfinite(zs), zs, 0.0), both, 1, (order,),
+                                     origin=(box[0].start, box[1].start))
+    return math.sqrt(max(float(mse[1]), 0.0)), coeffs[1]
+
+
+def _border(mask: np.ndarray) -> np.ndarray:
+    """(k, 2) row, col of the pixels of ``mask`` with a 4-neighbour outside it."""
+    inner = ndimage.binary_erosion(mask, border_value=0)
+    return np.argwhere(mask & ~inner)
+
+
+def _occluded(z: np.ndarray, groups: np.ndarray, a: int, b: int, coeffs: np.ndarray,
+              box: tuple[slice, slice], s: float) -> bool:
+    """Whether the shortest segment from patch a to patch b runs under something (Notes 3).
+
+    ``box`` holds both patches; ``coeffs`` is their union's surface in image
+    coordinates. The closest pair of their border pixels ends the segment.
+    """
+    sub, zs = groups[box], z[box]
+    pa, pb = _border(sub == a), _border(sub == b)
+    dist, near = cKDTree(pa).query(pb)
+    k = int(np.argmin(dist))
+    p, q = pb[k], pa[int(near[k])]
+    steps = int(np.abs(p - q).max()) + 1
+    r = np.rint(np.linspace(q[0], p[0], steps)).astype(int)
+    c = np.rint(np.linspace(q[1], p[1], steps)).astype(int)
+    between = ~np.isin(sub[r, c], (a, b)) & np.isfinite(zs[r, c])
+    if not between.any():
+        return False
+    r, c = r[between], c[between]
+    above = zs[r, c] - evaluate_quadric(coeffs, r + box[0].start, c + box[1].start)
+    return bool(above.min() >= -OCCLUSION_MARGIN * s and above.max() > OCCLUSION_MARGIN * s)
+
+
+def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[float, int, int]],
+          flat: np.ndarray, rms: np.ndarray, counts: np.ndarray, s: float, config: Config
+          ) -> np.ndarray:
+    """Join the pairs that pass Notes 2 and 3, by increasing union error (Notes 4).
+
+    ``rms`` and ``counts``: each region's own RMS error and pixel count.
+    """
+    level = config.split.fit_factor * s
+    floor = math.sqrt(config.grow.min_error)
+    groups, grms, counts = lab.copy(), rms.copy(), counts.astype(np.float64)
+    boxes = dict(enumerate(ndimage.find_objects(lab), start=1))
+    root = np.arange(rms.size)
+    changed = False
+    evidence = config.split.crease_evidence * s * s
+
+    def one_surface(a: int, b: int, union: float) -> bool:  # Notes 2
+        if union > min(level, config.split.min_gain * max(grms[a], grms[b], floor)):
+            return False
+        return not 0 < evidence <= union_excess(union, grms, counts, a, b)
+
+    for mse_quadric, i, j in pairs:
+        a, b = int(root[i]), int(root[j])
+        if a == b or (a, b) == (i, j) and not one_surface(a, b, math.sqrt(mse_quadric)):
+            continue  # the union's quadric fits no worse than its plane: a bound, no fit
+        box = join_box(boxes[a], boxes[b])
+        union, c = _union_fit(z, groups, a, b, box, 1 if flat[i] and flat[j] else 2)
+        if not one_surface(a, b, union) or not _occluded(z, groups, a, b, c, box, s):
+            continue
+        keep, gone = min(a, b), max(a, b)
+        sub = groups[box]
+        sub[sub == gone] = keep
+        root[root == gone] = keep
+        boxes[keep] = box
+        grms[keep], counts[keep] = union, counts[a] + counts[b]
+        changed = True
+    return groups if changed else lab

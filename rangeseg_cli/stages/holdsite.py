@@ -1,0 +1,2055 @@
+"""Vacuum-gripper holdsites from the segmentation (Al-Hujazi & Sood 1990, Sec. VII).
+
+"The output of the segmentation algorithm is used to determine the highest
+surface in the object ... A small area (7x7) in the highest surface is then
+determined. The standard deviation of the AR computed using a 5x5 Gaussian
+mask is evaluated. If [it] is small ... the selected area is accepted,
+otherwise a search for another area is performed. This area should be inside
+a single surface as far as possible from the periphery of the object and any
+internal holes ... as close as possible to the center of gravity of the
+object", approximated by its centre of area (Sec. VII).
+
+Notes
+-----
+Step 1, background. Border regions lie within :data:`ADJACENCY_RADIUS`
+pixels of the image border or of an invalid area that reaches it.
+``"lowest-border"`` takes the one with the lowest mean height,
+``"largest-border"`` the one with the most pixels (only border regions
+with at least :data:`BACKGROUND_MIN_FRACTION` of the segmented pixels are
+eligible, unless none has). Every other region at the same level joins it
+(a table split by an object or a shadow, or seen through a hole): the
+chosen one's fit, extended to its centroid, is within ``step.threshold`` of
+its own fit there, or, when the chosen one is level (its fit varies by
+``step.threshold`` or less over its box), its mean height is within
+``step.threshold`` of the chosen one's. Never a region that meets the chosen
+one at a step edge: on a tilted table, a box whose top is as high as the
+table's middle is an object. ``"none"``: no background.
+
+Step 2, objects: non-background regions joined by a non-step boundary
+(roof or smooth, from ``Surface.neighbors`` where listed, else the median
+height gap of the fits <= ``step.threshold``) form one object. A step edge
+is an occlusion boundary: there one object lies on or in front of another.
+An object is *covered* when, across a step edge to another object, the other
+side is higher (median gap of the fits at the boundary midpoints): the
+top-most object of a pile is uncovered (Sec. VII, "the top-most object in
+the pile is usually selected").
+
+Step 3, order: surfaces of objects wholly in view first (an object within
+:data:`ADJACENCY_RADIUS` of the image frame is a bin wall or a part cut off
+by the frame, whose centre of area is unknown); then those of uncovered
+objects before covered ones; within each group highest mean height first
+(Sec. VII: "comparing the range value of the segmented surfaces").
+
+Step 4, candidates in a surface: window centres where the footprint
+(``holdsite.size``; a non-square one at every ``rotation_step`` degrees in
+[0, 180)) lies wholly on valid pixels of the surface (binary erosion), and
+the standard deviation of the 2-D AR (:func:`~rangeseg_cli.stages.edges.ar_2d`)
+over the footprint is <= ``holdsite.max_ar_std`` (window means of AR and
+AR^2). The first surface in the order with a candidate holds the site.
+
+Step 4b, tilt (beyond the paper; ``holdsite.max_tilt`` < 90): a candidate
+also needs the normal that a site there would report (Step 6) within
+``max_tilt`` degrees of the sensor's axis: with camera intrinsics the
+camera-frame normal against the optical axis, else the height map's normal
+with ``[input] units_per_pixel`` depth units per pixel of lateral size
+against the height axis (:func:`tilts`), within :data:`TILT_TOLERANCE`.
+A curved surface's local poses come from moment images
+(:func:`local_poses`), computed for its windows in the order they are
+wanted, a chunk at a time (:func:`_first_level`).
+
+Step 5, choice: the largest clearance (Euclidean distance transform of the
+surface mask: distance in pixels from the window centre to the nearest pixel
+that is not on the surface -- its border, a hole, an edge, an invalid pixel
+or outside the image), compared in whole pixels; then the nearest to the
+object's centre of area; then row, col. A rotated footprint takes, at that
+centre, the accepted angle whose footprint stays farthest from the
+surface's border (the distance transform's minimum over the footprint),
+then the lowest AR std, then the smallest angle.
+
+Runners-up: the best candidate of each next surface in the order, up to
+``holdsite.max_candidates``; if fewer surfaces have one, further windows on
+the same surfaces (chosen surface first), in rank order, whose centres are
+at least the footprint's diagonal from every window already picked on that
+surface (so no two windows overlap).
+
+Score (descriptive, in (0, 1), higher is better; the choice follows the
+order above): ``c / (c + h) * rho / (rho + d)`` with ``c`` the clearance,
+``h`` half the footprint's longer side plus one half (4 for 7x7, so a window
+that just fits scores about 0.5 on clearance), ``d`` the distance to the
+object's centre of area and ``rho = sqrt(A / pi)`` the radius of a disc of
+the object's area ``A``.
+
+Step 6, pose: elevation and gradient at the centre, from the surface's fit
+on a planar surface and, on a curved one, from a quadric of the surface's
+pixels within the footprint's longer side of the centre, and at least :data:`LOCAL_MIN_REACH` pixels
+(:func:`local_reach`; :func:`local_pose`: one quadric of a whole
+curved surface can be off by several depth units and degrees at a given
+point). The
+unit normal ``n ~ (-dz/dx, -dz/dy, 1)`` (x = col, y = row, z up towards the sensor); the
+approach vector ``-n`` (the gripper moves against the normal). With camera
+intrinsics and depth input (``larger_is_closer = false``, depth ``d = -z``),
+the point is ``((col - cx) d / fx, (row - cy) d / fy, d)`` (metres when
+``metres_per_unit > 0``, else depth units). The camera-frame normal is the
+cross product of the tangents of ``P(u, v) = d(u, v) ((u - cx)/fx, (v - cy)/fy, 1)``:
+``n ~ -(-fx d_u, -fy d_v, d + (u - cx) d_u + (v - cy) d_v)``, oriented
+towards the camera; it is exact for the fitted depth function, and the one
+approximation is the fit itself (a 3-D plane has depth
+``1 / (alpha u + beta v + gamma)``, which the quadric approximates over the
+region). ``approach_camera = -n``.
+
+Cost: the boundary pairs of step 2 come from
+:func:`~rangeseg_cli.stages.surfaces.neighbour_pairs` (a band along the
+boundaries); the border regions from the frame's strips (and the invalid
+areas reaching the frame, when there are any), computed once; the 2-D AR of
+step 4 only on the crops of the surfaces searched (see ``_Scene.ar``), and
+a rectangular footprint's erosion as a separable running minimum. The
+choice of step 5 needs only each surface's best window; the full ranking is
+sorted only for runners-up taken from one surface. With numba installed the
+boundary pairs, their medians and the clearance (distance transform) are
+compiled (the boundary pairs, gaps and medians of step 2 in one call;
+identical results; ``RANGESEG_PURE_NUMPY=1`` for the reference).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from ..batch.stopping import checkpoint
+from ..cell.workspace import Workspace, assess, odd_pixels
+from ..config import MAX_DEPTH, Config, HoldsiteConfig, InputConfig, check_config
+from ..errors import InputError
+from ..kernels.backend import Backend, select_kernels
+from ..models import Surface
+from .edges import ar_2d
+from .grow import RCOND, evaluate_quadric, valid_labels
+from .noise import estimate_noise
+from .rangeimage import check_stage_arrays, require_shape_of_z
+from .surfaces import (
+    NEIGHBOUR_REACH,
+    describe_surfaces,
+    kernel_labels,
+    neighbour_pairs,
+    pair_medians,
+)
+
+#: Regions whose pixels lie within this chessboard distance are neighbours
+#: (across an edge band one or two pixels thick), as in ``Surface.neighbors``:
+#: the same reach, so the step gaps that ``describe_surfaces_and_gaps`` gives
+#: with the surfaces are those :func:`step_gaps` would compute.
+ADJACENCY_RADIUS = NEIGHBOUR_REACH
+
+#: A border region is a candidate for the background only when it holds at
+#: least this fraction of all segmented pixels (unless none does): a sliver
+#: seen past a bin's rim is lower than the floor but is not the floor.
+BACKGROUND_MIN_FRACTION = 0.01
+
+#: Rotated footprints with more pixels than this are averaged by FFT convolution.
+FFT_FOOTPRINT_PIXELS = 64
+
+Vector = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Holdsite:
+    """One acceptable gripper window (Sec. VII).
+
+    Attributes
+    ----------
+    row, col
+        0-based pixel position of the window's centre.
+    elevation
+        Height of the surface fit at the centre (height units; for depth
+        input this is minus the depth).
+    normal, approach
+        Unit surface normal (x = col, y = row, z up towards the sensor) and
+        approach vector ``-normal``.
+    surface, surface_type, object
+        Surface id, its type (``"planar"``/``"curved"``) and the object id.
+    clearance
+        Distance in pixels from the centre to the nearest pixel off the surface.
+    ar_std
+        Standard deviation of the 2-D AR over the footprint (depth units).
+    score
+        Descriptive score in (0, 1) (see the module Notes).
+    angle
+        Footprint rotation in degrees, counter-clockwise as displayed; 0 = the
+        footprint's rows along image rows.
+    size
+        Footprint (rows, cols).
+    point_camera, approach_camera
+        Camera-frame point (metres, or depth units without ``metres_per_unit``)
+        and approach vector; ``None`` when not computable.
+    flat_rms
+        RMS residual of the least-squares plane of the heights under the
+        footprint (depth units); ``None`` when not computed.
+    """
+
+    row: int
+    col: int
+    elevation: float
+    normal: Vector
+    approach: Vector
+    surface: int
+    surface_type: str
+    object: int
+    clearance: float
+    ar_std: float
+    score: float
+    angle: float
+    size: tuple[int, int]
+    point_camera: Vector | None = None
+    approach_camera: Vector | None = None
+    flat_rms: float | None = None
+
+    def to_dict(self, *, camera: bool = False) -> dict[str, Any]:
+        """Plain dict of ``holdsite.json``; camera-frame keys only when ``camera``."""
+        out: dict[str, Any] = {
+            "row": self.row, "col": self.col, "elevation": self.elevation,
+            "normal": list(self.normal), "approach": list(self.approach),
+            "surface": self.surface, "surface_type": self.surface_type,
+            "object": self.object, "clearance": self.clearance, "ar_std": self.ar_std,
+            "score": self.score, "angle": self.angle, "size": list(self.size),
+        }
+        if self.flat_rms is not None:
+            out["flat_rms"] = self.flat_rms
+        if camera:
+            out["point_camera"] = _listed(self.point_camera)
+            out["approach_camera"] = _listed(self.approach_camera)
+        return out
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """A connected group of non-background regions (Sec. VII).
+
+    Attributes
+    ----------
+    id
+        Object id (1..M, numbered by smallest surface id).
+    surfaces
+        Its surface ids.
+    pixels
+        Total pixel count.
+    centroid
+        (row, col) centre of area.
+    covered_by
+        Objects higher than this one across a shared step edge.
+    touches_border
+        Whether a surface lies within :data:`ADJACENCY_RADIUS` of the image
+        frame or of an invalid area reaching it (a bin wall, or a part cut
+        off by the frame).
+    structure
+        Whether it is a structure at the border, never picked (the robot's
+        fingers, a tote wall: :func:`mark_structures`).
+    stands
+        Whether it stands on the support, with at least a footprint's area
+        (:func:`mark_structures`).
+    """
+
+    id: int
+    surfaces: tuple[int, ...]
+    pixels: int
+    centroid: tuple[float, float]
+    covered_by: tuple[int, ...] = ()
+    touches_border: bool = False
+    structure: bool = False
+    stands: bool = False
+
+    @property
+    def covered(self) -> bool:
+        """Whether another object lies on or in front of this one."""
+        return bool(self.covered_by)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict for ``holdsite.json``."""
+        return {"id": self.id, "surfaces": list(self.surfaces), "pixels": self.pixels,
+                "centroid": list(self.centroid), "covered": self.covered,
+                "covered_by": list(self.covered_by), "touches_border": self.touches_border,
+                "structure": self.structure, "stands_on_support": self.stands}
+
+
+@dataclass(frozen=True)
+class HoldsiteResult:
+    """The holdsite of one image, its runners-up and the scene's reading.
+
+    ``holdsite`` is ``None`` when no surface has an acceptable window;
+    ``reason`` then says why (never an error). ``background`` holds the
+    regions of step 1's rule, ``outside`` the other regions the workspace
+    leaves out (step 0).
+    """
+
+    holdsite: Holdsite | None
+    reason: str
+    candidates: tuple[Holdsite, ...] = ()
+    background: tuple[int, ...] = ()
+    objects: tuple[ObjectInfo, ...] = ()
+    camera: bool = False
+    outside: tuple[int, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``holdsite.json`` document (docs/outputs.md)."""
+        site = self.holdsite.to_dict(camera=self.camera) if self.holdsite else None
+        return {"holdsite": site, "reason": self.reason,
+                "candidates": [c.to_dict(camera=self.camera) for c in self.candidates],
+                "background": list(self.background),
+                "outside_workspace": list(self.outside),
+                "objects": [o.to_dict() for o in self.objects]}
+
+
+def _listed(v: Vector | None) -> list[float] | None:
+    return None if v is None else list(v)
+
+
+# ---------------------------------------------------------------------------
+# Step 1: background; step 2: objects
+
+
+def _coefficient_table(surfaces: list[Surface], n: int) -> np.ndarray:
+    """(n+1, 6) coefficients indexed by label (zeros where no surface)."""
+    table = np.zeros((n + 1, 6))
+    for s in surfaces:
+        if s.id <= n:
+            table[s.id] = s.coefficients
+    return table
+
+
+def step_gaps(labels: np.ndarray, coeffs: np.ndarray, known: np.ndarray, *,
+              backend: Backend = "auto") -> dict[tuple[int, int], float]:
+    """Median signed height gap ``f_i - f_j`` between neighbouring regions i < j.
+
+    Pixel pairs of different known labels within :data:`ADJACENCY_RADIUS`
+    (chessboard) are the boundary; both fits are evaluated at each pair's
+    midpoint. The pairs come from :func:`~rangeseg_cli.stages.surfaces.neighbour_pairs`,
+    which examines only a band along the boundaries.
+
+    Parameters
+    ----------
+    labels
+        int (H, W) labels, 0 = none.
+    coeffs
+        (n+1, 6) quadric coefficients by label.
+    known
+        bool (n+1,): labels that have a surface (label 0 is never one).
+    backend
+        For :func:`~rangeseg_cli.stages.surfaces.neighbour_pairs` and
+        :func:`~rangeseg_cli.stages.surfaces.pair_medians` (identical results).
+
+    Returns
+    -------
+    dict
+        ``{(i, j): median(f_i - f_j)}``; positive when i is the higher side.
+    """
+    labels = np.asarray(labels)
+    return _known_gaps(np.where(known[labels], labels, 0), coeffs, backend)
+
+
+def _known_gaps(labels: np.ndarray, coeffs: np.ndarray, backend: Backend
+                ) -> dict[tuple[int, int], float]:
+    """:func:`step_gaps` of labels that all have a surface (0 elsewhere).
+
+    Compiled when ``backend`` selects the kernels: pairs, gaps and medians in
+    one call (:func:`rangeseg_cli.kernels.compiled.step_gaps`, the same values).
+    """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        group_lo, group_hi, med = kernels.step_gaps(
+            kernel_labels(labels), ADJACENCY_RADIUS, np.require(coeffs, np.float64, ["C"]))
+        return dict(zip(zip(group_lo.tolist(), group_hi.tolist(), strict=True), med.tolist(),
+                        strict=True))
+    rp, cp, rq, cq, lp, lq = neighbour_pairs(labels, ADJACENCY_RADIUS, backend=backend)
+    if lp.size == 0:
+        return {}
+    rm, cm = 0.5 * (rp + rq), 0.5 * (cp + cq)
+    gap = evaluate_quadric(coeffs[lp], rm, cm) - evaluate_quadric(coeffs[lq], rm, cm)
+    swap = lp > lq
+    lo, hi, gap = np.where(swap, lq, lp), np.where(swap, lp, lq), np.where(swap, -gap, gap)
+    group_lo, group_hi, (med,) = pair_medians(lo, hi, gap[None], backend=backend)
+    return {(i, j): g for i, j, g in zip(group_lo.tolist(), group_hi.tolist(), med.tolist(),
+                                         strict=True)}
+
+
+def _present(labels: np.ndarray) -> set[int]:
+    """The positive labels of an array (any shape)."""
+    flat = labels.ravel()
+    if (flat.size and np.can_cast(flat.dtype, np.intp) and flat.min() >= 0
+            and flat.max() <= 4 * flat.size + 65536):  # counted, not sorted
+        return set((np.flatnonzero(np.bincount(flat)[1:]) + 1).tolist())
+    found = np.unique(labels)
+    return set(found[found > 0].tolist())
+
+
+def _framed(labels: np.ndarray) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of the image frame (the frame's strips)."""
+    k = ADJACENCY_RADIUS + 1
+    return _present(np.concatenate([strip.ravel() for strip in (
+        labels[:k], labels[-k:], labels[:, :k], labels[:, -k:])]))
+
+
+def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of invalid areas 8-connected to the frame."""
+    if valid.all():
+        return set()
+    blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
+    frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
+    outer = np.unique(frame[frame > 0])
+    if outer.size == 0:
+        return set()
+    zone = np.isin(blobs, outer)
+    size = 2 * ADJACENCY_RADIUS + 1  # a square: a row segment, then a column segment
+    near = ndimage.binary_dilation(zone, structure=np.ones((1, size), dtype=bool))
+    near = ndimage.binary_dilation(near, structure=np.ones((size, 1), dtype=bool))
+    return _present(labels[near])
+
+
+def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of the image border (or invalid border area).
+
+    Parameters
+    ----------
+    labels
+        int (H, W) labels, 0 = none.
+    valid
+        bool (H, W) valid pixels; when given, invalid pixels 8-connected to
+        an invalid pixel on the image's frame (e.g. the no-reading margin of
+        a depth camera) count as border too.
+
+    Returns
+    -------
+    set of int
+        The labels touching the border.
+    """
+    labels = np.asarray(labels)
+    framed = _framed(labels)
+    if valid is None:
+        return framed
+    return framed | _near_outer_invalid(labels, np.asarray(valid, dtype=bool))
+
+
+def _same_level(base: Surface, other: Surface, tol: float) -> bool:
+    """``other`` continues ``base`` (on base's extended fit, or same mean height on a level base).
+
+    Never across a step edge between the two. The mean heights are compared
+    only where ``base`` is level (its fit varies by ``tol`` or less over its
+    box): on a tilted table a box whose top is as high as the table's middle
+    is not the table.
+    """
+    if any(nb.id == other.id and nb.edge == "step" for nb in base.neighbors):
+        return False
+    row, col = other.centroid
+    if abs(base.height_at(row, col) - other.height_at(row, col)) <= tol:
+        return True
+    return _level(base, tol) and abs(other.mean_height - base.mean_height) <= tol
+
+
+def _level(surface: Surface, tol: float) -> bool:
+    """Whether ``surface``'s fit varies by ``tol`` or less over its box (corners, centre)."""
+    r0, c0, r1, c1 = surface.bbox
+    rows = np.array([r0, r0, r1, r1, (r0 + r1) / 2])
+    cols = np.array([c0, c1, c0, c1, (c0 + c1) / 2])
+    heights = surface.height_at(rows, cols)
+    return bool(np.ptp(heights) <= tol)
+
+
+def find_background(surfaces: dict[int, Surface], border: set[int], rule: str, tol: float
+                    ) -> set[int]:
+    """Step 1: the background regions (never a holdsite).
+
+    Parameters
+    ----------
+    surfaces
+        Surfaces by id.
+    border
+        Ids of the regions touching the border (:func:`border_regions`).
+    rule
+        ``"lowest-border"``, ``"largest-border"`` or ``"none"``.
+    tol
+        Height tolerance (``step.threshold``) for regions at the same level.
+
+    Returns
+    -------
+    set of int
+        Background surface ids: the chosen border region and every region at
+        its level.
+    """
+    candidates = [surfaces[i] for i in sorted(border) if i in surfaces]
+    if rule == "none" or not candidates:
+        return set()
+    floor = BACKGROUND_MIN_FRACTION * sum(s.pixels for s in surfaces.values())
+    large = [s for s in candidates if s.pixels >= floor] or candidates
+    if rule == "largest-border":
+        base = max(large, key=lambda s: (s.pixels, -s.mean_height, -s.id))
+    else:
+        base = min(large, key=lambda s: (s.mean_height, s.id))
+    return {s.id for s in surfaces.values() if s.id == base.id or _same_level(base, s, tol)}
+
+
+def _edge_kinds(surfaces: dict[int, Surface]) -> dict[tuple[int, int], str]:
+    """Edge types listed in ``Surface.neighbors``, by (i, j), i < j."""
+    kinds = {}
+    for s in surfaces.values():
+        for nb in s.neighbors:
+            kinds[(min(s.id, nb.id), max(s.id, nb.id))] = nb.edge
+    return kinds
+
+
+def _is_step(pair: tuple[int, int], gap: float, kinds: dict[tuple[int, int], str],
+             tol: float) -> bool:
+    kind = kinds.get(pair)
+    return kind == "step" if kind is not None else abs(gap) > tol
+
+
+def _union_find_groups(ids: list[int], joins: list[tuple[int, int]]) -> dict[int, int]:
+    """Connected groups of ``ids`` under ``joins``: id -> smallest id of its group."""
+    parent = {i: i for i in ids}
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in joins:
+        ra, rb = root(a), root(b)
+        parent[max(ra, rb)] = min(ra, rb)
+    return {i: root(i) for i in ids}
+
+
+def find_objects(surfaces: dict[int, Surface], background: set[int],
+                 gaps: dict[tuple[int, int], float], tol: float, framed: set[int]
+                 ) -> tuple[dict[int, int], list[ObjectInfo]]:
+    """Step 2: objects (groups joined by non-step edges) and which are covered.
+
+    Parameters
+    ----------
+    surfaces
+        Surfaces by id.
+    background
+        Background ids (left out).
+    gaps
+        Median signed gaps of neighbouring regions (:func:`step_gaps`).
+    tol
+        ``step.threshold``: larger gaps are steps (when ``neighbors`` is silent).
+    framed
+        Ids of the regions touching the image frame.
+
+    Returns
+    -------
+    object_of, objects
+        Surface id -> object id, and the objects by id.
+    """
+    ids = sorted(i for i in surfaces if i not in background)
+    kinds = _edge_kinds(surfaces)
+    pairs = [(p, g) for p, g in gaps.items() if p[0] in ids and p[1] in ids]
+    joins = [p for p, g in pairs if not _is_step(p, g, kinds, tol)]
+    group = _union_find_groups(ids, joins)
+    numbering = {g: k + 1 for k, g in enumerate(sorted(set(group.values())))}
+    object_of = {i: numbering[group[i]] for i in ids}
+    covered: dict[int, set[int]] = {k: set() for k in numbering.values()}
+    for (i, j), g in pairs:
+        oi, oj = object_of[i], object_of[j]
+        if oi != oj and _is_step((i, j), g, kinds, tol) and g != 0:
+            lower, upper = (oj, oi) if g > 0 else (oi, oj)
+            covered[lower].add(upper)
+    objects = [_object_info(k, [surfaces[i] for i in ids if object_of[i] == k], covered[k],
+                            framed) for k in sorted(covered)]
+    return object_of, objects
+
+
+def _object_info(oid: int, members: list[Surface], covered_by: set[int], framed: set[int]
+                 ) -> ObjectInfo:
+    pixels = sum(s.pixels for s in members)
+    row = sum(s.pixels * s.centroid[0] for s in members) / max(pixels, 1)
+    col = sum(s.pixels * s.centroid[1] for s in members) / max(pixels, 1)
+    return ObjectInfo(id=oid, surfaces=tuple(s.id for s in members), pixels=pixels,
+                      centroid=(row, col), covered_by=tuple(sorted(covered_by)),
+                      touches_border=any(s.id in framed for s in members))
+
+
+# ---------------------------------------------------------------------------
+# Step 0: the workspace (beyond the paper)
+
+#: A region is left out when less than this fraction of its pixels may be picked.
+PICKABLE_FRACTION = 0.5
+
+#: A structure at the border rises above this many times the pile's top (above the support).
+STRUCTURE_RISE = 1.25
+
+
+def unpickable_regions(labels: np.ndarray, pickable: np.ndarray, n: int) -> set[int]:
+    """Labels with less than :data:`PICKABLE_FRACTION` of their pixels pickable."""
+    total = np.bincount(labels.ravel(), minlength=n + 1)
+    good = np.bincount(labels[pickable].ravel(), minlength=n + 1)
+    low = (total > 0) & (good < PICKABLE_FRACTION * total)
+    low[0] = False
+    return set(np.flatnonzero(low).tolist())
+
+
+def region_lift(labels: np.ndarray, space: Workspace, z: np.ndarray, n: int) -> np.ndarray:
+    """Median height of each label's pixels above the support (by label), else of ``z``."""
+    height = space.height if space.height is not None else z
+    out = np.full(n + 1, -np.inf)
+    keep = (labels > 0) & np.isfinite(height)
+    if not keep.any():
+        return out
+    lab, h = labels[keep], height[keep]
+    order = np.lexsort((h, lab))
+    lab, h = lab[order], h[order]
+    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+    counts = np.diff(np.r_[starts, lab.size])
+    out[lab[starts]] = 0.5 * (h[starts + (counts - 1) // 2] + h[starts + counts // 2])
+    return out
+
+
+def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarray:
+    """Bool (H, W): pixels within :data:`ADJACENCY_RADIUS` of the frame or its invalid margin.
+
+    With ``extent`` (the support's, :class:`~rangeseg_cli.cell.workspace.Workspace`),
+    only the invalid pixels outside it count: the shadows among the items of a
+    tote are no border, though a depth camera's holes join them to the frame.
+    """
+    zone = np.zeros(valid.shape, dtype=bool)
+    k = ADJACENCY_RADIUS + 1
+    zone[:k], zone[-k:], zone[:, :k], zone[:, -k:] = True, True, True, True
+    if not valid.all():
+        blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
+        frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
+        outer = np.isin(blobs, np.unique(frame[frame > 0]))
+        if extent is not None:
+            outer &= ~extent
+        zone |= ndimage.binary_dilation(outer, structure=np.ones((2 * k - 1, 2 * k - 1)))
+    return zone
+
+
+def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.ndarray,
+                    lift: np.ndarray, space: Workspace, half_width: float,
+                    walls_known: bool = False,
+                    touching: set[tuple[int, int]] | None = None) -> list[ObjectInfo]:
+    """Structures at the border, never picked (module Notes, step 0).
+
+    The border is the image frame and the invalid pixels joined to it outside
+    the support's extent (:func:`border_zone`). An object *hovers*
+    (:func:`_hovering`) when the lowest of its pixels (5th percentile of
+    heights above the support) lies well above whatever is under it: the
+    highest top of the lower objects it touches (``touching``: pairs of
+    object ids), else the support; the robot's arm and fingers, a tote's
+    rim. An item rests on the support or on another item and shows its
+    sides down to it; a tote's wall rises from the floor. The pile is the
+    objects away from the border that do not hover and hold a footprint
+    (their widest inscribed disc reaches ``half_width`` px). With a pile, an
+    object touching the border is a structure when its top rises above
+    :data:`STRUCTURE_RISE` times the pile's highest top plus the support's
+    tolerance (the arm, a mount, a tote's wall or rim above the pile), and
+    so is an object as high touching a structure (a finger seen apart from
+    its arm). With nothing else in view, one touching the border is a
+    structure when it hovers or (without a background frame:
+    ``walls_known`` false) rises towards the border (its pixels at the
+    border higher than its median: a tote's wall), and so is a hovering
+    object touching it. In a height map (no perspective) a flat item cut by
+    the frame looks like a finger: with nothing else in view it is taken
+    for one (``[workspace] border_structures = false`` picks it).
+    """
+    height = space.height
+    if height is None or not objects:
+        return objects
+    member = np.zeros(int(lift.size), dtype=np.int64)
+    for o in objects:
+        member[list(o.surfaces)] = o.id
+    owner = member[labels]
+    with np.errstate(invalid="ignore"):
+        standing = _touching(owner, np.abs(height) <= space.tolerance)
+    spans = {o.id: _height_span(height, owner == o.id) for o in objects}
+    hover = _hovering(spans, touching or set(), space.tolerance)
+    zone = border_zone(valid, space.extent)
+    bordering = set(np.unique(owner[zone & (owner > 0)]).tolist())
+    wide = _widest(owner, [o.id for o in objects])
+    pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
+            and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
+    if pile:  # far above the pile: the arm, a mount, a wall
+        high = STRUCTURE_RISE * max(pile) + space.tolerance
+        above = {o.id for o in objects if spans[o.id][1] > high}
+        structures = bordering & above
+    else:  # nothing else in view: what hovers or (a wall: the tallest) rises to the border
+        above = hover
+        tallest = max((spans[i][1] for i in bordering if i in spans and np.isfinite(
+            spans[i][1])), default=math.inf)
+        structures = {o.id for o in objects if o.id in bordering and (o.id in hover or (
+            not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
+                owner == o.id, height, zone, space.tolerance)))}
+    structures |= _attached(objects, owner, structures, above)
+    return [dataclasses.replace(o, structure=o.id in structures,
+                                stands=o.id in standing and wide.get(o.id, 0.0) >= half_width)
+            for o in objects]
+
+
+#: An object hovers when its lowest pixels lie above what is under it by this share of
+#: its height over that, and by this many support tolerances (an item on another shows
+#: little of its lower side: a ball on a box, 28 mm above it in a synthetic cell).
+HOVER_SHARE, HOVER_TOLERANCES = 0.5, 8.0
+
+
+def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, int]],
+              tol: float) -> set[int]:
+    """Objects whose lowest pixels lie well above the tops of the lower objects they touch.
+
+    ``spans``: (low, top) of each object; ``touching``: pairs of objects
+    whose regions are neighbours. What is under an object is the highest
+    top among the touching objects lower than it, else the support (0).
+    """
+    under = dict.fromkeys(spans, 0.0)
+    for a, b in touching:
+        for one, other in ((a, b), (b, a)):
+            if one in spans and other in spans and spans[other][1] < spans[one][1]:
+                under[one] = max(under[one], spans[other][1])
+    return {i for i, (low, top) in spans.items() if np.isfinite(top) and top > 2 * tol
+            and low - under[i] > max(HOVER_SHARE * (top - under[i]), HOVER_TOLERANCES * tol)}
+
+
+def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """(5th, 95th) percentiles of ``height`` over ``mask`` (NaN when none is finite)."""
+    values = height[mask]
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return math.nan, math.nan
+    low, top = np.percentile(values, [5, 95])
+    return float(low), float(top)
+
+
+def _widest(owner: np.ndarray, ids: list[int]) -> dict[int, float]:
+    """Radius in px of the widest disc inside each object's pixels (its clearance)."""
+    if not ids:
+        return {}
+    same = owner > 0
+    for axis in (0, 1):  # a pixel whose neighbour belongs to another object is a border
+        diff = np.diff(owner, axis=axis) != 0
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (1, 0)
+        same &= ~np.pad(diff, pad)
+        pad[axis] = (0, 1)
+        same &= ~np.pad(diff, pad)
+    edt = ndimage.distance_transform_edt(same)
+    radii = ndimage.maximum(edt, owner, ids)
+    return {i: float(r) for i, r in zip(ids, np.atleast_1d(radii), strict=True)}
+
+
+#: With nothing in view, a wall rises to the border and is about the tallest there.
+WALL_SHARE = 0.8
+
+#: Pixels within which an object touches the support or a structure.
+STAND_REACH = 6
+
+
+def _touching(owner: np.ndarray, mask: np.ndarray) -> set[int]:
+    """Objects (``owner`` ids) within :data:`STAND_REACH` pixels of ``mask``."""
+    k = 2 * STAND_REACH + 1
+    near = ndimage.binary_dilation(mask, structure=np.ones((k, k), dtype=bool))
+    return set(np.unique(owner[near & (owner > 0)]).tolist())
+
+
+def _attached(objects: list[ObjectInfo], owner: np.ndarray, structures: set[int],
+              hover: set[int]) -> set[int]:
+    """Objects of ``hover`` touching a structure, transitively (a gripper's fingers)."""
+    found: set[int] = set()
+    frontier = set(structures)
+    while frontier:
+        near = _touching(owner, np.isin(owner, list(frontier)))
+        frontier = {o.id for o in objects if o.id in near and o.id in hover
+                    and o.id not in structures | found}
+        found |= frontier
+    return found
+
+
+def _rises_to_border(mine: np.ndarray, height: np.ndarray, zone: np.ndarray, tol: float
+                     ) -> bool:
+    """Whether an object's pixels at the border stand higher than its median (a wall)."""
+    edge = height[mine & zone]
+    edge = edge[np.isfinite(edge)]
+    if not edge.size:
+        return False
+    return float(np.median(edge)) > float(np.nanmedian(height[mine])) + tol
+
+
+def _unit_note(config: Config) -> str:
+    """What the reason says when ``footprint_mm`` cannot apply (no intrinsics or metric depth)."""
+    hold = config.holdsite
+    if not any(hold.footprint_mm) or footprint_in_mm(hold, config.input):
+        return ""
+    return (f" (footprint_mm needs camera intrinsics and metric depth: the footprint is "
+            f"size, {hold.size[0]}x{hold.size[1]} px)")
+
+
+def carve_pickable(z: np.ndarray, labels: np.ndarray, pickable: np.ndarray,
+                   on_support: np.ndarray | None, n: int, area: int, config: Config,
+                   backend: Backend) -> tuple[np.ndarray, list[Surface], dict[int, int]]:
+    """Pickable pieces of regions the workspace leaves out, as surfaces of their own.
+
+    Growing can join a thin item to the floor (its contour not closed); the
+    workspace leaves that region out (most of it lies on the support), but
+    the item's pixels are pickable. Each 8-connected piece of pickable
+    pixels of such a region, of ``area`` pixels or more (a footprint), gets
+    a new label (``n + 1``, ...) and a :class:`Surface` fitted to it.
+
+    Returns
+    -------
+    labels, surfaces, origin
+        The labels with the pieces, their surfaces, and each piece's region
+        in the input ``labels`` (new id -> old id); unchanged and empty when
+        nothing is carved.
+    """
+    low = unpickable_regions(labels, pickable, n)
+    if not low:
+        return labels, [], {}
+    is_low = np.zeros(n + 1, dtype=bool)
+    is_low[list(low)] = True
+    pieces, count = ndimage.label(is_low[labels] & pickable, structure=np.ones((3, 3)))
+    sizes = np.bincount(pieces.ravel(), minlength=count + 1)
+    keep = np.flatnonzero(sizes >= max(area, 1))
+    keep = keep[(keep > 0) & _lying_on(pieces, count, on_support, np.isfinite(z))[keep]]
+    if not keep.size:
+        return labels, [], {}
+    new_id = np.zeros(count + 1, dtype=labels.dtype)
+    new_id[keep] = n + 1 + np.arange(keep.size)
+    mine = new_id[pieces]
+    only = np.where(mine > 0, mine, 0)
+    carved = describe_surfaces(z, only, config, backend=backend)
+    rows, cols = np.nonzero(only)
+    first = np.unique(only[rows, cols], return_index=True)[1]
+    origin = {int(only[rows[k], cols[k]]): int(labels[rows[k], cols[k]]) for k in first}
+    return np.where(mine > 0, mine, labels), carved, origin
+
+
+#: A carved piece lies on the support when this share of the valid pixels around it is on it.
+ON_SUPPORT_SHARE = 0.6
+
+
+def _lying_on(pieces: np.ndarray, count: int, on_support: np.ndarray | None,
+              valid: np.ndarray) -> np.ndarray:
+    """Bool (count + 1,): pieces ringed mostly by the support (:data:`ON_SUPPORT_SHARE`).
+
+    An item on a tote's floor is ringed by the floor; the rounded band where
+    the floor meets a wall has the wall on one side. Counted over the valid
+    pixels up to 3 px around each piece (not the shadows).
+    """
+    if on_support is None:
+        return np.ones(count + 1, dtype=bool)
+    near = ndimage.grey_dilation(pieces, size=(7, 7))
+    ring = (pieces == 0) & (near > 0) & valid
+    total = np.bincount(near[ring], minlength=count + 1)
+    on = np.bincount(near[ring & on_support], minlength=count + 1)
+    return on >= ON_SUPPORT_SHARE * np.maximum(total, 1)
+
+
+def _named_as_labelled(objects: list[ObjectInfo], origin: dict[int, int]) -> list[ObjectInfo]:
+    """Objects with carved pieces named by their region in the label image."""
+    if not origin:
+        return objects
+    return [dataclasses.replace(o, surfaces=tuple(sorted({origin.get(i, i) for i in o.surfaces})))
+            for o in objects]
+
+
+def floating_objects(objects: list[ObjectInfo]) -> set[int]:
+    """Objects that neither stand on the support nor lie on one that does (transitively).
+
+    An object lies on another when it is higher across a step edge between
+    them (``covered_by``). A floating object hangs in the air: the robot's
+    finger seen without the arm that holds it. The search tries it last.
+    """
+    supported = {o.id for o in objects if o.stands}
+    grew = True
+    while grew:
+        grew = False
+        for o in objects:
+            new = set(o.covered_by) - supported
+            if o.id in supported and new:
+                supported |= new
+                grew = True
+    return {o.id for o in objects} - supported
+
+
+def _nothing_to_pick(by_id: dict[int, Surface], objects: list[ObjectInfo],
+                     space: Workspace) -> str:
+    """The reason of an image with no candidate object."""
+    if not by_id:
+        return "nothing to pick: no surfaces in the segmentation"
+    structures = sum(o.structure for o in objects)
+    if space.support is not None:
+        text = ("nothing to pick: nothing of a footprint's area stands on the support (the "
+                f"dominant plane, within {space.tolerance:.3g} depth units)")
+    else:
+        text = "nothing to pick: every surface lies in the background or outside the workspace"
+    if structures:
+        text += (f", besides {structures} structure(s) at the image border (a tote wall, the "
+                 "robot's fingers) that are never picked")
+    return text
+
+
+# ---------------------------------------------------------------------------
+# Step 4: footprints and window statistics
+
+
+def footprint(size: tuple[int, int], angle: float) -> np.ndarray:
+    """Boolean structuring element of a ``size`` (rows, cols) rectangle rotated by ``angle``.
+
+    Parameters
+    ----------
+    size
+        (rows, cols) of the unrotated footprint.
+    angle
+        Degrees, counter-clockwise as displayed (rows grow downwards); 0 keeps
+        the footprint's rows along image rows.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool (k, k), k odd: pixel centres inside the rotated rectangle.
+    """
+    rows, cols = size
+    t = math.radians(angle)
+    cos, sin = math.cos(t), math.sin(t)
+    if abs(sin) < 1e-12 or abs(cos) < 1e-12:  # axis-aligned: exact rectangle
+        shape = (rows, cols) if abs(sin) < 1e-12 else (cols, rows)
+        return np.ones(shape, dtype=bool)
+    half = int(math.ceil(math.hypot(rows, cols) / 2))
+    dr, dc = np.mgrid[-half: half + 1, -half: half + 1].astype(np.float64)
+    along = dc * cos - dr * sin   # along the footprint's rows (its column axis)
+    across = dc * sin + dr * cos  # along the footprint's columns (its row axis)
+    fp = (np.abs(along) <= cols / 2 + 1e-9) & (np.abs(across) <= rows / 2 + 1e-9)
+    keep_r, keep_c = np.nonzero(fp.any(axis=1))[0], np.nonzero(fp.any(axis=0))[0]
+    trim = min(keep_r[0], keep_c[0], len(fp) - 1 - keep_r[-1], len(fp) - 1 - keep_c[-1])
+    return fp[trim: len(fp) - trim, trim: len(fp) - trim]
+
+
+def window_mean(a: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """Mean of ``a`` over the footprint centred at each pixel (zeros outside the image).
+
+    A full rectangle uses a box filter; a small rotated footprint sums shifted
+    copies (one per footprint pixel); a large one is an FFT convolution. All
+    are vectorised over the image.
+    """
+    if fp.all():
+        return ndimage.uniform_filter(a, size=fp.shape, mode="constant", cval=0.0)
+    if fp.sum() > FFT_FOOTPRINT_PIXELS:
+        from scipy.signal import fftconvolve
+
+        return fftconvolve(a, fp[::-1, ::-1].astype(np.float64), mode="same") / fp.sum()
+    kr, kc = fp.shape[0] // 2, fp.shape[1] // 2
+    padded = np.pad(a, ((kr, kr), (kc, kc)))
+    h, w = a.shape
+    total = np.zeros_like(a)
+    for dr, dc in zip(*np.nonzero(fp), strict=True):
+        total += padded[dr: dr + h, dc: dc + w]
+    return total / fp.sum()
+
+
+def window_ar_std(ar: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """Standard deviation of the 2-D AR over the footprint at each pixel (Sec. VII).
+
+    Parameters
+    ----------
+    ar
+        float64 (H, W) AR of :func:`~rangeseg_cli.stages.edges.ar_2d`; NaN (invalid)
+        counts as 0, and such windows are never candidates anyway.
+    fp
+        Boolean footprint (the window means of :func:`window_mean`).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W) ``sqrt(E[AR^2] - E[AR]^2)`` over the window.
+    """
+    a = np.where(np.isnan(ar), 0.0, ar)
+    m1 = window_mean(a, fp)
+    m2 = window_mean(a * a, fp)
+    return np.sqrt(np.maximum(m2 - m1 * m1, 0.0))
+
+
+def erode(mask: np.ndarray, fp: np.ndarray, *, backend: Backend = "auto") -> np.ndarray:
+    """Centres where the footprint lies wholly on ``mask`` (binary erosion, outside = False).
+
+    A full rectangle is eroded as a running minimum
+    (:func:`scipy.ndimage.minimum_filter`, which is separable: a row segment,
+    then a column segment); other footprints (rotated ones) by
+    :func:`erode_runs` (``backend="numpy"``: :func:`scipy.ndimage.binary_erosion`,
+    the reference; the same result).
+    """
+    if fp.all():
+        out = ndimage.minimum_filter(mask.view(np.uint8), size=fp.shape, mode="constant",
+                                     cval=0)
+        return out.view(bool)
+    if backend == "numpy":
+        return ndimage.binary_erosion(mask, structure=fp, border_value=0)
+    return erode_runs(mask, fp)
+
+
+def erode_runs(mask: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """Binary erosion of ``mask`` by ``fp`` (outside = False), one run of ``fp`` at a time.
+
+    Each run of consecutive pixels of a footprint line (a row, or a column
+    when it has fewer non-empty columns) fits at a centre when the line of
+    ``mask`` it falls on has as many consecutive True pixels from the run's
+    start: one lookup in the lengths of the True runs of ``mask`` per
+    footprint run, instead of one pass per footprint pixel
+    (:func:`scipy.ndimage.binary_erosion`: 1.6 s for a 255x3 footprint
+    rotated by 15 degrees on a 400x400 crop). The outermost runs go first,
+    and an erosion that leaves no centre stops there: a footprint longer
+    than the surface is ruled out after a run or two.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool of ``mask``'s shape, identical to
+        ``scipy.ndimage.binary_erosion(mask, structure=fp, border_value=0)``.
+    """
+    mask = np.asarray(mask, dtype=bool)
+    fp = np.asarray(fp, dtype=bool)
+    if np.count_nonzero(fp.any(axis=0)) < np.count_nonzero(fp.any(axis=1)):
+        return np.ascontiguousarray(erode_runs(mask.T, fp.T).T)
+    h, w = mask.shape
+    kr, kc = fp.shape[0] // 2, fp.shape[1] // 2
+    # run_length[r, c]: consecutive True pixels of mask's row r from column c on (0 outside)
+    lengths = np.zeros((h + fp.shape[0], w + fp.shape[1]), dtype=np.int64)
+    cols = np.broadcast_to(np.arange(w), mask.shape)
+    stops = np.minimum.accumulate(np.where(mask, w, cols)[:, ::-1], axis=1)[:, ::-1]
+    lengths[kr: kr + h, kc: kc + w] = stops - cols
+    out = np.ones(mask.shape, dtype=bool)
+    for k, (i, start, size) in enumerate(_footprint_runs(fp.shape, fp.tobytes())):
+        out &= lengths[i: i + h, start: start + w] >= size
+        if k % 8 in (0, 1) and not out.any():
+            break
+    return out
+
+
+@functools.lru_cache(maxsize=1024)
+def _footprint_runs(shape: tuple[int, ...], data: bytes) -> list[tuple[int, int, int]]:
+    """(row, first column, length) of each run of True in a footprint's rows, outermost first.
+
+    The footprint is given as its shape and bool bytes (cached: each angle's
+    footprint serves every surface).
+    """
+    fp = np.frombuffer(data, dtype=bool).reshape(shape)
+    padded = np.zeros((fp.shape[0], fp.shape[1] + 2), dtype=np.int8)
+    padded[:, 1:-1] = fp
+    step = np.diff(padded, axis=1)
+    rows, starts = np.nonzero(step == 1)
+    _, ends = np.nonzero(step == -1)
+    centre = fp.shape[0] // 2
+    order = np.argsort(-np.abs(rows - centre), kind="stable")
+    return [(int(rows[k]), int(starts[k]), int(ends[k] - starts[k])) for k in order]
+
+
+def clearance_map(mask: np.ndarray) -> np.ndarray:
+    """Euclidean distance of each pixel to the nearest pixel off ``mask`` (step 5's clearance).
+
+    Parameters
+    ----------
+    mask
+        bool (h, w) with a border of False (a padded crop of one surface).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (h, w) distances in pixels, 0 off the mask
+        (:func:`scipy.ndimage.distance_transform_edt`).
+    """
+    return ndimage.distance_transform_edt(mask)
+
+
+def _window_sums(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """``sum_k kernel[k] a[p + k - centre]`` at each pixel p (zeros outside the image)."""
+    if kernel.size > FFT_FOOTPRINT_PIXELS:
+        from scipy.signal import fftconvolve
+
+        return fftconvolve(a, kernel[::-1, ::-1], mode="same")
+    return ndimage.correlate(a, kernel, mode="constant", cval=0.0)
+
+
+def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """RMS residual of the least-squares plane of ``z`` over the footprint at each pixel.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    fp
+        Boolean footprint (odd sides).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W); NaN where a footprint pixel is invalid or outside.
+
+    Notes
+    -----
+    The normal equations of ``z = a + b x + c y`` over the footprint (x, y
+    the offsets from its centre) have a constant matrix; only the moments
+    ``sum z, sum x z, sum y z, sum z^2`` vary, each a correlation of the
+    image with a fixed kernel. The heights are taken from their median
+    first, so that the squares do not cancel.
+    """
+    valid = np.isfinite(z)
+    base = float(np.median(z[valid])) if valid.any() else 0.0
+    zc = np.where(valid, z - base, 0.0)
+    w = fp.astype(np.float64)
+    y, x = np.indices(fp.shape, dtype=np.float64)
+    y -= fp.shape[0] // 2
+    x -= fp.shape[1] // 2
+    n = w.sum()
+    a = np.array([[n, (w * x).sum(), (w * y).sum()],
+                  [(w * x).sum(), (w * x * x).sum(), (w * x * y).sum()],
+                  [(w * y).sum(), (w * x * y).sum(), (w * y * y).sum()]])
+    moments = [_window_sums(zc, k) for k in (w, w * x, w * y)]
+    b = np.stack(moments, axis=-1)
+    coef = b @ np.linalg.pinv(a).T
+    rss = _window_sums(zc * zc, w) - np.einsum("...i,...i->...", b, coef)
+    full = _window_sums(valid.astype(np.float64), w) >= n - 0.5
+    return np.where(full, np.sqrt(np.maximum(rss, 0.0) / n), np.nan)
+
+
+def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:
+    """``max_flat_rms``, or its default: 2 x noise + 1 unit (+ 1 mm with metric depth).
+
+    ``max_flat_rms`` at its largest allowed value (``--preset paper``) is no limit: inf.
+    """
+    if cfg.max_flat_rms >= MAX_DEPTH:
+        return math.inf
+    if cfg.max_flat_rms > 0:
+        return cfg.max_flat_rms
+    floor = 1.0
+    if camera.has_intrinsics and camera.metres_per_unit > 0:
+        floor = 0.001 / camera.metres_per_unit
+    return 2.0 * max(noise, 0.0) + floor
+
+
+#: Margin of the heights around a crop for its AR: the 5x5 Gaussian's half-width.
+AR_MARGIN = 2
+
+
+def footprint_in_mm(cfg: HoldsiteConfig, camera: InputConfig) -> bool:
+    """Whether ``footprint_mm`` applies: set, with intrinsics and metric depth."""
+    return (any(cfg.footprint_mm) and camera.has_intrinsics and camera.metres_per_unit > 0
+            and not camera.larger_is_closer)
+
+
+def footprint_pixels(cfg: HoldsiteConfig, camera: InputConfig, depth: float
+                     ) -> tuple[int, int]:
+    """The footprint (rows, cols) in pixels: ``size``, or ``footprint_mm`` at ``depth``.
+
+    A side of ``L`` mm at depth ``d`` mm spans ``L f / d`` pixels (pinhole);
+    rounded to the nearest odd count, 1 to 255. ``depth`` is in depth units.
+    """
+    if not footprint_in_mm(cfg, camera) or depth <= 0:
+        return cfg.size
+    mm = depth * camera.metres_per_unit * 1000.0
+    return (odd_pixels(cfg.footprint_mm[0], camera.fy, mm),
+            odd_pixels(cfg.footprint_mm[1], camera.fx, mm))
+
+
+
+@dataclass
+class _Scene:
+    """Per-image inputs of the search.
+
+    The 2-D AR (Sec. VII) is computed per surface crop, on demand, from the
+    heights ``z`` (see :meth:`ar`).
+    """
+
+    labels: np.ndarray
+    valid: np.ndarray
+    z: np.ndarray
+    cfg: HoldsiteConfig
+    angles: tuple[float, ...]
+    backend: Backend = "auto"
+    camera: InputConfig = field(default_factory=InputConfig)
+    flat_limit: float = math.inf
+    _footprints: dict[float, np.ndarray] = field(default_factory=dict)
+    _sized: dict[tuple[int, int], _Scene] = field(default_factory=dict)
+    _ar_area: int = 0
+    _ar_whole: np.ndarray | None = None
+
+    def for_surface(self, s: Surface) -> _Scene:
+        """The scene with the footprint in pixels at ``s``'s depth (``footprint_mm``)."""
+        size = footprint_pixels(self.cfg, self.camera, -s.mean_height)
+        if size == self.cfg.size:
+            return self
+        if size not in self._sized:
+            cfg = dataclasses.replace(self.cfg, size=size)
+            self._sized[size] = _Scene(self.labels, self.valid, self.z, cfg, _angles(cfg),
+                                       self.backend, self.camera, self.flat_limit)
+        return self._sized[size]
+
+    def footprint(self, angle: float) -> np.ndarray:
+        if angle not in self._footprints:
+            self._footprints[angle] = footprint(self.cfg.size, angle)
+        return self._footprints[angle]
+
+    def ar(self, sl: tuple[slice, slice]) -> np.ndarray:
+        """:func:`~rangeseg_cli.stages.edges.ar_2d` of the image, in the crop ``sl``.
+
+        Computed on the crop grown by :data:`AR_MARGIN`, which is exact (equal
+        to the whole image's AR: the 5x5 mask sees the same heights, and
+        ``correlate1d`` adds each pixel's taps alike wherever it lies); once
+        the crops asked for would add up to more than the image, the whole
+        image's AR is computed once and sliced instead.
+        """
+        h, w = self.z.shape
+        m = AR_MARGIN
+        r0, r1 = max(sl[0].start - m, 0), min(sl[0].stop + m, h)
+        c0, c1 = max(sl[1].start - m, 0), min(sl[1].stop + m, w)
+        self._ar_area += (r1 - r0) * (c1 - c0)
+        if self._ar_whole is None and self._ar_area > h * w:
+            self._ar_whole = ar_2d(self.z, backend=self.backend)
+        if self._ar_whole is not None:
+            return self._ar_whole[sl]
+        ar = ar_2d(self.z[r0:r1, c0:c1], backend=self.backend)
+        return ar[sl[0].start - r0: sl[0].stop - r0, sl[1].start - c0: sl[1].stop - c0]
+
+
+@dataclass
+class _Hits:
+    """Accepted window centres of one surface, and why other windows failed.
+
+    ``rows``, ``cols`` and ``clearance`` list the centres where the window is
+    accepted at one angle at least; ``ok`` and ``std`` (angles, h, w) hold,
+    in the surface's crop (``offset`` from image coordinates), which angles
+    are accepted and their AR std; ``edt`` is the crop's distance transform.
+    """
+
+    surface: Surface
+    rows: np.ndarray
+    cols: np.ndarray
+    clearance: np.ndarray
+    offset: tuple[int, int] = (0, 0)
+    edt: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    ok: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0), bool))
+    std: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    max_clearance: float = 0.0
+    fitting: int = 0
+    min_ar_std: float = math.inf
+    steep: int = 0
+    min_tilt: float = math.inf
+    tilt_state: np.ndarray | None = None
+    rough: int = 0
+    min_rms: float = math.inf
+    scene: Any = None
+
+
+def _pad1(a: np.ndarray) -> np.ndarray:
+    """``np.pad(a, 1)`` (zeros around a 2-D array) without its per-call overhead."""
+    out = np.zeros((a.shape[0] + 2, a.shape[1] + 2), dtype=a.dtype)
+    out[1:-1, 1:-1] = a
+    return out
+
+
+def _crop(scene: _Scene, s: Surface, reach: int) -> tuple[tuple[slice, slice], tuple[int, int]]:
+    """Slices of the surface's box grown by ``reach``, and the offset of a 1-px padded crop."""
+    h, w = scene.labels.shape
+    r0, c0, r1, c1 = s.bbox
+    sl = (slice(max(0, r0 - reach), min(h, r1 + reach + 1)),
+          slice(max(0, c0 - reach), min(w, c1 + reach + 1)))
+    return sl, (sl[0].start - 1, sl[1].start - 1)
+
+
+def _inside(scene: _Scene, mask: np.ndarray, angle: float, extent: tuple[int, int]
+            ) -> np.ndarray:
+    """Centres where the footprint at ``angle`` lies wholly on ``mask`` (binary erosion).
+
+    ``extent`` is the (rows, cols) span of ``mask``'s pixels: a footprint
+    that spans more rows or columns fits nowhere (no erosion needed).
+    """
+    fp = scene.footprint(angle)
+    if _span(fp, 1) > extent[0] or _span(fp, 0) > extent[1]:
+        return np.zeros(mask.shape, dtype=bool)
+    return erode(mask, fp, backend=scene.backend)
+
+
+def _span(a: np.ndarray, axis: int) -> int:
+    """Rows (``axis=1``) or columns (``axis=0``) from the first to the last one with a pixel."""
+    hit = np.flatnonzero(a.any(axis=axis))
+    return int(hit[-1] - hit[0] + 1) if hit.size else 0
+
+
+def _accept_angle(scene: _Scene, inside: np.ndarray, ar: np.ndarray, heights: np.ndarray,
+                  angle: float, hits: _Hits) -> tuple[np.ndarray, np.ndarray]:
+    """Step 4 at one angle: (accepted centres, AR std) in the crop.
+
+    A window is accepted when the footprint lies wholly on the surface's
+    valid pixels (``inside``: :func:`_inside`) and the AR std over it is
+    small. Every window pixel of an accepted centre is inside the crop, so
+    the crop's window means are exact there.
+    """
+    if not inside.any():
+        return inside, np.full(inside.shape, np.inf)
+    fp = scene.footprint(angle)
+    std = window_ar_std(ar, fp)
+    hits.fitting += int(inside.sum())
+    hits.min_ar_std = min(hits.min_ar_std, float(std[inside].min()))
+    return _flat_enough(scene, heights, fp, inside & (std <= scene.cfg.max_ar_std), hits), std
+
+
+def _flat_enough(scene: _Scene, heights: np.ndarray, fp: np.ndarray, ok: np.ndarray,
+                 hits: _Hits) -> np.ndarray:
+    """``ok`` less the windows whose plane-fit RMS exceeds the limit (:func:`flat_limit`)."""
+    if not math.isfinite(scene.flat_limit) or not ok.any():
+        return ok
+    rms = window_flat_rms(heights, fp)
+    flat = ok & (rms <= scene.flat_limit)
+    rough = ok & ~flat
+    hits.rough += int(rough.sum())
+    if rough.any():
+        hits.min_rms = min(hits.min_rms, float(np.nanmin(rms[rough])))
+    return flat
+
+
+def _pad_nan(a: np.ndarray) -> np.ndarray:
+    """``a`` with one NaN pixel around it (a crop padded as :func:`_pad1` pads the masks)."""
+    return np.pad(np.asarray(a, dtype=np.float64), 1, constant_values=np.nan)
+
+
+def surface_windows(scene: _Scene, s: Surface) -> _Hits:
+    """Step 4: every acceptable window centre on surface ``s``, unsorted.
+
+    Parameters
+    ----------
+    scene
+        Labels, validity, AR and the holdsite configuration.
+    s
+        The surface.
+
+    Returns
+    -------
+    _Hits
+        Accepted centres with their clearance, the accepted angles and AR
+        stds, and the largest clearance, number of fitting windows and lowest
+        AR std seen (for the reason when nothing is accepted).
+    """
+    return _drop_steep(scene, _level_windows(scene, s))
+
+
+def _level_windows(scene: _Scene, s: Surface) -> _Hits:
+    """:func:`surface_windows` before the tilt test."""
+    rows, cols = scene.cfg.size
+    sl, offset = _crop(scene, s, max(rows, cols) // 2 + 2)
+    mask = _pad1((scene.labels[sl] == s.id) & scene.valid[sl])
+    edt = clearance_map(mask)
+    none = np.zeros(0, dtype=np.int64)
+    hits = _Hits(s, none, none, none.astype(np.float64), max_clearance=float(edt.max()))
+    if hits.max_clearance < (min(rows, cols) + 1) / 2:
+        return hits  # not even the footprint's short side fits
+    extent = (_span(mask, 1), _span(mask, 0))
+    insides = []
+    for angle in scene.angles:
+        checkpoint()  # a stop requested meanwhile (a fine rotation_step takes long)
+        insides.append(_inside(scene, mask, angle, extent))
+    if not any(inside.any() for inside in insides):
+        return hits  # the footprint fits nowhere on it, at any angle
+    ar = _pad1(scene.ar(sl))
+    heights = _pad_nan(scene.z[sl])
+    accepted = []
+    for angle, inside in zip(scene.angles, insides, strict=True):
+        checkpoint()
+        accepted.append(_accept_angle(scene, inside, ar, heights, angle, hits))
+    ok = np.stack([a for a, _ in accepted])
+    r, c = np.nonzero(ok.any(axis=0))
+    hits.rows, hits.cols, hits.clearance = r + offset[0], c + offset[1], edt[r, c]
+    hits.offset, hits.edt, hits.ok = offset, edt, ok
+    hits.std = np.stack([std for _, std in accepted])
+    return hits
+
+
+def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
+    """(angle, AR std) at accepted centre ``k``: the footprint farthest from the border.
+
+    Among the accepted angles, the one whose footprint's smallest distance to
+    the surface's border (the distance transform's minimum over the
+    footprint) is largest; then the lowest AR std; then the smallest angle.
+    """
+    r, c = hits.rows[k] - hits.offset[0], hits.cols[k] - hits.offset[1]
+    if len(scene.angles) == 1 and hits.ok[0, r, c]:  # the one angle, accepted here
+        return scene.angles[0], float(hits.std[0, r, c])
+    best = (-math.inf, math.inf, 0.0)
+    for a, angle in enumerate(scene.angles):
+        if not hits.ok[a, r, c]:
+            continue
+        fp = scene.footprint(angle)
+        fr, fc = np.nonzero(fp)
+        margin = float(hits.edt[r + fr - fp.shape[0] // 2, c + fc - fp.shape[1] // 2].min())
+        std = float(hits.std[a, r, c])
+        if (margin, -std) > (best[0], -best[1]):
+            best = (margin, std, angle)
+    return best[2], best[1]
+
+
+# ---------------------------------------------------------------------------
+# Step 4b: tilt (holdsite.max_tilt)
+
+
+def tilts(camera: InputConfig, units_per_pixel: float, rows: Any, cols: Any, heights: Any,
+          gx: Any, gy: Any) -> np.ndarray:
+    """Angles in degrees between surface normals and the sensor's axis (Step 4b).
+
+    Parameters
+    ----------
+    camera
+        ``[input]``: with intrinsics (depth input), the normal of
+        :func:`camera_pose` is taken against the optical axis.
+    units_per_pixel
+        Without intrinsics, depth units per pixel of lateral size: the normal
+        ``(-dz/dx, -dz/dy, 1)`` of the height map scaled to equal units is taken
+        against the height axis, ``atan(|grad| / units_per_pixel)``.
+    rows, cols, heights, gx, gy
+        Positions, heights and gradients (dz/dx, dz/dy; x = col) of the fits.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 angles in [0, 180]; NaN where the depth is not positive.
+    """
+    r, c, h, dx, dy = (np.asarray(a, dtype=np.float64) for a in (rows, cols, heights, gx, gy))
+    if camera.has_intrinsics:
+        ax, ay, az = _camera_approach(camera, r, c, h, dx, dy)
+        cosine = az / np.sqrt(ax * ax + ay * ay + az * az)
+        return np.where(-h > 0, np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))), np.nan)
+    return np.degrees(np.arctan(np.hypot(dx, dy) / units_per_pixel))
+
+
+def _camera_approach(cfg: InputConfig, row: Any, col: Any, height: Any, gx: Any, gy: Any
+                     ) -> tuple[Any, Any, Any]:
+    """Components of the camera-frame approach vector, not normalised (module Notes, step 6).
+
+    ``-(P_u x P_v)`` of ``P(u, v) = d(u, v) r(u, v)`` with ``d = -height``: the
+    normal faces the camera and the gripper moves against it. Scalars or arrays.
+    """
+    d, d_u, d_v = -height, -gx, -gy
+    return (-cfg.fx * d_u, -cfg.fy * d_v, d + (col - cfg.cx) * d_u + (row - cfg.cy) * d_v)
+
+
+#: Degrees a site's tilt may exceed ``max_tilt`` by: a level plane's fit is level
+#: only to rounding (a tilt of 1e-14 degrees), and ``max_tilt = 0`` should take it.
+TILT_TOLERANCE = 1e-6
+
+#: Windows whose local pose is computed at once, first (Step 4b); doubled each time.
+TILT_CHUNK = 1024
+
+
+def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
+    """Step 4b: the windows whose pose is tilted beyond ``holdsite.max_tilt`` do not count.
+
+    The pose is the one a site there would report (:func:`site_poses`), so a
+    site's normal is always within the limit. Where that pose is the
+    surface's fit (a planar surface) every window
+    is tested here at once and the steep ones dropped. A curved surface's
+    local poses cost a fit each, so they are computed in the order the
+    windows are wanted, a chunk at a time (:func:`_first_level`), and
+    ``hits.tilt_state`` says which are known: 1 level enough, 0 too steep,
+    -1 not yet computed.
+    """
+    if scene.cfg.max_tilt >= 90 or not hits.rows.size:
+        return hits
+    if _local_pose_used(scene, hits.surface):
+        hits.tilt_state = np.full(hits.rows.size, -1, dtype=np.int8)
+        return hits
+    keep = _judge_tilts(scene, hits, np.arange(hits.rows.size))
+    hits.rows, hits.cols, hits.clearance = hits.rows[keep], hits.cols[keep], hits.clearance[keep]
+    return hits
+
+
+def _judge_tilts(scene: _Scene, hits: _Hits, idx: np.ndarray) -> np.ndarray:
+    """Whether windows ``idx`` are level enough (bool); counts the steep ones in ``hits``."""
+    r, c = hits.rows[idx], hits.cols[idx]
+    t = tilts(scene.camera, scene.camera.units_per_pixel, r, c,
+              *site_poses(scene, hits.surface, r, c))
+    ok = t <= scene.cfg.max_tilt + TILT_TOLERANCE  # NaN (no depth): not level
+    hits.steep += int(np.count_nonzero(~ok))
+    if np.isfinite(t[~ok]).any():
+        hits.min_tilt = min(hits.min_tilt, float(np.nanmin(t[~ok])))
+    if hits.tilt_state is not None:
+        hits.tilt_state[idx] = ok
+    return ok
+
+
+def _first_level(scene: _Scene, hits: _Hits, order: np.ndarray) -> int:
+    """Position in ``order`` of its first window that is level enough, or -1 (Step 4b).
+
+    Unknown tilts are computed a chunk at a time (:data:`TILT_CHUNK`,
+    doubling), so a surface whose best windows are level costs one chunk.
+    """
+    state = hits.tilt_state
+    assert state is not None  # callers take the windows as they are without a limit
+    start, size = 0, TILT_CHUNK
+    while start < order.size:
+        chunk = order[start:start + size]
+        unknown = chunk[state[chunk] < 0]
+        if unknown.size:
+            _judge_tilts(scene, hits, unknown)
+        level = np.flatnonzero(state[chunk] == 1)
+        if level.size:
+            return start + int(level[0])
+        start, size = start + size, size * 2
+    return -1
+
+
+# ---------------------------------------------------------------------------
+# Step 5: choice and runners-up
+
+
+def _rank_keys(hits: _Hits, centre: tuple[float, float]) -> tuple[np.ndarray, ...]:
+    """Sort keys of the hits, last one first: clearance (whole pixels) down, distance up."""
+    dist = np.hypot(hits.rows - centre[0], hits.cols - centre[1])
+    return hits.cols, hits.rows, dist, -np.floor(hits.clearance + 1e-9)
+
+
+def _rank(hits: _Hits, centre: tuple[float, float]) -> np.ndarray:
+    """Order of the hits: clearance (whole pixels) down, distance to ``centre`` up."""
+    return np.lexsort(_rank_keys(hits, centre))
+
+
+def _best(hits: _Hits, centre: tuple[float, float]) -> int:
+    """``_rank(hits, centre)[0]`` without sorting: narrow down key by key (Sec. VII).
+
+    The keys of :func:`_rank_keys`, each computed for the hits still in the
+    running only (the same values).
+    """
+    whole = np.floor(hits.clearance + 1e-9)  # clearance in whole pixels, largest first
+    keep = np.flatnonzero(whole == whole.max())
+    if keep.size > 1:
+        dist = np.hypot(hits.rows[keep] - centre[0], hits.cols[keep] - centre[1])
+        keep = keep[dist == dist.min()]
+    for key in (hits.rows, hits.cols):
+        if keep.size == 1:
+            break
+        values = key[keep]
+        keep = keep[values == values.min()]
+    return int(keep[0])
+
+
+def _spread(hits: _Hits, order: np.ndarray, count: int, gap: float,
+            scene: _Scene | None = None) -> list[int]:
+    """Up to ``count`` indices in ``order`` whose centres are >= ``gap`` apart (greedy).
+
+    With ``scene``, windows too steep for ``holdsite.max_tilt`` are passed
+    over (their tilts computed as they come up: :func:`_first_level`).
+    """
+    picked: list[int] = []
+    left = np.ones(order.size, dtype=bool)
+    r, c = hits.rows[order], hits.cols[order]
+    state = hits.tilt_state if scene is not None else None
+    while len(picked) < count and left.any():
+        if state is None or scene is None:
+            k = int(np.argmax(left))
+        else:
+            rest = np.flatnonzero(left)
+            pos = _first_level(scene, hits, order[rest])
+            left &= state[order] != 0  # the steep ones found meanwhile
+            if pos < 0:
+                break
+            k = int(rest[pos])
+        picked.append(int(order[k]))
+        left &= np.hypot(r - r[k], c - c[k]) >= gap
+    return picked
+
+
+def _has_level(scene: _Scene, hits: _Hits) -> bool:
+    """Whether ``hits`` holds a window level enough (widest clearance tried first; Step 4b)."""
+    if hits.tilt_state is None:
+        return bool(hits.rows.size)
+    return _first_level(scene, hits, np.argsort(-hits.clearance, kind="stable")) >= 0
+
+
+def _first(scene: _Scene, hits: _Hits, centre: tuple[float, float]) -> int:
+    """The best window of ``hits`` (:func:`_best`) that is level enough (Step 4b)."""
+    if hits.tilt_state is None:
+        return _best(hits, centre)
+    order = _rank(hits, centre)
+    return int(order[_first_level(scene, hits, order)])
+
+
+def score(clearance: float, distance: float, size: tuple[int, int], area: float) -> float:
+    """Descriptive score in (0, 1): ``c / (c + h) * rho / (rho + d)`` (module Notes)."""
+    h = (max(size) + 1) / 2
+    rho = math.sqrt(max(area, 1.0) / math.pi)
+    return clearance / (clearance + h) * rho / (rho + distance)
+
+
+# ---------------------------------------------------------------------------
+# Step 6: pose
+
+
+def _unit(v: np.ndarray) -> Vector:
+    """``v / np.linalg.norm(v)`` of a 3-vector (the norm as numpy takes it: ``sqrt(v.dot(v))``)."""
+    x, y, z = (v / np.sqrt(v.dot(v))).tolist()
+    return x, y, z
+
+
+def camera_pose(row: float, col: float, height: float, grad: tuple[float, float],
+                cfg: InputConfig) -> tuple[Vector | None, Vector | None]:
+    """Camera-frame point and approach vector of a site (module Notes, step 6).
+
+    Parameters
+    ----------
+    row, col
+        Pixel position.
+    height
+        Fitted height there (``-depth`` for depth input).
+    grad
+        (dz/dx, dz/dy) of the fit, x = col, y = row.
+    cfg
+        ``[input]`` with intrinsics, ``larger_is_closer`` and ``metres_per_unit``.
+
+    Returns
+    -------
+    point, approach
+        ``(X, Y, Z)`` (metres when ``metres_per_unit > 0``, else depth units)
+        and the unit approach vector; ``(None, None)`` without intrinsics, for
+        height maps (``larger_is_closer``: no depth along the optical axis) or
+        a non-positive depth.
+    """
+    if not cfg.has_intrinsics or cfg.larger_is_closer or -height <= 0:
+        return None, None
+    d = -height
+    u0, v0 = col - cfg.cx, row - cfg.cy
+    unit = cfg.metres_per_unit if cfg.metres_per_unit > 0 else 1.0
+    point = (u0 * d / cfg.fx * unit, v0 * d / cfg.fy * unit, d * unit)
+    return point, _unit(np.array(_camera_approach(cfg, row, col, height, *grad)))
+
+
+#: Fewest pixels of a local quadric fit (Step 6); fewer: the surface's own fit.
+LOCAL_FIT_MIN_PIXELS = 12
+
+#: Smallest reach of a local fit (Step 6), the default 7x7 footprint's: a quadric of
+#: 49 pixels (a 3x3 footprint's square) follows the noise, tens of degrees at sigma 2.
+LOCAL_MIN_REACH = 7
+
+
+def local_reach(size: tuple[int, int]) -> int:
+    """Half side of the square of a site's local fit: the footprint's longer side, >= 7."""
+    return max(max(size), LOCAL_MIN_REACH)
+
+
+def local_pose(z: np.ndarray, labels: np.ndarray, s: Surface, row: int, col: int, reach: int
+               ) -> tuple[float, tuple[float, float]] | None:
+    """Step 6 (a curved surface): height and gradient at a site from nearby pixels.
+
+    A least-squares quadric (Sec. V-4's model) of the valid pixels of surface
+    ``s`` within ``reach`` pixels (chessboard) of ``(row, col)``, in
+    coordinates centred on the site, so its constant term is the elevation
+    and its linear terms the gradient there. One quadric of a whole curved
+    surface approximates it everywhere at once, so at a given point it can
+    be off (a noise-free sphere's top by 3.5 depth units); the local fit
+    follows the surface under the gripper. The one-site case of
+    :func:`local_poses` (the same bits).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights, NaN where invalid.
+    labels
+        int (H, W) final regions (0 = none).
+    s
+        The site's surface.
+    row, col
+        The site (the window's centre).
+    reach
+        Half side of the square of pixels used.
+
+    Returns
+    -------
+    tuple or None
+        ``(elevation, (dz/dx, dz/dy))``, x = col, y = row; ``None`` when fewer
+        than :data:`LOCAL_FIT_MIN_PIXELS` pixels are there or they do not
+        determine a quadric (the caller then keeps the surface's fit).
+    """
+    height, gx, gy, ok = local_poses(z, labels, s, np.array([row]), np.array([col]), reach)
+    if not ok[0]:
+        return None
+    return float(height[0]), (float(gx[0]), float(gy[0]))
+
+
+#: Powers (x, y) of the quadric's terms 1, x, y, x^2, xy, y^2 (Sec. V-4).
+_TERMS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
+
+
+def local_poses(z: np.ndarray, labels: np.ndarray, s: Surface, rows: np.ndarray,
+                cols: np.ndarray, reach: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`local_pose` at many sites of surface ``s`` at once.
+
+    The normal equations of every site's quadric are gathered from moment
+    images: sums of ``m x^a y^b`` (a + b <= 4) and ``m z x^a y^b`` (a + b <= 2)
+    over the square of half side ``reach`` around each pixel, with ``m`` the
+    surface's valid pixels and x, y the offsets divided by ``reach``, by two
+    1-D correlations each (the square's weights are separable). Heights are
+    taken relative to the surface's mean height.
+
+    Returns
+    -------
+    height, gx, gy : numpy.ndarray
+        float64 (N,) elevation and gradient (dz/dx, dz/dy) at each site.
+    ok : numpy.ndarray
+        bool (N,): the site's pixels determine a quadric (at least
+        :data:`LOCAL_FIT_MIN_PIXELS`, normal equations not singular); where
+        False the other values are meaningless.
+    """
+    h, w = z.shape
+    box = (slice(max(int(rows.min()) - reach, 0), min(int(rows.max()) + reach + 1, h)),
+           slice(max(int(cols.min()) - reach, 0), min(int(cols.max()) + reach + 1, w)))
+    mine = (labels[box] == s.id) & np.isfinite(z[box])
+    weight = mine.astype(np.float64)
+    rel = np.where(mine, z[box] - s.mean_height, 0.0)
+    taps = np.arange(-reach, reach + 1, dtype=np.float64) / max(reach, 1)
+    at = (rows - box[0].start, cols - box[1].start)
+
+    def moments(image: np.ndarray, degree: int) -> dict[tuple[int, int], np.ndarray]:
+        across = [ndimage.correlate1d(image, taps ** a, axis=1, mode="constant")
+                  for a in range(degree + 1)]
+        return {(a, b): ndimage.correlate1d(across[a], taps ** b, axis=0, mode="constant")[at]
+                for a in range(degree + 1) for b in range(degree + 1 - a)}
+
+    m, mz = moments(weight, 4), moments(rel, 2)
+    gram = np.stack([np.stack([m[(ax + bx, ay + by)] for bx, by in _TERMS], axis=-1)
+                     for ax, ay in _TERMS], axis=-2)
+    rhs = np.stack([mz[t] for t in _TERMS], axis=-1)
+    eig = np.linalg.eigvalsh(gram)
+    ok = (m[(0, 0)] >= LOCAL_FIT_MIN_PIXELS - 0.5) & (eig[:, 0] > RCOND * eig[:, -1])
+    coef = np.zeros(rhs.shape)
+    if ok.any():
+        coef[ok] = np.linalg.solve(gram[ok], rhs[ok][..., None])[..., 0]
+    scale = max(reach, 1)
+    return coef[:, 0] + s.mean_height, coef[:, 1] / scale, coef[:, 2] / scale, ok
+
+
+def _local_pose_used(scene: _Scene, s: Surface) -> bool:
+    """Whether a site on ``s`` takes :func:`local_pose` (a curved surface)."""
+    return s.type != "planar"
+
+
+def site_poses(scene: _Scene, s: Surface, rows: np.ndarray, cols: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 6: elevation and gradient (dz/dx, dz/dy) of sites on ``s``, float64 (N,) each.
+
+    A planar surface keeps its plane (its fit over the whole face is the
+    most precise estimate of a plane); a curved one gets the local quadric of its pixels within
+    :func:`local_reach` of each site (:func:`local_poses`), or its own fit
+    where those pixels determine none.
+    """
+    height = np.asarray(s.height_at(rows, cols), dtype=np.float64)
+    gx, gy = (np.asarray(g, dtype=np.float64) for g in s.gradient_at(rows, cols))
+    if _local_pose_used(scene, s):
+        lh, lx, ly, ok = local_poses(scene.z, scene.labels, s, rows, cols,
+                                     local_reach(scene.cfg.size))
+        height, gx, gy = np.where(ok, lh, height), np.where(ok, lx, gx), np.where(ok, ly, gy)
+    return height, gx, gy
+
+
+def site_pose(scene: _Scene, s: Surface, row: int, col: int
+              ) -> tuple[float, tuple[float, float]]:
+    """:func:`site_poses` of one site: ``(elevation, (dz/dx, dz/dy))``."""
+    height, gx, gy = site_poses(scene, s, np.array([row]), np.array([col]))
+    return float(height[0]), (float(gx[0]), float(gy[0]))
+
+
+def make_site(s: Surface, row: int, col: int, *, object_id: int, clearance: float,
+              ar_std: float, angle: float, site_score: float, config: Config,
+              pose: tuple[float, tuple[float, float]] | None = None) -> Holdsite:
+    """Step 6: a :class:`Holdsite` with elevation, normal and approach.
+
+    ``pose`` is ``(elevation, (dz/dx, dz/dy))`` at the site
+    (:func:`site_pose`); ``None``: from the surface's fit.
+    """
+    if pose is None:
+        pose = float(s.height_at(row, col)), s.gradient_at(row, col)
+    elevation, (gx, gy) = pose
+    normal = _unit(np.array([-gx, -gy, 1.0]))
+    point, approach_cam = camera_pose(row, col, elevation, (gx, gy), config.input)
+    return Holdsite(
+        row=int(row), col=int(col), elevation=elevation, normal=normal,
+        approach=(-normal[0], -normal[1], -normal[2]), surface=s.id, surface_type=s.type,
+        object=object_id, clearance=float(clearance), ar_std=float(ar_std),
+        score=float(site_score), angle=float(angle), size=config.holdsite.size,
+        point_camera=point, approach_camera=approach_cam)
+
+
+# ---------------------------------------------------------------------------
+# The whole search
+
+
+def _angles(cfg: HoldsiteConfig) -> tuple[float, ...]:
+    rows, cols = cfg.size
+    if rows == cols:
+        return (0.0,)
+    n = int(math.ceil(180.0 / cfg.rotation_step - 1e-9))
+    return tuple(float(k * cfg.rotation_step) for k in range(n))
+
+
+def effective_holdsite(config: Config) -> HoldsiteConfig:
+    """``[holdsite]`` as the search applies it: no tilt limit without a lateral scale.
+
+    The tilt of a height map's normal needs its lateral scale: camera
+    intrinsics, or ``[input] units_per_pixel``; without either, ``max_tilt``
+    cannot be tested and is taken as 90 (any), as in the paper.
+    """
+    hold = config.holdsite
+    if hold.max_tilt < 90 and not (config.input.has_intrinsics
+                                   or config.input.units_per_pixel > 0):
+        return dataclasses.replace(hold, max_tilt=90.0)
+    return hold
+
+
+def _preference(obj: ObjectInfo, s: Surface, lift: np.ndarray) -> tuple[bool, bool, float, int]:
+    """Sort key of step 3: in view, uncovered, highest (above the support when known)."""
+    return obj.touches_border, obj.covered, -float(lift[s.id]), s.id
+
+
+def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto", **frames: Any
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """``z`` as float64 and ``labels`` on its valid pixels, checked (:func:`find_holdsite`).
+
+    ``frames``: the workspace arrays given (``background``, ``roi``), of ``z``'s shape.
+    """
+    try:
+        check_stage_arrays(z, labels=labels)
+        require_shape_of_z(z, **{k: v for k, v in frames.items() if v is not None})
+    except ValueError as exc:  # find_holdsite's documented error
+        raise InputError(str(exc)) from None
+    z = np.asarray(z, dtype=np.float64)
+    labels = np.asarray(labels)
+    # int32 where it holds every label: the compiled boundary pairs run twice as wide
+    if np.can_cast(labels.dtype, np.int32):
+        return z, valid_labels(z, labels, backend=backend)[0]
+    return z, np.where(np.isfinite(z), labels, 0).astype(np.int64)
+
+
+def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
+             ) -> Holdsite:
+    r, c = int(hits.rows[k]), int(hits.cols[k])
+    dist = math.hypot(r - obj.centroid[0], c - obj.centroid[1])
+    angle, ar_std = window_angle(scene, hits, k)
+    site = make_site(hits.surface, r, c, object_id=obj.id, clearance=hits.clearance[k],
+                     ar_std=ar_std, angle=angle,
+                     site_score=score(hits.clearance[k], dist, scene.cfg.size, obj.pixels),
+                     config=config, pose=site_pose(scene, hits.surface, r, c))
+    return dataclasses.replace(site, size=scene.cfg.size,
+                               flat_rms=site_flat_rms(scene.z, r, c, scene.footprint(angle)))
+
+
+def site_flat_rms(z: np.ndarray, row: int, col: int, fp: np.ndarray) -> float:
+    """RMS residual of the least-squares plane of the heights under a footprint at (row, col)."""
+    fr, fc = np.nonzero(fp)
+    rr, cc = row + fr - fp.shape[0] // 2, col + fc - fp.shape[1] // 2
+    inside = (rr >= 0) & (rr < z.shape[0]) & (cc >= 0) & (cc < z.shape[1])
+    h = z[rr[inside], cc[inside]]
+    ok = np.isfinite(h)
+    if ok.sum() < 3:
+        return math.nan
+    a = np.column_stack([np.ones(ok.sum()), fc[inside][ok], fr[inside][ok]]).astype(np.float64)
+    centred = h[ok] - h[ok].mean()
+    coef, *_ = np.linalg.lstsq(a, centred, rcond=None)
+    return float(np.sqrt(np.mean((centred - a @ coef) ** 2)))
+
+
+def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hits], list[_Hits]]:
+    """Search surfaces in order until ``wanted`` have accepted windows; (found, missed)."""
+    found: list[_Hits] = []
+    missed: list[_Hits] = []
+    for s in order:
+        sized = scene.for_surface(s)
+        hits = surface_windows(sized, s)
+        hits.scene = sized
+        (found if _has_level(sized, hits) else missed).append(hits)
+        if len(found) >= wanted:
+            break
+    return found, missed
+
+
+def _choose(scene: _Scene, found: list[_Hits], objects: dict[int, ObjectInfo],
+            object_of: dict[int, int], config: Config) -> list[Holdsite]:
+    """Step 5: the chosen site first, then the runners-up (module Notes)."""
+    wanted = 1 + config.holdsite.max_candidates
+    ranked = [(hits, objects[object_of[hits.surface.id]]) for hits in found]
+    picks = [(h, o, _first(h.scene, h, o.centroid)) for h, o in ranked]
+    for hits, obj in ranked:
+        if len(picks) >= wanted:
+            break
+        gap = math.hypot(*hits.scene.cfg.size)
+        extra = _spread(hits, _rank(hits, obj.centroid), wanted - len(picks) + 1, gap,
+                        hits.scene)[1:]
+        picks += [(hits, obj, k) for k in extra]
+    return [_site_of(h.scene, h, k, o, config) for h, o, k in picks[:wanted]]
+
+
+def _failure(cfg: HoldsiteConfig, missed: list[_Hits], limit: float) -> str:
+    """Why no window was accepted (``limit``: the plane-fit RMS limit)."""
+    win = f"{cfg.size[0]}x{cfg.size[1]}"
+    sizes = {h.scene.cfg.size for h in missed if h.scene is not None}
+    if len(sizes) > 1 or (sizes and cfg.size not in sizes):
+        win = "footprint (" + ", ".join(f"{r}x{c}" for r, c in sorted(sizes)) + " px)"
+    widest = max(missed, key=lambda h: h.max_clearance)
+    clear = (f"largest clearance found: {widest.max_clearance:.1f} px "
+             f"(surface {widest.surface.id})")
+    fitting = [h for h in missed if h.fitting]
+    if not fitting:  # nothing holds the footprint: no object to pick, as an empty support
+        return f"nothing to pick: no surface has a {win} window wholly on its valid pixels; {clear}"
+    rough = [h for h in missed if h.rough]
+    if rough and not any(h.steep for h in missed):
+        flat = min(rough, key=lambda h: h.min_rms)
+        return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g} and a "
+                f"plane-fit RMS <= {limit:.3g}; {sum(h.rough for h in rough)} window(s) passed "
+                f"the AR test, lowest RMS {flat.min_rms:.3g} (surface {flat.surface.id}); "
+                f"{clear}")
+    steep = [h for h in missed if h.steep]
+    if steep:
+        level = min(steep, key=lambda h: h.min_tilt)
+        least = (f"least tilt {level.min_tilt:.6g} degrees (surface {level.surface.id})"
+                 if math.isfinite(level.min_tilt) else
+                 "none with a tilt (no depth in front of the camera there)")
+        return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g} and a tilt "
+                f"<= {cfg.max_tilt:g} degrees; {sum(h.steep for h in steep)} window(s) "
+                f"passed the AR test, {least}; {clear}")
+    calm = min(fitting, key=lambda h: h.min_ar_std)
+    return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g}; "
+            f"{sum(h.fitting for h in fitting)} window(s) fit, lowest AR std "
+            f"{calm.min_ar_std:.3g} (surface {calm.surface.id}); {clear}")
+
+
+def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: HoldsiteConfig
+             ) -> str:
+    """How the chosen site was found."""
+    state = ("touching the image border" if obj.touches_border else "in view") + (
+        ", covered" if obj.covered else ", uncovered")
+    text = (f"surface {site.surface} ({site.surface_type}) of object {obj.id} ({state}) is the "
+            f"first in the search order (objects in view, uncovered, highest surface first) "
+            f"with a {site.size[0]}x{site.size[1]} window with AR std <= {cfg.max_ar_std:g}")
+    if cfg.max_tilt < 90:
+        text += f" and a tilt <= {cfg.max_tilt:g} degrees"
+    if missed:
+        ids = ", ".join(str(h.surface.id) for h in missed[:10])
+        more = ", ..." if len(missed) > 10 else ""
+        text += f"; tried before it without an acceptable window: surfaces {ids}{more}"
+    return text
+
+
+def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
+                  config: Config, *, backend: Backend = "auto",
+                  gaps: dict[tuple[int, int], float] | None = None,
+                  background: np.ndarray | None = None,
+                  roi: np.ndarray | None = None) -> HoldsiteResult:
+    """Find the vacuum-gripper holdsite of a segmented range image (Sec. VII).
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights (larger = closer), NaN where invalid.
+    labels
+        int (H, W) final segmentation, 0 = edge/unlabelled/invalid.
+    surfaces
+        The :class:`~rangeseg_cli.models.Surface` of each label (image
+        coordinates, x = col, y = row).
+    config
+        Uses ``[holdsite]``, ``step.threshold`` (height tolerance) and
+        ``[input]`` (intrinsics, depth sign, ``metres_per_unit``).
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` for the boundary pairs of
+        :func:`step_gaps` and the clearance (:func:`clearance_map`); identical
+        results.
+    gaps
+        :func:`step_gaps` of ``labels`` and the surfaces' fits when the
+        caller has them
+        (:func:`~rangeseg_cli.stages.surfaces.describe_surfaces_and_gaps`, which
+        gives them with the surfaces); computed here otherwise.
+    background
+        float64 (H, W) heights of the empty scene (``[workspace]
+        background``, converted as ``z`` is; NaN where it has no reading),
+        or ``None``.
+    roi
+        bool (H, W) mask of the pixels that may be picked (``[workspace]
+        roi``), or ``None``.
+
+    Returns
+    -------
+    HoldsiteResult
+        The chosen site (or ``None`` with a reason), up to
+        ``holdsite.max_candidates`` runners-up, the background ids and the
+        objects. See the module Notes for every rule.
+
+    Raises
+    ------
+    InputError
+        When ``labels`` is not an integer array of the shape of ``z`` with
+        labels from 0 to its pixel count.
+    ConfigError, TypeError
+        For a configuration value out of range or a table of the wrong class
+        (:func:`~rangeseg_cli.config.check_config`).
+    """
+    z, labels = _check(z, labels, backend, background=background, roi=roi)
+    check_config(config)
+    valid = np.isfinite(z)
+    n = int(labels.max(initial=0))
+    by_id = {s.id: s for s in surfaces if 0 < s.id <= n}  # the others have no pixel
+    known = np.zeros(n + 1, dtype=bool)
+    known[list(by_id)] = True
+    labels = np.where(known[labels], labels, 0)
+    tol = config.step.threshold
+    noise = estimate_noise(z, backend=backend)
+    coeffs = _coefficient_table(surfaces, n)
+    # Step 0: the workspace (beyond the paper): what may be picked
+    space = assess(z, config, noise, background=background, roi=roi)
+    depth = -float(np.nanmedian(z)) if valid.any() else 0.0
+    area = math.prod(footprint_pixels(config.holdsite, config.input, depth))
+    on_support = None
+    if space.height is not None:
+        with np.errstate(invalid="ignore"):
+            on_support = np.abs(space.height) <= space.tolerance
+    labels, carved, origin = carve_pickable(z, labels, space.pickable, on_support, n, area,
+                                            config, backend)
+    if origin:  # items grown into the floor: their pickable pieces are surfaces of their own
+        by_id.update({c.id: c for c in carved})
+        n, gaps = int(labels.max()), None
+        coeffs = _coefficient_table(list(by_id.values()), n)
+    # Step 1: background (lowest border regions, and regions the workspace leaves out)
+    framed = _framed(labels)
+    border = framed | _near_outer_invalid(labels, valid)
+    background_ids = find_background(by_id, border, config.holdsite.background, tol)
+    excluded = unpickable_regions(labels, space.pickable, n) - background_ids
+    left_out = background_ids | excluded
+    # Step 2: objects, and which are covered by another
+    if gaps is None:
+        gaps = _known_gaps(labels, coeffs, backend)  # known labels
+    object_of, objects = find_objects(by_id, left_out, gaps, tol, border)
+    lift = region_lift(labels, space, z, n)
+    if config.workspace.border_structures:
+        half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
+        touching = {(object_of[i], object_of[j]) for i, j in gaps
+                    if i in object_of and j in object_of and object_of[i] != object_of[j]}
+        objects = mark_structures(objects, labels, valid, lift, space, half,
+                                  walls_known=background is not None, touching=touching)
+    obj_by_id = {o.id: o for o in objects}
+    candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
+    floating = floating_objects(objects) if space.support is not None else set()
+    # Step 3: objects on the support (or on what is) first, then wholly in view, then
+    # uncovered; each group highest first
+    order = sorted((by_id[i] for i in candidates), key=lambda s: (
+        object_of[s.id] in floating, *_preference(obj_by_id[object_of[s.id]], s, lift)))
+    # Step 4: acceptable windows, surface by surface
+    hold = effective_holdsite(config)
+    scene = _Scene(labels, valid & space.pickable, z, hold, _angles(hold), backend,
+                   config.input, flat_limit(hold, config.input, noise))
+    found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
+    bg, camera = tuple(sorted(background_ids)), config.input.has_intrinsics
+    objs, out = tuple(_named_as_labelled(objects, origin)), tuple(sorted(excluded))
+    if not found:
+        reason = (_failure(hold, missed, scene.flat_limit) if order
+                  else _nothing_to_pick(by_id, objects, space)) + _unit_note(config)
+        return HoldsiteResult(None, reason, (), bg, objs, camera, out)
+    # Step 5: the best window, then the runners-up
+    sites = [dataclasses.replace(site, surface=origin.get(site.surface, site.surface))
+             for site in _choose(scene, found, obj_by_id, object_of, config)]
+    rank = {s.id: k for k, s in enumerate(order)}
+    first = rank[found[0].surface.id]  # (carved pieces are named by their region below)
+    before = [h for h in missed if rank[h.surface.id] < first]
+    reason = _success(sites[0], obj_by_id[sites[0].object], before, hold) + _unit_note(config)
+    return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera, out)

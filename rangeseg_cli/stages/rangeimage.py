@@ -1,0 +1,268 @@
+"""Raw pixel values to heights (docs/sensors.md, "Units").
+
+Heights grow towards the sensor, as in the paper's ERIM images. Depth images
+(closer = smaller) are negated; a configured no-data value, the top of an
+integer type's range (a clipped value, :func:`clipped_value`), NaN and
+infinities become NaN, which every later stage treats as "invalid": never
+inside a smoothing mask, a fit or a holdsite, and labelled 0.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..config import MAX_DEPTH, InputConfig
+from ..errors import InputError
+from ..kernels.backend import Backend, select_kernels
+
+MIN_SIZE = 16
+#: Largest |height| accepted, in depth units: far beyond any sensor, and small
+#: enough that squares and moment sums of the fit stay finite in float64.
+MAX_ABS_HEIGHT = MAX_DEPTH
+
+
+def check_array(raw: Any, *, name: str = "image") -> np.ndarray:
+    """Check that ``raw`` is a 2-D numeric array of at least 16x16.
+
+    Parameters
+    ----------
+    raw
+        Array-like of shape (H, W) or (H, W, 1).
+    name
+        Named in error messages (a file path or ``"image"``).
+
+    Returns
+    -------
+    numpy.ndarray
+        The (H, W) array (a view where possible; the input is never modified).
+
+    Raises
+    ------
+    InputError
+        For a non-numeric dtype, another shape, or a side below 16 pixels.
+    """
+    try:
+        arr = np.asarray(raw)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: not an array ({exc})") from None
+    if arr.dtype.kind not in "buif":
+        raise InputError(f"{name}: pixel type {arr.dtype} is not numeric; allowed: integer "
+                         "or floating-point")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim == 3 and arr.shape[2] in (2, 3, 4):
+        raise InputError(f"{name}: has {arr.shape[2]} channels (shape {arr.shape}): a colour "
+                         "or palette image; a range image has one (grey, 8 or 16 bits)")
+    if arr.ndim != 2:
+        raise InputError(f"{name}: shape {arr.shape} is not a 2-D range image; allowed: "
+                         "(H, W) or (H, W, 1)")
+    if min(arr.shape) < MIN_SIZE:
+        raise InputError(f"{name}: size {arr.shape[0]}x{arr.shape[1]} is too small; at least "
+                         f"{MIN_SIZE}x{MIN_SIZE} is needed")
+    return arr
+
+
+def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Backend = "auto"
+               ) -> np.ndarray:
+    """Convert raw values to heights in depth units, NaN where invalid.
+
+    Parameters
+    ----------
+    raw
+        Array-like (H, W) or (H, W, 1) of raw sensor values; the masked pixels
+        of a ``numpy.ma.MaskedArray`` are invalid.
+    cfg
+        ``[input]``: ``scale``, ``larger_is_closer``, the ``invalid`` value and
+        ``clipped_invalid`` (:func:`clipped_value`).
+    name
+        Named in error messages.
+    backend
+        ``"numpy"``: array operations (the reference); ``"numba"``:
+        :func:`rangeseg_cli.kernels.compiled.heights`, one pass over a plain array of
+        8- to 64-bit numbers (the same heights; masked arrays and other
+        types take the reference); ``"auto"``: as
+        :func:`~rangeseg_cli.stages.edges.detect_edges`.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W): ``raw * scale``, negated when smaller values are
+        closer; NaN at invalid pixels. A new array: the input is not modified.
+
+    Raises
+    ------
+    InputError
+        When the array is not a usable range image or has no valid pixel.
+    """
+    masked = np.ma.getmaskarray(raw) if isinstance(raw, np.ma.MaskedArray) else None
+    arr = check_array(raw if masked is None else np.ma.getdata(raw), name=name)
+    factor = cfg.scale if cfg.larger_is_closer else -cfg.scale
+    clipped = clipped_value(arr.dtype, cfg)
+    kernels = select_kernels(backend)
+    if kernels is not None and masked is None and arr.dtype in _COMPILED_TYPES:
+        z, valid, peak = kernels.heights(np.ascontiguousarray(arr), float(factor),
+                                         float(cfg.invalid), not math.isnan(cfg.invalid),
+                                         float(clipped or 0), clipped is not None)
+        _check_heights(valid == 0, peak, cfg, name)
+        return z
+    z = arr.astype(np.float64)
+    invalid = ~np.isfinite(z)
+    if masked is not None:  # a masked array's masked pixels are invalid
+        invalid |= masked.reshape(z.shape)
+    if not math.isnan(cfg.invalid):
+        invalid |= z == cfg.invalid
+    if clipped is not None:
+        invalid |= z == clipped
+    with np.errstate(over="ignore", invalid="ignore"):
+        z *= factor
+    invalid |= ~np.isfinite(z)
+    z[invalid] = np.nan
+    none_valid = bool(invalid.all())
+    _check_heights(none_valid, 0.0 if none_valid else float(np.nanmax(np.abs(z))), cfg, name)
+    return z
+
+
+def clipped_value(dtype: np.dtype, cfg: InputConfig) -> int | None:
+    """The raw value that is clipped, not measured: the top of an integer type's range.
+
+    255 for 8-bit images, 65535 for 16-bit (``np.iinfo(dtype).max``); None
+    for floating-point images and when ``[input] clipped_invalid`` is off.
+    A sensor (or a renderer) whose surface lies beyond its range writes
+    this value: a flat plateau that no segmentation should describe as a
+    surface, nor a holdsite grip (the object's top is closer than it says).
+    """
+    if not cfg.clipped_invalid or np.dtype(dtype).kind not in "ui":
+        return None
+    return int(np.iinfo(dtype).max)
+
+
+#: Raw pixel types :func:`to_heights` converts with the compiled kernel.
+_COMPILED_TYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.uint32, np.int8,
+                                               np.int16, np.int32, np.int64, np.float32,
+                                               np.float64))
+
+
+def _check_heights(none_valid: bool, peak: float, cfg: InputConfig, name: str) -> None:
+    """The checks of :func:`to_heights` on its result: a valid pixel, heights in range."""
+    if none_valid:
+        clipped = (", or at the top of an integer type's range, clipped: [input] "
+                   "clipped_invalid = false keeps those") if cfg.clipped_invalid else ""
+        raise InputError(f"{name}: no valid pixel (all NaN, infinite, equal to the "
+                         f"no-data value {cfg.invalid}{clipped})")
+    if peak > MAX_ABS_HEIGHT:
+        raise InputError(f"{name}: height {peak:.3g} is outside the supported range "
+                         f"(|height| <= {MAX_ABS_HEIGHT:.0e} depth units); set [input] "
+                         "invalid to the sensor's no-data value or adjust [input] scale")
+
+
+def require_shape_of_z(z: np.ndarray, **arrays: Any) -> None:
+    """Check that every named array has the shape of the heights ``z``.
+
+    Raises
+    ------
+    ValueError
+        Naming the first array whose shape differs, its shape and ``z``'s.
+    """
+    for name, arr in arrays.items():
+        if np.shape(arr) != np.shape(z):
+            raise ValueError(f"`{name}` (shape {np.shape(arr)}) must have the shape of `z` "
+                             f"({np.shape(z)})")
+
+
+#: Highest edge code of the edge maps (none 0, step 1, roof 2, linked 3: ``edges.py``).
+MAX_EDGE_CODE = 3
+
+
+def value_outside(values: np.ndarray, top: int) -> int | None:
+    """A value of ``values`` outside ``0..top`` (the lowest when below), or None.
+
+    The range of a label map (``top`` = its pixel count: the stages size their
+    tables by the largest label, so a label of 2^31 would ask for gigabytes)
+    or of an edge map (``top`` = :data:`MAX_EDGE_CODE`).
+    """
+    if values.size == 0:
+        return None
+    low, high = int(values.min()), int(values.max())
+    return low if low < 0 else high if high > top else None
+
+
+def check_stage_arrays(z: Any, *, edges: Any = None, **label_maps: Any) -> None:
+    """Check the arrays a stage function is given, before any work (the library's front door).
+
+    ``z``: a 2-D array of real numbers (heights, NaN where invalid), not empty.
+    ``edges`` (optional): edge codes 0..3 of ``z``'s shape. Each of
+    ``label_maps`` (components, labels): integers of ``z``'s shape from 0 to
+    the pixel count (:func:`value_outside`).
+
+    Raises
+    ------
+    ValueError
+        One line naming the argument, what it is and what is allowed.
+    """
+    zs = np.asarray(z)
+    if zs.ndim != 2 or zs.size == 0 or zs.dtype.kind not in "biuf":
+        raise ValueError(f"`z` must be a 2-D array of heights (real numbers) with a pixel at "
+                         f"least; got shape {zs.shape}, dtype {zs.dtype}")
+    maps = dict(label_maps) if edges is None else {"edges": edges, **label_maps}
+    require_shape_of_z(zs, **maps)
+    for name, arr in maps.items():
+        values = np.asarray(arr)
+        if values.dtype.kind not in "biu":
+            raise ValueError(f"`{name}` must hold integers; got dtype {values.dtype}")
+        top = MAX_EDGE_CODE if name == "edges" else values.size
+        bad = value_outside(values, top)
+        if bad is not None:
+            what = "edge codes" if name == "edges" else "labels (at most the pixel count)"
+            raise ValueError(f"`{name}` holds {bad}: {what} must lie in 0..{top}")
+
+
+def labels_on_valid(z: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Heights as float64 and labels as int32, 0 wherever the height is not finite.
+
+    Raises
+    ------
+    ValueError
+        When the shapes of ``z`` and ``labels`` differ.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    require_shape_of_z(z, labels=labels)
+    return z, np.where(np.isfinite(z), labels, 0).astype(np.int32)
+
+
+def chessboard_offsets(reach: int) -> tuple[tuple[int, int], ...]:
+    """Offsets (drow, dcol) within chessboard ``reach``, without (0, 0), in raster order."""
+    span = range(-reach, reach + 1)
+    return tuple((dr, dc) for dr in span for dc in span if dr or dc)
+
+
+#: Index pairs ``(first, second)`` of two views of an (H, W) array whose elements are
+#: 8-neighbouring pixels, every pair of 8-neighbours once: offsets (drow, dcol) (0, 1),
+#: (1, -1), (1, 0), (1, 1) from ``first`` to ``second``. ``first`` starts at row 0 and at
+#: column ``first[1].start or 0``.
+HALF_NEIGHBOUR_PAIRS: tuple[tuple[tuple[slice, slice], tuple[slice, slice]], ...] = (
+    ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+    ((slice(None, -1), slice(1, None)), (slice(1, None), slice(None, -1))),
+    ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+    ((slice(None, -1), slice(None, -1)), (slice(1, None), slice(1, None))),
+)
+
+
+def consecutive_labels(labels: np.ndarray) -> np.ndarray:
+    """Labels renumbered 1..k in the order of their ids, 0 kept (ids no pixel has dropped).
+
+    Parameters
+    ----------
+    labels
+        Non-negative int (H, W) labels.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W).
+    """
+    present = np.bincount(labels.ravel()) > 0
+    present[0] = True
+    return (np.cumsum(present, dtype=np.int32) - 1)[labels]
