@@ -74,7 +74,7 @@ class InputConfig:
     intrinsics: tuple[float, ...] = _opt(
         (0.0, 0.0, 0.0, 0.0), "camera intrinsics [fx, fy, cx, cy] in pixels: focal lengths "
         "and principal point (column, row), as --intrinsics reads them; [0, 0, 0, 0] = none",
-        min=-MAX_PIXELS, max=MAX_PIXELS, item=float, length=4)
+        min=-MAX_PIXELS, max=MAX_PIXELS, item=float, length=4, nonempty=True)
     units_per_pixel: float = _opt(0.0, "depth units per pixel of lateral size of a height map "
                                   "(2 for rangeseg synth at 128x128): the lateral scale "
                                   "without camera intrinsics; 0 = unknown", min=0.0,
@@ -182,6 +182,8 @@ class GrowConfig:
 #: (:data:`rangeseg_cli.refine.passes.PASSES`): each one cuts, merges or assigns.
 REFINE_PASSES = ("split", "recover", "fill", "merge", "recut", "bridge", "chamfers", "carve",
                  "facets", "boundaries", "merge_planes", "join_occluded")
+#: Passes that extend another and run only with it (the bridge takes the fill's test farther).
+PASS_NEEDS = {"bridge": ("fill",)}
 
 
 @dataclass(frozen=True)
@@ -438,9 +440,15 @@ class Config:
         }
 
     def digest(self, tables: tuple[str, ...] | None = None) -> str:
-        """Short stable hash of the configuration, or of some of its tables (``--resume``)."""
+        """Short stable hash of the configuration, or of some of its tables (``--resume``).
+
+        ``[output] ply`` counts from the grow stage on (``grow`` among
+        ``tables``): the point clouds are written there and by the holdsite.
+        """
         whole = self.to_dict()
         chosen = whole if tables is None else {t: whole[t] for t in tables}
+        if tables is not None and "output" in chosen and "grow" not in tables:
+            chosen["output"] = {k: v for k, v in chosen["output"].items() if k != "ply"}
         text = json.dumps(chosen, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -450,7 +458,7 @@ class Config:
         A stage's result depends on its own table(s) and on everything the
         stages before it used (:data:`STAGE_TABLES`, cumulative): changing
         ``[holdsite]`` leaves the edges, components and labels current,
-        changing ``[grow]`` or ``[split]`` leaves the edges and components.
+        changing ``[grow]`` or ``[refine]`` leaves the edges and components.
         """
         out: dict[str, str] = {}
         used: tuple[str, ...] = ()
@@ -567,7 +575,8 @@ def _describe_allowed(f: dataclasses.Field) -> str:
         if meta.get("pairs"):
             parts.append("a list of [row, col] pairs of numbers (3 or more, or none)")
         elif "length" in meta:
-            parts.append(f"a list of {meta['length']} {item} (or an empty list)")
+            empty = "" if meta.get("nonempty") else " (or an empty list)"
+            parts.append(f"a list of {meta['length']} {item}{empty}")
         else:
             parts.append(f"a list of two {item}")
     else:
@@ -683,7 +692,8 @@ def _coerce_list(f: dataclasses.Field, value: Any) -> tuple[bool, Any]:
             and all(_check_number(v, f, integer=False) for v in p) for p in value)
         return ok, tuple(tuple(float(v) for v in p) for p in value) if ok else value
     length = meta.get("length", 2)
-    ok = (len(value) == length or ("length" in meta and len(value) == 0)) and all(
+    empty_ok = "length" in meta and not meta.get("nonempty")
+    ok = (len(value) == length or (empty_ok and len(value) == 0)) and all(
         _check_number(v, f, integer=integer) for v in value)
     if not ok:
         return False, value
@@ -764,7 +774,7 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
         kwargs = {}
         for key, value in entries.items():
             if (table, key) in MOVED_KEYS:
-                raise ConfigError(f"{source}: [{table}] {key} {MOVED_KEYS[(table, key)]}")
+                raise ConfigError(f"{_where(source)}[{table}] {key} {MOVED_KEYS[(table, key)]}")
             if key not in fields:
                 raise ConfigError(f"{source}: unknown key [{table}] {key}; allowed keys: "
                                   + ", ".join(fields))
@@ -781,13 +791,23 @@ def _refuse_retired(table: str, entries: dict[str, Any], source: str) -> None:
     """A table that went (``[split]``): name what became of its first key, or of it."""
     for key in entries:
         if (table, key) in MOVED_KEYS:
-            raise ConfigError(f"{source}: [{table}] {key} {MOVED_KEYS[(table, key)]}")
+            raise ConfigError(f"{_where(source)}[{table}] {key} {MOVED_KEYS[(table, key)]}")
     if table == "split":
-        raise ConfigError(f"{source}: the table [split] is now [refine]; allowed tables: "
-                          + ", ".join(_TABLE_CLASSES))
+        raise ConfigError(f"{_where(source)}the table [split] is now [refine]; allowed "
+                          "tables: " + ", ".join(_TABLE_CLASSES))
+
+
+def _where(source: str) -> str:
+    """``source`` as a message's prefix; none for ``"config"`` (the options given)."""
+    return "" if source == "config" else f"{source}: "
 
 
 def _check_consistency(config: Config) -> None:
+    passes = config.refine.passes
+    for name, needs in PASS_NEEDS.items():
+        if name in passes and not set(needs) <= set(passes):
+            raise ConfigError(f"[refine] passes = {list(passes)}: {name!r} needs "
+                              + " and ".join(repr(n) for n in needs) + " in the list too")
     cam = config.input
     if cam.intrinsics and (cam.fx < 0 or cam.fy < 0 or (cam.fx > 0) != (cam.fy > 0)):
         raise ConfigError(
@@ -898,7 +918,7 @@ def load_config(
     Parameters
     ----------
     path
-        A TOML file with ``[input] [step] [roof] [link] [grow] [split]
+        A TOML file with ``[input] [step] [roof] [link] [grow] [refine]
         [holdsite] [output]`` tables; ``None`` gives the defaults.
     preset
         A name from :data:`PRESETS` (e.g. ``"mm-depth"``).

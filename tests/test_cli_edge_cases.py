@@ -753,3 +753,20 @@ def test_a_null_in_the_manifest_config_is_named_as_null(runner, box_png, tmp_pat
     manifest["config"]["step"]["threshold"] = 6.0
     path.write_text(json.dumps(manifest))
     assert runner.invoke(main, ["holdsite", str(out), "-j", "1", "-q"]).exit_code == 0
+
+
+def test_a_stage_command_on_an_older_versions_output_says_what_to_do(runner, box_png, tmp_path):
+    import json
+
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1", "-q"]
+                         ).exit_code == 0
+    manifest = out / "rangeseg-run.json"
+    data = json.loads(manifest.read_text())
+    data["config"]["input"] = {**data["config"]["input"], "fx": 0.0}  # an older release's key
+    manifest.write_text(json.dumps(data))
+    res = runner.invoke(main, ["grow", str(out), "-j", "1"])
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    line, = res.output.strip().splitlines()
+    assert "made by an older rangeseg" in line and "[input] fx is now part of input.intrinsics" \
+        in line and "--overwrite" in line

@@ -233,22 +233,17 @@ def test_compiled_noise_estimate_is_the_numpy_one_bit_for_bit():
 
 
 def pipeline_scenes():
-    scenes = [box_scene(noise=1.0, seed=1), random_boxes(96, 80, seed=3)]
-    if importlib.util.find_spec("rangeseg_cli.synth.scenes") is not None:
-        from rangeseg_cli.synth.scenes import render_scene
+    from rangeseg_cli.synth.scenes import render_scene
 
-        scenes.append(render_scene("pile", size=(96, 112), noise=1.0, seed=2).image)
-    return scenes
+    return [box_scene(noise=1.0, seed=1), random_boxes(96, 80, seed=3),
+            render_scene("pile", size=(96, 112), noise=1.0, seed=2).image]
 
 
 @requires_numba
 @pytest.mark.parametrize("index", range(3))
 def test_run_pipeline_gives_identical_labels_with_both_backends(index, monkeypatch):
-    scenes = pipeline_scenes()
-    if index >= len(scenes):
-        pytest.skip("rangeseg_cli.synth.scenes (the pile scene) is not there")
-    image = scenes[index]
-    stages = 3 if importlib.util.find_spec("rangeseg_cli.stages.grow") else 2
+    image = pipeline_scenes()[index]
+    stages = 3
     results = []
     for use_numba in (False, True):
         monkeypatch.setattr(backend_module, "_USE_NUMBA", use_numba)

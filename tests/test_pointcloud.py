@@ -127,3 +127,18 @@ def test_ply_on_a_read_only_output_is_one_line(runner, box_png, tmp_path, monkey
     assert "Traceback" not in res.output and "internal error" not in res.output
     assert res.output.strip().splitlines()[-1].endswith(line)
     assert not list(out.rglob("*.tmp")) and not list(out.rglob("*.ply"))
+
+
+def test_grow_ply_adds_the_clouds_to_a_run_made_without(runner, box_png, tmp_path):
+    out = tmp_path / "out"
+    assert runner.invoke(main, ["run", str(box_png), "-o", str(out), "-j", "1", "-q"]
+                         ).exit_code == 0
+    edges = (out / "box.edges.npy").stat().st_mtime_ns
+    res = runner.invoke(main, ["grow", str(out), "-j", "1", "-q", "--ply"])
+    assert res.exit_code == 0, res.output
+    labels = np.load(out / "box.labels.npy")
+    assert PlyData.read(str(out / "box.points.ply"))["vertex"].count == np.count_nonzero(labels)
+    assert (out / "box.edges.npy").stat().st_mtime_ns == edges  # the edges stayed current
+    res = runner.invoke(main, ["holdsite", str(out), "-j", "1", "-q", "--ply"])
+    assert res.exit_code == 0, res.output
+    assert (out / "box.holdsite.ply").exists()

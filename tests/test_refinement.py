@@ -20,6 +20,7 @@ from scipy import ndimage
 
 from rangeseg_cli import pipeline
 from rangeseg_cli.config import REFINE_PASSES, Config, load_config
+from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.refine import passes as refinement
 
@@ -240,7 +241,9 @@ def test_noise_and_threads_are_derived_from_the_passes_on(name: str):
 
 
 def test_the_bridge_runs_only_with_the_fill():
-    assert refinement.active_passes(_passes("bridge")) == ()
+    with pytest.raises(ConfigError, match=r"^\[refine\] passes = \['bridge'\]: 'bridge' needs 'fill'"):
+        _passes("bridge")
+    assert {p.name for p in refinement.PASSES} == set(REFINE_PASSES)
     with_fill = _passes("fill", "bridge")
     assert [p.name for p in refinement.active_passes(with_fill)] == ["fill", "bridge"]
     assert not refinement.uses_noise(with_fill)

@@ -10,6 +10,7 @@ must show exactly the cards of its status, and a screenshot is saved.
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,7 +22,8 @@ import pytest
 from playwright.sync_api import Page, sync_playwright
 
 RANGESEG = Path(sys.executable).with_name("rangeseg")
-CHROMIUM = "/usr/bin/chromium"
+#: Debian's chromium (.ci/run installs it), or the one RANGESEG_CHROMIUM names.
+CHROMIUM = os.environ.get("RANGESEG_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 #: Chromium as a sandboxed CI job can run it: no GPU, no network of its own.
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
                  "--no-first-run", "--disable-background-networking",

@@ -53,3 +53,18 @@ def test_rerun_without_the_sdk_is_one_line_that_says_how_to_install_it(
         "Error: --rerun needs the Rerun SDK (rerun-sdk), which is not installed: "
         "pip install 'rangeseg[rerun]'"]
     assert not out.exists() and not (tmp_path / "x.rrd").exists()
+
+
+def test_rerun_makes_the_missing_folders_and_refuses_a_store(runner, box_png, tmp_path):
+    nested = tmp_path / "logs" / "night" / "x.rrd"
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out"), "-j", "1",
+                               "-q", "--rerun", str(nested)])
+    assert res.exit_code == 0, res.output
+    assert list(_steps(nested)["/image"]) == [0]
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out2"), "-j", "1",
+                               "--rerun", "s3://bucket/x.rrd"])
+    assert res.exit_code == 2
+    assert res.output.strip().splitlines() == [
+        "Error: --rerun s3://bucket/x.rrd: a local file is needed (the Rerun SDK writes "
+        "files, not objects of a store)"]
+    assert not (tmp_path / "out2").exists()

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..config import InputConfig
-from ..errors import ConfigError
+from ..errors import ConfigError, OutputError
 from . import io
 from .io import Location
 from .pointcloud import cloud, holdsite_vertices
@@ -60,25 +60,37 @@ def write_log(path: Path, out: Location, images: Iterable[tuple[int, str]],
     Raises
     ------
     OutputError
-        Naming a file of an image that cannot be read.
+        Naming a file of an image that cannot be read, or ``path`` when the
+        log cannot be written (the folders missing above it are made).
     """
     rr = require_rerun()
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
     rec = rr.RecordingStream("rangeseg")
     try:
-        rec.save(tmp)
-        rec.log("/", rr.ViewCoordinates.RDF if camera.has_intrinsics
-                else rr.ViewCoordinates.RDB, static=True)
-        for step, rel in images:
-            rec.set_time("image", sequence=step)
-            _log_image(rr, rec, out, rel, camera)
-        rec.flush()
-        rec.disconnect()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _write(rr, rec, tmp, out, images, camera)
         os.replace(tmp, path)
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError) as exc:
+        rec.disconnect()
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot write the Rerun log ({exc})") from None
     except BaseException:
         rec.disconnect()
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _write(rr: Any, rec: Any, tmp: Path, out: Location, images: Iterable[tuple[int, str]],
+           camera: InputConfig) -> None:
+    """:func:`write_log`'s recording into ``tmp``."""
+    rec.save(tmp)
+    rec.log("/", rr.ViewCoordinates.RDF if camera.has_intrinsics else rr.ViewCoordinates.RDB,
+            static=True)
+    for step, rel in images:
+        rec.set_time("image", sequence=step)
+        _log_image(rr, rec, out, rel, camera)
+    rec.flush()
+    rec.disconnect()
 
 
 def _log_image(rr: Any, rec: Any, out: Location, rel: str, camera: InputConfig) -> None:

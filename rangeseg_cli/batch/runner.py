@@ -51,8 +51,8 @@ import numpy as np
 from .. import __version__
 from ..cell.frames import SharedFrames, read_workspace_frames
 from ..cell.intrinsics import Intrinsics
-from ..config import STAGE_TABLES, Config, InputConfig, build_config, from_json
-from ..errors import ClusterLost, InputError, OutputError
+from ..config import MOVED_KEYS, STAGE_TABLES, Config, InputConfig, build_config, from_json
+from ..errors import ClusterLost, ConfigError, InputError, OutputError
 from ..kernels import parallel
 from ..pipeline import STAGES
 from . import io, outlock, stopping
@@ -482,11 +482,27 @@ def _json_kind(value: Any) -> str:
 
 
 def manifest_config(out: Location) -> Config | None:
-    """The configuration recorded in ``out``'s manifest, if any."""
+    """The configuration recorded in ``out``'s manifest, if any.
+
+    Raises
+    ------
+    ConfigError
+        When the manifest's settings are not this version's: an older
+        rangeseg's keys are named, with what to do.
+    """
     data = read_manifest(out).get("config")
     if not isinstance(data, dict):
         return None
-    return build_config(from_json(data), str(out / MANIFEST))
+    where = str(out / MANIFEST)
+    try:
+        return build_config(from_json(data), where)
+    except ConfigError as exc:
+        if any(isinstance(keys, dict) and any((table, key) in MOVED_KEYS for key in keys)
+               for table, keys in data.items()):
+            raise ConfigError(f"{where}: made by an older rangeseg, whose settings changed "
+                              f"({str(exc).removeprefix(where + ': ')}); give --config or "
+                              "--preset, or run the images again with --overwrite") from None
+        raise
 
 
 def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str, ...], *,
@@ -723,7 +739,7 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         Dask cluster whose scheduler is at ``scheduler`` (``tcp://HOST:PORT``;
         see :mod:`rangeseg_cli.batch.dask` for the storage it needs).
     intrinsics
-        The camera intrinsics the configuration's ``[input] fx, fy, cx, cy``
+        The camera intrinsics the configuration's ``[input] intrinsics``
         came from: when they give the image size, an image of another size fails.
 
     Returns

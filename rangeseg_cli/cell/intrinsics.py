@@ -1,6 +1,6 @@
 """Camera intrinsics files: a 3x3 matrix as text, ROS CameraInfo YAML, Open3D JSON.
 
-``rangeseg run --intrinsics FILE`` sets ``[input] fx, fy, cx, cy`` from one of
+``rangeseg run --intrinsics FILE`` sets ``[input] intrinsics`` from one of
 
 - a 3x3 camera matrix as text, whitespace or comma separated (fx at [0, 0],
   fy at [1, 1], cx at [0, 2], cy at [1, 2]; the last row 0 0 1, no skew);

@@ -39,7 +39,7 @@ set_opt = click.option("--set", "settings", multiple=True, metavar="TABLE.KEY=VA
 intrinsics_opt = click.option(
     "--intrinsics", "intrinsics_path", metavar="FILE",
     help="Camera intrinsics: a 3x3 matrix as text, a ROS CameraInfo YAML or an Open3D "
-         "PinholeCameraIntrinsic JSON. Sets [input] fx, fy, cx, cy after --preset/--config, "
+         "PinholeCameraIntrinsic JSON. Sets [input] intrinsics after --preset/--config, "
          "before --set (which wins); an image of another size than the file gives fails.")
 background_opt = click.option(
     "--background", "background_path", metavar="FILE",
@@ -272,6 +272,9 @@ def _check_rerun(path: str) -> None:
     from ..batch.rerun_log import require_rerun
     from ..errors import ConfigError, OutputError
 
+    if "://" in path:
+        raise UsageProblem(f"--rerun {path}: a local file is needed (the Rerun SDK writes "
+                           "files, not objects of a store)")
     try:
         require_rerun()
         check_writable(Path(path))

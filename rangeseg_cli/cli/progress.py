@@ -1,6 +1,6 @@
 """Progress bar and summary table of a batch (rich, on stderr): part of the CLI layer.
 
-Only the ``cli*.py`` modules import click or rich; the library never does.
+Only the modules of ``rangeseg_cli.cli`` import click or rich; the library never does.
 """
 
 from __future__ import annotations

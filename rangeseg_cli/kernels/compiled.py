@@ -1180,7 +1180,7 @@ def _masked_product(z: np.ndarray, mask: np.ndarray, u0: float, v0: float, which
 def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: float,
               min_det: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                        np.ndarray]:  # pragma: no cover - compiled
-    """Gaussian-weighted local plane fits of ``mask`` (see ``split._PlaneFit``).
+    """Gaussian-weighted local plane fits of ``mask`` (see ``refine.planes.local_planes``).
 
     The nine masked products (weight, u, v, z, uu, uv, vv, uz, vz) are
     padded once; then, row by row, their blurs (:func:`_blur_row`, the sums
@@ -1261,7 +1261,7 @@ def plane_heights_at(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, 
                      ) -> np.ndarray:  # pragma: no cover - compiled
     """Heights of the local planes of :func:`plane_fit` at the pixels (rows, cols) only.
 
-    ``mz + gx (u - mu) + gy (v - mv)`` (``split.local_planes``' height) from
+    ``mz + gx (u - mu) + gy (v - mv)`` (``refine.planes.local_planes``' height) from
     the same blurred products, summed in the same order, as :func:`plane_fit`
     forms them for the whole array: the same values bit for bit, NaN where
     the fit is degenerate. The first blur runs only on the rows asked for, over

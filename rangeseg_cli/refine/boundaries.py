@@ -24,13 +24,13 @@ Notes
    squared residual in units of the noise: the residual moves the pixel
    across a crease, the neighbour count keeps single noisy pixels from
    flipping.
-3. Passes (``split.refine_passes``) are simultaneous: every boundary pixel
+3. Passes (``TUNING.refine_passes``) are simultaneous: every boundary pixel
    takes its cheapest label (its own on a tie), then the surfaces are fitted
    again. They stop early when nothing changes. Unlabelled pixels stay
    unlabelled and labelled pixels stay labelled.
 4. A region can lose all its pixels; labels are then made consecutive again
    in the order of their ids.
-5. Creases (``split.refine_creases``). Where two surfaces meet at a crease
+5. Creases (``TUNING.refine_creases``). Where two surfaces meet at a crease
    the image is their lower envelope (a convex crease: the roof of Fig. 1)
    or their upper one (a concave crease), so the surface that is visible at
    a pixel is known from the two fits alone, and noise does not enter: at
@@ -224,7 +224,7 @@ def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, nois
     labels
         int (H, W) final regions 1..n, 0 = none.
     config
-        ``[split]`` ``refine_passes``, ``refine_smoothness`` and
+        ``config.split`` (from ``[refine]``) ``refine_passes``, ``refine_smoothness`` and
         ``refine_creases``; ``[grow]``
         ``planar_tolerance`` and ``min_error`` (the surfaces and ``s``).
     noise

@@ -221,7 +221,7 @@ def carve_faces(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: flo
         int (H, W) regions 1..n, 0 = none.
     config
         ``[link] min_component``; ``[grow] planar_tolerance`` and
-        ``min_error``; ``[split] fit_factor`` and ``min_crease``.
+        ``min_error``; ``config.split.fit_factor`` and ``min_crease``.
     noise
         Noise sigma of ``z`` (:func:`~rangeseg_cli.stages.noise.estimate_noise`);
         NaN counts as 0.

@@ -337,7 +337,7 @@ def facet_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     labels
         int (H, W) regions 1..n, 0 = none.
     config
-        ``[split] fit_factor`` and ``min_piece``; ``[grow] min_error``.
+        ``config.split.fit_factor`` and ``min_piece``; ``[grow] min_error``.
     noise
         Noise sigma of ``z`` (:func:`~rangeseg_cli.stages.noise.estimate_noise`);
         NaN counts as 0.

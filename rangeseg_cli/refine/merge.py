@@ -34,7 +34,7 @@ Notes
    tested again on the groups, so no group is merged that its union would
    not pass. Merged regions take the smallest id of the group; ids are then
    made consecutive in their order.
-4. Planes (:func:`merge_planes`, ``[split] merge_planes``, after the
+4. Planes (:func:`merge_planes`, ``config.split.merge_planes``, after the
    boundary refinement of :mod:`rangeseg_cli.refine.boundaries`). The same rules with
    a plane in the quadric's place, on planar regions only, the crease angle
    tested on every pair: two pieces of one face that later steps left apart
@@ -159,7 +159,8 @@ def merge_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     labels
         int (H, W) final regions 1..n, 0 = none.
     config
-        Uses ``[split]`` (``fit_factor``, ``min_gain``, ``min_crease``, ``crease_evidence``) and
+        Uses ``config.split`` (``fit_factor``, ``min_gain``, ``min_crease``,
+        ``crease_evidence``) and
         ``[grow]`` (``min_error``, ``planar_tolerance``).
     noise
         Noise sigma of ``z`` (:func:`~rangeseg_cli.stages.noise.estimate_noise`).

@@ -77,7 +77,7 @@ def join_occluded(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     labels
         int (H, W) final regions 1..n, 0 = none.
     config
-        Uses ``[split]`` (``fit_factor``, ``min_gain``, ``crease_evidence``), ``[link]``
+        Uses ``config.split`` (``fit_factor``, ``min_gain``, ``crease_evidence``), ``[link]``
         (``min_component``) and ``[grow]`` (``min_error``, ``planar_tolerance``).
     noise
         The image's noise estimate, depth units (NaN: nothing is joined).

@@ -22,7 +22,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..config import REFINE_PASSES, Config
+from ..config import PASS_NEEDS, Config
 
 Op = Literal["cut", "merge", "assign"]
 
@@ -126,7 +126,7 @@ PASSES: tuple[Pass, ...] = (
     Pass("fill", "assign", "", _FILL, after_any=("merge", "recut"), uses_noise=False),
     Pass("bridge", "assign", "an edge pixel still unlabelled goes to a planar region within "
          "2 pixels whose plane explains it (runs again at the end)", _BRIDGE,
-         needs=("fill",), uses_noise=False),
+         needs=PASS_NEEDS["bridge"], uses_noise=False),
     Pass("chamfers", "cut", "a narrow face between two planes at a crease gets a region "
          "when a plane between them explains the crease clearly better",
          _with_noise("chamfer", "chamfer_faces")),
@@ -142,13 +142,12 @@ PASSES: tuple[Pass, ...] = (
     Pass("merge_planes", "merge", "touching planar regions whose union one plane fits "
          "become one", _with_noise("merge", "merge_planes")),
     Pass("facets", "cut", "", _FACETS, after_any=("boundaries", "merge_planes")),
-    Pass("bridge", "assign", "", _BRIDGE, needs=("fill",),
+    Pass("bridge", "assign", "", _BRIDGE, needs=PASS_NEEDS["bridge"],
          after_any=("chamfers", "carve", "boundaries", "merge_planes", "facets"),
          uses_noise=False),
     Pass("join_occluded", "merge", "patches of one surface that something in front divides "
          "get one label", _with_noise("occlusion", "join_occluded")),
 )
-assert {p.name for p in PASSES} == set(REFINE_PASSES)
 
 
 def active_passes(config: Config) -> tuple[Pass, ...]:

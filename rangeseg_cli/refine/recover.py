@@ -468,7 +468,7 @@ def recover_faces(z: np.ndarray, components: np.ndarray, labels: np.ndarray, con
     labels
         int32 (H, W) regions after growing (and splitting), 0 = none.
     config
-        Uses ``[split]`` (``fit_factor``, ``recover_passes``,
+        Uses ``config.split`` (``fit_factor``, ``recover_passes``,
         ``recover_max_noise``), ``[grow]`` (``error_factor``, ``min_error``)
         and ``link.min_component``.
     noise

@@ -460,7 +460,7 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
     noise, level
         Noise sigma of ``z`` and the split's fit test.
     config
-        ``[link] min_component``, ``[split] min_crease``, ``[grow]``.
+        ``[link] min_component``, ``config.split.min_crease``, ``[grow]``.
     box
         A box holding regions i and j (searched instead of the whole image).
     pts, quadric_sse
@@ -616,7 +616,7 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     labels
         int (H, W) final regions 1..n, 0 = none.
     config
-        Uses ``[split]`` (``fit_factor``, ``min_crease``), ``[grow]``
+        Uses ``config.split`` (``fit_factor``, ``min_crease``), ``[grow]``
         (``min_error``, ``planar_tolerance``) and ``[link] min_component``.
     noise
         Noise sigma of ``z`` (:func:`~rangeseg_cli.stages.noise.estimate_noise`).

@@ -130,7 +130,7 @@ def failing_components(z: np.ndarray, components: np.ndarray, noise: float,
     noise
         Noise sigma of the image (:func:`estimate_noise`).
     cfg, grow
-        ``[split]`` (``fit_factor``, ``min_piece``) and ``[grow]`` (``min_error``).
+        ``config.split`` (``fit_factor``, ``min_piece``) and ``[grow]`` (``min_error``).
     fits
         :func:`~rangeseg_cli.stages.grow.component_fits` of ``z`` and ``components``
         when the caller has them (the components' fits are computed here otherwise).
@@ -299,7 +299,7 @@ class _Frame:
 
     @classmethod
     def of(cls, mask: np.ndarray, cfg: SplitConfig, backend: Backend = "auto") -> _Frame:
-        """The frame of ``mask`` with the scales of ``[split]``."""
+        """The frame of ``mask`` with the scales of ``config.split`` (from ``[refine]``)."""
         holes, n = _holes(mask, backend)
         small = np.bincount(holes.ravel(), minlength=n + 1) < cfg.min_piece
         small[0] = False
@@ -943,7 +943,7 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
     noise
         Noise sigma of the image (:func:`estimate_noise`).
     cfg, grow
-        ``[split]`` and ``[grow]`` (``min_error``, ``error_factor``,
+        ``config.split`` (from ``[refine]``) and ``[grow]`` (``min_error``, ``error_factor``,
         ``planar_tolerance``).
     backend
         Of the local plane fits (:func:`~.planes.local_planes`): the same pieces either way.
@@ -1153,7 +1153,7 @@ def split_components(z: np.ndarray, components: np.ndarray, config: Config,
     components
         int (H, W) components 1..n of step 3 (Sec. V-3), 0 = none.
     config
-        Uses ``[split]`` and ``grow.min_error``.
+        Uses ``config.split`` (from ``[refine]``) and ``grow.min_error``.
     noise
         Noise sigma of the image (:func:`estimate_noise`).
     backend
@@ -1215,7 +1215,7 @@ def split_regions(z: np.ndarray, codes: np.ndarray, components: np.ndarray,
         int32 (H, W) the regions grown from ``components`` (returned when
         nothing is split).
     config
-        The whole configuration (``[split]`` and ``[grow]``).
+        The whole configuration (``config.split`` (from ``[refine]``) and ``[grow]``).
     noise
         Noise sigma of ``z`` (:func:`estimate_noise`); estimated when None.
     backend
