@@ -54,6 +54,7 @@ from quality import NOISES, measure, scene_list, seed_list  # noqa: E402
 
 from rangeseg_cli.batch.io import read_image  # noqa: E402
 from rangeseg_cli.config import (  # noqa: E402
+    PASS_NEEDS,
     PRESETS,
     REFINE_PASSES,
     Config,
@@ -65,11 +66,15 @@ from rangeseg_cli.synth.scenes import SCENES  # noqa: E402
 
 
 def without(name: str) -> str:
-    """The ``--set`` item that leaves the pass ``name`` out of the defaults' ``[refine] passes``."""
+    """The ``--set`` item that leaves the pass ``name`` out of the defaults' ``[refine] passes``.
+
+    The passes that need it (``PASS_NEEDS``: the bridge, the fill's) go with it.
+    """
     if name not in REFINE_PASSES:
         raise ValueError(f"{name!r} is not a pass of [refine] passes; allowed: "
                          + ", ".join(REFINE_PASSES))
-    return "refine.passes=[" + ", ".join(f'"{p}"' for p in REFINE_PASSES if p != name) + "]"
+    gone = {name} | {p for p, needs in PASS_NEEDS.items() if name in needs}
+    return "refine.passes=[" + ", ".join(f'"{p}"' for p in REFINE_PASSES if p not in gone) + "]"
 
 
 #: The numeric keys of ``[refine]`` set to turn a rule off, as ``--set`` items.
