@@ -21,7 +21,7 @@ OUT = ROOT / "docs" / "performance.md"
 
 #: bench.json task -> column heading of the main table.
 COLUMNS = {
-    "edges": "edges", "holdsite": "holdsite", "run_pipeline_paper": "`--preset paper`",
+    "edges": "edges", "holdsite": "holdsite", "run_pipeline_paper": "defaults, `[refine] passes = []`",
     "run_pipeline_norecut": "defaults without `recut`",
     "run_pipeline_1thread": "defaults, 1 thread", "run_pipeline": "defaults",
 }
@@ -46,9 +46,12 @@ changes absolute times by up to 2× between runs. Speed is measured in
 
 ## What to expect
 
-- The defaults spend about 90 % of their time in the steps beyond the paper
-  (the split, the recut, the recovery, the refinement); `--preset paper` is
-  a few Gaussian passes. The table below says what each step costs and earns.
+- The defaults spend most of their time in the refinement's passes (the
+  split, the recut, the recovery, the boundaries) and the rest in the
+  holdsite's workspace step (the support, the background, the border
+  structures); `--preset paper`, without either, is a few Gaussian passes
+  (the table below, last row). The table below says what each pass costs
+  and earns.
 - Time grows about linearly with the pixels or slower (exponents below).
 - A real camera frame costs more than a synthetic pile of its size: its
   noise estimate reads low (the camera smooths its noise), so many regions
