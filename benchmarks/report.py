@@ -21,7 +21,8 @@ OUT = ROOT / "docs" / "performance.md"
 
 #: bench.json task -> column heading of the main table.
 COLUMNS = {
-    "edges": "edges", "holdsite": "holdsite", "run_pipeline_paper": "defaults, `[refine] passes = []`",
+    "edges": "edges", "holdsite": "holdsite",
+    "run_pipeline_paper": "defaults, `[refine] passes = []`",
     "run_pipeline_norecut": "defaults without `recut`",
     "run_pipeline_1thread": "defaults, 1 thread", "run_pipeline": "defaults",
 }
