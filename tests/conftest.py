@@ -58,14 +58,16 @@ def box_scene(size: int = 64, noise: float = 0.0, seed: int = 0) -> np.ndarray:
 def passes_without(*names: str, base: Config | None = None, **refine: Any) -> Config:
     """``base`` (the defaults when None) with the ``[refine] passes`` ``names`` left out.
 
-    Other ``[refine]`` keys may be given too (``passes_without("merge", fit_factor=1.5)``).
+    The passes that need one of them go too (the bridge with the fill). Other
+    ``[refine]`` keys may be given too (``passes_without("merge", fit_factor=1.5)``).
     """
-    from rangeseg_cli.config import REFINE_PASSES
+    from rangeseg_cli.config import PASS_NEEDS, REFINE_PASSES
 
     unknown = set(names) - set(REFINE_PASSES)
     assert not unknown, f"not a refine pass: {sorted(unknown)}"
+    gone = set(names) | {p for p, needs in PASS_NEEDS.items() if set(needs) & set(names)}
     on = REFINE_PASSES if base is None else base.refine.passes
-    return with_passes(*(p for p in on if p not in names), base=base, **refine)
+    return with_passes(*(p for p in on if p not in gone), base=base, **refine)
 
 
 def with_passes(*names: str, base: Config | None = None, **refine: Any) -> Config:
