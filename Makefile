@@ -29,7 +29,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check rangeseg_cli tests benchmarks
+	$(BIN)/ruff check rangeseg_cli tests benchmarks docs
 	$(BIN)/mypy
 
 bench: $(STAMP)
