@@ -223,13 +223,12 @@ class RefineConfig:
 class SplitConfig:
     """The refinement's settings as its passes read them (``Config.split``; not a table).
 
-    Derived from ``[refine]`` (:func:`refine_settings`): the pass switches
-    from ``passes``, seven values from its keys; every other field is a
-    constant of the refinement, named here and nowhere else (:data:`TUNING`).
+    Derived from ``[refine]`` (:func:`refine_settings`): seven values from
+    its keys; every other field is a constant of the refinement, named here
+    and nowhere else (:data:`TUNING`). Which passes run is read from
+    ``[refine] passes`` (:mod:`rangeseg_cli.refine.passes`), not from here.
     """
 
-    enabled: bool = _opt(True, "test each component's quadric fit against the image noise "
-                         "and split a failing one at its creases, then regrow")
     fit_factor: float = _opt(1.25, "a component fails when its RMS fit error exceeds this "
                              "times the noise (estimated, at least sqrt(grow.min_error))",
                              min_excl=0.0, max=MAX_FACTOR)
@@ -277,33 +276,10 @@ class SplitConfig:
                            "with its top) if they hold most of its pixels")
     rounds: int = _opt(2, "rounds of testing and splitting; each round tests the regions "
                        "grown from the last one's pieces", min=1, max=5)
-    recover: bool = _opt(True, "after growing, give a narrow face its own region: a band of "
-                         "unlabelled pixels that one plane fits to the noise and no neighbouring "
-                         "surface fits")
     recover_passes: int = _opt(2, "passes extending a recovered face into edge pixels it fits "
                                "better than their region", min=0, max=100)
     recover_max_noise: float = _opt(2.5, "recover no face when the estimated image noise is "
                                     "above this, depth units", min=0.0, max=MAX_DEPTH)
-    fill_edges: bool = _opt(True, "last, give each edge pixel still unlabelled to the "
-                            "neighbouring surface that fits it best within the growing bound "
-                            "(regions then abut)")
-    merge: bool = _opt(True, "last, merge touching regions whose union one quadric fits "
-                       "within the fit test (the counterpart of the split)")
-    recut: bool = _opt(True, "after the merge, cut a region (or re-cut two touching "
-                       "regions) along the straight line where a plane ends: a curved surface "
-                       "tangent to it (a smooth edge) or another plane (a crease)")
-    bridge: bool = _opt(True, "with fill_edges, after the fills, give an edge pixel still "
-                        "unlabelled to a planar region within 2 pixels whose plane explains "
-                        "it (a narrow diagonal face cut off where its neighbour took a "
-                        "corner pixel); again at the end, after carving and the refinement")
-    chamfers: bool = _opt(True, "before carving, give a narrow face between two planar "
-                          "regions at a crease (a chamfer) a region of its own, when a plane "
-                          "between them explains the image along the crease clearly better")
-    carve: bool = _opt(True, "before the refinement, give a narrow face that growing took "
-                       "into a planar region's border (a chamfer) a region of its own, when "
-                       "one plane fits it to the noise at a crease with the region's plane")
-    refine: bool = _opt(True, "last, move each boundary pixel to the neighbouring surface "
-                        "that predicts it best, counting the neighbours it would disagree with")
     refine_passes: int = _opt(3, "passes of the boundary refinement, each with the surfaces "
                               "fitted again", min=1, max=100)
     refine_smoothness: float = _opt(1.0, "cost of each 8-neighbour a pixel would disagree "
@@ -314,16 +290,6 @@ class SplitConfig:
                                 "to the surface visible there (the lower of the two at a "
                                 "convex crease, the higher at a concave one) instead of the "
                                 "one with the smaller residual")
-    merge_planes: bool = _opt(True, "after the refinement, merge touching planar regions "
-                              "whose union one plane fits within the fit test (pieces of "
-                              "one face that the later steps left apart)")
-    facets: bool = _opt(True, "before the refinement and once more at the end, cut a region "
-                        "that fails the fit test into the planes that explain it, when no "
-                        "quadric joins two of them again (a small frustum's faces at noise 2)")
-    join_occluded: bool = _opt(True, "last, give one label to separate patches of one surface "
-                               "that something closer to the sensor divides (a lying "
-                               "cylinder under a part laid across it): one surface fits "
-                               "both, and between them it is hidden, never seen to end")
 
 
 @dataclass(frozen=True)
@@ -484,7 +450,7 @@ _TABLE_CLASSES: dict[str, type] = {
 #: The constants of the refinement: :class:`SplitConfig`'s defaults.
 TUNING = SplitConfig()
 
-#: ``[refine] passes`` entry -> the :class:`SplitConfig` switch it sets.
+#: ``[refine] passes`` entry -> the old ``[split]`` switch it replaces.
 PASS_SWITCHES = {"split": "enabled", "recover": "recover", "fill": "fill_edges",
                  "merge": "merge", "recut": "recut", "bridge": "bridge", "chamfers": "chamfers",
                  "carve": "carve", "facets": "facets", "boundaries": "refine",
@@ -499,11 +465,9 @@ REFINE_FIELDS = {"fit_factor": "fit_factor", "min_crease": "min_crease",
 
 @functools.lru_cache(maxsize=64)
 def refine_settings(refine: RefineConfig, tuning: SplitConfig) -> SplitConfig:
-    """The refinement's settings: ``tuning`` with the switches and values of ``refine``."""
-    values: dict[str, Any] = {switch: name in refine.passes
-                              for name, switch in PASS_SWITCHES.items()}
-    values.update({field: getattr(refine, key) for key, field in REFINE_FIELDS.items()})
-    return dataclasses.replace(tuning, **values)
+    """The refinement's settings: ``tuning`` with the values of ``refine``."""
+    return dataclasses.replace(tuning, **{field: getattr(refine, key)
+                                          for key, field in REFINE_FIELDS.items()})
 
 
 def _retired_split_keys() -> dict[tuple[str, str], str]:

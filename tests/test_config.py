@@ -102,7 +102,7 @@ OLD_SPLIT_KEYS = {
 
 #: Every key that moved or went: (table, key, a value it took, what its message names).
 OLD_KEYS = [
-    *(("split", key, getattr(TUNING, key), named) for key, named in OLD_SPLIT_KEYS.items()),
+    *(("split", key, getattr(TUNING, key, False), named) for key, named in OLD_SPLIT_KEYS.items()),
     *(("input", key, 500.0, ("input.intrinsics",)) for key in ("fx", "fy", "cx", "cy")),
     ("step", "taps", 5, ("no longer a setting", "sigma")),
     ("roof", "taps", 17, ("no longer a setting", "sigma")),
@@ -114,7 +114,10 @@ OLD_KEYS = [
 
 def test_the_old_split_table_had_thirty_keys_and_each_has_a_fate():
     assert len(OLD_SPLIT_KEYS) == 30
-    assert {f.name for f in dataclasses.fields(config_module.SplitConfig)} == set(OLD_SPLIT_KEYS)
+    # the switches became refine.passes; the other keys, SplitConfig's fields
+    switches = set(config_module.PASS_SWITCHES.values())
+    assert {f.name for f in dataclasses.fields(config_module.SplitConfig)} == set(
+        OLD_SPLIT_KEYS) - switches
     assert {(t, k) for t, k, _, _ in OLD_KEYS} == set(config_module.MOVED_KEYS)
 
 
@@ -194,18 +197,10 @@ def test_refine_passes_run_in_their_own_order_whatever_the_order_given():
 
 
 def test_config_split_derives_the_passes_settings_from_refine_and_the_constants():
-    assert Config().split == TUNING  # the defaults: every pass on, the keys at their defaults
-    switches = {"split": "enabled", "recover": "recover", "fill": "fill_edges",
-                "merge": "merge", "recut": "recut", "bridge": "bridge", "chamfers": "chamfers",
-                "carve": "carve", "facets": "facets", "boundaries": "refine",
-                "merge_planes": "merge_planes", "join_occluded": "join_occluded"}
-    assert set(switches) == set(REFINE_PASSES)
-    for name, switch in switches.items():
-        gone = (name, "bridge") if name == "fill" else (name,)  # the bridge needs the fill
-        split = passes_without(*gone).split
-        assert getattr(split, switch) is False
-        assert all(getattr(split, s) for n, s in switches.items() if n not in gone)
-    assert not any(getattr(load_config(preset="paper").split, s) for s in switches.values())
+    assert Config().split == TUNING  # the defaults: the keys at their defaults
+    # which passes run is read from [refine] passes alone: Config.split holds no switch
+    assert set(config_module.PASS_SWITCHES) == set(REFINE_PASSES)
+    assert load_config(preset="paper").split == TUNING == passes_without("split").split
     keys = {"fit_factor": ("fit_factor", 1.5), "min_crease": ("min_crease", 20.0),
             "crease_evidence": ("crease_evidence", 0.0), "min_region": ("min_piece", 30),
             "normal_sigma": ("normal_sigma", 3.0), "smoothness": ("refine_smoothness", 2.0),
@@ -222,7 +217,7 @@ def test_config_split_reads_the_constants_when_it_is_read(tuning):
     assert config.split.trim_faces is True and config.split.max_pieces == 8
     tuning(trim_faces=False, max_pieces=3)
     assert config.split.trim_faces is False and config.split.max_pieces == 3
-    assert config.split.facets is False  # [refine] still says
+    assert "facets" not in config.refine.passes  # [refine] still says
     tuning()
     assert config.split.trim_faces is True and config.split.max_pieces == 8
 

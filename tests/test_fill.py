@@ -122,8 +122,8 @@ def test_the_pipelines_labels_leave_nothing_to_fill(scene):
 
 
 def test_paper_preset_leaves_the_edges():
-    assert load_config(preset="paper").split.fill_edges is False
-    assert load_config().split.fill_edges is True
+    assert "fill" not in load_config(preset="paper").refine.passes
+    assert "fill" in load_config().refine.passes
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -312,8 +312,8 @@ def test_part1s_grazing_side_is_found_at_sigma_2_on_seed_1():
 
 
 def test_paper_preset_does_not_bridge():
-    assert load_config(preset="paper").split.bridge is False
-    assert load_config().split.bridge is True
+    assert "bridge" not in load_config(preset="paper").refine.passes
+    assert "bridge" in load_config().refine.passes
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])

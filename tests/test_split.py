@@ -446,8 +446,8 @@ def test_fit_factor_and_auto_threshold_keys_are_validated(values: dict, match: s
 
 
 def test_split_is_on_by_default_and_off_in_the_paper_preset() -> None:
-    assert Config().split.enabled and not PAPER.split.enabled
-    assert "split" in Config().refine.passes and not passes_without("split").split.enabled
+    assert "split" in Config().refine.passes and "split" not in PAPER.refine.passes
+    assert "split" not in passes_without("split").refine.passes
     assert Config().input.auto_thresholds and not PAPER.input.auto_thresholds  # issue 32
 
 

@@ -22,7 +22,7 @@ Notes
    s``, with ``s = max(noise, sqrt(grow.min_error))``), of ``MAX_REGION``
    pixels or fewer: a bound on the work, which grows with the region's
    pixels (a small frustum's faces at 128 x 128 are a few hundred pixels,
-   at 640 x 480 a few thousand; with ``split.enabled = false`` the failing
+   at 640 x 480 a few thousand; without the pass ``split`` the failing
    components of a 640 x 480 pile, tens of thousands of pixels each, took
    0.7 s without it).
 2. Seeds: planes by consensus (:func:`~rangeseg_cli.refine.recover.consensus_plane`,

@@ -34,7 +34,7 @@ Notes
    tested again on the groups, so no group is merged that its union would
    not pass. Merged regions take the smallest id of the group; ids are then
    made consecutive in their order.
-4. Planes (:func:`merge_planes`, ``config.split.merge_planes``, after the
+4. Planes (:func:`merge_planes`, the pass ``merge_planes``, after the
    boundary refinement of :mod:`rangeseg_cli.refine.boundaries`). The same rules with
    a plane in the quadric's place, on planar regions only, the crease angle
    tested on every pair: two pieces of one face that later steps left apart
