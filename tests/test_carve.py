@@ -121,8 +121,8 @@ def test_the_nuts_chamfer_facet_is_found_at_sigma_1_only_with_carving():
 
 def test_paper_preset_turns_it_off():
     # the old key [split] carve is refused naming refine.passes: tests/test_config.py
-    assert load_config(preset="paper").split.carve is False
-    assert CONFIG.split.carve is True and "carve" in CONFIG.refine.passes
+    assert "carve" not in load_config(preset="paper").refine.passes
+    assert "carve" in CONFIG.refine.passes
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -166,8 +166,8 @@ def test_the_nuts_chamfers_are_found_at_sigma_2_only_with_this_step(face):
 
 
 def test_paper_preset_fits_no_chamfers_and_a_bad_value_is_one_line(tmp_path):
-    assert load_config(preset="paper").split.chamfers is False
-    assert CONFIG.split.chamfers is True and "chamfers" in CONFIG.refine.passes
+    assert "chamfers" not in load_config(preset="paper").refine.passes
+    assert "chamfers" in CONFIG.refine.passes
     with pytest.raises(ConfigError, match=r"\[refine\] passes = \['chamfer'\]: expected a list "
                                           r"of distinct names among .*'chamfers'"):
         load_config(overrides={"refine": {"passes": ["chamfer"]}})

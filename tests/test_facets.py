@@ -136,8 +136,8 @@ def test_the_facets_only_ever_divide_regions(seed, noise, cut):
 
 def test_the_paper_preset_has_no_facets():
     # the old key [split] facets is refused naming refine.passes: tests/test_config.py
-    assert CONFIG.split.facets and "facets" in CONFIG.refine.passes
-    assert not load_config(preset="paper").split.facets
+    assert "facets" in CONFIG.refine.passes
+    assert "facets" not in load_config(preset="paper").refine.passes
 
 
 def test_a_region_beyond_the_bound_on_the_work_is_left_whole(monkeypatch):

@@ -116,8 +116,8 @@ def test_part1_base_is_one_region_at_noise_2():
 
 
 def test_paper_preset_does_not_merge():
-    assert load_config(preset="paper").split.merge is False
-    assert CONFIG.split.merge is True
+    assert "merge" not in load_config(preset="paper").refine.passes
+    assert "merge" in CONFIG.refine.passes
 
 
 @pytest.mark.parametrize("sigma", [0.0, 1.0, 2.0])
@@ -191,8 +191,8 @@ def test_part1s_sides_are_found_only_with_the_plane_merge(seed, noise, face):
 
 def test_paper_preset_does_not_merge_planes():
     # the old key [split] merge_planes is refused naming refine.passes: tests/test_config.py
-    assert load_config(preset="paper").split.merge_planes is False
-    assert CONFIG.split.merge_planes is True and "merge_planes" in CONFIG.refine.passes
+    assert "merge_planes" not in load_config(preset="paper").refine.passes
+    assert "merge_planes" in CONFIG.refine.passes
 
 
 def _strip_split(seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -104,5 +104,5 @@ def test_a_cylinder_crossed_by_another_part_in_a_pile_is_one_region():
 
 def test_the_paper_preset_joins_nothing():
     # the old key [split] join_occluded is refused naming refine.passes: tests/test_config.py
-    assert load_config(preset="paper").split.join_occluded is False
-    assert CONFIG.split.join_occluded is True and "join_occluded" in CONFIG.refine.passes
+    assert "join_occluded" not in load_config(preset="paper").refine.passes
+    assert "join_occluded" in CONFIG.refine.passes

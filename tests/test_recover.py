@@ -172,8 +172,8 @@ def test_recover_checks_the_shapes() -> None:
 
 
 def test_recovery_is_on_by_default_and_off_in_the_paper_preset() -> None:
-    assert Config().split.recover and not PAPER.split.recover
-    assert "recover" in Config().refine.passes and not OFF.split.recover
+    assert "recover" in Config().refine.passes and "recover" not in PAPER.refine.passes
+    assert "recover" in Config().refine.passes and "recover" not in OFF.refine.passes
 
 
 # the old keys [split] recover, recover_passes, recover_max_noise: tests/test_config.py

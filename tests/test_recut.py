@@ -152,8 +152,8 @@ def test_part2_chamfer_gets_its_strip_back_at_sigma_2():
 
 
 def test_paper_preset_turns_it_off():
-    assert load_config(preset="paper").split.recut is False
-    assert CONFIG.split.recut is True
+    assert "recut" not in load_config(preset="paper").refine.passes
+    assert "recut" in CONFIG.refine.passes
 
 
 def test_searching_within_a_box_finds_the_same_cuts():

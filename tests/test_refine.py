@@ -140,8 +140,8 @@ def test_part2s_chamfer_is_found_at_sigma_2_by_the_refinement_alone():
 
 
 def test_paper_preset_turns_it_off():
-    assert load_config(preset="paper").split.refine is False
-    assert CONFIG.split.refine is True and "boundaries" in CONFIG.refine.passes
+    assert "boundaries" not in load_config(preset="paper").refine.passes
+    assert "boundaries" in CONFIG.refine.passes
 
 
 # the old keys [split] refine, refine_passes, refine_smoothness, refine_creases:

@@ -60,7 +60,7 @@ def test_the_paper_variant_is_the_paper_preset_and_the_defaults_are_the_defaults
     real = tradeoffs.variant_config(tradeoffs.REAL_CONFIG, variants["without facets"])
     assert real.step == load_config(tradeoffs.REAL_CONFIG).step
     assert real.input == load_config(tradeoffs.REAL_CONFIG).input and real.input.has_intrinsics
-    assert "facets" not in real.refine.passes and not real.split.facets
+    assert "facets" not in real.refine.passes
 
 
 def test_the_table_gives_each_variant_its_change_against_the_defaults() -> None:
