@@ -737,8 +737,7 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
         fields = {f.name: f for f in dataclasses.fields(cls)}
         kwargs = {}
         for key, value in entries.items():
-            if (table, key) in MOVED_KEYS:
-                raise ConfigError(f"{_where(source)}[{table}] {key} {MOVED_KEYS[(table, key)]}")
+            _refuse_moved(table, key, source)
             if key not in fields:
                 raise ConfigError(f"{source}: unknown key [{table}] {key}; allowed keys: "
                                   + ", ".join(fields))
@@ -754,11 +753,16 @@ def _build_tables(values: dict[str, Any], source: str) -> dict[str, Any]:
 def _refuse_retired(table: str, entries: dict[str, Any], source: str) -> None:
     """A table that went (``[split]``): name what became of its first key, or of it."""
     for key in entries:
-        if (table, key) in MOVED_KEYS:
-            raise ConfigError(f"{_where(source)}[{table}] {key} {MOVED_KEYS[(table, key)]}")
+        _refuse_moved(table, key, source)
     if table == "split":
         raise ConfigError(f"{_where(source)}the table [split] is now [refine]; allowed "
                           "tables: " + ", ".join(_TABLE_CLASSES))
+
+
+def _refuse_moved(table: str, key: str, source: str) -> None:
+    """A key that moved or went (:data:`MOVED_KEYS`): one line saying what became of it."""
+    if (table, key) in MOVED_KEYS:
+        raise ConfigError(f"{_where(source)}[{table}] {key} {MOVED_KEYS[(table, key)]}")
 
 
 def _where(source: str) -> str:

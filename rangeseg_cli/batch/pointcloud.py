@@ -33,7 +33,7 @@ from .. import __version__
 from ..cell.workspace import points
 from ..config import InputConfig
 from ..models import Surface
-from ..stages.grow import evaluate_quadric
+from ..stages.grow import evaluate_quadric, quadric_gradient
 
 #: The vertices of ``points.ply``.
 POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "<i4"),
@@ -126,8 +126,7 @@ def labelled_points(z: np.ndarray, labels: np.ndarray, surfaces: Iterable[Surfac
         table[s.id] = s.coefficients
     rows, cols, xyz = cloud(z, labels, camera)
     ids = labels[rows, cols]
-    _, a1, a2, a3, a4, a5 = table[ids].T
-    gx, gy = a1 + 2 * a3 * cols + a4 * rows, a2 + a4 * cols + 2 * a5 * rows
+    gx, gy = quadric_gradient(table[ids], rows, cols)
     fitted = evaluate_quadric(table[ids], rows, cols)
     normal = tangents(camera, rows, cols, fitted, gx, gy)[2]
     out = np.empty(len(rows), POINT_DTYPE)

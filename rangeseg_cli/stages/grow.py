@@ -602,6 +602,13 @@ def evaluate_quadric(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> 
             + a[..., 4] * x * y + a[..., 5] * y * y)
 
 
+def quadric_gradient(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """``(dz/dx, dz/dy)`` of (N, 6) quadrics (:func:`evaluate_quadric`) at pixel positions."""
+    _, a1, a2, a3, a4, a5 = np.asarray(coeffs, dtype=np.float64).T
+    return a1 + 2.0 * a3 * cols + a4 * rows, a2 + a4 * cols + 2.0 * a5 * rows
+
+
 def single_neighbour_label(labels: np.ndarray) -> np.ndarray:
     """The one label in each pixel's 8-neighbourhood, or 0 (none, or two and more).
 

@@ -55,7 +55,7 @@ from scipy import ndimage
 from ..config import Config, check_config
 from ..kernels.backend import Backend, select_kernels
 from ..models import Neighbor, Surface
-from .grow import evaluate_quadric, planar_regions, region_fits, valid_labels
+from .grow import evaluate_quadric, planar_regions, quadric_gradient, region_fits, valid_labels
 from .rangeimage import check_stage_arrays
 
 #: Two regions are neighbours when pixels of both lie within this chessboard distance.
@@ -266,9 +266,7 @@ def _unit_normals(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.
     The length is ``np.linalg.norm``'s, summed in its order (fx^2 + fy^2 + 1),
     column by column: the same bits without a reduction over rows of three.
     """
-    _, a1, a2, a3, a4, a5 = coeffs.T
-    fx = a1 + 2.0 * a3 * cols + a4 * rows
-    fy = a2 + a4 * cols + 2.0 * a5 * rows
+    fx, fy = quadric_gradient(coeffs, rows, cols)
     length = np.sqrt(fx * fx + fy * fy + 1.0)
     n = np.empty((fx.shape[0], 3))
     np.divide(-fx, length, out=n[:, 0])
