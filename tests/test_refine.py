@@ -158,3 +158,44 @@ def test_refine_keys_are_validated(values, match):
 def test_a_bad_refine_key_on_the_command_line_is_one_line(tmp_path):
     assert "smoothness = -1" in bad_setting_on_the_command_line(tmp_path,
                                                                 "refine.smoothness=-1")
+
+
+def pyramid_and_dome(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A four-sided pyramid beside a dome on a tilted floor, noise 1.5, and rough labels.
+
+    The labels are the true faces with 30 % of the pixels taken from the faces
+    shifted by two pixels, so the pass has pixels to move across creases, steps
+    and a curved surface's rim.
+    """
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:72, 0:96].astype(np.float64)
+    floor = 50.0 + 0.2 * x + 0.1 * y
+    peak = 160.0 - 2.5 * np.maximum(np.abs(x - 30), np.abs(y - 36))
+    dome = 140.0 - 0.06 * ((x - 72) ** 2 + (y - 36) ** 2)
+    z = np.maximum.reduce([floor, peak, dome])
+    face = np.select([peak >= np.maximum(floor, dome), dome >= floor],
+                     [np.where(np.abs(x - 30) >= np.abs(y - 36), 1 + (x > 30), 3 + (y > 36)),
+                      5], 6)
+    shifted = np.roll(face, (2, -2), axis=(0, 1))
+    rough = np.where(rng.random(face.shape) < 0.3, shifted, face).astype(np.int32)
+    return z + rng.normal(0.0, 1.5, z.shape), rough
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("creases", [True, False])
+def test_the_compiled_pass_gives_the_references_labels(seed, creases, tuning):
+    z, rough = pyramid_and_dome(seed)
+    tuning(refine_creases=creases)
+    reference = refine_boundaries(z, rough, CONFIG, noise=1.5, backend="numpy")
+    compiled = refine_boundaries(z, rough, CONFIG, noise=1.5, backend="numba")
+    assert np.count_nonzero(reference != rough) > 50  # the pass moves pixels here
+    np.testing.assert_array_equal(compiled, reference)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_compiled_crease_votes_give_the_references_kinds(seed):
+    z, rough = pyramid_and_dome(seed)
+    coeffs, _ = surface_models(z, rough, 6, CONFIG.grow)
+    reference = crease_kinds(rough, coeffs, backend="numpy")
+    assert (reference == -1).any() and (reference == 0).any()
+    np.testing.assert_array_equal(crease_kinds(rough, coeffs, backend="numba"), reference)

@@ -91,6 +91,10 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
     ("fill_passes", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[::1])"),
     ("knot_sse", "(float64[::1], float64[::1], float64[::1], float64[::1], float64[::1],"
                  " int64[::1], float64)"),
+    ("crease_votes", "(int32[:, ::1], int64[::1], int64[::1], int64[::1], float64[::1],"
+                     " float64[:, ::1], int64)"),
+    ("settle_boundaries", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], int8[:, ::1],"
+                          " float64, float64, float64, boolean)"),
     ("boundary_measures", "(int32[:, ::1], int64, float64[:, ::1])"),
     ("pair_medians", "(int64[::1], int64[::1], int64, float64[:, ::1])"),
     ("label_boxes", "(int32[:, ::1], int64)"),

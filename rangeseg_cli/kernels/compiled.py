@@ -2442,4 +2442,151 @@ def explained_faces(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, ids: np.n
     return explained
 
 
+
+# --------------------------------------------------------------------------- crease kinds
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _crease_sweep(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np.ndarray,
+                  mine: np.ndarray, coeffs: np.ndarray, reach: int, out: np.ndarray
+                  ) -> int:  # pragma: no cover - compiled
+    """The votes of :func:`crease_votes` into ``out`` while they fit; their number."""
+    width = padded.shape[1]
+    flat = padded.ravel()
+    n1 = coeffs.shape[0]
+    seen = np.empty((2 * reach + 1) ** 2, np.int64)
+    times = np.empty((2 * reach + 1) ** 2, np.int64)
+    j = 0
+    for i in range(rows.size):
+        m = 0
+        centre = (rows[i] + reach) * width + cols[i] + reach
+        for dr in range(-reach, reach + 1):
+            for dc in range(-reach, reach + 1):
+                other = flat[centre + dr * width + dc]
+                if other <= 0 or other == own[i]:
+                    continue
+                k = 0
+                while k < m and seen[k] != other:
+                    k += 1
+                if k == m:
+                    seen[m], times[m] = other, 0
+                    m += 1
+                times[k] += 1
+        if j + m <= out.shape[0]:
+            for k in range(m):
+                theirs = _coeff_at(coeffs, seen[k], float(rows[i]), float(cols[i]))
+                out[j + k, 0] = own[i] * n1 + seen[k]
+                out[j + k, 1] = times[k] * (mine[i] < theirs)
+                out[j + k, 2] = times[k]
+        j += m
+    return j
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def crease_votes(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np.ndarray,
+                 mine: np.ndarray, coeffs: np.ndarray, reach: int
+                 ) -> np.ndarray:  # pragma: no cover - compiled
+    """``refine.boundaries.crease_kinds``' votes, one per pixel and nearby region.
+
+    For each pixel ``rows, cols`` (label ``own``, own surface's height
+    ``mine``) and each other positive label within chessboard ``reach``
+    (``padded``: the labels padded by ``reach``), the pair key ``own * (n+1)
+    + other``, how many of the window's pixels of that label vote "own
+    surface lower" (0 or all of them: the comparison is the pixel's) and how
+    many there are. Each pair's surface is evaluated once per pixel, as
+    ``grow.evaluate_quadric`` evaluates it.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 (V, 3): key, lower votes, votes.
+    """
+    out = np.empty((2 * rows.size, 3), np.int64)  # most pixels see one or two regions
+    count = _crease_sweep(padded, rows, cols, own, mine, coeffs, reach, out)
+    if count > out.shape[0]:
+        out = np.empty((count, 3), np.int64)
+        _crease_sweep(padded, rows, cols, own, mine, coeffs, reach, out)
+    return out[:count]
+
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def settle_boundaries(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, kinds: np.ndarray,
+                      scale: float, smoothness: float, close: float, creases: bool
+                      ) -> np.ndarray:  # pragma: no cover - compiled
+    """One pass of ``refine.boundaries``: each boundary pixel's cheapest label.
+
+    A boundary pixel (labelled, with an 8-neighbour of another positive
+    label) costs ``r^2 / scale + smoothness * m`` under each candidate label
+    (its own, then its 8-neighbours' in raster order, a candidate taken when
+    strictly cheaper); with ``creases``, a pixel within ``close`` of a
+    neighbour's surface across a crease of ``kinds`` takes the visible one.
+    The same operations in the same order as the numpy reference.
+    """
+    height, width = labels.shape
+    out = labels.copy()
+    near = np.empty(8, np.int64)
+    for r in range(height):
+        for c in range(width):
+            own = labels[r, c]
+            if own <= 0:
+                continue
+            k = 0
+            edge = False
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    if dr == 0 and dc == 0:
+                        continue
+                    rr, cc = r + dr, c + dc
+                    lab = labels[rr, cc] if 0 <= rr < height and 0 <= cc < width else 0
+                    near[k] = lab
+                    edge |= lab > 0 and lab != own
+                    k += 1
+            if edge:
+                out[r, c] = _settle_pixel(z[r, c], near, own, float(r), float(c), coeffs,
+                                          kinds, scale, smoothness, close, creases)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _settle_pixel(height: float, near: np.ndarray, own: int, y: float, x: float,
+                  coeffs: np.ndarray, kinds: np.ndarray, scale: float, smoothness: float,
+                  close: float, creases: bool) -> int:  # pragma: no cover - compiled
+    """:func:`settle_boundaries` at one boundary pixel."""
+    best, lowest = own, _label_cost(height, near, own, y, x, coeffs, scale, smoothness)
+    for k in range(8):
+        ids = near[k]
+        if ids > 0 and ids != best:
+            trial = _label_cost(height, near, ids, y, x, coeffs, scale, smoothness)
+            if trial < lowest:
+                best, lowest = ids, trial
+    if not creases:
+        return best
+    mine = _coeff_at(coeffs, own, y, x)
+    decided, visible, margin = False, own, 0.0
+    for k in range(8):
+        other = near[k] if near[k] > 0 and near[k] != own else 0
+        kind = kinds[own, other]
+        if kind == 0:
+            continue
+        step = kind * (_coeff_at(coeffs, other, y, x) - mine)
+        if abs(_coeff_at(coeffs, other, y, x) - mine) < close:
+            decided = True
+            if step > margin:
+                visible, margin = other, step
+    return visible if decided else best
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _label_cost(height: float, near: np.ndarray, lab: int, y: float, x: float,
+                coeffs: np.ndarray, scale: float, smoothness: float
+                ) -> float:  # pragma: no cover - compiled
+    """``r^2 / scale + smoothness * m`` of one pixel under label ``lab``."""
+    residual = height - _coeff_at(coeffs, lab, y, x)
+    disagree = 0
+    for k in range(8):
+        disagree += near[k] > 0 and near[k] != lab
+    return residual * residual / scale + smoothness * disagree
+
+
 compile_ahead_when_cold()

@@ -56,6 +56,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..config import Config
+from ..kernels.backend import Backend, select_kernels
 from ..stages.grow import evaluate_quadric
 from ..stages.rangeimage import (
     HALF_NEIGHBOUR_PAIRS,
@@ -97,22 +98,39 @@ def _neighbour_labels(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray) ->
     return np.pad(labels, 1).ravel()[flat[:, None] + steps]
 
 
-def _pair_counts(keys: np.ndarray, below: np.ndarray, size: int
+def _pair_counts(keys: np.ndarray, lower: np.ndarray, votes: np.ndarray, size: int
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Per pair key (0..size-1): how many ``below`` are true, and how many there are."""
+    """Per pair key (0..size-1): the sums of ``lower`` and of ``votes``."""
     if size <= _DENSE_PAIRS:
-        return (np.bincount(keys, weights=below, minlength=size),
-                np.bincount(keys, minlength=size).astype(np.float64))
+        return (np.bincount(keys, weights=lower, minlength=size),
+                np.bincount(keys, weights=votes, minlength=size))
     pairs, where = np.unique(keys, return_inverse=True)  # many regions: sort, not a table
-    lower, total = np.zeros(size), np.zeros(size)
-    lower[pairs] = np.bincount(where, weights=below, minlength=pairs.size)
-    total[pairs] = np.bincount(where, minlength=pairs.size)
-    return lower, total
+    low, total = np.zeros(size), np.zeros(size)
+    low[pairs] = np.bincount(where, weights=lower, minlength=pairs.size)
+    total[pairs] = np.bincount(where, weights=votes, minlength=pairs.size)
+    return low, total
+
+
+def _crease_votes(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np.ndarray,
+                  mine: np.ndarray, coeffs: np.ndarray, reach: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pair keys and votes of :func:`crease_kinds`, one per pixel and offset (the reference)."""
+    n1 = coeffs.shape[0]
+    width = padded.shape[1]
+    flat, spread = padded.ravel(), (rows + reach) * width + cols + reach
+    keys, below = [], []
+    for dr, dc in chessboard_offsets(reach):
+        other = flat[spread + dr * width + dc]
+        use = np.nonzero((other > 0) & (other != own))[0]
+        keys.append(own[use].astype(np.int64) * n1 + other[use])
+        below.append(mine[use] < evaluate_quadric(coeffs[other[use]], rows[use], cols[use]))
+    key = np.concatenate(keys)
+    return key, np.concatenate(below).astype(np.float64), np.ones(key.size)
 
 
 def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_REACH,
-                 agreement: float = CREASE_AGREEMENT, boundary: np.ndarray | None = None
-                 ) -> np.ndarray:
+                 agreement: float = CREASE_AGREEMENT, boundary: np.ndarray | None = None,
+                 backend: Backend = "auto") -> np.ndarray:
     """The kind of crease between each pair of nearby regions (Notes 5).
 
     Parameters
@@ -130,6 +148,11 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
     boundary
         bool (H, W) the labelled pixels with an 8-neighbour of another label,
         when the caller has them (computed otherwise).
+    backend
+        ``"numpy"``: the reference, a vote per pixel and offset; ``"numba"``:
+        :func:`rangeseg_cli.kernels.compiled.crease_votes`, one vote per pixel
+        and nearby region weighted by its pixels (the same counts); ``"auto"``:
+        numba when installed.
 
     Returns
     -------
@@ -140,21 +163,21 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
         not within ``reach`` of each other.
     """
     n = int(labels.max(initial=0))
+    coeffs = np.require(coeffs[: n + 1], np.float64, ["C"])
     boundary = _boundary(labels) if boundary is None else boundary
     near = ndimage.maximum_filter(boundary, size=2 * reach + 1)
     rows, cols = np.nonzero(near & (labels > 0))
     own = labels[rows, cols]
     mine = evaluate_quadric(coeffs[own], rows, cols)
     padded = np.pad(labels, reach)
-    width = padded.shape[1]
-    flat, spread = padded.ravel(), (rows + reach) * width + cols + reach
-    keys, below = [], []
-    for dr, dc in chessboard_offsets(reach):
-        other = flat[spread + dr * width + dc]
-        use = np.nonzero((other > 0) & (other != own))[0]
-        keys.append(own[use].astype(np.int64) * (n + 1) + other[use])
-        below.append(mine[use] < evaluate_quadric(coeffs[other[use]], rows[use], cols[use]))
-    lower, total = _pair_counts(np.concatenate(keys), np.concatenate(below), (n + 1) ** 2)
+    kernels = select_kernels(backend)
+    if kernels is None:
+        keys, below, votes = _crease_votes(padded, rows, cols, own, mine, coeffs, reach)
+    else:
+        keys, below, votes = kernels.crease_votes(
+            np.require(padded, np.int32, ["C"]), np.ascontiguousarray(rows),
+            np.ascontiguousarray(cols), own.astype(np.int64), mine, coeffs, reach).T
+    lower, total = _pair_counts(keys, below, votes, (n + 1) ** 2)
     frac = (lower / np.maximum(total, 1)).reshape(n + 1, n + 1)
     seen = total.reshape(n + 1, n + 1) > 0
     seen &= seen.T
@@ -182,9 +205,17 @@ def _visible(kinds: np.ndarray, own: np.ndarray, near: np.ndarray, rows: np.ndar
 
 
 def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: float,
-              smoothness: float, creases: bool) -> np.ndarray:
+              smoothness: float, creases: bool, backend: Backend) -> np.ndarray:
     """Each boundary pixel's cheapest label (Notes 2, 5); ``labels`` elsewhere."""
     boundary = _boundary(labels)
+    kernels = select_kernels(backend)
+    if kernels is not None:  # the same labels, in one sweep
+        kinds = (crease_kinds(labels, coeffs, boundary=boundary, backend=backend) if creases
+                 else np.zeros((1, 1), np.int8))
+        return kernels.settle_boundaries(
+            np.require(z, np.float64, ["C"]), np.require(labels, np.int32, ["C"]),
+            np.require(coeffs, np.float64, ["C"]), kinds, scale, smoothness,
+            CREASE_CLOSE * math.sqrt(scale), creases)
     rows, cols = np.nonzero(boundary)
     near = _neighbour_labels(labels, rows, cols)
     heights = z[rows, cols]
@@ -203,8 +234,7 @@ def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: floa
         better = trial < lowest
         best[better], lowest[better] = ids[better], trial[better]
     if creases:  # told again in every pass, as the boundaries move
-        kinds = crease_kinds(labels, coeffs, reach=CREASE_REACH, agreement=CREASE_AGREEMENT,
-                             boundary=boundary)
+        kinds = crease_kinds(labels, coeffs, boundary=boundary, backend=backend)
         visible, decided = _visible(kinds, own, near, rows, cols, coeffs,
                                     CREASE_CLOSE * math.sqrt(scale))
         best = np.where(decided, visible, best)
@@ -213,8 +243,8 @@ def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: floa
     return out
 
 
-def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
-                      ) -> np.ndarray:
+def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float,
+                      backend: Backend = "auto") -> np.ndarray:
     """Move boundary pixels to the neighbouring surface that predicts them best (Notes).
 
     Parameters
@@ -230,6 +260,10 @@ def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, nois
     noise
         Noise sigma of ``z`` (:func:`~rangeseg_cli.stages.noise.estimate_noise`);
         NaN counts as 0.
+    backend
+        ``"numpy"``: the reference; ``"numba"``: each pass in one sweep of
+        :func:`rangeseg_cli.kernels.compiled.settle_boundaries` (the same
+        labels); ``"auto"``: numba when installed.
 
     Returns
     -------
@@ -251,7 +285,7 @@ def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, nois
             break
         coeffs, _ = surface_models(z, out, n, config.grow)
         moved = _one_pass(z, out, coeffs, scale, config.split.refine_smoothness,
-                          config.split.refine_creases)
+                          config.split.refine_creases, backend)
         if np.array_equal(moved, out):
             break
         out = moved
