@@ -13,6 +13,8 @@ from rangeseg_cli.stages.grow import (
     fit_quadrics,
     grow_regions,
     region_fits,
+    single_neighbour_label,
+    single_neighbour_label_at,
     sums_of_squares,
     union_quadric_mse,
 )
@@ -413,3 +415,13 @@ def test_a_bad_planar_noise_test_is_one_line_on_the_command_line(tmp_path):
 
     assert "planar_noise_test" in bad_setting_on_the_command_line(
         tmp_path, "grow.planar_noise_test=maybe")
+
+
+def test_the_single_neighbour_label_at_some_pixels_is_the_whole_images():
+    rng = np.random.default_rng(3)
+    labels = np.where(rng.random((30, 40)) < 0.5, 0, rng.integers(1, 4, (30, 40)))
+    labels = labels.astype(np.int32)
+    rows, cols = np.nonzero(rng.random(labels.shape) < 0.4)  # the borders included
+    whole = single_neighbour_label(labels)[rows, cols]
+    assert (whole > 0).any() and (whole == 0).any()
+    np.testing.assert_array_equal(single_neighbour_label_at(labels, rows, cols), whole)

@@ -69,7 +69,13 @@ from scipy import ndimage
 from ..config import Config
 from ..kernels.backend import Backend, select_kernels
 from ..kernels.parallel import map_tasks
-from ..stages.grow import EIGHT_NEIGHBOURS, RCOND, evaluate_quadric, fit_quadrics
+from ..stages.grow import (
+    EIGHT_NEIGHBOURS,
+    RCOND,
+    evaluate_quadric,
+    fit_quadrics,
+    single_neighbour_label_at,
+)
 from ..stages.noise import estimate_noise
 from ..stages.rangeimage import require_shape_of_z
 from .planes import local_planes
@@ -366,17 +372,13 @@ def _extend(z: np.ndarray, band: np.ndarray, labels: np.ndarray, faces: np.ndarr
     """Let the faces take band pixels they fit better than their region (Notes, step 3)."""
     faces = faces.copy()
     k = int(faces.max(initial=0))
-    big = np.iinfo(np.int32).max
     for _ in range(passes):
         planes = _Fits.of(z, faces, k, config, order=1)
-        high = ndimage.maximum_filter(faces, footprint=EIGHT_NEIGHBOURS, mode="constant",
-                                      cval=0)
-        low = ndimage.minimum_filter(np.where(faces > 0, faces, big),
-                                     footprint=EIGHT_NEIGHBOURS, mode="constant", cval=big)
-        rows, cols = np.nonzero(band & (faces == 0) & (high > 0) & (high == low))
+        rows, cols = np.nonzero(band & (faces == 0))
+        f = single_neighbour_label_at(faces, rows, cols)
+        rows, cols, f = rows[f > 0], cols[f > 0], f[f > 0]
         if rows.size == 0:
             break
-        f = high[rows, cols]
         res = _squared_residuals(z, planes.coeffs, f, rows, cols)
         own = labels[rows, cols]
         mine = np.full(rows.size, np.inf)

@@ -631,6 +631,22 @@ def single_neighbour_label(labels: np.ndarray) -> np.ndarray:
     return np.where((high > 0) & (high == low), high, 0)
 
 
+
+def single_neighbour_label_at(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray
+                              ) -> np.ndarray:
+    """:func:`single_neighbour_label` at the pixels ``rows, cols`` only.
+
+    For a few pixels of a large image: their 3x3 neighbourhoods are read
+    instead of filtering the whole image. int (N,), 0 beyond the image.
+    """
+    width = labels.shape[1] + 2
+    steps = np.array([dr * width + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
+    near = np.pad(labels, 1).ravel()[((rows + 1) * width + cols + 1)[:, None] + steps]
+    big = np.iinfo(labels.dtype).max
+    high = near.max(axis=1, initial=0)
+    low = np.where(near > 0, near, big).min(axis=1, initial=big)
+    return np.where((high > 0) & (high == low), high, 0)
+
 def grow_pass(z: np.ndarray, valid: np.ndarray, labels: np.ndarray, coeffs: np.ndarray,
               limit: np.ndarray, *, backend: Backend = "auto") -> int:
     """One simultaneous growing pass, in place; return the number of pixels labelled.
