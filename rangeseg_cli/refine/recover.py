@@ -79,7 +79,7 @@ from ..stages.grow import (
 from ..stages.noise import estimate_noise
 from ..stages.rangeimage import require_shape_of_z
 from .planes import local_planes
-from .regions import adjacent_pairs
+from .regions import adjacent_pairs, join_box
 
 #: Chessboard reach (pixels) of the neighbours a label-0 pixel may be the boundary of.
 REACH = 2
@@ -397,38 +397,34 @@ def _merge_coplanar(z: np.ndarray, faces: np.ndarray, level: float) -> np.ndarra
     if k < 2:
         return faces
     root = np.arange(k + 1)
+    boxes = dict(enumerate(ndimage.find_objects(faces), start=1))  # of each root's group
     for i, j in adjacent_pairs(faces, MERGE_REACH):
         a, b = root[i], root[j]
         if a == b:
             continue
-        rows, cols = np.nonzero((root[faces] == a) | (root[faces] == b))
+        box = join_box(boxes[a], boxes[b])
+        sub = root[faces[box]]
+        rows, cols = np.nonzero((sub == a) | (sub == b))  # raster order, as in the frame
+        rows, cols = rows + box[0].start, cols + box[1].start
         plane = fit_plane(z, rows, cols)
         r = z[rows, cols] - plane_height(plane, rows, cols)
         if float(np.mean(r * r)) <= level * level:
             root[root == max(a, b)] = min(a, b)
+            boxes[min(a, b)] = box
     return root.astype(np.int32)[faces]
 
 
-def _swallowed(z: np.ndarray, face: np.ndarray, others: np.ndarray, plane: np.ndarray,
-               limit: float, fits: _Fits) -> int:
-    """Pixels of other regions near ``face`` that its plane predicts better than their own."""
-    box = _box(face, PARTIAL_REACH)
-    near = ndimage.binary_dilation(face[box], EIGHT_NEIGHBOURS, iterations=PARTIAL_REACH)
+def _swallowed(z: np.ndarray, faces: np.ndarray, f: int, where: tuple[slice, slice],
+               others: np.ndarray, plane: np.ndarray, limit: float, fits: _Fits) -> int:
+    """Pixels of other regions near face ``f`` (box ``where``) its plane predicts better."""
+    box = tuple(slice(max(s.start - PARTIAL_REACH, 0), s.stop + PARTIAL_REACH) for s in where)
+    near = ndimage.binary_dilation(faces[box] == f, EIGHT_NEIGHBOURS, iterations=PARTIAL_REACH)
     rows, cols = np.nonzero(near & (others[box] > 0))
     rows, cols = rows + box[0].start, cols + box[1].start
     ids = others[rows, cols]
     res = _squared_residuals(z, plane[None, :], np.zeros(rows.size, np.intp), rows, cols)
     own = _squared_residuals(z, fits.coeffs, ids, rows, cols)
     return int(np.count_nonzero((res < limit) & (res < own)))
-
-
-def _box(mask: np.ndarray, pad: int) -> tuple[slice, slice]:
-    """Bounding box of ``mask`` grown by ``pad``, clipped to the array."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    h, w = mask.shape
-    return (slice(max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, h)),
-            slice(max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, w)))
 
 
 def _accepted(z: np.ndarray, faces: np.ndarray, labels: np.ndarray, fits: _Fits, *,
@@ -439,9 +435,10 @@ def _accepted(z: np.ndarray, faces: np.ndarray, labels: np.ndarray, fits: _Fits,
     ok = (planes.counts >= config.link.min_component) & (planes.mse <= level * level)
     ok[0] = False
     others = np.where(faces > 0, 0, labels)
+    boxes = ndimage.find_objects(faces)
     for f in np.flatnonzero(ok).tolist():
-        swallowed = _swallowed(z, faces == f, others, planes.coeffs[f], float(planes.limit[f]),
-                               fits)
+        swallowed = _swallowed(z, faces, f, boxes[f - 1], others, planes.coeffs[f],
+                               float(planes.limit[f]), fits)
         ok[f] = swallowed < PARTIAL_FRACTION * planes.counts[f]
     return np.flatnonzero(ok)
 
