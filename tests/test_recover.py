@@ -10,7 +10,7 @@ from rangeseg_cli.config import Config, load_config
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.pipeline import run_pipeline, stage_grow
 from rangeseg_cli.refine import recover
-from rangeseg_cli.refine.recover import plane_pieces, recover_faces
+from rangeseg_cli.refine.recover import fits_a_neighbour, plane_pieces, recover_faces
 from rangeseg_cli.synth.evaluate import hoover_compare
 from rangeseg_cli.synth.scenes import render_scene
 
@@ -266,3 +266,20 @@ def test_at_sigma_2_a_recovered_grazing_side_is_found_once_the_refinement_settle
         found[on, refine] = any(i.kind == "correct" and side in i.gt
                                      for i in result.instances)
     assert found == {(True, True): True, (False, True): False, (True, False): False}
+
+
+@pytest.mark.parametrize("reach", [1, 2])
+def test_the_compiled_neighbour_test_gives_the_references_answer(reach):
+    rng = np.random.default_rng(5)
+    y, x = np.mgrid[0:40, 0:50].astype(np.float64)
+    z = 100.0 + 0.5 * x - 0.2 * y + rng.normal(0.0, 1.0, x.shape)
+    labels = np.where(rng.random(x.shape) < 0.6, rng.integers(1, 4, x.shape), 0)
+    labels = labels.astype(np.int32)
+    coeffs = np.array([[0.0] * 6, [100.0, 0.5, -0.2, 0, 0, 0], [103.0, 0.5, -0.2, 0, 0, 0],
+                       [80.0, 0.0, 0.0, 0, 0, 0]])
+    limit = np.array([0.0, 2.0, 4.0, 1.0])
+    rows, cols = np.nonzero(labels == 0)  # the borders included
+    reference = fits_a_neighbour(z, labels, coeffs, limit, rows, cols, reach, backend="numpy")
+    assert reference.any() and not reference.all()
+    compiled = fits_a_neighbour(z, labels, coeffs, limit, rows, cols, reach, backend="numba")
+    np.testing.assert_array_equal(compiled, reference)

@@ -82,6 +82,8 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
     ("image_coefficients", "(float64[:, :, ::1], float64[::1], float64[::1], float64[::1])"),
     ("grow_pass", "(float64[:, ::1], boolean[:, ::1], int32[:, ::1], float64[:, ::1],"
                   " float64[::1])"),
+    ("neighbour_accepts", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[::1],"
+                          " int64[::1], int64[::1], int64)"),
     ("plane_fit", "(float64[:, ::1], boolean[:, ::1], float64[::1], float64, float64, float64)"),
     ("plane_votes", "(float64[::1], int64[:], int64[:], float64[::1], float64[::1],"
                     " float64[::1], int64[::1], int64[::1], float64)"),

@@ -2589,4 +2589,33 @@ def _label_cost(height: float, near: np.ndarray, lab: int, y: float, x: float,
     return residual * residual / scale + smoothness * disagree
 
 
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def neighbour_accepts(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limit: np.ndarray,
+                      rows: np.ndarray, cols: np.ndarray, reach: int
+                      ) -> np.ndarray:  # pragma: no cover - compiled
+    """``refine.recover``'s test: a region within ``reach`` of each pixel would grow into it.
+
+    Pixel i is accepted when a positive label L of ``labels`` within
+    chessboard ``reach`` predicts it with a squared residual below
+    ``limit[L]``, the residual computed as ``grow.evaluate_quadric`` does.
+    """
+    height, width = labels.shape
+    out = np.zeros(rows.size, np.bool_)
+    for i in range(rows.size):
+        r, c = rows[i], cols[i]
+        y, x = float(r), float(c)
+        for rr in range(max(r - reach, 0), min(r + reach + 1, height)):
+            for cc in range(max(c - reach, 0), min(c + reach + 1, width)):
+                lab = labels[rr, cc]
+                if lab > 0:
+                    res = z[r, c] - _coeff_at(coeffs, lab, y, x)
+                    if res * res < limit[lab]:
+                        out[i] = True
+                        break
+            if out[i]:
+                break
+    return out
+
+
 compile_ahead_when_cold()

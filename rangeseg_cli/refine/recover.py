@@ -146,8 +146,9 @@ def _squared_residuals(z: np.ndarray, coeffs: np.ndarray, ids: np.ndarray, rows:
     return r * r
 
 
-def _fits_a_neighbour(z: np.ndarray, labels: np.ndarray, fits: _Fits, rows: np.ndarray,
-                     cols: np.ndarray, reach: int = REACH) -> np.ndarray:
+def fits_a_neighbour(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limit: np.ndarray,
+                     rows: np.ndarray, cols: np.ndarray, reach: int = REACH, *,
+                     backend: Backend = "auto") -> np.ndarray:
     """Whether a region within ``reach`` of each pixel would accept it (Sec. V-4).
 
     Parameters
@@ -156,12 +157,16 @@ def _fits_a_neighbour(z: np.ndarray, labels: np.ndarray, fits: _Fits, rows: np.n
         float64 (H, W) heights.
     labels
         int (H, W) regions 1..n, 0 = none.
-    fits
-        The regions' surfaces and growing bounds.
+    coeffs, limit
+        float64 (n+1, 6) and (n+1,): the regions' surfaces and growing bounds.
     rows, cols
         (N,) the pixels.
     reach
         Chessboard distance to look for regions.
+    backend
+        ``"numpy"``: the reference, offset by offset; ``"numba"``:
+        :func:`rangeseg_cli.kernels.compiled.neighbour_accepts`, pixel by
+        pixel (the same answer); ``"auto"``: numba when installed.
 
     Returns
     -------
@@ -169,6 +174,12 @@ def _fits_a_neighbour(z: np.ndarray, labels: np.ndarray, fits: _Fits, rows: np.n
         bool (N,): some region with a pixel within ``reach`` predicts the
         pixel with a squared residual below its ``limit``.
     """
+    kernels = select_kernels(backend)
+    if kernels is not None:
+        return np.asarray(kernels.neighbour_accepts(
+            np.require(z, np.float64, ["C"]), np.require(labels, np.int32, ["C"]),
+            np.require(coeffs, np.float64, ["C"]), np.require(limit, np.float64, ["C"]),
+            np.ascontiguousarray(rows), np.ascontiguousarray(cols), reach))
     h, w = labels.shape
     out = np.zeros(rows.size, bool)
     for dr in range(-reach, reach + 1):
@@ -178,8 +189,8 @@ def _fits_a_neighbour(z: np.ndarray, labels: np.ndarray, fits: _Fits, rows: np.n
             ids = labels[r[inside], c[inside]]
             near = ids > 0
             at, ids = inside[near], ids[near]
-            res = _squared_residuals(z, fits.coeffs, ids, rows[at], cols[at])
-            out[at[res < fits.limit[ids]]] = True
+            res = _squared_residuals(z, coeffs, ids, rows[at], cols[at])
+            out[at[res < limit[ids]]] = True
     return out
 
 
@@ -305,7 +316,7 @@ def _seed_faces(z: np.ndarray, labels: np.ndarray, fits: _Fits, config: Config, 
     """Faces 1..k from the label-0 pixels no neighbour accepts (Notes, steps 1-2)."""
     rows, cols = np.nonzero(np.isfinite(z) & (labels == 0))
     free = np.zeros(labels.shape, bool)
-    free[rows, cols] = ~_fits_a_neighbour(z, labels, fits, rows, cols)
+    free[rows, cols] = ~fits_a_neighbour(z, labels, fits.coeffs, fits.limit, rows, cols)
     groups, k = ndimage.label(free, structure=EIGHT_NEIGHBOURS)
     faces = np.zeros(labels.shape, np.int32)
     if k == 0:
