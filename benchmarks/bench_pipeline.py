@@ -68,6 +68,8 @@ from rangeseg_cli.stages.surfaces import describe_surfaces
 #: Frame sizes as (rows, cols): the paper's 128x128 and common sensor formats.
 SIZES: tuple[tuple[int, int], ...] = ((128, 128), (480, 640), (1024, 1280), (1200, 1920))
 QUICK_SIZES = SIZES[:2]
+#: The synthetic frame whose refinement passes are timed one by one.
+PASSES_FRAME = (480, 640)
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -194,8 +196,13 @@ def bench_frame(rows: int, cols: int, repeats: int, numpy_edges: bool) -> dict[s
     times = interleaved(frame_tasks(image, config, numpy_edges), repeats)
     median = {name: float(np.median(t)) for name, t in times.items()}
     g = median["gaussian"]
+    passes = None
+    if (rows, cols) == PASSES_FRAME:
+        result = run_pipeline(image, config)
+        passes = bench_passes(result.heights, result.edges, result.components, config, repeats)
     return {
         "rows": rows, "cols": cols, "pixels": rows * cols, "repeats": repeats,
+        "passes": passes,
         "median_ms": {k: v * 1e3 for k, v in median.items()},
         "min_ms": {k: float(np.min(t)) * 1e3 for k, t in times.items()},
         "gaussian_passes": {k: v / g for k, v in median.items() if k != "gaussian"},
@@ -249,7 +256,40 @@ def bench_real_frame(repeats: int) -> dict[str, Any]:
     median = {name: float(np.median(t)) for name, t in interleaved(tasks, repeats).items()}
     return {"rows": int(z.shape[0]), "cols": int(z.shape[1]), "repeats": repeats,
             "regions": int(result.labels.max()),
+            "passes": bench_passes(z, result.edges, result.components, config, repeats),
             "median_ms": {k: v * 1e3 for k, v in median.items()},
+            "gaussian_passes": {k: v / median["gaussian"] for k, v in median.items()
+                                if k != "gaussian"}}
+
+
+def pass_tasks(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config: Config
+               ) -> dict[str, Callable[[], Any]]:
+    """Each active pass of ``[refine] passes`` on the labels it gets in a run, as a task.
+
+    Passes that run twice (the fill, the facets, the bridge) are named
+    ``name`` and ``name#2``; the inputs are those of one ``stage_grow``.
+    """
+    from rangeseg_cli.refine import passes as refinement
+    from rangeseg_cli.stages.grow import component_fits
+
+    fits = component_fits(z, components)
+    labels = grow_regions(z, edges, components, config.grow, fits=fits)
+    scene = refinement.Scene(z, edges, components, config, estimate_noise(z), fits)
+    tasks: dict[str, Callable[[], Any]] = {}
+    for step in refinement.active_passes(config):
+        name = step.name if step.name not in tasks else f"{step.name}#2"
+        tasks[name] = lambda step=step, labels=labels: step.run(scene, labels)
+        labels = step.run(scene, labels)
+    return tasks
+
+
+def bench_passes(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config: Config,
+                 repeats: int) -> dict[str, Any]:
+    """Median ms and G of each refinement pass (:func:`pass_tasks`) and of G itself."""
+    tasks = {"gaussian": lambda: gaussian_filter(np.nan_to_num(z), 4),
+             **pass_tasks(z, edges, components, config)}
+    median = {name: float(np.median(t)) for name, t in interleaved(tasks, repeats).items()}
+    return {"median_ms": {k: v * 1e3 for k, v in median.items()},
             "gaussian_passes": {k: v / median["gaussian"] for k, v in median.items()
                                 if k != "gaussian"}}
 
@@ -441,6 +481,7 @@ def markdown(report: dict[str, Any]) -> str:
                   f"| {real['median_ms']['gaussian']:.2f} | " + " | ".join(
                       f"{real['median_ms'][k]:.1f} ({real['gaussian_passes'][k]:.1f})"
                       for k in order) + " |"]
+    lines += pass_table(report)
     exps = report["scaling_exponent"]
     lines += ["", "Time ~ pixels^k: " + ", ".join(
         f"{k} k = {v:.2f}" for k, v in exps.items() if v is not None) + "."]
@@ -468,6 +509,33 @@ def markdown(report: dict[str, Any]) -> str:
                       f"--jobs 2 / --jobs 1 --threads 1: {b['speedup_jobs2_vs_1x1']:.2f}x "
                       f"(wall), {b['speedup_jobs2_vs_1x1_steady']:.2f}x (steady)."]
     return "\n".join(lines) + "\n"
+
+
+def pass_table(report: dict[str, Any]) -> list[str]:
+    """The lines of the per-pass table (ms and G of each refinement pass)."""
+    columns = [(f"{f['cols']}x{f['rows']} pile", f["passes"]) for f in report["frames"]
+               if f.get("passes")]
+    real = report.get("real_frame")
+    if real and real.get("passes"):
+        columns.append(("SR300 frame", real["passes"]))
+    if not columns:
+        return []
+    names = list(dict.fromkeys(n for _, p in columns for n in p["gaussian_passes"]))
+    lines = ["", "Each refinement pass of the defaults alone, on the labels it gets in a run "
+             "(medians, interleaved; `#2` = its second run). Cells: ms (x G).", "",
+             "| pass | " + " | ".join(c for c, _ in columns) + " |",
+             "|---" * (len(columns) + 1) + "|"]
+    for name in names + ["all passes"]:
+        cells = []
+        for _, p in columns:
+            ms, g = p["median_ms"], p["gaussian_passes"]
+            if name == "all passes":
+                total = sum(ms[k] for k in g)
+                cells.append(f"{total:.1f} ({total / ms['gaussian']:.1f})")
+            else:
+                cells.append(f"{ms[name]:.1f} ({g[name]:.1f})" if name in g else "-")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
