@@ -253,6 +253,27 @@ def test_plane_through_pixels_is_the_least_squares_plane_even_on_a_line() -> Non
     np.testing.assert_allclose(a @ coef, a @ best, atol=1e-9)
 
 
+def test_the_conditioning_shortcut_never_changes_a_plane() -> None:
+    # pixels from well spread to nearly on a line: the eigenvalue test decides the
+    # method (solve or lstsq); fit_plane skips it only where it is sure, same bits
+    def reference(z, rows, cols):
+        cr, cc = rows.mean(), cols.mean()
+        a = np.column_stack([np.ones(rows.size), cols - cc, rows - cr])
+        eig = np.linalg.eigvalsh(a.T @ a)
+        coef = (np.linalg.solve(a.T @ a, a.T @ z[rows, cols]) if eig[0] > 1e-10 * eig[-1]
+                else np.linalg.lstsq(a, z[rows, cols], rcond=None)[0])
+        return np.array([coef[0] - coef[1] * cc - coef[2] * cr, coef[1], coef[2]])
+
+    rng = np.random.default_rng(4)
+    z = rng.normal(50.0, 3.0, (400, 400))
+    for spread in (0, 1, 2, 50):
+        for size in (3, 8, 300):
+            t = rng.integers(0, 340, size)
+            rows, cols = t + rng.integers(0, spread + 1, size), t // 2
+            np.testing.assert_array_equal(recover.fit_plane(z, rows, cols),
+                                          reference(z, rows, cols))
+
+
 def test_at_sigma_2_a_recovered_grazing_side_is_found_once_the_refinement_settles_it() -> None:
     # part1's block +x, a side 2 pixels wide, seed 0: recovered, then its boundary moved
     # back by the refinement (docs/quality.md); neither alone finds it.

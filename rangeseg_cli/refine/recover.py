@@ -201,16 +201,40 @@ def fit_plane(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     well-conditioned (the consensus refits planes thousands of times per
     frame); pixels on a line get the minimum-norm solution (``lstsq``).
     """
-    cr, cc = rows.mean(), cols.mean()
-    a = np.column_stack([np.ones(rows.size), cols - cc, rows - cr])
+    cr, cc = rows.sum(dtype=np.float64) / rows.size, cols.sum(dtype=np.float64) / cols.size
+    a = np.empty((rows.size, 3))  # the columns 1, col - cc, row - cr
+    a[:, 0] = 1.0
+    np.subtract(cols, cc, out=a[:, 1])
+    np.subtract(rows, cr, out=a[:, 2])
     zs = z[rows, cols]
     gram = a.T @ a
-    eig = np.linalg.eigvalsh(gram)
-    if eig[0] > RCOND * eig[-1]:  # well-conditioned (as the region fits): ~6x faster
+    if _clearly_conditioned(gram) or _conditioned(gram):  # as the region fits: ~6x faster
         coef = np.linalg.solve(gram, a.T @ zs)
     else:  # pixels on a line: the minimum-norm solution
         coef = np.linalg.lstsq(a, zs, rcond=None)[0]
     return np.array([coef[0] - coef[1] * cc - coef[2] * cr, coef[1], coef[2]])
+
+
+def _conditioned(gram: np.ndarray) -> bool:
+    """The region fits' test: smallest / largest eigenvalue of ``gram`` above RCOND."""
+    eig = np.linalg.eigvalsh(gram)
+    return bool(eig[0] > RCOND * eig[-1])
+
+
+def _clearly_conditioned(gram: np.ndarray) -> bool:
+    """A sufficient condition for :func:`_conditioned` of a 3x3 Gram matrix, without LAPACK.
+
+    For a positive semi-definite matrix the largest eigenvalue is at most the
+    trace t and the smallest at least det / t^2; ``det > 100 RCOND t^3``
+    leaves the ratio a hundred times above RCOND, far beyond the rounding
+    of the determinant or of the eigenvalues (~1e-15 t^3), so whenever it
+    holds :func:`_conditioned` holds too (and it holds for any well-spread
+    pixels; pixels nearly on a line are left to the eigenvalues).
+    """
+    (a, b, c), (_, d, e), (_, _, f) = gram.tolist()
+    det = a * (d * f - e * e) - b * (b * f - c * e) + c * (b * e - c * d)
+    t = a + d + f
+    return det > 100.0 * RCOND * t * t * t
 
 
 def plane_height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
