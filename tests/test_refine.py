@@ -199,3 +199,17 @@ def test_the_compiled_crease_votes_give_the_references_kinds(seed):
     reference = crease_kinds(rough, coeffs, backend="numpy")
     assert (reference == -1).any() and (reference == 0).any()
     np.testing.assert_array_equal(crease_kinds(rough, coeffs, backend="numba"), reference)
+
+
+def test_crease_kinds_of_many_small_regions_match_the_reference():
+    # every pixel sees a dozen regions within reach: the compiled votes outgrow their
+    # first buffer
+    rng = np.random.default_rng(7)
+    labels = rng.integers(1, 25, (30, 30)).astype(np.int32)
+    coeffs = np.zeros((25, 6))
+    coeffs[:, 0] = rng.normal(100.0, 5.0, 25)
+    coeffs[:, 1:3] = rng.normal(0.0, 1.0, (25, 2))
+    reference = crease_kinds(labels, coeffs, agreement=0.5, backend="numpy")
+    assert (reference == -1).any() and (reference == 1).any()
+    np.testing.assert_array_equal(
+        crease_kinds(labels, coeffs, agreement=0.5, backend="numba"), reference)

@@ -2447,39 +2447,32 @@ def explained_faces(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, ids: np.n
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _crease_sweep(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np.ndarray,
-                  mine: np.ndarray, coeffs: np.ndarray, reach: int, out: np.ndarray
-                  ) -> int:  # pragma: no cover - compiled
-    """The votes of :func:`crease_votes` into ``out`` while they fit; their number."""
-    width = padded.shape[1]
-    flat = padded.ravel()
-    n1 = coeffs.shape[0]
-    seen = np.empty((2 * reach + 1) ** 2, np.int64)
-    times = np.empty((2 * reach + 1) ** 2, np.int64)
-    j = 0
-    for i in range(rows.size):
-        m = 0
-        centre = (rows[i] + reach) * width + cols[i] + reach
-        for dr in range(-reach, reach + 1):
-            for dc in range(-reach, reach + 1):
-                other = flat[centre + dr * width + dc]
-                if other <= 0 or other == own[i]:
-                    continue
-                k = 0
-                while k < m and seen[k] != other:
-                    k += 1
-                if k == m:
-                    seen[m], times[m] = other, 0
-                    m += 1
-                times[k] += 1
-        if j + m <= out.shape[0]:
-            for k in range(m):
-                theirs = _coeff_at(coeffs, seen[k], float(rows[i]), float(cols[i]))
-                out[j + k, 0] = own[i] * n1 + seen[k]
-                out[j + k, 1] = times[k] * (mine[i] < theirs)
-                out[j + k, 2] = times[k]
-        j += m
-    return j
+def _window_labels(padded: np.ndarray, r: int, c: int, side: int, own: int, seen: np.ndarray,
+                   times: np.ndarray) -> int:  # pragma: no cover - compiled
+    """The other positive labels of a window into ``seen`` with their pixels; their number."""
+    m = 0
+    for pr in range(r, r + side):
+        for pc in range(c, c + side):
+            other = padded[pr, pc]
+            if other <= 0 or other == own:
+                continue
+            k = 0
+            while k < m and seen[k] != other:
+                k += 1
+            if k == m:
+                seen[m], times[m] = other, 0
+                m += 1
+            times[k] += 1
+    return m
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _doubled_rows(out: np.ndarray, used: int) -> np.ndarray:  # pragma: no cover - compiled
+    """``out`` (V, 3) with twice the rows, the first ``used`` copied."""
+    grown = np.empty((2 * out.shape[0], 3), np.int64)
+    for q in range(used):  # a loop: slice assignment compiles numba's generic code
+        grown[q, 0], grown[q, 1], grown[q, 2] = out[q, 0], out[q, 1], out[q, 2]
+    return grown
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -2501,13 +2494,23 @@ def crease_votes(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np
     numpy.ndarray
         int64 (V, 3): key, lower votes, votes.
     """
-    out = np.empty((2 * rows.size, 3), np.int64)  # most pixels see one or two regions
-    count = _crease_sweep(padded, rows, cols, own, mine, coeffs, reach, out)
-    if count > out.shape[0]:
-        out = np.empty((count, 3), np.int64)
-        _crease_sweep(padded, rows, cols, own, mine, coeffs, reach, out)
-    return out[:count]
-
+    n1 = coeffs.shape[0]
+    side = 2 * reach + 1
+    seen = np.empty(side * side, np.int64)
+    times = np.empty(side * side, np.int64)
+    out = np.empty((2 * rows.size + side * side, 3), np.int64)  # grown when full
+    j = 0
+    for i in range(rows.size):
+        m = _window_labels(padded, rows[i], cols[i], side, own[i], seen, times)
+        if j + m > out.shape[0]:
+            out = _doubled_rows(out, j)
+        for k in range(m):
+            theirs = _coeff_at(coeffs, seen[k], float(rows[i]), float(cols[i]))
+            out[j, 0], out[j, 1], out[j, 2] = own[i] * n1 + seen[k], 0, times[k]
+            if mine[i] < theirs:
+                out[j, 1] = times[k]
+            j += 1
+    return out[:j]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
