@@ -283,6 +283,40 @@ def pass_tasks(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config:
     return tasks
 
 
+def moved_pixels(before: np.ndarray, after: np.ndarray) -> int:
+    """Pixels a pass gives another surface: outside the largest overlap of their old region.
+
+    Merges move none (each old region lies in one new region); a cut moves
+    the pixels of its new pieces but the largest; an unlabelled pixel that
+    gets a label counts.
+    """
+    a, b = before.ravel().astype(np.int64), after.ravel().astype(np.int64)
+    used = (a > 0) | (b > 0)
+    keys, counts = np.unique(a[used] * (int(b.max()) + 1) + b[used], return_counts=True)
+    largest = np.zeros(int(a.max()) + 1, np.int64)
+    np.maximum.at(largest, keys // (int(b.max()) + 1), counts)
+    largest[0] = 0  # every unlabelled pixel labelled counts
+    return int(counts.sum() - largest.sum())
+
+
+def pass_changes(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config: Config
+                 ) -> dict[str, list[int]]:
+    """Per pass of :func:`pass_tasks`: [pixels moved, regions before, regions after]."""
+    from rangeseg_cli.refine import passes as refinement
+    from rangeseg_cli.stages.grow import component_fits
+
+    fits = component_fits(z, components)
+    labels = grow_regions(z, edges, components, config.grow, fits=fits)
+    scene = refinement.Scene(z, edges, components, config, estimate_noise(z), fits)
+    out: dict[str, list[int]] = {}
+    for step in refinement.active_passes(config):
+        name = step.name if step.name not in out else f"{step.name}#2"
+        new = step.run(scene, labels)
+        out[name] = [moved_pixels(labels, new), int(labels.max()), int(new.max())]
+        labels = new
+    return out
+
+
 def bench_passes(z: np.ndarray, edges: np.ndarray, components: np.ndarray, config: Config,
                  repeats: int) -> dict[str, Any]:
     """Median ms and G of each refinement pass (:func:`pass_tasks`) and of G itself."""
@@ -291,7 +325,8 @@ def bench_passes(z: np.ndarray, edges: np.ndarray, components: np.ndarray, confi
     median = {name: float(np.median(t)) for name, t in interleaved(tasks, repeats).items()}
     return {"median_ms": {k: v * 1e3 for k, v in median.items()},
             "gaussian_passes": {k: v / median["gaussian"] for k, v in median.items()
-                                if k != "gaussian"}}
+                                if k != "gaussian"},
+            "changes": pass_changes(z, edges, components, config)}
 
 
 def scaling_exponent(frames: list[dict[str, Any]], task: str) -> float | None:
@@ -522,7 +557,8 @@ def pass_table(report: dict[str, Any]) -> list[str]:
         return []
     names = list(dict.fromkeys(n for _, p in columns for n in p["gaussian_passes"]))
     lines = ["", "Each refinement pass of the defaults alone, on the labels it gets in a run "
-             "(medians, interleaved; `#2` = its second run). Cells: ms (x G).", "",
+             "(medians, interleaved; `#2` = its second run). Cells: ms (x G; pixels the "
+             "pass gives another surface, regions before -> after).", "",
              "| pass | " + " | ".join(c for c, _ in columns) + " |",
              "|---" * (len(columns) + 1) + "|"]
     for name in names + ["all passes"]:
@@ -533,7 +569,10 @@ def pass_table(report: dict[str, Any]) -> list[str]:
                 total = sum(ms[k] for k in g)
                 cells.append(f"{total:.1f} ({total / ms['gaussian']:.1f})")
             else:
-                cells.append(f"{ms[name]:.1f} ({g[name]:.1f})" if name in g else "-")
+                moved = p.get("changes", {}).get(name)
+                change = (f"; {moved[0]} px, {moved[1]}->{moved[2]} regions" if moved
+                          else "")
+                cells.append(f"{ms[name]:.1f} ({g[name]:.1f}{change})" if name in g else "-")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
