@@ -116,7 +116,8 @@ def _passes(bench: dict[str, Any]) -> list[str]:
     names = list(dict.fromkeys(n for _, p in columns for n in p["gaussian_passes"]))
     lines = ["", "### Where the defaults' time goes", "",
              "Each refinement pass alone, on the labels it gets in a run (medians; `#2`: "
-             "the pass's second run).", "",
+             "the pass's second run), with the pixels it gives another surface and the "
+             "regions before and after it.", "",
              "| pass | " + " | ".join(c for c, _ in columns) + " |",
              "| --- | " + " | ".join("---" for _ in columns) + " |"]
     for name in [*names, "all passes"]:
@@ -124,8 +125,10 @@ def _passes(bench: dict[str, Any]) -> list[str]:
         for _, p in columns:
             ms, g = p["median_ms"], p["gaussian_passes"]
             total = sum(ms[k] for k in g) if name == "all passes" else ms.get(name)
+            moved = p.get("changes", {}).get(name)
+            change = f"; {moved[0]} px, {moved[1]} → {moved[2]} regions" if moved else ""
             cells.append("" if total is None else
-                         f"{_ms(total)} ({total / ms['gaussian']:.1f} G)")
+                         f"{_ms(total)} ({total / ms['gaussian']:.1f} G{change})")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
