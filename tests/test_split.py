@@ -391,6 +391,33 @@ def test_core_from_window_extremes_equals_the_chessboard_depth_rule() -> None:
         np.testing.assert_array_equal(split_module._core(parts, frame), reference)
 
 
+def test_core_bound_holds_every_core_and_counts_the_eroded_mask() -> None:
+    rng = np.random.default_rng(17)
+    cfg = SPLIT.split
+    for _ in range(200):
+        h, w = (int(v) for v in rng.integers(2, 30, size=2))
+        coarse = rng.integers(0, 4, (h // 4 + 1, w // 4 + 1))
+        parts = np.kron(coarse, np.ones((4, 4), int))[:h, :w].astype(np.int32)
+        mask = parts > 0
+        if not mask.any():
+            continue
+        frame = split_module._Frame.of(mask, cfg)
+        bound = split_module.core_bound(frame)
+        assert np.count_nonzero(split_module._core(parts, frame)) <= bound
+        assert np.count_nonzero(split_module._core(mask.astype(np.int32), frame)) == bound
+
+
+def test_core_bound_of_a_square_and_of_a_thin_strip() -> None:
+    cfg = SPLIT.split
+    t = int(np.ceil(cfg.normal_sigma))
+    square = np.zeros((20, 20), bool)
+    square[2:18, 2:18] = True
+    assert split_module.core_bound(split_module._Frame.of(square, cfg)) == (16 - 2 * t) ** 2
+    strip = np.zeros((9, 40), bool)
+    strip[3:3 + 2 * t, :] = True  # thinner than a core's window
+    assert split_module.core_bound(split_module._Frame.of(strip, cfg)) == 0
+
+
 # ------------------------------------------------------------------ stage contract
 
 

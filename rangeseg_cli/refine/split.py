@@ -482,6 +482,19 @@ def _core(parts: np.ndarray, frame: _Frame) -> np.ndarray:
     return np.where(inner & frame.mask, parts, 0)
 
 
+def core_bound(frame: _Frame) -> int:
+    """Most pixels the cores of all parts of ``frame`` can hold together (:func:`_core`).
+
+    A core pixel lies on ``frame.mask`` with the whole window of
+    ``frame.thickness`` (chessboard) around it inside ``frame.solid`` and
+    the array: the count of those pixels. Fewer than ``2 * min_piece`` leave
+    no two wide parts (:func:`_clean`), so no split (Sec. VIII, Notes 3).
+    """
+    low, _ = _window_extremes(frame.solid.astype(np.int32), frame.thickness, 0,
+                              frame.backend)
+    return int(np.count_nonzero((low > 0) & frame.mask))
+
+
 def _window_extremes(a: np.ndarray, reach: int, cval: int, backend: Backend
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Minimum and maximum filters of int ``a`` (``2 reach + 1`` square, ``cval`` outside)."""
@@ -667,8 +680,12 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     (on a face a few pixels wider than the planes' reach, reassignment can
     thin a part below the core it needs) is not taken: the parts from
     before it are kept, and later splits and :func:`merge_back` judge them.
-    Returns int32 pieces 1..k (k >= 2) on ``mask``'s grid, 0 off ``mask``.
+    Returns int32 pieces 1..k (k >= 2) on ``mask``'s grid, 0 off ``mask``. A frame
+    without room for two parts' cores (:func:`core_bound`) returns None at once.
     """
+    frame = _Frame.of(mask, cfg, backend)
+    if core_bound(frame) < 2 * frame.min_piece:  # no room for two wide parts
+        return None
     rows, cols = np.nonzero(mask)
     gx, gy = local_gradients(z, mask, cfg.normal_sigma, backend=backend)
     gxs, gys = gx[rows, cols], gy[rows, cols]
@@ -677,7 +694,6 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     cls = mode_split(normals, backend=backend)
     if cls.all() or not cls.any():
         return None
-    frame = _Frame.of(mask, cfg, backend)
     parts = _wide_parts(np.where(cls, 2, 1), rows, cols, frame)
     if parts is None:
         parts = _split_mode_class(normals, cls, rows, cols, frame)
