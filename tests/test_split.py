@@ -1068,3 +1068,22 @@ def test_a_plane_cut_stays_inside_its_piece_and_within_max_pieces(seed, shape, b
     assert held >= split_module.PLANE_CUT_COVER * np.count_nonzero(blob)
     for k in set(new) - {0}:
         assert np.count_nonzero(pieces[blob] == k) >= cfg.min_piece
+
+
+def test_consensus_pieces_with_the_first_plane_given_are_the_plane_pieces() -> None:
+    from rangeseg_cli.refine.recover import INLIER_FACTOR, consensus_plane, plane_pieces
+
+    y, x = np.mgrid[0:30, 0:36].astype(np.float64)
+    z = np.where(x < 14, 50.0 + 0.5 * x, 57.0 - 0.8 * (x - 14))  # a roof's two faces
+    z = np.where(y > 20, z + 0.9 * (y - 20), z)  # and a third face
+    for seed in range(4):
+        noisy = z + np.random.default_rng(seed).normal(0.0, 0.5, z.shape)
+        mask = np.ones(z.shape, bool)
+        mask[:3, :5] = False
+        first = consensus_plane(noisy, mask, INLIER_FACTOR * 0.625)
+        got = split_module.consensus_pieces(noisy, mask, first, level=0.625, min_pixels=20)
+        want = plane_pieces(noisy, mask, level=0.625, min_pixels=20)
+        assert len(got) == len(want) >= 2
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert split_module.consensus_pieces(z, mask, None, level=0.625, min_pixels=20) == []

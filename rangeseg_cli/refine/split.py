@@ -93,7 +93,7 @@ from ..stages.link import FOUR_CONNECTED
 from ..stages.noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
 from ..stages.surfaces import label_boxes
 from .planes import blur_radius, blur_weights, local_gradients, local_planes
-from .recover import INLIER_FACTOR, consensus_plane, plane_pieces
+from .recover import INLIER_FACTOR, MAX_PIECES, consensus_plane, plane_pieces
 from .recut import MIN_GAIN, crease_side
 from .regions import adjacent_pairs, bounding_box, box_area, crease_angle, raster_renumber
 
@@ -1005,7 +1005,12 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
 _TRIM_KEEP = 0.6
 
 
-def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> np.ndarray | None:
+#: A consensus plane's pixels (None: there is none) that a caller found, in a 1-tuple.
+Found = tuple[np.ndarray | None]
+
+
+def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float,
+          found: Found | None = None) -> np.ndarray | None:
     """Leave out the pixels of piece k that its dominant surface does not fit (in place).
 
     Beyond the paper. For a piece whose quadric fails the fit test (the
@@ -1028,12 +1033,14 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> np.ndarray
     pixels back, and merge-back still glues the pieces of a cylinder or a
     sphere (``tests/test_split.py``).
 
+    ``found`` holds that consensus plane's pixels when the caller has them
+    (:func:`_trim_or_cut` finds them once for the trim and the plane cut).
     Returns the pixels left out (bool, ``pieces``' shape), None when the
     piece is left as it is.
     """
     mask = pieces == k
     tol = INLIER_FACTOR * level
-    inliers = consensus_plane(z, mask, tol)
+    inliers = consensus_plane(z, mask, tol) if found is None else found[0]
     if inliers is None:
         return None
     rows, cols = np.nonzero(mask)
@@ -1091,14 +1098,18 @@ def _trim_or_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float
     With ``split.trim_pieces`` :func:`_trim` (and with ``split.trim_faces``
     :func:`_trimmed_faces` on what it leaves out); when there is no trim,
     with ``split.plane_cut`` :func:`_plane_cut`. ``n`` is the number of
-    pieces of the whole component.
+    pieces of the whole component. Both start from the consensus plane of
+    the piece (:func:`~rangeseg_cli.refine.recover.consensus_plane`), found once.
     """
-    trimmed = _trim(z, pieces, k, level) if cfg.trim_pieces else None
+    if not (cfg.trim_pieces or cfg.plane_cut):
+        return
+    found = (consensus_plane(z, pieces == k, INLIER_FACTOR * level),)
+    trimmed = _trim(z, pieces, k, level, found) if cfg.trim_pieces else None
     if trimmed is not None:
         if cfg.trim_faces:
             _trimmed_faces(z, pieces, trimmed, n, level, cfg)
     elif cfg.plane_cut:
-        _plane_cut(z, pieces, k, n, level, cfg)
+        _plane_cut(z, pieces, k, n, level, cfg, found)
 
 
 #: The planes of a plane cut hold at least this share of the piece's pixels.
@@ -1106,7 +1117,7 @@ PLANE_CUT_COVER = 0.8
 
 
 def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
-               cfg: SplitConfig) -> bool:
+               cfg: SplitConfig, found: Found | None = None) -> bool:
     """Cut piece k into the planes consensus finds in it, ids k, n+1, ... (in place).
 
     Beyond the paper (``split.plane_cut``). For a piece whose quadric fails
@@ -1126,10 +1137,14 @@ def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
     result; the rest of its pixels are left to be regrown. A piece of a
     curved surface whose planes leave more than a fifth of it is left
     whole; where they hold it, :func:`merge_back` judges the planes as any
-    other pieces. Returns whether the piece was cut.
+    other pieces. ``found`` holds the piece's consensus plane when the
+    caller has it (the first plane of
+    :func:`~rangeseg_cli.refine.recover.plane_pieces`: :func:`consensus_pieces`).
+    Returns whether the piece was cut.
     """
     mask = pieces == k
-    faces = plane_pieces(z, mask, level=level, min_pixels=cfg.min_piece)
+    faces = (plane_pieces(z, mask, level=level, min_pixels=cfg.min_piece) if found is None
+             else consensus_pieces(z, mask, found[0], level=level, min_pixels=cfg.min_piece))
     held = sum(int(np.count_nonzero(f)) for f in faces)
     if (len(faces) < 2 or held < PLANE_CUT_COVER * np.count_nonzero(mask)
             or n + len(faces) - 1 > cfg.max_pieces):
@@ -1138,6 +1153,29 @@ def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
     for i, face in enumerate(faces):
         pieces[face] = k if i == 0 else n + i
     return True
+
+
+def consensus_pieces(z: np.ndarray, mask: np.ndarray, first: np.ndarray | None, *,
+                     level: float, min_pixels: int) -> list[np.ndarray]:
+    """:func:`~rangeseg_cli.refine.recover.plane_pieces` with its first consensus plane given.
+
+    ``first`` is ``consensus_plane(z, mask, INLIER_FACTOR * level)`` (None:
+    there is none); the pieces are those ``plane_pieces(z, mask, level=level,
+    min_pixels=min_pixels)`` gives, without finding that plane again
+    (:func:`_plane_cut` after :func:`_trim`, Sec. VIII Notes 3).
+    """
+    left = mask.copy()
+    faces: list[np.ndarray] = []
+    for i in range(MAX_PIECES):
+        if np.count_nonzero(left) < min_pixels:
+            break
+        piece = first if i == 0 else consensus_plane(z, left, INLIER_FACTOR * level)
+        if piece is None:
+            break
+        left &= ~piece
+        if np.count_nonzero(piece) >= min_pixels:
+            faces.append(piece)
+    return faces
 
 
 def _separate(labels: np.ndarray) -> np.ndarray:
