@@ -1087,3 +1087,35 @@ def test_consensus_pieces_with_the_first_plane_given_are_the_plane_pieces() -> N
         for a, b in zip(got, want, strict=True):
             np.testing.assert_array_equal(a, b)
     assert split_module.consensus_pieces(z, mask, None, level=0.625, min_pixels=20) == []
+
+
+def test_near_part_from_the_label_extremes_equals_the_window_search() -> None:
+    rng = np.random.default_rng(23)
+    cfg = SPLIT.split
+    for _ in range(100):
+        h, w = (int(v) for v in rng.integers(4, 40, size=2))
+        coarse = rng.integers(0, 5, (h // 5 + 1, w // 5 + 1))
+        parts = np.kron(coarse, np.ones((5, 5), int))[:h, :w].astype(np.int32)
+        if not (parts > 0).any():
+            continue
+        frame = split_module._Frame.of(parts > 0, cfg)
+        low, high = split_module._label_extremes(parts, frame.band, "auto")
+        rows, cols = np.nonzero((high > 0) & (low != high))
+        extremes = (low[rows, cols], high[rows, cols])
+        for k in np.unique(parts[parts > 0]).tolist():
+            want = split_module._near(parts == k, frame.band, rows, cols)
+            got = split_module._near_part(parts, k, extremes, frame, rows, cols)
+            np.testing.assert_array_equal(got, want)
+
+
+def test_c_array_is_the_array_itself_when_it_conforms_else_a_c_contiguous_copy() -> None:
+    a = np.arange(12, dtype=np.int32).reshape(3, 4)
+    assert regions.c_array(a, np.int32) is a
+    b = regions.c_array(a[:, ::2], np.int32)  # a strided view: copied
+    assert b.flags.c_contiguous and b.dtype == np.int32
+    np.testing.assert_array_equal(b, a[:, ::2])
+    c = regions.c_array(a > 5, np.int32)  # another dtype: converted
+    assert c.dtype == np.int32 and c.flags.c_contiguous
+    np.testing.assert_array_equal(c, (a > 5).astype(np.int32))
+    mask = a > 5
+    assert regions.c_array(mask, np.bool_) is mask

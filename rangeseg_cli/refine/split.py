@@ -95,7 +95,14 @@ from ..stages.surfaces import label_boxes
 from .planes import blur_radius, blur_weights, local_gradients, local_planes
 from .recover import INLIER_FACTOR, MAX_PIECES, consensus_plane, plane_pieces
 from .recut import MIN_GAIN, crease_side
-from .regions import adjacent_pairs, bounding_box, box_area, crease_angle, raster_renumber
+from .regions import (
+    adjacent_pairs,
+    bounding_box,
+    box_area,
+    c_array,
+    crease_angle,
+    raster_renumber,
+)
 
 #: Bin width of the histogram of normals (x, y components) whose peak is the mode.
 _MODE_BIN = 0.05
@@ -168,7 +175,7 @@ def _otsu(x: np.ndarray, backend: Backend = "numpy") -> float:
     """
     kernels = select_kernels(backend)
     if kernels is not None:
-        xs = (kernels.smallest_sorted(np.require(x, np.float64, ["C"]), x.size)
+        xs = (kernels.smallest_sorted(c_array(x, np.float64), x.size)
               if x.size >= _RADIX_FROM and not np.signbit(x).any() else np.sort(x))
         i = int(kernels.otsu_index(xs, float(xs.sum())))
         return 0.5 * (xs[i] + xs[i + 1])
@@ -320,7 +327,7 @@ def _holes(mask: np.ndarray, backend: Backend) -> tuple[np.ndarray, int]:
     if kernels is None:
         holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
         return holes, int(n)
-    holes = kernels.value_parts(np.require(~mask, np.int32, ["C"]))
+    holes = kernels.value_parts(c_array(~mask, np.int32))
     return holes, int(holes.max(initial=0))
 
 
@@ -348,7 +355,7 @@ def _parts(labels: np.ndarray, backend: Backend = "numpy") -> np.ndarray:
     """
     kernels = select_kernels(backend)
     if kernels is not None:
-        return kernels.value_parts(np.require(labels, np.int32, ["C"]))
+        return kernels.value_parts(c_array(labels, np.int32))
     out = np.zeros(labels.shape, np.int32)
     count = 0
     for value in _present(labels).tolist():
@@ -406,7 +413,7 @@ def _nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     h, w = parts.shape
     kernels = select_kernels(backend)
     if kernels is not None:
-        found = kernels.nearest_labels(np.require(parts, np.int32, ["C"]), rows, cols,
+        found = kernels.nearest_labels(c_array(parts, np.int32), rows, cols,
                                        *_FAR_OFFSETS)
         todo = np.flatnonzero(found == 0)
         return found if todo.size == 0 else _nearest_by_transform(parts, rows, cols, found,
@@ -445,8 +452,8 @@ def _fill_nearest(parts: np.ndarray, where: np.ndarray, backend: Backend = "auto
     """
     kernels = select_kernels(backend)
     if kernels is not None:  # one sweep; the feature transform for what it leaves
-        out, missing = kernels.fill_nearest(np.require(parts, np.int32, ["C"]),
-                                            np.require(where, np.bool_, ["C"]), *_FAR_OFFSETS)
+        out, missing = kernels.fill_nearest(c_array(parts, np.int32),
+                                            c_array(where, np.bool_), *_FAR_OFFSETS)
         if missing:
             rows, cols = np.nonzero(out < 0)
             out[rows, cols] = _nearest_by_transform(parts, rows, cols,
@@ -500,7 +507,7 @@ def _window_extremes(a: np.ndarray, reach: int, cval: int, backend: Backend
     """Minimum and maximum filters of int ``a`` (``2 reach + 1`` square, ``cval`` outside)."""
     kernels = select_kernels(backend)
     if kernels is not None:
-        return kernels.window_extremes(np.require(a, np.int32, ["C"]), reach, cval)
+        return kernels.window_extremes(c_array(a, np.int32), reach, cval)
     size = 2 * reach + 1
     return (ndimage.minimum_filter(a, size=size, mode="constant", cval=cval),
             ndimage.maximum_filter(a, size=size, mode="constant", cval=cval))
@@ -516,7 +523,7 @@ def _label_extremes(parts: np.ndarray, reach: int, backend: Backend
     """
     kernels = select_kernels(backend)
     if kernels is not None:
-        return kernels.label_extremes(np.require(parts, np.int32, ["C"]), reach)
+        return kernels.label_extremes(c_array(parts, np.int32), reach)
     big = int(np.iinfo(np.int32).max)
     _, high = _window_extremes(parts, reach, 0, backend)
     low, _ = _window_extremes(np.where(parts > 0, parts, big), reach, big, backend)
@@ -563,14 +570,18 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     sub, zb, doubt = parts[box], z[box], doubt[box]
     core = _core(parts, frame)[box]
     rows, cols = np.nonzero(doubt)
+    extremes = (low[box][rows, cols], high[box][rows, cols])
     best = sub[rows, cols].copy()
     best_cost = np.full(rows.size, np.inf)
     for k in _present(sub).tolist():
-        near = _near(sub == k, frame.band, rows, cols, frame.backend)
-        if not near.any() or not (core == k).any():
+        core_k = core == k
+        if not core_k.any():
+            continue
+        near = _near_part(sub, k, extremes, frame, rows, cols)
+        if not near.any():
             continue
         cost = np.full(rows.size, np.inf)
-        cost[near] = _plane_heights(zb, core == k, frame.sigma, rows[near], cols[near],
+        cost[near] = _plane_heights(zb, core_k, frame.sigma, rows[near], cols[near],
                                     frame.backend)
         cost[near] = np.abs(zb[rows[near], cols[near]] - cost[near])
         cost = np.where(np.isfinite(cost), cost, np.inf)
@@ -580,6 +591,25 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     out = parts.copy()
     out[box][rows, cols] = best
     return out
+
+
+def _near_part(parts: np.ndarray, k: int, extremes: tuple[np.ndarray, np.ndarray],
+               frame: _Frame, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Whether pixels (rows, cols) lie within ``frame.band`` of part k (:func:`_near`).
+
+    ``extremes`` are the smallest and largest part within ``frame.band`` of
+    each pixel (:func:`_label_extremes`): part k is near where it is one of
+    them, and not where it lies outside them; only pixels with k strictly
+    between them are searched (none when k is the first or last part, as
+    with two parts). ``parts`` holds every pixel within ``frame.band`` of the
+    pixels.
+    """
+    low, high = extremes
+    near = (low == k) | (high == k)
+    between = (low < k) & (high > k)
+    if between.any():
+        near |= between & _near(parts == k, frame.band, rows, cols, frame.backend)
+    return near
 
 
 def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray,
@@ -630,8 +660,8 @@ def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarr
     kernels = select_kernels(backend)
     if kernels is not None:  # the planes at the pixels asked for only
         out[inside] = _compiled_heights(
-            kernels, np.require(z[r0:r1, c0:c1], np.float64, ["C"]),
-            np.require(mask[r0:r1, c0:c1], np.bool_, ["C"]), blur_weights(sigma),
+            kernels, c_array(z[r0:r1, c0:c1], np.float64),
+            c_array(mask[r0:r1, c0:c1], np.bool_), blur_weights(sigma),
             (float(c0 - w / 2.0), float(r0 - h / 2.0), 1e-3 * sigma**4),
             np.ascontiguousarray(rows[inside] - r0, np.int64),
             np.ascontiguousarray(cols[inside] - c0, np.int64))
