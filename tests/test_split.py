@@ -1119,3 +1119,28 @@ def test_c_array_is_the_array_itself_when_it_conforms_else_a_c_contiguous_copy()
     np.testing.assert_array_equal(c, (a > 5).astype(np.int32))
     mask = a > 5
     assert regions.c_array(mask, np.bool_) is mask
+
+
+def test_within_two_is_the_square_dilation_twice() -> None:
+    from scipy import ndimage
+
+    rng = np.random.default_rng(29)
+    square = np.ones((3, 3), bool)
+    for _ in range(200):
+        h, w = (int(v) for v in rng.integers(1, 30, size=2))
+        where = rng.random((h, w)) < rng.random() * 0.3
+        want = ndimage.binary_dilation(where, structure=square, iterations=2)
+        np.testing.assert_array_equal(regions._within_two(where), want)
+
+
+def test_clean_keeps_parts_that_are_all_wide_as_they_are() -> None:
+    cfg = SPLIT.split
+    parts = np.zeros((30, 40), np.int32)
+    parts[2:28, 2:20] = 1
+    parts[2:28, 20:38] = 2  # two wide halves
+    frame = split_module._Frame.of(parts > 0, cfg)
+    np.testing.assert_array_equal(split_module._clean(parts, frame), parts)
+    parts[2:28, 36:38] = 3  # a sliver: given to its wide neighbour
+    out = split_module._clean(parts, frame)
+    assert set(np.unique(out).tolist()) == {0, 1, 2}
+    assert (out[2:28, 36:38] == 2).all()

@@ -546,6 +546,8 @@ def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     n = int(parts.max(initial=0))
     wide = np.bincount(_core(parts, frame).ravel(), minlength=n + 1) >= frame.min_piece
     wide[0] = False
+    if n > 0 and wide[1:].all():  # every pixel of the mask keeps its part
+        return parts
     lut = np.zeros(n + 1, np.int32)
     lut[wide] = np.arange(1, int(wide.sum()) + 1, dtype=np.int32)
     return _fill_nearest(lut[parts], frame.mask, frame.backend)
@@ -577,17 +579,15 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
         core_k = core == k
         if not core_k.any():
             continue
-        near = _near_part(sub, k, extremes, frame, rows, cols)
-        if not near.any():
+        near = np.flatnonzero(_near_part(sub, k, extremes, frame, rows, cols))
+        if near.size == 0:
             continue
-        cost = np.full(rows.size, np.inf)
-        cost[near] = _plane_heights(zb, core_k, frame.sigma, rows[near], cols[near],
-                                    frame.backend)
-        cost[near] = np.abs(zb[rows[near], cols[near]] - cost[near])
+        r, c = rows[near], cols[near]
+        cost = np.abs(zb[r, c] - _plane_heights(zb, core_k, frame.sigma, r, c, frame.backend))
         cost = np.where(np.isfinite(cost), cost, np.inf)
-        better = cost < best_cost
-        best[better] = k
-        best_cost[better] = cost[better]
+        better = cost < best_cost[near]
+        best[near[better]] = k
+        best_cost[near[better]] = cost[better]
     out = parts.copy()
     out[box][rows, cols] = best
     return out
