@@ -1108,6 +1108,8 @@ def _trimmed_faces(z: np.ndarray, pieces: np.ndarray, trimmed: np.ndarray, n: in
     all. :func:`merge_back` then judges them as any other piece; the rest
     of the trim is regrown.
     """
+    if np.count_nonzero(trimmed) < cfg.min_piece:  # no group of min_piece
+        return
     groups, count = ndimage.label(trimmed, structure=EIGHT_NEIGHBOURS)
     sizes = np.bincount(groups.ravel(), minlength=count + 1)
     boxes = ndimage.find_objects(groups)
