@@ -11,7 +11,13 @@ from hypothesis import strategies as st
 
 from conftest import found_with
 from rangeseg_cli.config import load_config
-from rangeseg_cli.refine.facets import cut_into_planes, facet_regions, merge_back
+from rangeseg_cli.refine.facets import (
+    cut_into_planes,
+    disagreeing,
+    facet_regions,
+    merge_back,
+    neighbour_table,
+)
 from rangeseg_cli.stages.grow import fit_quadrics
 from rangeseg_cli.synth.evaluate import hoover_compare
 
@@ -148,3 +154,31 @@ def test_a_region_beyond_the_bound_on_the_work_is_left_whole(monkeypatch):
     assert facet_regions(z, one, CONFIG, noise=0.0).max() == 3
     monkeypatch.setattr(facets, "MAX_REGION", one.size - 1)
     np.testing.assert_array_equal(facet_regions(z, one, CONFIG, noise=0.0), one)
+
+
+def test_the_neighbour_table_holds_each_pixels_8_neighbours_in_the_region():
+    region = np.array([[1, 1, 0],
+                       [0, 1, 1]], bool)
+    rows, cols = np.nonzero(region)  # pixels 0 (0,0), 1 (0,1), 2 (1,1), 3 (1,2)
+    table = neighbour_table(rows, cols, region.shape)
+    assert table.shape == (8, 4)
+    # offsets in raster order: (-1,-1) (-1,0) (-1,1) (0,-1) (0,1) (1,-1) (1,0) (1,1)
+    np.testing.assert_array_equal(table[:, 0], [-1, -1, -1, -1, 1, -1, -1, 2])
+    np.testing.assert_array_equal(table[:, 2], [0, 1, -1, -1, 3, -1, -1, -1])
+    np.testing.assert_array_equal(table[:, 3], [1, -1, -1, 2, -1, -1, -1, -1])
+
+
+def test_disagreeing_counts_the_neighbours_another_plane_holds():
+    region = np.ones((3, 3), bool)
+    rows, cols = np.nonzero(region)
+    assign = np.array([0, 0, 1,
+                       0, 0, 1,
+                       0, 1, 1])
+    out = disagreeing(assign, neighbour_table(rows, cols, region.shape), 2)
+    assert out.dtype == np.float64 and out.shape == (2, 9)
+    # the centre has 8 neighbours: 4 of plane 0 and 4 of plane 1
+    assert out[0, 4] == 4.0 and out[1, 4] == 4.0
+    # the top-left corner has 3 neighbours, all of plane 0
+    assert out[0, 0] == 0.0 and out[1, 0] == 3.0
+    # the bottom-right corner: neighbours 4 (plane 0), 5 and 7 (plane 1)
+    assert out[0, 8] == 2.0 and out[1, 8] == 1.0

@@ -8,7 +8,7 @@ import pytest
 from conftest import passes_without
 from rangeseg_cli.config import load_config
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.refine.recut import recut_regions, split_crease, split_tangent
+from rangeseg_cli.refine.recut import crease_side, recut_regions, split_crease, split_tangent
 from rangeseg_cli.synth.evaluate import hoover_compare
 from rangeseg_cli.synth.scenes import render_scene
 
@@ -178,3 +178,17 @@ def test_searching_within_a_box_finds_the_same_cuts():
     boxed_side = split_crease(crease_z, one, 1, 0, **cut, box=crease_box)
     assert whole_side is not None and boxed_side is not None
     np.testing.assert_array_equal(whole_side, boxed_side)
+
+
+def test_crease_side_within_a_box_is_the_whole_images_on_its_grid():
+    z, truth = _crease(1.0, 1.5)
+    padded = np.pad(z, ((3, 6), (8, 2)), constant_values=60.0)
+    mask = np.pad(np.ones(truth.shape, bool), ((3, 6), (8, 2)))
+    box = (slice(3, 3 + truth.shape[0]), slice(8, 8 + truth.shape[1]))
+    kwargs = {"noise": 1.0, "level": 1.25, "min_pixels": 20,
+              "min_crease": CONFIG.split.min_crease, "grow": CONFIG.grow}
+    whole = crease_side(padded, mask, **kwargs)
+    boxed = crease_side(padded, mask, **kwargs, box=box)
+    assert whole is not None and boxed is not None
+    assert boxed.shape == mask.shape and not boxed[~mask].any()
+    np.testing.assert_array_equal(whole, boxed)

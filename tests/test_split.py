@@ -391,6 +391,33 @@ def test_core_from_window_extremes_equals_the_chessboard_depth_rule() -> None:
         np.testing.assert_array_equal(split_module._core(parts, frame), reference)
 
 
+def test_core_bound_holds_every_core_and_counts_the_eroded_mask() -> None:
+    rng = np.random.default_rng(17)
+    cfg = SPLIT.split
+    for _ in range(200):
+        h, w = (int(v) for v in rng.integers(2, 30, size=2))
+        coarse = rng.integers(0, 4, (h // 4 + 1, w // 4 + 1))
+        parts = np.kron(coarse, np.ones((4, 4), int))[:h, :w].astype(np.int32)
+        mask = parts > 0
+        if not mask.any():
+            continue
+        frame = split_module._Frame.of(mask, cfg)
+        bound = split_module.core_bound(frame)
+        assert np.count_nonzero(split_module._core(parts, frame)) <= bound
+        assert np.count_nonzero(split_module._core(mask.astype(np.int32), frame)) == bound
+
+
+def test_core_bound_of_a_square_and_of_a_thin_strip() -> None:
+    cfg = SPLIT.split
+    t = int(np.ceil(cfg.normal_sigma))
+    square = np.zeros((20, 20), bool)
+    square[2:18, 2:18] = True
+    assert split_module.core_bound(split_module._Frame.of(square, cfg)) == (16 - 2 * t) ** 2
+    strip = np.zeros((9, 40), bool)
+    strip[3:3 + 2 * t, :] = True  # thinner than a core's window
+    assert split_module.core_bound(split_module._Frame.of(strip, cfg)) == 0
+
+
 # ------------------------------------------------------------------ stage contract
 
 
@@ -1041,3 +1068,79 @@ def test_a_plane_cut_stays_inside_its_piece_and_within_max_pieces(seed, shape, b
     assert held >= split_module.PLANE_CUT_COVER * np.count_nonzero(blob)
     for k in set(new) - {0}:
         assert np.count_nonzero(pieces[blob] == k) >= cfg.min_piece
+
+
+def test_consensus_pieces_with_the_first_plane_given_are_the_plane_pieces() -> None:
+    from rangeseg_cli.refine.recover import INLIER_FACTOR, consensus_plane, plane_pieces
+
+    y, x = np.mgrid[0:30, 0:36].astype(np.float64)
+    z = np.where(x < 14, 50.0 + 0.5 * x, 57.0 - 0.8 * (x - 14))  # a roof's two faces
+    z = np.where(y > 20, z + 0.9 * (y - 20), z)  # and a third face
+    for seed in range(4):
+        noisy = z + np.random.default_rng(seed).normal(0.0, 0.5, z.shape)
+        mask = np.ones(z.shape, bool)
+        mask[:3, :5] = False
+        first = consensus_plane(noisy, mask, INLIER_FACTOR * 0.625)
+        got = split_module.consensus_pieces(noisy, mask, first, level=0.625, min_pixels=20)
+        want = plane_pieces(noisy, mask, level=0.625, min_pixels=20)
+        assert len(got) == len(want) >= 2
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert split_module.consensus_pieces(z, mask, None, level=0.625, min_pixels=20) == []
+
+
+def test_near_part_from_the_label_extremes_equals_the_window_search() -> None:
+    rng = np.random.default_rng(23)
+    cfg = SPLIT.split
+    for _ in range(100):
+        h, w = (int(v) for v in rng.integers(4, 40, size=2))
+        coarse = rng.integers(0, 5, (h // 5 + 1, w // 5 + 1))
+        parts = np.kron(coarse, np.ones((5, 5), int))[:h, :w].astype(np.int32)
+        if not (parts > 0).any():
+            continue
+        frame = split_module._Frame.of(parts > 0, cfg)
+        low, high = split_module._label_extremes(parts, frame.band, "auto")
+        rows, cols = np.nonzero((high > 0) & (low != high))
+        extremes = (low[rows, cols], high[rows, cols])
+        for k in np.unique(parts[parts > 0]).tolist():
+            want = split_module._near(parts == k, frame.band, rows, cols)
+            got = split_module._near_part(parts, k, extremes, frame, rows, cols)
+            np.testing.assert_array_equal(got, want)
+
+
+def test_c_array_is_the_array_itself_when_it_conforms_else_a_c_contiguous_copy() -> None:
+    a = np.arange(12, dtype=np.int32).reshape(3, 4)
+    assert regions.c_array(a, np.int32) is a
+    b = regions.c_array(a[:, ::2], np.int32)  # a strided view: copied
+    assert b.flags.c_contiguous and b.dtype == np.int32
+    np.testing.assert_array_equal(b, a[:, ::2])
+    c = regions.c_array(a > 5, np.int32)  # another dtype: converted
+    assert c.dtype == np.int32 and c.flags.c_contiguous
+    np.testing.assert_array_equal(c, (a > 5).astype(np.int32))
+    mask = a > 5
+    assert regions.c_array(mask, np.bool_) is mask
+
+
+def test_within_two_is_the_square_dilation_twice() -> None:
+    from scipy import ndimage
+
+    rng = np.random.default_rng(29)
+    square = np.ones((3, 3), bool)
+    for _ in range(200):
+        h, w = (int(v) for v in rng.integers(1, 30, size=2))
+        where = rng.random((h, w)) < rng.random() * 0.3
+        want = ndimage.binary_dilation(where, structure=square, iterations=2)
+        np.testing.assert_array_equal(regions._within_two(where), want)
+
+
+def test_clean_keeps_parts_that_are_all_wide_as_they_are() -> None:
+    cfg = SPLIT.split
+    parts = np.zeros((30, 40), np.int32)
+    parts[2:28, 2:20] = 1
+    parts[2:28, 20:38] = 2  # two wide halves
+    frame = split_module._Frame.of(parts > 0, cfg)
+    np.testing.assert_array_equal(split_module._clean(parts, frame), parts)
+    parts[2:28, 36:38] = 3  # a sliver: given to its wide neighbour
+    out = split_module._clean(parts, frame)
+    assert set(np.unique(out).tolist()) == {0, 1, 2}
+    assert (out[2:28, 36:38] == 2).all()

@@ -71,7 +71,7 @@ from scipy import ndimage
 from ..config import Config
 from ..stages.grow import EIGHT_NEIGHBOURS, region_fits, sums_of_squares, union_quadric_mse
 from ..stages.rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
-from .recover import consensus_plane, fit_plane, plane_height
+from .recover import consensus_plane, fit_plane
 from .recut import MIN_GAIN  # the least gain of a cut, s^2 per pixel (Notes 5)
 from .regions import adjacent_pairs, raster_renumber
 from .split import failing_components
@@ -123,20 +123,43 @@ def _seeds(z: np.ndarray, mask: np.ndarray, tol: float, min_piece: int) -> list[
     return planes
 
 
-def _disagreeing(assign: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                 shape: tuple[int, int], k: int) -> np.ndarray:
-    """(k, N): for each plane, the pixel's 8-neighbours in the region another plane holds."""
+def neighbour_table(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]
+                    ) -> np.ndarray:
+    """(8, N): the index of each pixel's 8-neighbour in the region, -1 off it (Notes 3).
+
+    Row ``o`` is the neighbour at offset ``o`` of
+    :func:`~rangeseg_cli.stages.rangeimage.chessboard_offsets` ``(1)``; the
+    pixels (rows, cols) are the region's, distinct, inside ``shape``. Built
+    once per region: the k-planes passes look up the neighbours' planes in it.
+    """
     grid = np.full((shape[0] + 2, shape[1] + 2), -1, np.int64)
-    grid[rows + 1, cols + 1] = assign
-    same = np.zeros((k, rows.size))
-    held = np.zeros(rows.size)
-    index = np.arange(rows.size)
-    for dr, dc in _OFFSETS:
-        near = grid[rows + 1 + dr, cols + 1 + dc]
-        inside = near >= 0
-        held += inside
-        np.add.at(same, (near[inside], index[inside]), 1.0)
-    return held - same
+    grid[rows + 1, cols + 1] = np.arange(rows.size)
+    return np.stack([grid[rows + 1 + dr, cols + 1 + dc] for dr, dc in _OFFSETS])
+
+
+def disagreeing(assign: np.ndarray, table: np.ndarray, k: int) -> np.ndarray:
+    """(k, N) float: for each plane, the pixel's 8-neighbours in the region another plane holds.
+
+    ``assign`` holds each pixel's plane 0..k-1; ``table`` is
+    :func:`neighbour_table` of the pixels. Counts, exact in float64 (Notes 3).
+    """
+    inside = table >= 0
+    near = np.where(inside, assign[table], -1)
+    held = np.count_nonzero(inside, axis=0)
+    return np.stack([held - np.count_nonzero(near == i, axis=0) for i in range(k)]
+                    ).astype(np.float64)
+
+
+def _squared_residuals(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                       planes: list[np.ndarray], s2: float) -> np.ndarray:
+    """(k, N) ``(z - plane)^2 / s2`` of each plane at the pixels (float rows, cols).
+
+    The values of :func:`~rangeseg_cli.refine.recover.plane_height` bit for bit
+    (the same operations, all planes at once).
+    """
+    p = np.asarray(planes)
+    height = p[:, :1] + p[:, 1:2] * cols + p[:, 2:3] * rows
+    return (zs - height) ** 2 / s2
 
 
 def k_planes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.ndarray],
@@ -167,13 +190,15 @@ def k_planes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.
         int (N,) indices 0..k-1 of the planes left; None when fewer than two are left.
     """
     zs = z[rows, cols]
+    table = neighbour_table(rows, cols, shape)
+    rf, cf = rows.astype(np.float64), cols.astype(np.float64)
     while True:
-        passed = _passes(z, rows, cols, planes, s2, shape)
+        passed = _passes(z, (rows, cols, rf, cf, table), planes, s2)
         if passed is None:
             return None
         assign, planes = passed
         k = len(planes)
-        r2 = np.stack([(zs - plane_height(p, rows, cols)) ** 2 for p in planes]) / s2
+        r2 = _squared_residuals(zs, rf, cf, planes, s2)
         gains = [float(np.mean(np.delete(r2[:, assign == i], i, axis=0).min(axis=0)
                                - r2[i, assign == i])) for i in range(k)]
         weakest = int(np.argmin(gains))
@@ -184,19 +209,24 @@ def k_planes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.
         del planes[weakest]
 
 
-def _passes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.ndarray],
-            s2: float, shape: tuple[int, int]) -> tuple[np.ndarray, list[np.ndarray]] | None:
+_Pixels = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _passes(z: np.ndarray, pixels: _Pixels, planes: list[np.ndarray], s2: float
+            ) -> tuple[np.ndarray, list[np.ndarray]] | None:
     """The passes of :func:`k_planes`: each pixel's plane 0..k-1, and the planes; or None.
 
+    ``pixels``: the region's rows, cols (int and float) and :func:`neighbour_table`.
     None when fewer than two planes are left; the planes are those fitted to
     the returned indices.
     """
+    rows, cols, rf, cf, table = pixels
     zs = z[rows, cols]
     assign: np.ndarray | None = None
     for _ in range(PASSES):
-        cost = np.stack([(zs - plane_height(p, rows, cols)) ** 2 for p in planes]) / s2
+        cost = _squared_residuals(zs, rf, cf, planes, s2)
         if assign is not None:
-            cost += SMOOTHNESS * _disagreeing(assign, rows, cols, shape, len(planes))
+            cost += SMOOTHNESS * disagreeing(assign, table, len(planes))
         new = np.argmin(cost, axis=0)
         counts = np.bincount(new, minlength=len(planes))
         if (counts < 3).any():

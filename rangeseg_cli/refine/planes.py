@@ -26,6 +26,7 @@ from scipy import ndimage
 
 from ..kernels.backend import Backend, select_kernels
 from ..kernels.parallel import map_bands, row_bands
+from .regions import c_array
 
 #: The Gaussian weights of the local plane fits end at this many sigmas.
 _TRUNCATE = 3.0
@@ -100,7 +101,7 @@ class _PlaneFit:
         kernels = select_kernels(backend)
         if kernels is not None:
             mu, mv, mz, gx, gy = _compiled_plane_fit(
-                kernels, np.require(z, np.float64, ["C"]), np.require(mask, np.bool_, ["C"]),
+                kernels, c_array(z, np.float64), c_array(mask, np.bool_),
                 np.require(blur_weights(sigma), np.float64, ["C", "W"]), float(u0), float(v0),
                 1e-3 * sigma**4)
             return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)

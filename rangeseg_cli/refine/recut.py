@@ -289,12 +289,28 @@ def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
 Box = tuple[slice, slice]
 
 
-def _coords(mask: np.ndarray, box: Box | None) -> tuple[np.ndarray, np.ndarray]:
-    """``np.nonzero(mask)``, searched only within ``box`` when given (it holds every pixel)."""
-    if box is None:
-        rows, cols = np.nonzero(mask)
-        return rows, cols
-    rows, cols = np.nonzero(mask[box])
+def _whole(shape: tuple[int, ...]) -> Box:
+    """The box of a whole (H, W) array."""
+    return slice(0, shape[0]), slice(0, shape[1])
+
+
+def _box_of(shape: tuple[int, ...], box: Box | None) -> Box:
+    """``box``, or the whole array's when None."""
+    return _whole(shape) if box is None else box
+
+
+def _embed(part: np.ndarray, box: Box, shape: tuple[int, ...]) -> np.ndarray:
+    """The bool ``part`` of ``box`` on an array of ``shape`` (False elsewhere)."""
+    if part.shape == tuple(shape):
+        return part
+    out = np.zeros(shape, bool)
+    out[box] = part
+    return out
+
+
+def _coords(mask: np.ndarray, box: Box) -> tuple[np.ndarray, np.ndarray]:
+    """Image coordinates of the pixels of ``mask``, the pixels of ``box`` (its shape)."""
+    rows, cols = np.nonzero(mask)
     return rows + box[0].start, cols + box[1].start
 
 
@@ -311,16 +327,16 @@ class _Points(NamedTuple):
     d0: np.ndarray    #: :func:`curvature_direction` of the pixels
 
 
-def _points(mask: np.ndarray, z: np.ndarray, box: Box | None = None) -> _Points:
-    """The :class:`_Points` of ``mask`` (searched within ``box`` when given)."""
+def _points(mask: np.ndarray, z: np.ndarray, box: Box) -> _Points:
+    """The :class:`_Points` of ``mask``, the pixels of ``box`` (image coordinates)."""
     rows, cols = _coords(mask, box)
     zs = z[rows, cols]
     return _Points(rows, cols, zs, curvature_direction(rows, cols, zs))
 
 
-def _line_fit(mask: np.ndarray, pts: _Points, powers: tuple[int, ...], min_pixels: int,
-              level: float) -> tuple[np.ndarray, float, float] | None:
-    """Plane side (bool, on ``mask``'s grid), SSE and no-plane-side SSE of the best line."""
+def _line_fit(mask: np.ndarray, box: Box, pts: _Points, powers: tuple[int, ...],
+              min_pixels: int, level: float) -> tuple[np.ndarray, float, float] | None:
+    """Plane side (bool, ``mask``'s box), SSE and no-plane-side SSE of the best line."""
     rows, cols, zs, d0 = pts
     fits = [(best_knot(rows, cols, zs, d, powers, (_GIVE_UP * level) ** 2), d)
             for d in (d0, -d0)]
@@ -332,7 +348,7 @@ def _line_fit(mask: np.ndarray, pts: _Points, powers: tuple[int, ...], min_pixel
     if n_side < min_pixels or zs.size - n_side < min_pixels or sse > zs.size * level ** 2:
         return None
     plane_side = np.zeros_like(mask)
-    plane_side[rows[side], cols[side]] = True
+    plane_side[rows[side] - box[0].start, cols[side] - box[1].start] = True
     return plane_side, sse, sse_across
 
 
@@ -342,21 +358,20 @@ def _crease_sse(pts: _Points) -> float:
     return min(best_knot(rows, cols, zs, d, CREASE)[1] for d in (d0, -d0))
 
 
-def _fits(z: np.ndarray, labels: np.ndarray, n: int, box: Box | None,
+def _fits(z: np.ndarray, labels: np.ndarray, n: int, box: Box,
           orders: tuple[int, ...] = (2, 1)
           ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
-    """Fits of labels 1..n (quadric, plane), within ``box`` (which holds them) if given.
+    """Fits of labels 1..n (quadric, plane); ``labels`` are the pixels of ``box``.
 
     The same bits as fitting the whole image
     (:func:`~rangeseg_cli.stages.grow.region_fits`'s origin).
     """
-    if box is None:
-        return fit_models(z, labels.astype(np.int32, copy=False), n, orders)
-    return fit_models(z[box], labels[box].astype(np.int32), n, orders,
+    return fit_models(z[box], labels.astype(np.int32), n, orders,
                       origin=(box[0].start, box[1].start))
 
 
-def _quadric_sse(z: np.ndarray, mask: np.ndarray, box: Box | None = None) -> float:
+def _quadric_sse(z: np.ndarray, mask: np.ndarray, box: Box) -> float:
+    """Sum of squared errors of one quadric of ``mask``, the pixels of ``box``."""
     ((_, mse),), counts = _fits(z, mask, 1, box, (2,))
     return float(mse[1]) * int(counts[1])
 
@@ -392,15 +407,25 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
         (bool (H, W) plane side, gain against one surface in units of s^2),
         or None when the test fails.
     """
+    box = _box_of(mask.shape, box)
+    got = _tangent(z, mask[box], box, noise=noise, level=level, min_pixels=min_pixels,
+                   grow=grow, pts=pts, quadric_sse=quadric_sse)
+    return None if got is None else (_embed(got[0], box, mask.shape), got[1])
+
+
+def _tangent(z: np.ndarray, mask: np.ndarray, box: Box, *, noise: float, level: float,
+             min_pixels: int, grow: GrowConfig, pts: _Points | None,
+             quadric_sse: float | None) -> tuple[np.ndarray, float] | None:
+    """:func:`split_tangent` of ``mask``, the pixels of ``box``; the plane side in the box."""
     pts = _points(mask, z, box) if pts is None else pts
-    fit = _line_fit(mask, pts, SMOOTH, min_pixels, level)
+    fit = _line_fit(mask, box, pts, SMOOTH, min_pixels, level)
     if fit is None:
         return None
     plane_side, sse, sse_across = fit
     ((_, mse_q), (_, mse_p)), counts = _fits(z, plane_side, 1, box)
     if mse_p[1] > level ** 2 or not planar_regions(mse_q[1:], mse_p[1:], counts[1:], grow)[0]:
         return None
-    s2n = int(mask.sum()) * max(noise ** 2, grow.min_error)
+    s2n = pts.rows.size * max(noise ** 2, grow.min_error)
     if quadric_sse is None:
         quadric_sse = _quadric_sse(z, mask, box)
     gain = (min(quadric_sse, sse_across) - sse) / s2n
@@ -409,9 +434,8 @@ def split_tangent(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float
     return plane_side, gain
 
 
-def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig, box: Box | None = None
-             ) -> float:
-    """Sum of squared errors of labels 1 and 2 of ``two``, each by its own surface."""
+def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig, box: Box) -> float:
+    """Sum of squared errors of labels 1 and 2 of ``two`` (``box``'s pixels), each its own."""
     ((_, mse_q), (_, mse_p)), counts = _fits(z, two, 2, box)
     flat = planar_regions(mse_q, mse_p, counts, grow)
     count = np.bincount(two.ravel(), minlength=3)
@@ -421,18 +445,18 @@ def _own_sse(z: np.ndarray, two: np.ndarray, grow: GrowConfig, box: Box | None =
 class _Crease(NamedTuple):
     """The best straight crease of a region and the planes either side of it."""
 
-    side: np.ndarray       #: bool (H, W) the side before the line (the plane side)
+    side: np.ndarray       #: bool the side before the line (the plane side), in the box
     sse: float             #: sum of squared errors of the crease model
-    two: np.ndarray        #: int32 (H, W) 2 = the side before the line, 1 = beyond, 0 = off
+    two: np.ndarray        #: int32 2 = the side before the line, 1 = beyond, 0 = off (box)
     planes: np.ndarray     #: (3, 6) image coefficients of the planes of labels 1 and 2
     mse: np.ndarray        #: (3,) their mean squared errors
 
 
 def _crease_planes(mask: np.ndarray, z: np.ndarray, min_pixels: int, level: float,
-                   box: Box | None, pts: _Points | None = None) -> _Crease | None:
-    """The best crease of ``mask`` (Notes 2) when each side's plane passes the fit test."""
+                   box: Box, pts: _Points | None = None) -> _Crease | None:
+    """The best crease of ``mask`` (``box``'s pixels, Notes 2) when each side's plane passes."""
     pts = _points(mask, z, box) if pts is None else pts
-    fit = _line_fit(mask, pts, CREASE, min_pixels, level)
+    fit = _line_fit(mask, box, pts, CREASE, min_pixels, level)
     if fit is None:
         return None
     side, sse, _ = fit
@@ -472,12 +496,22 @@ def split_crease(z: np.ndarray, labels: np.ndarray, i: int, j: int, *, noise: fl
     numpy.ndarray or None
         bool (H, W) the side before the line, or None when the test fails.
     """
-    mask = _pixels(labels, i, j, box)
+    box = _box_of(labels.shape, box)
+    side = _crease_cut(z, labels[box], i, j, box, noise=noise, level=level, config=config,
+                       pts=pts, quadric_sse=quadric_sse)
+    return None if side is None else _embed(side, box, labels.shape)
+
+
+def _crease_cut(z: np.ndarray, labels: np.ndarray, i: int, j: int, box: Box, *,
+                noise: float, level: float, config: Config, pts: _Points | None,
+                quadric_sse: float | None) -> np.ndarray | None:
+    """:func:`split_crease` of ``labels``, the regions within ``box``; the side in the box."""
+    mask = _pixels(labels, i, j)
     if not j:
-        return crease_side(z, mask, noise=noise, level=level,
-                           min_pixels=config.link.min_component,
-                           min_crease=config.split.min_crease, grow=config.grow, box=box,
-                           pts=pts, quadric_sse=quadric_sse)
+        return _side(z, mask, box, noise=noise, level=level,
+                     min_pixels=config.link.min_component,
+                     min_crease=config.split.min_crease, grow=config.grow, pts=pts,
+                     quadric_sse=quadric_sse)
     crease = _crease_planes(mask, z, config.link.min_component, level, box, pts)
     if crease is None:
         return None
@@ -522,24 +556,30 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
         lowers the squared error per pixel against one quadric by less than
         ``MIN_GAIN`` s^2, or the planes meet at less than ``min_crease``.
     """
+    box = _box_of(mask.shape, box)
+    side = _side(z, mask[box], box, noise=noise, level=level, min_pixels=min_pixels,
+                 min_crease=min_crease, grow=grow, pts=pts, quadric_sse=quadric_sse)
+    return None if side is None else _embed(side, box, mask.shape)
+
+
+def _side(z: np.ndarray, mask: np.ndarray, box: Box, *, noise: float, level: float,
+          min_pixels: int, min_crease: float, grow: GrowConfig, pts: _Points | None,
+          quadric_sse: float | None) -> np.ndarray | None:
+    """:func:`crease_side` of ``mask``, the pixels of ``box``; the side in the box."""
     crease = _crease_planes(mask, z, min_pixels, level, box, pts)
     if crease is None:
         return None
     if quadric_sse is None:
         quadric_sse = _quadric_sse(z, mask, box)
     gain = ((quadric_sse - crease.sse)
-            / (mask.sum() * max(noise ** 2, grow.min_error)))
+            / (int(np.count_nonzero(mask)) * max(noise ** 2, grow.min_error)))
     if gain < MIN_GAIN or plane_angle(crease.planes[1], crease.planes[2]) < min_crease:
         return None
     return crease.side
 
 
-def _pixels(labels: np.ndarray, i: int, j: int, box: Box | None = None) -> np.ndarray:
-    """Pixels of region i, or of regions i and j (j > 0), within ``box`` if given."""
-    if box is not None:
-        mask = np.zeros(labels.shape, dtype=bool)
-        mask[box] = _pixels(labels[box], i, j)
-        return mask
+def _pixels(labels: np.ndarray, i: int, j: int) -> np.ndarray:
+    """Pixels of region i, or of regions i and j (j > 0)."""
     return (labels == i) | (labels == j) if j else labels == i
 
 
@@ -579,7 +619,7 @@ def candidates(z: np.ndarray, labels: np.ndarray, config: Config, level: float
     for i, j in touching_pairs(labels, coeffs, _MAX_GAP * level):
         if curved[i] or curved[j]:
             box = join_box(boxes[i - 1], boxes[j - 1])
-            union = _quadric_sse(z, _pixels(labels, i, j, box), box)
+            union = _quadric_sse(z, _pixels(labels[box], i, j), box)
             out.append((i, j, union > level ** 2 * (sizes[i] + sizes[j]), union))
     return out
 
@@ -592,17 +632,17 @@ def _recut_one(zc: np.ndarray, lab: np.ndarray, test: _Test, *, noise: float, le
                config: Config) -> _Cut | None:
     """The cut of one candidate (Notes 3, 4): sort key, box, and the new side in the box."""
     i, j, fails, sse, box = test
-    mask = _pixels(lab, i, j, box)
+    mask = _pixels(lab[box], i, j)  # the work stays within the candidate's box
     pts = _points(mask, zc, box)  # both searches fit these pixels along the same direction
     got = None
     if fails:
-        got = split_tangent(zc, mask, noise=noise, level=level, pts=pts, quadric_sse=sse,
-                            min_pixels=config.link.min_component, grow=config.grow, box=box)
+        got = _tangent(zc, mask, box, noise=noise, level=level, pts=pts, quadric_sse=sse,
+                       min_pixels=config.link.min_component, grow=config.grow)
     if got is None:
-        side = split_crease(zc, lab, i, j, noise=noise, level=level, config=config, box=box,
-                            pts=pts, quadric_sse=sse)
+        side = _crease_cut(zc, lab[box], i, j, box, noise=noise, level=level, config=config,
+                           pts=pts, quadric_sse=sse)
         got = None if side is None else (side, 0.0)
-    return None if got is None else (-got[1], 0 if j else 1, i, j, box, got[0][box])
+    return None if got is None else (-got[1], 0 if j else 1, i, j, box, got[0])
 
 
 def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
@@ -651,7 +691,7 @@ def recut_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     for _, _, i, j, box, side in sorted(found, key=lambda f: f[:4]):
         if i in used or (j and j in used):
             continue
-        out[_pixels(lab, i, j)] = i
+        out[box][_pixels(lab[box], i, j)] = i
         out[box][side] = j if j else next_id
         next_id += 0 if j else 1
         used.update((i, j))

@@ -9,7 +9,8 @@ image: which regions are neighbours (:func:`adjacent_pairs`), labels
 renumbered in raster order as linking numbers its components
 (:func:`raster_renumber`), bounding boxes (:func:`bounding_box`,
 :func:`join_box`, :func:`box_area`) and the angle at which the fitted
-surfaces of two neighbours meet (:func:`crease_angle`).
+surfaces of two neighbours meet (:func:`crease_angle`); and the arrays the
+compiled kernels take (:func:`c_array`).
 """
 
 from __future__ import annotations
@@ -18,6 +19,18 @@ import numpy as np
 from scipy import ndimage
 
 from ..kernels.backend import Backend, select_kernels
+
+
+def c_array(a: np.ndarray, dtype: type) -> np.ndarray:
+    """``a`` as a C-contiguous array of ``dtype``: ``a`` itself when it is one.
+
+    What ``np.require(a, dtype, ["C"])`` gives (a copy only when needed), in a
+    tenth of its time: the refinement hands thousands of small arrays a frame
+    to the compiled kernels.
+    """
+    if a.dtype == dtype and a.flags.c_contiguous:
+        return a
+    return np.ascontiguousarray(a, dtype)
 
 
 def adjacent_pairs(pieces: np.ndarray, reach: int = 2, *, backend: Backend = "auto"
@@ -43,7 +56,7 @@ def adjacent_pairs(pieces: np.ndarray, reach: int = 2, *, backend: Backend = "au
     """
     kernels = select_kernels(backend)
     if kernels is not None:
-        found = kernels.neighbour_pairs(np.require(pieces, np.int32, ["C"]), reach)
+        found = kernels.neighbour_pairs(c_array(pieces, np.int32), reach)
         big = int(pieces.max(initial=0)) + 1
         a, b = found[:, 4], found[:, 5]
         uniq = np.unique(np.minimum(a, b) * big + np.maximum(a, b))
@@ -73,7 +86,7 @@ def raster_renumber(labels: np.ndarray, backend: Backend = "auto") -> np.ndarray
     """
     kernels = select_kernels(backend)
     if kernels is not None:
-        first = kernels.first_pixels(np.require(labels, np.int32, ["C"]),
+        first = kernels.first_pixels(c_array(labels, np.int32),
                                      int(labels.max(initial=0)))
         ids = np.flatnonzero(first >= 0)
         first = first[ids]
@@ -107,11 +120,9 @@ def box_area(box: tuple[slice, slice]) -> int:
 
 def crease_angle(pieces: np.ndarray, coeffs: np.ndarray, i: int, j: int) -> float:
     """Median angle in degrees between the fits of pieces i and j along their boundary."""
-    square = np.ones((3, 3), bool)
     box = bounding_box((pieces == i) | (pieces == j), 2)
     sub = pieces[box]
-    near = (ndimage.binary_dilation(sub == i, structure=square, iterations=2)
-            & ndimage.binary_dilation(sub == j, structure=square, iterations=2))
+    near = _within_two(sub == i) & _within_two(sub == j)
     rows, cols = np.nonzero(near)
     if rows.size == 0:
         return 0.0
@@ -119,6 +130,15 @@ def crease_angle(pieces: np.ndarray, coeffs: np.ndarray, i: int, j: int) -> floa
     cols = cols + box[1].start
     cos = np.sum(_normals(coeffs[i], rows, cols) * _normals(coeffs[j], rows, cols), axis=1)
     return float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))))
+
+
+def _within_two(where: np.ndarray) -> np.ndarray:
+    """Pixels within chessboard distance 2 of ``where`` (bool; nothing outside the array).
+
+    The binary dilation by the 3 x 3 square twice, as one maximum filter of
+    the 5 x 5 square: the same pixels, in a third of the time.
+    """
+    return np.asarray(ndimage.maximum_filter(where, size=5, mode="constant", cval=0))
 
 
 def _normals(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

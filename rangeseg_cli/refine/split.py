@@ -93,9 +93,16 @@ from ..stages.link import FOUR_CONNECTED
 from ..stages.noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
 from ..stages.surfaces import label_boxes
 from .planes import blur_radius, blur_weights, local_gradients, local_planes
-from .recover import INLIER_FACTOR, consensus_plane, plane_pieces
+from .recover import INLIER_FACTOR, MAX_PIECES, consensus_plane, plane_pieces
 from .recut import MIN_GAIN, crease_side
-from .regions import adjacent_pairs, bounding_box, box_area, crease_angle, raster_renumber
+from .regions import (
+    adjacent_pairs,
+    bounding_box,
+    box_area,
+    c_array,
+    crease_angle,
+    raster_renumber,
+)
 
 #: Bin width of the histogram of normals (x, y components) whose peak is the mode.
 _MODE_BIN = 0.05
@@ -168,7 +175,7 @@ def _otsu(x: np.ndarray, backend: Backend = "numpy") -> float:
     """
     kernels = select_kernels(backend)
     if kernels is not None:
-        xs = (kernels.smallest_sorted(np.require(x, np.float64, ["C"]), x.size)
+        xs = (kernels.smallest_sorted(c_array(x, np.float64), x.size)
               if x.size >= _RADIX_FROM and not np.signbit(x).any() else np.sort(x))
         i = int(kernels.otsu_index(xs, float(xs.sum())))
         return 0.5 * (xs[i] + xs[i + 1])
@@ -320,7 +327,7 @@ def _holes(mask: np.ndarray, backend: Backend) -> tuple[np.ndarray, int]:
     if kernels is None:
         holes, n = ndimage.label(~mask, structure=FOUR_CONNECTED)
         return holes, int(n)
-    holes = kernels.value_parts(np.require(~mask, np.int32, ["C"]))
+    holes = kernels.value_parts(c_array(~mask, np.int32))
     return holes, int(holes.max(initial=0))
 
 
@@ -348,7 +355,7 @@ def _parts(labels: np.ndarray, backend: Backend = "numpy") -> np.ndarray:
     """
     kernels = select_kernels(backend)
     if kernels is not None:
-        return kernels.value_parts(np.require(labels, np.int32, ["C"]))
+        return kernels.value_parts(c_array(labels, np.int32))
     out = np.zeros(labels.shape, np.int32)
     count = 0
     for value in _present(labels).tolist():
@@ -406,7 +413,7 @@ def _nearest_labels(parts: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     h, w = parts.shape
     kernels = select_kernels(backend)
     if kernels is not None:
-        found = kernels.nearest_labels(np.require(parts, np.int32, ["C"]), rows, cols,
+        found = kernels.nearest_labels(c_array(parts, np.int32), rows, cols,
                                        *_FAR_OFFSETS)
         todo = np.flatnonzero(found == 0)
         return found if todo.size == 0 else _nearest_by_transform(parts, rows, cols, found,
@@ -445,8 +452,8 @@ def _fill_nearest(parts: np.ndarray, where: np.ndarray, backend: Backend = "auto
     """
     kernels = select_kernels(backend)
     if kernels is not None:  # one sweep; the feature transform for what it leaves
-        out, missing = kernels.fill_nearest(np.require(parts, np.int32, ["C"]),
-                                            np.require(where, np.bool_, ["C"]), *_FAR_OFFSETS)
+        out, missing = kernels.fill_nearest(c_array(parts, np.int32),
+                                            c_array(where, np.bool_), *_FAR_OFFSETS)
         if missing:
             rows, cols = np.nonzero(out < 0)
             out[rows, cols] = _nearest_by_transform(parts, rows, cols,
@@ -482,12 +489,25 @@ def _core(parts: np.ndarray, frame: _Frame) -> np.ndarray:
     return np.where(inner & frame.mask, parts, 0)
 
 
+def core_bound(frame: _Frame) -> int:
+    """Most pixels the cores of all parts of ``frame`` can hold together (:func:`_core`).
+
+    A core pixel lies on ``frame.mask`` with the whole window of
+    ``frame.thickness`` (chessboard) around it inside ``frame.solid`` and
+    the array: the count of those pixels. Fewer than ``2 * min_piece`` leave
+    no two wide parts (:func:`_clean`), so no split (Sec. VIII, Notes 3).
+    """
+    low, _ = _window_extremes(frame.solid.astype(np.int32), frame.thickness, 0,
+                              frame.backend)
+    return int(np.count_nonzero((low > 0) & frame.mask))
+
+
 def _window_extremes(a: np.ndarray, reach: int, cval: int, backend: Backend
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Minimum and maximum filters of int ``a`` (``2 reach + 1`` square, ``cval`` outside)."""
     kernels = select_kernels(backend)
     if kernels is not None:
-        return kernels.window_extremes(np.require(a, np.int32, ["C"]), reach, cval)
+        return kernels.window_extremes(c_array(a, np.int32), reach, cval)
     size = 2 * reach + 1
     return (ndimage.minimum_filter(a, size=size, mode="constant", cval=cval),
             ndimage.maximum_filter(a, size=size, mode="constant", cval=cval))
@@ -503,7 +523,7 @@ def _label_extremes(parts: np.ndarray, reach: int, backend: Backend
     """
     kernels = select_kernels(backend)
     if kernels is not None:
-        return kernels.label_extremes(np.require(parts, np.int32, ["C"]), reach)
+        return kernels.label_extremes(c_array(parts, np.int32), reach)
     big = int(np.iinfo(np.int32).max)
     _, high = _window_extremes(parts, reach, 0, backend)
     low, _ = _window_extremes(np.where(parts > 0, parts, big), reach, big, backend)
@@ -526,6 +546,8 @@ def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     n = int(parts.max(initial=0))
     wide = np.bincount(_core(parts, frame).ravel(), minlength=n + 1) >= frame.min_piece
     wide[0] = False
+    if n > 0 and wide[1:].all():  # every pixel of the mask keeps its part
+        return parts
     lut = np.zeros(n + 1, np.int32)
     lut[wide] = np.arange(1, int(wide.sum()) + 1, dtype=np.int32)
     return _fill_nearest(lut[parts], frame.mask, frame.backend)
@@ -550,23 +572,44 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     sub, zb, doubt = parts[box], z[box], doubt[box]
     core = _core(parts, frame)[box]
     rows, cols = np.nonzero(doubt)
+    extremes = (low[box][rows, cols], high[box][rows, cols])
     best = sub[rows, cols].copy()
     best_cost = np.full(rows.size, np.inf)
     for k in _present(sub).tolist():
-        near = _near(sub == k, frame.band, rows, cols, frame.backend)
-        if not near.any() or not (core == k).any():
+        core_k = core == k
+        if not core_k.any():
             continue
-        cost = np.full(rows.size, np.inf)
-        cost[near] = _plane_heights(zb, core == k, frame.sigma, rows[near], cols[near],
-                                    frame.backend)
-        cost[near] = np.abs(zb[rows[near], cols[near]] - cost[near])
+        near = np.flatnonzero(_near_part(sub, k, extremes, frame, rows, cols))
+        if near.size == 0:
+            continue
+        r, c = rows[near], cols[near]
+        cost = np.abs(zb[r, c] - _plane_heights(zb, core_k, frame.sigma, r, c, frame.backend))
         cost = np.where(np.isfinite(cost), cost, np.inf)
-        better = cost < best_cost
-        best[better] = k
-        best_cost[better] = cost[better]
+        better = cost < best_cost[near]
+        best[near[better]] = k
+        best_cost[near[better]] = cost[better]
     out = parts.copy()
     out[box][rows, cols] = best
     return out
+
+
+def _near_part(parts: np.ndarray, k: int, extremes: tuple[np.ndarray, np.ndarray],
+               frame: _Frame, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Whether pixels (rows, cols) lie within ``frame.band`` of part k (:func:`_near`).
+
+    ``extremes`` are the smallest and largest part within ``frame.band`` of
+    each pixel (:func:`_label_extremes`): part k is near where it is one of
+    them, and not where it lies outside them; only pixels with k strictly
+    between them are searched (none when k is the first or last part, as
+    with two parts). ``parts`` holds every pixel within ``frame.band`` of the
+    pixels.
+    """
+    low, high = extremes
+    near = (low == k) | (high == k)
+    between = (low < k) & (high > k)
+    if between.any():
+        near |= between & _near(parts == k, frame.band, rows, cols, frame.backend)
+    return near
 
 
 def _near(where: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray,
@@ -617,8 +660,8 @@ def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarr
     kernels = select_kernels(backend)
     if kernels is not None:  # the planes at the pixels asked for only
         out[inside] = _compiled_heights(
-            kernels, np.require(z[r0:r1, c0:c1], np.float64, ["C"]),
-            np.require(mask[r0:r1, c0:c1], np.bool_, ["C"]), blur_weights(sigma),
+            kernels, c_array(z[r0:r1, c0:c1], np.float64),
+            c_array(mask[r0:r1, c0:c1], np.bool_), blur_weights(sigma),
             (float(c0 - w / 2.0), float(r0 - h / 2.0), 1e-3 * sigma**4),
             np.ascontiguousarray(rows[inside] - r0, np.int64),
             np.ascontiguousarray(cols[inside] - c0, np.int64))
@@ -667,8 +710,12 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     (on a face a few pixels wider than the planes' reach, reassignment can
     thin a part below the core it needs) is not taken: the parts from
     before it are kept, and later splits and :func:`merge_back` judge them.
-    Returns int32 pieces 1..k (k >= 2) on ``mask``'s grid, 0 off ``mask``.
+    Returns int32 pieces 1..k (k >= 2) on ``mask``'s grid, 0 off ``mask``. A frame
+    without room for two parts' cores (:func:`core_bound`) returns None at once.
     """
+    frame = _Frame.of(mask, cfg, backend)
+    if core_bound(frame) < 2 * frame.min_piece:  # no room for two wide parts
+        return None
     rows, cols = np.nonzero(mask)
     gx, gy = local_gradients(z, mask, cfg.normal_sigma, backend=backend)
     gxs, gys = gx[rows, cols], gy[rows, cols]
@@ -677,7 +724,6 @@ def _split_once(z: np.ndarray, mask: np.ndarray, cfg: SplitConfig, backend: Back
     cls = mode_split(normals, backend=backend)
     if cls.all() or not cls.any():
         return None
-    frame = _Frame.of(mask, cfg, backend)
     parts = _wide_parts(np.where(cls, 2, 1), rows, cols, frame)
     if parts is None:
         parts = _split_mode_class(normals, cls, rows, cols, frame)
@@ -989,7 +1035,12 @@ def split_component(z: np.ndarray, mask: np.ndarray, *, noise: float, cfg: Split
 _TRIM_KEEP = 0.6
 
 
-def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> np.ndarray | None:
+#: A consensus plane's pixels (None: there is none) that a caller found, in a 1-tuple.
+Found = tuple[np.ndarray | None]
+
+
+def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float,
+          found: Found | None = None) -> np.ndarray | None:
     """Leave out the pixels of piece k that its dominant surface does not fit (in place).
 
     Beyond the paper. For a piece whose quadric fails the fit test (the
@@ -1012,12 +1063,14 @@ def _trim(z: np.ndarray, pieces: np.ndarray, k: int, level: float) -> np.ndarray
     pixels back, and merge-back still glues the pieces of a cylinder or a
     sphere (``tests/test_split.py``).
 
+    ``found`` holds that consensus plane's pixels when the caller has them
+    (:func:`_trim_or_cut` finds them once for the trim and the plane cut).
     Returns the pixels left out (bool, ``pieces``' shape), None when the
     piece is left as it is.
     """
     mask = pieces == k
     tol = INLIER_FACTOR * level
-    inliers = consensus_plane(z, mask, tol)
+    inliers = consensus_plane(z, mask, tol) if found is None else found[0]
     if inliers is None:
         return None
     rows, cols = np.nonzero(mask)
@@ -1055,6 +1108,8 @@ def _trimmed_faces(z: np.ndarray, pieces: np.ndarray, trimmed: np.ndarray, n: in
     all. :func:`merge_back` then judges them as any other piece; the rest
     of the trim is regrown.
     """
+    if np.count_nonzero(trimmed) < cfg.min_piece:  # no group of min_piece
+        return
     groups, count = ndimage.label(trimmed, structure=EIGHT_NEIGHBOURS)
     sizes = np.bincount(groups.ravel(), minlength=count + 1)
     boxes = ndimage.find_objects(groups)
@@ -1075,14 +1130,18 @@ def _trim_or_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float
     With ``split.trim_pieces`` :func:`_trim` (and with ``split.trim_faces``
     :func:`_trimmed_faces` on what it leaves out); when there is no trim,
     with ``split.plane_cut`` :func:`_plane_cut`. ``n`` is the number of
-    pieces of the whole component.
+    pieces of the whole component. Both start from the consensus plane of
+    the piece (:func:`~rangeseg_cli.refine.recover.consensus_plane`), found once.
     """
-    trimmed = _trim(z, pieces, k, level) if cfg.trim_pieces else None
+    if not (cfg.trim_pieces or cfg.plane_cut):
+        return
+    found = (consensus_plane(z, pieces == k, INLIER_FACTOR * level),)
+    trimmed = _trim(z, pieces, k, level, found) if cfg.trim_pieces else None
     if trimmed is not None:
         if cfg.trim_faces:
             _trimmed_faces(z, pieces, trimmed, n, level, cfg)
     elif cfg.plane_cut:
-        _plane_cut(z, pieces, k, n, level, cfg)
+        _plane_cut(z, pieces, k, n, level, cfg, found)
 
 
 #: The planes of a plane cut hold at least this share of the piece's pixels.
@@ -1090,7 +1149,7 @@ PLANE_CUT_COVER = 0.8
 
 
 def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
-               cfg: SplitConfig) -> bool:
+               cfg: SplitConfig, found: Found | None = None) -> bool:
     """Cut piece k into the planes consensus finds in it, ids k, n+1, ... (in place).
 
     Beyond the paper (``split.plane_cut``). For a piece whose quadric fails
@@ -1110,10 +1169,14 @@ def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
     result; the rest of its pixels are left to be regrown. A piece of a
     curved surface whose planes leave more than a fifth of it is left
     whole; where they hold it, :func:`merge_back` judges the planes as any
-    other pieces. Returns whether the piece was cut.
+    other pieces. ``found`` holds the piece's consensus plane when the
+    caller has it (the first plane of
+    :func:`~rangeseg_cli.refine.recover.plane_pieces`: :func:`consensus_pieces`).
+    Returns whether the piece was cut.
     """
     mask = pieces == k
-    faces = plane_pieces(z, mask, level=level, min_pixels=cfg.min_piece)
+    faces = (plane_pieces(z, mask, level=level, min_pixels=cfg.min_piece) if found is None
+             else consensus_pieces(z, mask, found[0], level=level, min_pixels=cfg.min_piece))
     held = sum(int(np.count_nonzero(f)) for f in faces)
     if (len(faces) < 2 or held < PLANE_CUT_COVER * np.count_nonzero(mask)
             or n + len(faces) - 1 > cfg.max_pieces):
@@ -1122,6 +1185,29 @@ def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
     for i, face in enumerate(faces):
         pieces[face] = k if i == 0 else n + i
     return True
+
+
+def consensus_pieces(z: np.ndarray, mask: np.ndarray, first: np.ndarray | None, *,
+                     level: float, min_pixels: int) -> list[np.ndarray]:
+    """:func:`~rangeseg_cli.refine.recover.plane_pieces` with its first consensus plane given.
+
+    ``first`` is ``consensus_plane(z, mask, INLIER_FACTOR * level)`` (None:
+    there is none); the pieces are those ``plane_pieces(z, mask, level=level,
+    min_pixels=min_pixels)`` gives, without finding that plane again
+    (:func:`_plane_cut` after :func:`_trim`, Sec. VIII Notes 3).
+    """
+    left = mask.copy()
+    faces: list[np.ndarray] = []
+    for i in range(MAX_PIECES):
+        if np.count_nonzero(left) < min_pixels:
+            break
+        piece = first if i == 0 else consensus_plane(z, left, INLIER_FACTOR * level)
+        if piece is None:
+            break
+        left &= ~piece
+        if np.count_nonzero(piece) >= min_pixels:
+            faces.append(piece)
+    return faces
 
 
 def _separate(labels: np.ndarray) -> np.ndarray:
