@@ -315,15 +315,16 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Bac
         return None
     hyp = hyp[:: -(-hyp.size // MAX_HYPOTHESES)]
     hr, hc = rows[hyp], cols[hyp]
-    best = int(np.argmax(_votes(z[rows, cols], rows, cols, height[hr, hc], gx[hr, hc],
+    zs = z[rows, cols]
+    best = int(np.argmax(_votes(zs, rows, cols, height[hr, hc], gx[hr, hc],
                                 gy[hr, hc], hr, hc, tol, backend)))
-    inliers = _votes_of(z[rows, cols], rows, cols, height[hr[best], hc[best]],
+    inliers = _votes_of(zs, rows, cols, height[hr[best], hc[best]],
                         gx[hr[best], hc[best]], gy[hr[best], hc[best]], hr[best], hc[best], tol)
     for _ in range(2):  # refit to the inliers
         if not inliers.any():  # no hypothesis won a single vote (e.g. NaN-ridden bands)
             return None
         a = fit_plane(z, rows[inliers], cols[inliers])
-        inliers = np.abs(z[rows, cols] - plane_height(a, rows, cols)) < tol
+        inliers = np.abs(zs - plane_height(a, rows, cols)) < tol
     if not inliers.any():
         return None
     found = np.zeros(left.shape, bool)
