@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import passes_without
+from conftest import chamfered, passes_without
 from rangeseg_cli.config import load_config
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.refine.boundaries import refine_boundaries
@@ -15,27 +15,6 @@ from rangeseg_cli.refine.carve import carve_faces
 from rangeseg_cli.synth.evaluate import hoover_compare
 
 CONFIG = load_config()
-CHAMFER = (40, 44)  # columns of the chamfer
-
-
-def chamfered(noise: float, seed: int, *, slope: float = 1.7
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A top plane, a chamfer 4 pixels wide falling ``slope`` per pixel, a steep side.
-
-    Returns heights, the truth (1 top, 2 chamfer, 3 side) and the labels
-    growing leaves: the chamfer grown into the top (1), the side (2).
-    """
-    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
-    top = 150.0 + 0.2 * y + 0.1 * x
-    into = np.clip(x - (CHAMFER[0] - 0.5), 0.0, CHAMFER[1] - CHAMFER[0])
-    beyond = np.clip(x - (CHAMFER[1] - 0.5), 0.0, None)
-    z = top - slope * into - 8.0 * beyond
-    z += np.random.default_rng(seed).normal(0.0, noise, z.shape) if noise else 0.0
-    truth = np.select([x < CHAMFER[0], x < CHAMFER[1]], [1, 2], 3).astype(np.int32)
-    grown = np.where(x < CHAMFER[1], 1, 2).astype(np.int32)
-    return z, truth, grown
-
-
 @pytest.mark.parametrize(("noise", "seed"), [(0.0, 0), (1.0, 0), (1.0, 1), (2.0, 2)])
 def test_a_chamfer_grown_into_the_top_is_carved_out(noise, seed):
     z, truth, grown = chamfered(noise, seed)
