@@ -55,6 +55,28 @@ def box_scene(size: int = 64, noise: float = 0.0, seed: int = 0) -> np.ndarray:
     return z
 
 
+CHAMFER = (40, 44)  # columns of the chamfer of :func:`chamfered`
+
+
+def chamfered(noise: float, seed: int, *, slope: float = 1.7
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A top plane, a chamfer 4 pixels wide falling ``slope`` per pixel, a steep side
+    (tests/test_carve.py, tests/test_refine.py).
+
+    Returns heights, the truth (1 top, 2 chamfer, 3 side) and the labels
+    growing leaves: the chamfer grown into the top (1), the side (2).
+    """
+    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
+    top = 150.0 + 0.2 * y + 0.1 * x
+    into = np.clip(x - (CHAMFER[0] - 0.5), 0.0, CHAMFER[1] - CHAMFER[0])
+    beyond = np.clip(x - (CHAMFER[1] - 0.5), 0.0, None)
+    z = top - slope * into - 8.0 * beyond
+    z += np.random.default_rng(seed).normal(0.0, noise, z.shape) if noise else 0.0
+    truth = np.select([x < CHAMFER[0], x < CHAMFER[1]], [1, 2], 3).astype(np.int32)
+    grown = np.where(x < CHAMFER[1], 1, 2).astype(np.int32)
+    return z, truth, grown
+
+
 def passes_without(*names: str, base: Config | None = None, **refine: Any) -> Config:
     """``base`` (the defaults when None) with the ``[refine] passes`` ``names`` left out.
 

@@ -7,34 +7,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import found_with
+from conftest import chamfered, passes_without
 from rangeseg_cli.config import load_config
+from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.refine.boundaries import refine_boundaries
 from rangeseg_cli.refine.carve import carve_faces
 from rangeseg_cli.synth.evaluate import hoover_compare
 
 CONFIG = load_config()
-CHAMFER = (40, 44)  # columns of the chamfer
-
-
-def chamfered(noise: float, seed: int, *, slope: float = 1.7
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A top plane, a chamfer 4 pixels wide falling ``slope`` per pixel, a steep side.
-
-    Returns heights, the truth (1 top, 2 chamfer, 3 side) and the labels
-    growing leaves: the chamfer grown into the top (1), the side (2).
-    """
-    y, x = np.mgrid[0:48, 0:64].astype(np.float64)
-    top = 150.0 + 0.2 * y + 0.1 * x
-    into = np.clip(x - (CHAMFER[0] - 0.5), 0.0, CHAMFER[1] - CHAMFER[0])
-    beyond = np.clip(x - (CHAMFER[1] - 0.5), 0.0, None)
-    z = top - slope * into - 8.0 * beyond
-    z += np.random.default_rng(seed).normal(0.0, noise, z.shape) if noise else 0.0
-    truth = np.select([x < CHAMFER[0], x < CHAMFER[1]], [1, 2], 3).astype(np.int32)
-    grown = np.where(x < CHAMFER[1], 1, 2).astype(np.int32)
-    return z, truth, grown
-
-
 @pytest.mark.parametrize(("noise", "seed"), [(0.0, 0), (1.0, 0), (1.0, 1), (2.0, 2)])
 def test_a_chamfer_grown_into_the_top_is_carved_out(noise, seed):
     z, truth, grown = chamfered(noise, seed)
@@ -112,11 +92,19 @@ def test_shapes_must_agree():
         carve_faces(np.zeros((4, 4)), np.zeros((4, 5), np.int32), CONFIG, noise=0.0)
 
 
-def test_the_nuts_chamfer_facet_is_found_at_sigma_1_only_with_carving():
-    """Without the chamfer pass (``chamfers`` of ``[refine] passes``), which finds it too."""
-    facet, on = found_with("nut", 1.0, 0, "nut facet 11", without=("chamfers",))
-    _, off = found_with("nut", 1.0, 0, "nut facet 11", without=("carve", "chamfers"))
-    assert facet in on and facet not in off
+@pytest.mark.parametrize("seed", range(4))
+def test_the_pipeline_finds_a_chamfer_grown_into_the_top_only_with_carving(seed):
+    """The whole pipeline on :func:`chamfered` at sigma 1: the chamfer 4 pixels wide is a
+    correct detection with carving and not without. The chamfer pass, which finds it
+    too, is off in both runs."""
+    z, truth, _ = chamfered(1.0, seed)
+
+    def found(*without):
+        labels = run_pipeline(z, passes_without("chamfers", *without), stages=3).labels
+        return 2 in {g for i in hoover_compare(truth, labels).instances
+                     if i.kind == "correct" for g in i.gt}
+
+    assert found() and not found("carve")
 
 
 def test_paper_preset_turns_it_off():

@@ -72,20 +72,6 @@ def test_tilted_box_narrow_side_face_is_recovered_as_its_own_region(sigma: float
     assert np.count_nonzero(labels[side] == face) >= 0.8 * np.count_nonzero(side)
 
 
-def test_part1_block_side_is_found_only_with_recovery() -> None:
-    scene = render_scene("part1", seed=0)  # Fig. 10: a block whose +x side is 2-3 px wide
-    block_side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "block +x")
-    found = {
-        name: {i.gt[0] for i in hoover_compare(scene.gt, run_pipeline(scene.image, config,
-                                                                      stages=3).labels
-                                               ).instances if i.kind == "correct"}
-        for name, config in (("off", OFF), ("on", ON))
-    }
-    assert block_side not in found["off"]
-    assert block_side in found["on"]
-    assert found["off"] <= found["on"]  # nothing found before is lost
-
-
 def test_two_narrow_faces_meeting_at_a_corner_are_cut_into_two_planes() -> None:
     y, x = np.mgrid[0:40, 0:40].astype(np.float64)
     arm_a = (y >= 5) & (y < 8) & (x >= 5) & (x < 35)  # an L of two 3-pixel bands
@@ -274,9 +260,27 @@ def test_the_conditioning_shortcut_never_changes_a_plane() -> None:
                                           reference(z, rows, cols))
 
 
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("width", [2.0, 3.0])
+def test_at_sigma_2_the_grazing_side_is_found_only_with_recovery(width, seed) -> None:
+    """The whole refinement on :func:`tilted_box` at sigma 2 (below ``max_noise``): the
+    narrow side face is a correct detection with recovery and not without it (part1's
+    block +x side, 2 pixels wide, at sigma 2)."""
+    z, truth = tilted_box(2.0, seed=seed, width=width)
+
+    def found(config: Config) -> bool:
+        result = hoover_compare(truth, run_pipeline(z, config, stages=3).labels)
+        return any(i.kind == "correct" and 3 in i.gt for i in result.instances)
+
+    assert found(ON) and not found(OFF)
+
+
 def test_at_sigma_2_a_recovered_grazing_side_is_found_once_the_refinement_settles_it() -> None:
     # part1's block +x, a side 2 pixels wide, seed 0: recovered, then its boundary moved
-    # back by the refinement (docs/quality.md); neither alone finds it.
+    # back by the refinement (docs/quality.md); neither alone finds it. Kept pinned to
+    # one scene and seed: constructed grazing sides (tilted_box, a side between two
+    # creases) are found by recovery without the refinement at sigma 2, so the
+    # interplay has no constructed case yet; the recovery half is tested above.
     scene = render_scene("part1", noise=2.0, seed=0)
     side = next(s["id"] for s in scene.info["surfaces"] if s["name"] == "block +x")
     found = {}
