@@ -7,10 +7,9 @@ import pytest
 
 from conftest import passes_without
 from rangeseg_cli.config import load_config
-from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.refine.passes import Scene, refine_regions
 from rangeseg_cli.refine.recut import crease_side, recut_regions, split_crease, split_tangent
 from rangeseg_cli.synth.evaluate import hoover_compare
-from rangeseg_cli.synth.scenes import render_scene
 
 CONFIG = load_config()
 OFF = passes_without("recut")
@@ -51,11 +50,10 @@ def _correct(truth: np.ndarray, labels: np.ndarray) -> int:
     return sum(i.kind == "correct" for i in hoover_compare(truth, labels).instances)
 
 
-def _found(scene_name: str, noise: float, seed: int, config) -> set[str]:
-    scene = render_scene(scene_name, noise=noise, seed=seed)
-    names = {s["id"]: s["name"] for s in scene.info["surfaces"]}
-    result = hoover_compare(scene.gt, run_pipeline(scene.image, config).labels)
-    return {names[g] for i in result.instances if i.kind == "correct" for g in i.gt}
+def _refined(z: np.ndarray, labels: np.ndarray, config, sigma: float) -> np.ndarray:
+    """The refinement passes of ``config`` on ``labels`` (no edges; the components are them)."""
+    scene = Scene(z, np.zeros(z.shape, np.uint8), labels, config, max(sigma, 0.3))
+    return refine_regions(scene, labels)
 
 
 @pytest.mark.parametrize("sigma", [0.0, 1.0])
@@ -130,25 +128,39 @@ def test_labels_without_regions_and_bad_shapes():
         recut_regions(z, truth[:, :10], CONFIG, noise=0.3)
 
 
-@pytest.mark.parametrize("noise", [0.0, 1.0, 2.0])
-@pytest.mark.parametrize("seed", [0, 1])
-def test_part1_block_top_and_fillet_are_both_found(noise, seed):
-    """At noise 2 they were one region, at 0 and 1 the fillet was cut too far out."""
-    assert {"block top", "fillet side"} <= _found("part1", noise, seed, CONFIG)
-    assert not {"block top", "fillet side"} <= _found("part1", noise, seed, OFF)
+@pytest.mark.parametrize("sigma", [0.0, 1.0])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_refinement_finds_a_plane_and_its_fillet_grown_as_one_only_with_the_recut(
+        sigma, seed):
+    """A plane left tangentially by a cylinder (part1's block top and fillet in
+    proportion), grown as one region: no other pass cuts it at the tangent line."""
+    z, truth = _plane_and_fillet(sigma, seed)
+    one = np.ones_like(truth)
+    assert _correct(truth, _refined(z, one, CONFIG, sigma)) == 2
+    assert _correct(truth, _refined(z, one, OFF, sigma)) < 2
 
 
-def test_pile_frustum_top_and_side_one_region_at_sigma_2_are_cut():
-    assert {"frustum 4 top", "frustum 4 -x"} <= _found("pile", 2.0, 2, CONFIG)
-    assert not {"frustum 4 top", "frustum 4 -x"} & _found("pile", 2.0, 2, OFF)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_refinement_cuts_two_planes_at_a_crease_grown_as_one_at_sigma_2(seed):
+    """A frustum's top and side (slope change 1.5 per pixel) as one region at sigma 2:
+    the recut finds both; without it neither is a correct detection."""
+    z, truth = _crease(2.0, 1.5, seed)
+    one = np.ones_like(truth)
+    assert _correct(truth, _refined(z, one, CONFIG, 2.0)) == 2
+    assert _correct(truth, _refined(z, one, OFF, 2.0)) == 0
 
 
-def test_part2_chamfer_gets_its_strip_back_at_sigma_2():
-    # Without the boundary refinement or the recovery, which also give the strip back
-    # (test_refine.py; recovery runs up to noise 2.5).
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_refinement_gives_a_strip_back_across_a_crease_at_sigma_2(seed):
+    """Two planes at a crease, the 5 columns before it given to the far plane (a chamfer
+    that lost its strip). Without the boundary refinement and the recovery, which also
+    give it back (test_refine.py), only the recut does."""
+    z, truth = _crease(2.0, 1.5, seed)
+    x = _grid(z.shape[1])[1]
+    labels = np.where(x < KNOT - 5, 1, 2).astype(np.int32)
     alone = passes_without("boundaries", "recover")
-    assert "base chamfer" in _found("part2", 2.0, 1, alone)
-    assert "base chamfer" not in _found("part2", 2.0, 1, passes_without("recut", base=alone))
+    assert _correct(truth, _refined(z, labels, alone, 2.0)) == 2
+    assert _correct(truth, _refined(z, labels, passes_without("recut", base=alone), 2.0)) == 0
 
 
 def test_paper_preset_turns_it_off():
