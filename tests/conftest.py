@@ -77,6 +77,28 @@ def chamfered(noise: float, seed: int, *, slope: float = 1.7
     return z, truth, grown
 
 
+def small_frustum(noise: float, seed: int, *, half: int = 14, width: int = 5,
+                  slope: float = 4.0, size: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """A square frustum on a slightly tilted table, sides ``width`` pixels wide rising
+    ``slope`` per pixel, its base ``2 * half + 1`` pixels across (a bin pile's small
+    frustums: sides 4-7 pixels wide), rounded to whole units as 8-bit images are
+    (tests/test_split.py, tests/test_facets.py).
+
+    Returns heights and the truth: 1 table, 2 +x side, 3 -x, 4 +y, 5 -y, 6 top.
+    """
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    dx, dy = x - (size / 2 - 0.5), y - (size / 2 - 0.5)
+    height = np.clip(slope * (half + 0.5 - np.maximum(np.abs(dx), np.abs(dy))), 0.0,
+                     slope * width)
+    side, across = (height > 0) & (height < slope * width), np.abs(dx) >= np.abs(dy)
+    truth = np.select([height >= slope * width, side & across & (dx > 0),
+                       side & across & (dx < 0), side & (dy > 0), side], [6, 2, 3, 4, 5],
+                      1).astype(np.int32)
+    z = 20.0 + height + 0.05 * x + 0.1 * y
+    z += np.random.default_rng(seed).normal(0.0, noise, z.shape) if noise else 0.0
+    return np.round(z), truth
+
+
 def passes_without(*names: str, base: Config | None = None, **refine: Any) -> Config:
     """``base`` (the defaults when None) with the ``[refine] passes`` ``names`` left out.
 
