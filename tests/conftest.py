@@ -145,24 +145,6 @@ def tuning(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None]:
     return _set
 
 
-def found_with(scene: str, noise: float, seed: int, face: str, *, without: tuple[str, ...] = (),
-               **refine: object) -> tuple[int, set[int]]:
-    """The GT id of ``scene``'s surface named ``face`` (or starting so, ending in "…"), and
-    the GT ids the defaults detect correctly (T = 0.8) with the ``[refine]`` passes
-    ``without`` left out and these ``[refine]`` overrides."""
-    from rangeseg_cli.pipeline import run_pipeline
-    from rangeseg_cli.synth.evaluate import hoover_compare
-    from rangeseg_cli.synth.scenes import render_scene
-
-    rendered = render_scene(scene, noise=noise, seed=seed)
-    prefix = face.removesuffix("…")
-    gt = next(s["id"] for s in rendered.info["surfaces"]
-              if (s["name"].startswith(prefix) if face.endswith("…") else s["name"] == face))
-    labels = run_pipeline(rendered.image, passes_without(*without, **refine)).labels
-    result = hoover_compare(rendered.gt, labels)
-    return gt, {g for i in result.instances if i.kind == "correct" for g in i.gt}
-
-
 def bad_setting_on_the_command_line(tmp_path: Path, setting: str) -> str:
     """``rangeseg run`` on a small box with ``--set setting``: the last line of its output.
 
