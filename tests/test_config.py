@@ -3,6 +3,7 @@ import math
 import tomllib
 from typing import Any
 
+import numpy as np
 import pytest
 
 from conftest import bad_setting_on_the_command_line, passes_without
@@ -451,11 +452,36 @@ def _at_limits() -> list[tuple[str, str, Any]]:
     return cases
 
 
+def _varied_scene() -> np.ndarray:
+    """A 64 x 64 8-bit image with something for every stage: a table, a box whose top
+    meets a chamfer at a crease, a lying half cylinder (curved), steps between them;
+    sigma 2 (the noise estimate and the passes that use it)."""
+    y, x = np.mgrid[0:64, 0:64].astype(np.float64)
+    z = 30.0 + 0.1 * x + 0.05 * y
+    box = (y >= 6) & (y < 30) & (x >= 6) & (x < 40)
+    z[box] = (110.0 + 0.2 * x - 2.5 * np.clip(x - 28.0, 0.0, None))[box]  # a crease at 28
+    u = y - 46.0
+    cylinder = (np.abs(u) < 12.0) & (x >= 10) & (x < 58)
+    z[cylinder] = 60.0 + 3.0 * np.sqrt(np.maximum(144.0 - u * u, 0.0))[cylinder]
+    z += np.random.default_rng(1).normal(0.0, 2.0, z.shape)
+    return np.clip(np.round(z), 0, 255).astype(np.uint8)
+
+
+def test_the_varied_scene_gives_the_refinement_work():
+    # the limits below are run on it: noisy, four surfaces, labels the refinement changes
+    from rangeseg_cli.pipeline import run_pipeline
+
+    result = run_pipeline(_varied_scene())
+    assert result.noise_sigma == pytest.approx(2.0, rel=0.25)
+    assert len(result.surfaces) >= 4
+    paper = run_pipeline(_varied_scene(), load_config(preset="paper"))
+    assert not np.array_equal(result.labels, paper.labels)
+
+
 @pytest.mark.parametrize("table, key, value", _at_limits())
 def test_pipeline_runs_with_any_key_at_the_end_of_its_range(table, key, value):
     # no overflow (warnings are errors here) nor internal error at any limit
     from rangeseg_cli.pipeline import run_pipeline
-    from rangeseg_cli.synth.scenes import render_scene
 
     overrides: dict[str, dict[str, Any]] = {table: {key: value}}
     if table == "input" and key == "intrinsics":
@@ -469,8 +495,7 @@ def test_pipeline_runs_with_any_key_at_the_end_of_its_range(table, key, value):
         overrides["roof"]["threshold_a"] = max(value, 6.0)
     if table == "roof" and key == "threshold_a":
         overrides["roof"]["threshold_b"] = min(value, 4.0)
-    image = render_scene("part1", size=(64, 64), noise=2.0, seed=1).image
-    result = run_pipeline(image, load_config(overrides=overrides))
+    result = run_pipeline(_varied_scene(), load_config(overrides=overrides))
     assert result.labels.shape == (64, 64)
 
 
