@@ -303,8 +303,9 @@ def shares_threads(shape: tuple[int, ...] | None, config: Config) -> bool:
     """Whether :func:`run_pipeline` may run work of one image on several threads at once.
 
     The edge passes of an image of more than one row band
-    (:func:`~rangeseg_cli.kernels.parallel.row_bands`), and the split, recovery and
-    recut, which share their pieces out (:func:`~rangeseg_cli.refine.passes.shares_work`);
+    (:func:`~rangeseg_cli.kernels.parallel.row_bands`), and the passes that share
+    their pieces out (the split, recovery, recut and facets:
+    :func:`~rangeseg_cli.refine.passes.shares_work`);
     ``shape`` None (not known yet) counts as yes. The paper's pipeline on a
     128x128 frame runs in the calling thread alone.
     """

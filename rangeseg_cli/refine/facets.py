@@ -69,6 +69,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..config import Config
+from ..kernels.parallel import map_tasks
 from ..stages.grow import EIGHT_NEIGHBOURS, region_fits, sums_of_squares, union_quadric_mse
 from ..stages.rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
 from .recover import consensus_plane, fit_plane
@@ -392,14 +393,16 @@ def facet_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     boxes = ndimage.find_objects(out)
     next_id = int(out.max(initial=0)) + 1
     counts = np.bincount(out.ravel(), minlength=int(out.max(initial=0)) + 1)
-    for k in failing[counts[failing] <= MAX_REGION].tolist():
-        box = boxes[k - 1]
-        mask = out[box] == k
-        pieces = cut_into_planes(z[box], mask, level=level, s2=s2,
-                                 min_piece=config.split.min_piece)
-        if pieces is None:
-            continue
-        for i in range(2, int(pieces.max()) + 1):
-            out[box][pieces == i] = next_id
+    todo = failing[counts[failing] <= MAX_REGION].tolist()
+
+    def cut(k: int) -> np.ndarray | None:  # a region's cut reads its own pixels only
+        return cut_into_planes(z[boxes[k - 1]], out[boxes[k - 1]] == k, level=level, s2=s2,
+                               min_piece=config.split.min_piece)
+
+    # The regions are independent: a real frame's many go to processes (map_tasks).
+    for k, pieces in zip(todo, map_tasks(cut, todo, cost=[float(counts[k]) for k in todo]),
+                         strict=True):
+        for i in range(2, 0 if pieces is None else int(pieces.max()) + 1):
+            out[boxes[k - 1]][pieces == i] = next_id
             next_id += 1
     return out

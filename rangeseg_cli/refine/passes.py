@@ -135,13 +135,14 @@ PASSES: tuple[Pass, ...] = (
          _with_noise("carve", "carve_faces")),
     Pass("facets", "cut", "a region that fails the fit test is cut into the planes that "
          "explain it when no quadric joins two of them (runs again after boundaries)",
-         _FACETS),
+         _FACETS, shares_work=True),
     Pass("boundaries", "assign", "each boundary pixel moves to the neighbouring surface "
          "that predicts it best, counting the neighbours it would disagree with "
          "(smoothness)", _with_noise("boundaries", "refine_boundaries")),
     Pass("merge_planes", "merge", "touching planar regions whose union one plane fits "
          "become one", _with_noise("merge", "merge_planes")),
-    Pass("facets", "cut", "", _FACETS, after_any=("boundaries", "merge_planes")),
+    Pass("facets", "cut", "", _FACETS, after_any=("boundaries", "merge_planes"),
+         shares_work=True),
     Pass("bridge", "assign", "", _BRIDGE, needs=PASS_NEEDS["bridge"],
          after_any=("chamfers", "carve", "boundaries", "merge_planes", "facets"),
          uses_noise=False),
