@@ -300,18 +300,75 @@ def _filled(z: np.ndarray, reach: int) -> np.ndarray:
 def _median3(z: np.ndarray) -> np.ndarray:
     """3x3 median of the valid values (NaN where the centre is invalid).
 
-    The nine shifted copies sorted along the stack (NaN sorts last), and the
-    middle of each pixel's valid ones taken: :func:`scipy.ndimage.median_filter`
-    has no NaN-aware mode, and :func:`numpy.nanmedian` is several times slower.
+    Where all nine values are valid, the fifth smallest (:func:`median9`);
+    elsewhere (near an invalid pixel or the image's frame), and where that
+    is a zero (the sort decides its sign), the middle of the pixel's valid
+    ones, from the sorted nine (:func:`median_of_valid`):
+    :func:`scipy.ndimage.median_filter` has no NaN-aware mode, and
+    :func:`numpy.nanmedian` is several times slower.
     """
     padded = np.pad(z, 1, mode="constant", constant_values=np.nan)
-    h, w = z.shape
-    stack = np.sort(np.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)]),
+    finite = np.isfinite(z)
+    out = median9(padded if finite.all() or not np.isinf(z).any()
+                  else np.pad(np.where(finite, z, np.nan), 1, constant_values=np.nan))
+    # near an invalid pixel; and a zero, whose sign only the sort tells (0.0 or -0.0 first)
+    rows, cols = np.nonzero((np.isnan(out) & finite) | (out == 0))
+    out[rows, cols] = median_of_valid(padded, rows, cols)
+    return out
+
+
+def _sort3(a: np.ndarray, b: np.ndarray, c: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Element-wise (smallest, middle, largest) of three arrays (NaN spreads to all three)."""
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    mid, top = np.minimum(hi, c), np.maximum(hi, c)
+    return np.minimum(lo, mid), np.maximum(lo, mid), top
+
+
+def _mid3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Element-wise middle of three arrays (NaN where any is NaN)."""
+    return np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+
+
+def median9(padded: np.ndarray) -> np.ndarray:
+    """Median of each pixel's 3x3 neighbourhood in ``padded`` (its 1-px frame dropped).
+
+    Each column of three sorted once (shared by three windows); the median of
+    nine is then the middle of the largest of the three smallest, the middle
+    of the middles and the smallest of the largest (exact: one of the nine
+    values). NaN wherever one of the nine is NaN.
+
+    Parameters
+    ----------
+    padded
+        float64 (H + 2, W + 2).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W).
+    """
+    lo, mid, hi = _sort3(padded[:-2], padded[1:-1], padded[2:])
+    left, centre, right = slice(None, -2), slice(1, -1), slice(2, None)
+    most_lo = np.maximum(np.maximum(lo[:, left], lo[:, centre]), lo[:, right])
+    mid_mid = _mid3(mid[:, left], mid[:, centre], mid[:, right])
+    least_hi = np.minimum(np.minimum(hi[:, left], hi[:, centre]), hi[:, right])
+    return _mid3(most_lo, mid_mid, least_hi)
+
+
+def median_of_valid(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Median of the valid values of the 3x3 neighbourhoods at ``(rows, cols)`` of the image.
+
+    ``padded`` is the image with a 1-px NaN frame. The nine values sorted
+    (NaN last), and the middle of the valid ones taken (the mean of the two
+    middle ones for an even count); NaN where none is valid.
+    """
+    stack = np.sort(np.stack([padded[rows + i, cols + j] for i in range(3) for j in range(3)]),
                     axis=0)
     count = np.isfinite(stack).sum(axis=0)
     low = np.take_along_axis(stack, np.maximum(count - 1, 0)[None] // 2, axis=0)[0]
     high = np.take_along_axis(stack, (count // 2)[None], axis=0)[0]
-    return np.where(np.isfinite(z), 0.5 * (low + high), np.nan)
+    return 0.5 * (low + high)
 
 
 def assess(z: np.ndarray, config: Config, noise: float, *,
@@ -361,8 +418,8 @@ def assess(z: np.ndarray, config: Config, noise: float, *,
         if ws.max_height > 0:
             pickable &= height <= ws.max_height
     hull = support_hull(on)
-    pickable &= over_support(pts, height, hull, plane, config.input)
-    return Workspace(pickable, height, plane, tol, inside_hull(hull, *np.indices(z.shape)))
+    pickable = over_support(pts, height, hull, plane, config.input, where=pickable)
+    return Workspace(pickable, height, plane, tol, hull_extent(hull, z.shape))
 
 
 def support_hull(on: np.ndarray) -> np.ndarray | None:
@@ -371,17 +428,38 @@ def support_hull(on: np.ndarray) -> np.ndarray | None:
     The convex hull, in the image, of the 8-connected pieces of the
     support's pixels ``on`` with at least :data:`HULL_PIECE` of the largest
     one's pixels (a tote's floor; a table seen on both sides of a wall);
-    ``None`` when it has no area.
+    ``None`` when it has no area. The hull is taken of their
+    :func:`extreme_pixels` only (every pixel on the hull's boundary is one).
     """
     pieces, count = ndimage.label(on, structure=np.ones((3, 3), dtype=bool))
     if count == 0:
         return None
     sizes = np.bincount(pieces.ravel())
     sizes[0] = 0
-    rows, cols = np.nonzero(sizes[pieces] >= HULL_PIECE * sizes.max())
-    if rows.size < 3 or np.ptp(rows) == 0 or np.ptp(cols) == 0:
+    large = sizes >= HULL_PIECE * sizes.max()
+    rows, cols = extreme_pixels(large[pieces])
+    if int(sizes[large].sum()) < 3 or np.ptp(rows) == 0 or np.ptp(cols) == 0:
         return None
     return np.asarray(ConvexHull(np.column_stack([cols, rows]).astype(np.float64)).equations)
+
+
+def extreme_pixels(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the first and last pixel of ``mask`` in each row and in each column.
+
+    Every pixel on the boundary of the convex hull of ``mask``'s pixels is
+    one of them (no pixel of its row, or of its column for a level edge,
+    lies beyond it), so they have the same hull. Row-major order, each once.
+    """
+    h, w = mask.shape
+    keep = np.zeros(mask.shape, dtype=bool)
+    r = np.flatnonzero(mask.any(axis=1))
+    keep[r, np.argmax(mask[r], axis=1)] = True
+    keep[r, w - 1 - np.argmax(mask[r, ::-1], axis=1)] = True
+    c = np.flatnonzero(mask.any(axis=0))
+    keep[np.argmax(mask[:, c], axis=0), c] = True
+    keep[h - 1 - np.argmax(mask[::-1, c], axis=0), c] = True
+    rows, cols = np.nonzero(keep)
+    return rows, cols
 
 
 def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray,
@@ -400,17 +478,102 @@ def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray,
     return inside
 
 
+def hull_extent(hull: np.ndarray | None, shape: tuple[int, int], inset: float = 0.0
+                ) -> np.ndarray:
+    """Bool ``shape``: :func:`inside_hull` at every pixel of the image (the same bits).
+
+    Along a row a half-plane's test is monotonic in the column, so each row
+    is inside between two columns: per half-plane and row, the column where
+    the test turns, estimated and then checked with the test itself on a few
+    columns around it (:func:`_turning_columns`). A half-plane whose turn is
+    not found there (a level one) is tested at every pixel.
+    """
+    h, w = shape
+    inside = np.ones(shape, dtype=bool)
+    if hull is None:
+        return inside
+    rows = np.arange(h)[:, None]
+    first, stop = np.zeros((h, 1), dtype=np.int64), np.full((h, 1), w, dtype=np.int64)
+    limit = 1.0 - inset
+    for a, b, c in hull:
+        turn = _turning_columns(a, b, c, rows, w, limit) if abs(a) > 1e-9 else None
+        if turn is None:
+            cols = np.arange(w)[None, :]
+            with np.errstate(invalid="ignore"):
+                inside &= ~(a * cols + b * rows + c > limit)
+        elif a > 0:
+            stop = np.minimum(stop, turn)
+        else:
+            first = np.maximum(first, turn)
+    cols = np.arange(w)[None, :]
+    return inside & (cols >= first) & (cols < stop)
+
+
+#: Columns around the estimated turn where :func:`_turning_columns` checks the test.
+TURN_WINDOW = 8
+
+
+def _turning_columns(a: float, b: float, c: float, rows: np.ndarray, w: int, limit: float
+                     ) -> np.ndarray | None:
+    """Per row, the first column where the test turns; ``None`` when not found.
+
+    The test is :func:`inside_hull`'s ``a col + b row + c > limit``; it turns
+    from false to true along a row when ``a > 0``, from true to false when
+    ``a < 0`` (``w``: it never does). Evaluated, as :func:`inside_hull` does,
+    on :data:`TURN_WINDOW` columns from a little before the real-valued
+    crossing, and on the column before them: the turn is found when that
+    column is on the first side (or there is none) and a column of the
+    window on the other (or past the image).
+
+    Parameters
+    ----------
+    a, b, c
+        The half-plane (``a`` not 0).
+    rows
+        int (H, 1) row numbers.
+    w
+        Image width.
+    limit
+        ``1 - inset``.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        int64 (H, 1) columns in [0, w].
+    """
+    with np.errstate(all="ignore"):
+        cross = np.floor((limit - c - b * rows.astype(np.float64)) / a)
+        start = (np.clip(cross, -TURN_WINDOW, w) + 1 - TURN_WINDOW // 2).astype(np.int64)
+    start = np.clip(start, 0, w)
+    cols = start + np.arange(-1, TURN_WINDOW)[None, :]
+    turned = a * cols + b * rows + c > limit
+    if a < 0:
+        turned = ~turned
+    turned[cols >= w] = True
+    window = turned[:, 1:]
+    if not ((~turned[:, 0] | (start[:, 0] == 0)) & window.any(axis=1)).all():
+        return None
+    return start + np.count_nonzero(~window, axis=1)[:, None]
+
+
 def over_support(pts: np.ndarray, height: np.ndarray, hull: np.ndarray | None, plane: Plane,
-                 camera: InputConfig) -> np.ndarray:
+                 camera: InputConfig, where: np.ndarray | None = None) -> np.ndarray:
     """Bool (H, W): pixels whose foot on the support lies within the support's extent.
 
     A pixel's foot is its point moved down the support's normal by its
     height, projected into the image (with intrinsics; a height map's foot is
-    the pixel itself); the extent is :func:`support_hull`. Things outside a
-    tote stand over no floor of it.
+    the pixel itself: :func:`hull_extent`); the extent is :func:`support_hull`.
+    Things outside a tote stand over no floor of it. With ``where``, only its
+    pixels are tested (False elsewhere).
     """
-    fr, fc = _feet(pts, height, plane, camera)
-    return inside_hull(hull, fr, fc, hull_inset(pts, camera))
+    inset = hull_inset(pts, camera)
+    if not camera.has_intrinsics:
+        out = hull_extent(hull, height.shape, inset)
+        return out if where is None else out & where
+    at = np.nonzero(np.ones(height.shape, dtype=bool) if where is None else where)
+    out = np.zeros(height.shape, dtype=bool)
+    out[at] = inside_hull(hull, *_feet(pts[at], height[at], plane, camera), inset)
+    return out
 
 
 def odd_pixels(side_mm: float, focal: float, depth_mm: float) -> int:
