@@ -402,10 +402,19 @@ def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
     if outer.size == 0:
         return set()
     zone = np.isin(blobs, outer)
-    size = 2 * ADJACENCY_RADIUS + 1  # a square: a row segment, then a column segment
-    near = ndimage.binary_dilation(zone, structure=np.ones((1, size), dtype=bool))
-    near = ndimage.binary_dilation(near, structure=np.ones((size, 1), dtype=bool))
-    return _present(labels[near])
+    return _present(labels[square_dilation(zone, 2 * ADJACENCY_RADIUS + 1)])
+
+
+def square_dilation(mask: np.ndarray, size: int) -> np.ndarray:
+    """Binary dilation of ``mask`` by a ``size`` x ``size`` square (odd; outside = False).
+
+    A running maximum (:func:`scipy.ndimage.maximum_filter`, separable: a row
+    segment, then a column segment), the same pixels as
+    :func:`scipy.ndimage.binary_dilation` with that square.
+    """
+    grown = ndimage.maximum_filter(np.asarray(mask, dtype=bool).view(np.uint8), size=size,
+                                   mode="constant", cval=0)
+    return grown.view(bool)
 
 
 def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
@@ -592,19 +601,32 @@ def unpickable_regions(labels: np.ndarray, pickable: np.ndarray, n: int) -> set[
 
 
 def region_lift(labels: np.ndarray, space: Workspace, z: np.ndarray, n: int) -> np.ndarray:
-    """Median height of each label's pixels above the support (by label), else of ``z``."""
+    """Median height of each label's pixels above the support (by label), else of ``z``.
+
+    Each label's finite heights are taken from its box
+    (:func:`scipy.ndimage.find_objects`) and the median from its two middle
+    order statistics (:func:`middle_value`); ``-inf`` for a label without one.
+    """
     height = space.height if space.height is not None else z
     out = np.full(n + 1, -np.inf)
-    keep = (labels > 0) & np.isfinite(height)
-    if not keep.any():
-        return out
-    lab, h = labels[keep], height[keep]
-    order = np.lexsort((h, lab))
-    lab, h = lab[order], h[order]
-    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
-    counts = np.diff(np.r_[starts, lab.size])
-    out[lab[starts]] = 0.5 * (h[starts + (counts - 1) // 2] + h[starts + counts // 2])
+    for k, box in enumerate(ndimage.find_objects(labels, n), start=1):
+        if box is not None:
+            values = height[box][labels[box] == k]
+            out[k] = middle_value(values[np.isfinite(values)])
     return out
+
+
+def middle_value(values: np.ndarray) -> float:
+    """Median of a 1-D array: the mean of its two middle order statistics; ``-inf`` when empty.
+
+    The one middle value for an odd count (``0.5 * (v + v)``, as a sort's
+    two middle elements give it).
+    """
+    if not values.size:
+        return -math.inf
+    lo, hi = (values.size - 1) // 2, values.size // 2
+    part = np.partition(values, [lo, hi])
+    return float(0.5 * (part[lo] + part[hi]))
 
 
 def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarray:
@@ -623,7 +645,7 @@ def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarr
         outer = np.isin(blobs, np.unique(frame[frame > 0]))
         if extent is not None:
             outer &= ~extent
-        zone |= ndimage.binary_dilation(outer, structure=np.ones((2 * k - 1, 2 * k - 1)))
+        zone |= square_dilation(outer, 2 * k - 1)
     return zone
 
 
@@ -662,13 +684,14 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     for o in objects:
         member[list(o.surfaces)] = o.id
     owner = member[labels]
+    boxes = ndimage.find_objects(owner)
     with np.errstate(invalid="ignore"):
         standing = _touching(owner, np.abs(height) <= space.tolerance)
-    spans = {o.id: _height_span(height, owner == o.id) for o in objects}
+    spans = {o.id: _height_span(*_in_box(height, owner, boxes, o.id)) for o in objects}
     hover = _hovering(spans, touching or set(), space.tolerance)
     zone = border_zone(valid, space.extent)
-    bordering = set(np.unique(owner[zone & (owner > 0)]).tolist())
-    wide = _widest(owner, [o.id for o in objects])
+    bordering = _present(owner[zone])
+    wide = _widest(owner, [o.id for o in objects], boxes)
     pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
             and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
     if pile:  # far above the pile: the arm, a mount, a wall
@@ -711,6 +734,15 @@ def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, in
             and low - under[i] > max(HOVER_SHARE * (top - under[i]), HOVER_TOLERANCES * tol)}
 
 
+def _in_box(values: np.ndarray, owner: np.ndarray, boxes: list[Any], oid: int
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """``values`` and the mask of object ``oid`` in its box (``boxes``: of ``owner``)."""
+    box = boxes[oid - 1] if oid <= len(boxes) else None
+    if box is None:
+        return values[:0, :0], np.zeros((0, 0), dtype=bool)
+    return values[box], owner[box] == oid
+
+
 def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     """(5th, 95th) percentiles of ``height`` over ``mask`` (NaN when none is finite)."""
     values = height[mask]
@@ -721,8 +753,12 @@ def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     return float(low), float(top)
 
 
-def _widest(owner: np.ndarray, ids: list[int]) -> dict[int, float]:
-    """Radius in px of the widest disc inside each object's pixels (its clearance)."""
+def _widest(owner: np.ndarray, ids: list[int], boxes: list[Any] | None = None
+            ) -> dict[int, float]:
+    """Radius in px of the widest disc inside each object's pixels (its clearance).
+
+    ``boxes``: :func:`scipy.ndimage.find_objects` of ``owner`` when known.
+    """
     if not ids:
         return {}
     same = owner > 0
@@ -734,8 +770,12 @@ def _widest(owner: np.ndarray, ids: list[int]) -> dict[int, float]:
         pad[axis] = (0, 1)
         same &= ~np.pad(diff, pad)
     edt = ndimage.distance_transform_edt(same)
-    radii = ndimage.maximum(edt, owner, ids)
-    return {i: float(r) for i, r in zip(ids, np.atleast_1d(radii), strict=True)}
+    boxes = ndimage.find_objects(owner) if boxes is None else boxes
+    out = {}
+    for i in ids:
+        values, mine = _in_box(edt, owner, boxes, i)
+        out[i] = float(values[mine].max()) if mine.any() else 0.0
+    return out
 
 
 #: With nothing in view, a wall rises to the border and is about the tallest there.
@@ -747,9 +787,7 @@ STAND_REACH = 6
 
 def _touching(owner: np.ndarray, mask: np.ndarray) -> set[int]:
     """Objects (``owner`` ids) within :data:`STAND_REACH` pixels of ``mask``."""
-    k = 2 * STAND_REACH + 1
-    near = ndimage.binary_dilation(mask, structure=np.ones((k, k), dtype=bool))
-    return set(np.unique(owner[near & (owner > 0)]).tolist())
+    return _present(owner[square_dilation(mask, 2 * STAND_REACH + 1)])
 
 
 def _attached(objects: list[ObjectInfo], owner: np.ndarray, structures: set[int],

@@ -1,0 +1,60 @@
+"""Helpers of the holdsite search (Sec. VII): medians, dilations, per-region reductions.
+
+Constructed inputs with known answers; each fast helper is checked against
+the direct computation it stands for.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from rangeseg_cli.cell.workspace import Workspace
+from rangeseg_cli.stages.holdsite import middle_value, region_lift, square_dilation
+
+
+@pytest.mark.parametrize("values, expected", [
+    ([3.0], 3.0), ([5.0, 1.0], 3.0), ([4.0, 1.0, 9.0], 4.0), ([7.0, 1.0, 3.0, 2.0], 2.5)])
+def test_middle_value_is_the_median(values, expected):
+    assert middle_value(np.array(values)) == expected
+
+
+def test_middle_value_of_nothing_is_minus_infinity():
+    assert middle_value(np.zeros(0)) == -math.inf
+
+
+def test_middle_value_equals_the_sorted_middle_elements():
+    rng = np.random.default_rng(0)
+    for size in range(1, 40):
+        v = rng.normal(size=size)
+        s = np.sort(v)
+        assert middle_value(v) == 0.5 * (s[(size - 1) // 2] + s[size // 2])
+
+
+def test_region_lift_is_each_labels_median_height_above_the_support():
+    labels = np.array([[1, 1, 2, 0],
+                       [1, 3, 2, 2],
+                       [3, 3, 3, 0]])
+    height = np.array([[1.0, 2.0, 10.0, 50.0],
+                       [3.0, np.nan, 30.0, 20.0],
+                       [5.0, 7.0, 6.0, 50.0]])
+    space = Workspace(np.ones(labels.shape, bool), height, None, 1.0)
+    lift = region_lift(labels, space, np.zeros(labels.shape), 4)
+    assert lift.tolist() == [-math.inf, 2.0, 20.0, 6.0, -math.inf]
+
+
+def test_region_lift_without_a_support_takes_the_heights():
+    labels = np.array([[1, 1], [2, 2]])
+    z = np.array([[4.0, 6.0], [np.nan, np.nan]])
+    lift = region_lift(labels, Workspace(np.ones((2, 2), bool), None, None, 1.0), z, 2)
+    assert lift.tolist() == [-math.inf, 5.0, -math.inf]
+
+
+@pytest.mark.parametrize("size", [1, 3, 7, 13])
+def test_square_dilation_is_binary_dilation_by_a_square(size):
+    mask = np.random.default_rng(size).random((40, 50)) < 0.02
+    mask[0, 0] = mask[-1, 20] = True
+    want = ndimage.binary_dilation(mask, structure=np.ones((size, size), dtype=bool))
+    got = square_dilation(mask, size)
+    assert got.dtype == bool and np.array_equal(got, want)
