@@ -11,7 +11,13 @@ import pytest
 from scipy import ndimage
 
 from rangeseg_cli.cell.workspace import Workspace
-from rangeseg_cli.stages.holdsite import middle_value, region_lift, square_dilation
+from rangeseg_cli.stages.holdsite import (
+    middle_value,
+    region_lift,
+    same_neighbours,
+    square_dilation,
+    widest_discs,
+)
 
 
 @pytest.mark.parametrize("values, expected", [
@@ -58,3 +64,23 @@ def test_square_dilation_is_binary_dilation_by_a_square(size):
     want = ndimage.binary_dilation(mask, structure=np.ones((size, size), dtype=bool))
     got = square_dilation(mask, size)
     assert got.dtype == bool and np.array_equal(got, want)
+
+
+def test_same_neighbours_marks_the_pixels_away_from_other_values():
+    owner = np.array([[1, 1, 1, 2],
+                      [1, 1, 1, 2],
+                      [1, 1, 1, 2],
+                      [3, 3, 1, 2]])
+    assert same_neighbours(owner).astype(int).tolist() == [[1, 1, 0, 0],
+                                                           [1, 1, 0, 0],
+                                                           [0, 0, 0, 0],
+                                                           [0, 0, 0, 0]]
+
+
+def test_widest_disc_of_each_object_and_none_for_a_missing_one():
+    owner = np.zeros((20, 30), dtype=np.int64)
+    owner[2:17, 2:17] = 1  # 15 x 15: its centre 7 px from its outermost (border) pixels
+    owner[2:7, 20:28] = 2  # 5 rows, the last a border with object 3 too: 2 px
+    owner[7:9, 20:28] = 3  # 2 rows, both borders: no interior
+    wide = widest_discs(owner, [1, 2, 3, 4])
+    assert wide == {1: 7.0, 2: 2.0, 3: 0.0, 4: 0.0}

@@ -14,6 +14,7 @@ from rangeseg_cli.cell.workspace import (
     inside_hull,
     median9,
     median_of_valid,
+    plane_shares,
     support_hull,
 )
 
@@ -110,3 +111,20 @@ def test_hull_extent_of_level_and_nearly_level_edges_and_of_no_hull():
         hull = np.array([[a, 1.0, -20.0], [-a, -1.0, 3.0], [1.0, a, -30.0], [-1.0, 0.0, 2.0]])
         assert np.array_equal(hull_extent(hull, shape), inside_hull(hull, *np.indices(shape)))
     assert hull_extent(None, shape).all()
+
+
+def test_plane_shares_are_the_means_of_the_two_tests():
+    rng = np.random.default_rng(3)
+    products = rng.normal(0.0, 3.0, (1000, 17))
+    offsets = rng.normal(0.0, 1.0, 17)
+    products[5, 2], products[6, 3] = -2.0 - offsets[2], 2.0 - offsets[3]  # at the limits
+    dist = products + offsets
+    on, below = plane_shares(products, offsets, 2.0)
+    assert on.tobytes() == (np.abs(dist) <= 2.0).mean(axis=0).tobytes()
+    assert below.tobytes() == (dist < -2.0).mean(axis=0).tobytes()
+
+
+def test_plane_shares_of_points_on_in_front_and_behind():
+    products = np.array([[0.0], [0.5], [-3.0], [3.0]])
+    on, below = plane_shares(products, np.array([0.0]), 1.0)
+    assert on.tolist() == [0.5] and below.tolist() == [0.25]

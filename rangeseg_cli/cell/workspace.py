@@ -221,9 +221,7 @@ def find_support(z: np.ndarray, camera: InputConfig, tol: float, *, seed: int = 
                     cols[pick].astype(np.float64))
     normals, offsets = _hypotheses(sample, rng, camera.has_intrinsics)
     scored = sample[:: max(1, sample.shape[0] // SCORED)]  # spread over the image
-    dist = scored @ normals.T + offsets  # (points, planes)
-    on = (np.abs(dist) <= tol).mean(axis=0)
-    below = (dist < -tol).mean(axis=0)
+    on, below = plane_shares(scored @ normals.T, offsets, tol)  # (points, planes) products
     ok = below <= MAX_BELOW
     if camera.has_intrinsics:
         ok &= np.degrees(np.arccos(np.clip(np.abs(normals[:, 2]), 0, 1))) <= MAX_SUPPORT_TILT
@@ -236,6 +234,47 @@ def find_support(z: np.ndarray, camera: InputConfig, tol: float, *, seed: int = 
     share = float((np.abs(sample @ normal + offset) <= tol).mean())
     nx, ny, nz = (float(v) for v in normal)
     return Plane((nx, ny, nz), offset, share)
+
+
+#: Points whose distances :func:`plane_shares` takes at once (they stay in the cache).
+VOTE_ROWS = 256
+
+
+def plane_shares(products: np.ndarray, offsets: np.ndarray, tol: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Shares of the points within ``tol`` of each plane and behind it by more than ``tol``.
+
+    Parameters
+    ----------
+    products
+        float64 (points, planes): ``n . p`` of each point and plane normal.
+    offsets
+        float64 (planes,): the planes' offsets (distances ``n . p + e``).
+    tol
+        Tolerance (depth units).
+
+    Returns
+    -------
+    on, below : numpy.ndarray
+        float64 (planes,): ``mean(|d| <= tol)`` and ``mean(d < -tol)`` over the
+        points (the same bits: counts over the count). Counted
+        :data:`VOTE_ROWS` points at a time, ``|d| <= tol`` as ``d <= tol``
+        less ``d < -tol``.
+    """
+    count, planes = products.shape
+    upto = np.zeros(planes, dtype=np.int64)
+    behind = np.zeros(planes, dtype=np.int64)
+    dist = np.empty((min(VOTE_ROWS, count), planes))
+    test = np.empty(dist.shape, dtype=bool)
+    for start in range(0, count, VOTE_ROWS):
+        k = min(VOTE_ROWS, count - start)
+        d, t = dist[:k], test[:k]
+        np.add(products[start:start + k], offsets, out=d)
+        np.less(d, -tol, out=t)
+        behind += t.view(np.uint8).sum(axis=0, dtype=np.int64)
+        np.less_equal(d, tol, out=t)
+        upto += t.view(np.uint8).sum(axis=0, dtype=np.int64)
+    return (upto - behind) / count, behind / count
 
 
 def polygon_mask(shape: tuple[int, int], vertices: tuple[tuple[float, float], ...]

@@ -691,7 +691,7 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     hover = _hovering(spans, touching or set(), space.tolerance)
     zone = border_zone(valid, space.extent)
     bordering = _present(owner[zone])
-    wide = _widest(owner, [o.id for o in objects], boxes)
+    wide = widest_discs(owner, [o.id for o in objects], boxes)
     pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
             and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
     if pile:  # far above the pile: the arm, a mount, a wall
@@ -753,29 +753,47 @@ def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     return float(low), float(top)
 
 
-def _widest(owner: np.ndarray, ids: list[int], boxes: list[Any] | None = None
+def widest_discs(owner: np.ndarray, ids: list[int], boxes: list[Any] | None = None
             ) -> dict[int, float]:
     """Radius in px of the widest disc inside each object's pixels (its clearance).
 
-    ``boxes``: :func:`scipy.ndimage.find_objects` of ``owner`` when known.
+    The distance of each pixel of an object to the nearest pixel that is not
+    in its interior (:func:`same_neighbours`: a pixel whose neighbour belongs
+    to another object is a border), taken in the object's box grown by one
+    pixel (within the image; ``boxes``: :func:`scipy.ndimage.find_objects`
+    of ``owner`` when known): the nearest such pixel of the whole image is
+    one of the box's (a nearer pixel off the object is always a border), so
+    the distances are those of the whole image's transform.
     """
     if not ids:
         return {}
-    same = owner > 0
-    for axis in (0, 1):  # a pixel whose neighbour belongs to another object is a border
-        diff = np.diff(owner, axis=axis) != 0
-        pad = [(0, 0), (0, 0)]
-        pad[axis] = (1, 0)
-        same &= ~np.pad(diff, pad)
-        pad[axis] = (0, 1)
-        same &= ~np.pad(diff, pad)
-    edt = ndimage.distance_transform_edt(same)
     boxes = ndimage.find_objects(owner) if boxes is None else boxes
+    h, w = owner.shape
     out = {}
     for i in ids:
-        values, mine = _in_box(edt, owner, boxes, i)
-        out[i] = float(values[mine].max()) if mine.any() else 0.0
+        box = boxes[i - 1] if i <= len(boxes) else None
+        if box is None:
+            out[i] = 0.0
+            continue
+        grown = (slice(max(box[0].start - 1, 0), min(box[0].stop + 1, h)),
+                 slice(max(box[1].start - 1, 0), min(box[1].stop + 1, w)))
+        crop = owner[grown]
+        mine = crop == i
+        edt = ndimage.distance_transform_edt(mine & same_neighbours(crop))
+        out[i] = float(edt[mine].max())
     return out
+
+
+def same_neighbours(owner: np.ndarray) -> np.ndarray:
+    """Bool: pixels whose 4-neighbours (those in the array) all have their value."""
+    same = np.ones(owner.shape, dtype=bool)
+    across = owner[1:] != owner[:-1]
+    same[1:] &= ~across
+    same[:-1] &= ~across
+    along = owner[:, 1:] != owner[:, :-1]
+    same[:, 1:] &= ~along
+    same[:, :-1] &= ~along
+    return same
 
 
 #: With nothing in view, a wall rises to the border and is about the tallest there.
