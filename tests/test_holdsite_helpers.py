@@ -13,10 +13,13 @@ from scipy import ndimage
 from rangeseg_cli.cell.workspace import Workspace
 from rangeseg_cli.stages.holdsite import (
     middle_value,
+    pixel_sums,
     region_lift,
     same_neighbours,
     square_dilation,
+    sums_at,
     widest_discs,
+    window_flat_rms,
 )
 
 
@@ -84,3 +87,27 @@ def test_widest_disc_of_each_object_and_none_for_a_missing_one():
     owner[7:9, 20:28] = 3  # 2 rows, both borders: no interior
     wide = widest_discs(owner, [1, 2, 3, 4])
     assert wide == {1: 7.0, 2: 2.0, 3: 0.0, 4: 0.0}
+
+
+def test_pixel_sums_and_sums_at_are_the_correlation_at_those_pixels():
+    rng = np.random.default_rng(4)
+    a = rng.normal(0.0, 50.0, (30, 40))
+    kernel = rng.normal(size=(5, 7))
+    kernel[2, 3] = 0.0  # a zero weight is left out, as scipy leaves it out
+    want = ndimage.correlate(a, kernel, mode="constant", cval=0.0)
+    rows, cols = np.array([0, 3, 29, 15]), np.array([0, 39, 20, 17])
+    assert pixel_sums(a, kernel, rows, cols).tobytes() == want[rows, cols].tobytes()
+    for share in (0.005, 0.5):  # few pixels one by one, many by their box
+        at = rng.random(a.shape) < share
+        got = sums_at(a, kernel, at)
+        assert got[at].tobytes() == want[at].tobytes()
+
+
+def test_window_flat_rms_at_some_pixels_is_the_same_there_and_nan_elsewhere():
+    rng = np.random.default_rng(5)
+    z = 300.0 + rng.normal(0.0, 1.5, (25, 35))
+    z[4, 6] = np.nan
+    at = rng.random(z.shape) < 0.3
+    fp = np.ones((7, 7), dtype=bool)
+    every, some = window_flat_rms(z, fp), window_flat_rms(z, fp, at=at)
+    assert some[at].tobytes() == every[at].tobytes() and np.isnan(some[~at]).all()

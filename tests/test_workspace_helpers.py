@@ -128,3 +128,10 @@ def test_plane_shares_of_points_on_in_front_and_behind():
     products = np.array([[0.0], [0.5], [-3.0], [3.0]])
     on, below = plane_shares(products, np.array([0.0]), 1.0)
     assert on.tolist() == [0.5] and below.tolist() == [0.25]
+
+
+def test_median9_by_row_blocks_of_a_tall_image_equals_the_direct_median():
+    z = np.random.default_rng(6).normal(size=(75, 9))  # more rows than MEDIAN_ROWS
+    want = np.median(windows(z), axis=-1)
+    got = median9(np.pad(z, 1, constant_values=np.nan))
+    assert np.array_equal(got[1:-1, 1:-1], want[1:-1, 1:-1])

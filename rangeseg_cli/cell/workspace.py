@@ -356,17 +356,8 @@ def _median3(z: np.ndarray) -> np.ndarray:
     return out
 
 
-def _sort3(a: np.ndarray, b: np.ndarray, c: np.ndarray
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Element-wise (smallest, middle, largest) of three arrays (NaN spreads to all three)."""
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    mid, top = np.minimum(hi, c), np.maximum(hi, c)
-    return np.minimum(lo, mid), np.maximum(lo, mid), top
-
-
-def _mid3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Element-wise middle of three arrays (NaN where any is NaN)."""
-    return np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+#: Rows of the image :func:`median9` takes at once (its buffers stay in the cache).
+MEDIAN_ROWS = 32
 
 
 def median9(padded: np.ndarray) -> np.ndarray:
@@ -375,7 +366,8 @@ def median9(padded: np.ndarray) -> np.ndarray:
     Each column of three sorted once (shared by three windows); the median of
     nine is then the middle of the largest of the three smallest, the middle
     of the middles and the smallest of the largest (exact: one of the nine
-    values). NaN wherever one of the nine is NaN.
+    values). NaN wherever one of the nine is NaN (an infinity is not).
+    :data:`MEDIAN_ROWS` rows at a time, in buffers.
 
     Parameters
     ----------
@@ -387,12 +379,49 @@ def median9(padded: np.ndarray) -> np.ndarray:
     numpy.ndarray
         float64 (H, W).
     """
-    lo, mid, hi = _sort3(padded[:-2], padded[1:-1], padded[2:])
-    left, centre, right = slice(None, -2), slice(1, -1), slice(2, None)
-    most_lo = np.maximum(np.maximum(lo[:, left], lo[:, centre]), lo[:, right])
-    mid_mid = _mid3(mid[:, left], mid[:, centre], mid[:, right])
-    least_hi = np.minimum(np.minimum(hi[:, left], hi[:, centre]), hi[:, right])
-    return _mid3(most_lo, mid_mid, least_hi)
+    h, w = padded.shape[0] - 2, padded.shape[1] - 2
+    out = np.empty((h, w))
+    n = max(min(MEDIAN_ROWS, h), 0)
+    columns = np.empty((4, n, w + 2))
+    spare = np.empty((3, n, w))
+    for r0 in range(0, h, MEDIAN_ROWS):
+        k = min(MEDIAN_ROWS, h - r0)
+        low, mid, high, scratch = columns[:, :k]
+        _sort_columns(padded[r0:r0 + k], padded[r0 + 1:r0 + 1 + k], padded[r0 + 2:r0 + 2 + k],
+                      (low, mid, high), scratch)
+        most_low, mid_mid, least_high = spare[:, :k]
+        np.maximum(low[:, :-2], low[:, 1:-1], out=most_low)
+        np.maximum(most_low, low[:, 2:], out=most_low)
+        np.minimum(high[:, :-2], high[:, 1:-1], out=least_high)
+        np.minimum(least_high, high[:, 2:], out=least_high)
+        rows = out[r0:r0 + k]
+        _middle(mid[:, :-2], mid[:, 1:-1], mid[:, 2:], mid_mid, rows)
+        _middle(most_low, mid_mid, least_high, rows, most_low)
+    return out
+
+
+def _sort_columns(a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                  out: tuple[np.ndarray, np.ndarray, np.ndarray], scratch: np.ndarray) -> None:
+    """Element-wise smallest, middle and largest of ``a, b, c`` into ``out`` (NaN to all)."""
+    low, mid, high = out
+    np.minimum(a, b, out=low)
+    np.maximum(a, b, out=high)
+    np.minimum(high, c, out=scratch)
+    np.maximum(high, c, out=high)
+    np.maximum(low, scratch, out=mid)
+    np.minimum(low, scratch, out=low)
+
+
+def _middle(a: np.ndarray, b: np.ndarray, c: np.ndarray, out: np.ndarray,
+            scratch: np.ndarray) -> None:
+    """Element-wise middle of ``a, b, c`` into ``out`` (NaN where any is NaN).
+
+    ``scratch`` may be ``a`` (overwritten); ``out`` none of the three.
+    """
+    np.maximum(a, b, out=out)
+    np.minimum(out, c, out=out)
+    np.minimum(a, b, out=scratch)
+    np.maximum(scratch, out, out=out)
 
 
 def median_of_valid(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

@@ -1125,7 +1125,7 @@ def _window_sums(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return ndimage.correlate(a, kernel, mode="constant", cval=0.0)
 
 
-def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
+def window_flat_rms(z: np.ndarray, fp: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
     """RMS residual of the least-squares plane of ``z`` over the footprint at each pixel.
 
     Parameters
@@ -1134,6 +1134,8 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
         float64 (H, W) heights, NaN where invalid.
     fp
         Boolean footprint (odd sides).
+    at
+        bool (H, W): the pixels wanted (NaN elsewhere), or ``None``: all.
 
     Returns
     -------
@@ -1146,7 +1148,9 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
     the offsets from its centre) have a constant matrix; only the moments
     ``sum z, sum x z, sum y z, sum z^2`` vary, each a correlation of the
     image with a fixed kernel. The heights are taken from their median
-    first, so that the squares do not cancel.
+    first, so that the squares do not cancel. With ``at`` and a footprint
+    that is correlated directly (not by FFT), the moments are summed at
+    those pixels only (:func:`pixel_sums`, the same bits).
     """
     valid = np.isfinite(z)
     base = float(np.median(z[valid])) if valid.any() else 0.0
@@ -1159,12 +1163,78 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
     a = np.array([[n, (w * x).sum(), (w * y).sum()],
                   [(w * x).sum(), (w * x * x).sum(), (w * x * y).sum()],
                   [(w * y).sum(), (w * x * y).sum(), (w * y * y).sum()]])
-    moments = [_window_sums(zc, k) for k in (w, w * x, w * y)]
+    kernels = (w, w * x, w * y)
+    if at is None or w.size > FFT_FOOTPRINT_PIXELS:
+        moments = [_window_sums(zc, k) for k in kernels]
+        squares = _window_sums(zc * zc, w)
+        full = _window_sums(valid.astype(np.float64), w) >= n - 0.5
+    else:
+        moments = [sums_at(zc, k, at) for k in kernels]
+        squares = sums_at(zc * zc, w, at)
+        full = (sums_at(valid.astype(np.float64), w, at) >= n - 0.5) & at
     b = np.stack(moments, axis=-1)
     coef = b @ np.linalg.pinv(a).T
-    rss = _window_sums(zc * zc, w) - np.einsum("...i,...i->...", b, coef)
-    full = _window_sums(valid.astype(np.float64), w) >= n - 0.5
+    rss = squares - np.einsum("...i,...i->...", b, coef)
     return np.where(full, np.sqrt(np.maximum(rss, 0.0) / n), np.nan)
+
+
+def pixel_sums(a: np.ndarray, kernel: np.ndarray, rows: np.ndarray, cols: np.ndarray
+               ) -> np.ndarray:
+    """:func:`scipy.ndimage.correlate` of ``a`` (zeros outside) at the pixels ``(rows, cols)``.
+
+    The same bits: the products of the kernel's non-zero weights (``|w| >
+    eps``, row by row) and the values under them, added one after the other
+    from 0, as scipy does at each pixel.
+
+    Parameters
+    ----------
+    a
+        float64 (H, W).
+    kernel
+        float64 (kr, kc), odd sides, centred.
+    rows, cols
+        int (N,) pixels of ``a``.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (N,).
+    """
+    kr, kc = kernel.shape[0] // 2, kernel.shape[1] // 2
+    padded = np.pad(a, ((kr, kr), (kc, kc)))
+    dr, dc = np.nonzero(np.abs(kernel) > np.finfo(np.float64).eps)
+    flat = (rows[None, :] + dr[:, None]) * padded.shape[1] + cols[None, :] + dc[:, None]
+    terms = np.zeros((dr.size + 1, rows.size))
+    np.multiply(padded.ravel()[flat], kernel[dr, dc][:, None], out=terms[1:])
+    return np.cumsum(terms, axis=0)[-1]
+
+
+#: :func:`sums_at` sums pixel by pixel (:func:`pixel_sums`) when the pixels wanted are
+#: fewer than this share of their box: each costs about as much as ten of a correlation.
+PIXEL_SUMS_SHARE = 0.1
+
+
+def sums_at(a: np.ndarray, kernel: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """:func:`scipy.ndimage.correlate` of ``a`` (zeros outside), right at the pixels ``at``.
+
+    The correlation of the box of ``at`` grown by the kernel's half sides
+    (within ``a``: the sums there see the same values, added in the same
+    order), or, for few pixels, :func:`pixel_sums`. Elsewhere zeros, or the
+    box's sums: not to be read.
+    """
+    rows, cols = np.nonzero(at)
+    out = np.zeros(a.shape)
+    if not rows.size:
+        return out
+    kr, kc = kernel.shape[0] // 2, kernel.shape[1] // 2
+    box = (slice(max(int(rows.min()) - kr, 0), int(rows.max()) + kr + 1),
+           slice(max(int(cols.min()) - kc, 0), int(cols.max()) + kc + 1))
+    sub = a[box]
+    if rows.size < PIXEL_SUMS_SHARE * sub.size:
+        out[rows, cols] = pixel_sums(a, kernel, rows, cols)
+    else:
+        out[box] = ndimage.correlate(sub, kernel, mode="constant", cval=0.0)
+    return out
 
 
 def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:
@@ -1353,7 +1423,7 @@ def _flat_enough(scene: _Scene, heights: np.ndarray, fp: np.ndarray, ok: np.ndar
     """``ok`` less the windows whose plane-fit RMS exceeds the limit (:func:`flat_limit`)."""
     if not math.isfinite(scene.flat_limit) or not ok.any():
         return ok
-    rms = window_flat_rms(heights, fp)
+    rms = window_flat_rms(heights, fp, at=ok)
     flat = ok & (rms <= scene.flat_limit)
     rough = ok & ~flat
     hits.rough += int(rough.sum())
