@@ -111,3 +111,30 @@ def test_window_flat_rms_at_some_pixels_is_the_same_there_and_nan_elsewhere():
     fp = np.ones((7, 7), dtype=bool)
     every, some = window_flat_rms(z, fp), window_flat_rms(z, fp, at=at)
     assert some[at].tobytes() == every[at].tobytes() and np.isnan(some[~at]).all()
+
+
+def test_a_curved_sites_pose_is_its_local_pose_also_when_its_tilt_was_tested():
+    from rangeseg_cli import load_config, run_pipeline
+    from rangeseg_cli.stages.holdsite import local_poses, local_reach
+
+    v, u = np.indices((64, 80), dtype=np.float64)
+    z = np.full((64, 80), 20.0)
+    dome = 90.0 - 0.02 * ((u - 40) ** 2 + (v - 32) ** 2)
+    inside = (np.abs(u - 40) < 24) & (np.abs(v - 32) < 20)
+    z[inside] = dome[inside]
+    z += np.random.default_rng(7).normal(0.0, 0.2, z.shape)
+    for tilt in (90.0, 30.0):  # without and with the tilt test (a pose per window tested)
+        config = load_config(overrides={"input": {"units_per_pixel": 1.0},
+                                        "holdsite": {"max_tilt": tilt, "max_candidates": 3}})
+        result = run_pipeline(z, config)
+        surfaces = {s.id: s for s in result.surfaces}
+        sites = [result.holdsite.holdsite, *result.holdsite.candidates]
+        curved = [site for site in sites if site.surface_type == "curved"]
+        assert curved
+        for site in curved:
+            height, gx, gy, ok = local_poses(
+                result.heights, result.labels, surfaces[site.surface], np.array([site.row]),
+                np.array([site.col]), local_reach(site.size))
+            assert ok[0] and site.elevation == float(height[0])
+            norm = math.sqrt(gx[0] ** 2 + gy[0] ** 2 + 1.0)
+            assert site.normal[2] == pytest.approx(1.0 / norm, rel=1e-12)

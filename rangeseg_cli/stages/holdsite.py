@@ -600,17 +600,20 @@ def unpickable_regions(labels: np.ndarray, pickable: np.ndarray, n: int) -> set[
     return set(np.flatnonzero(low).tolist())
 
 
-def region_lift(labels: np.ndarray, space: Workspace, z: np.ndarray, n: int) -> np.ndarray:
+def region_lift(labels: np.ndarray, space: Workspace, z: np.ndarray, n: int,
+                ids: Any = None) -> np.ndarray:
     """Median height of each label's pixels above the support (by label), else of ``z``.
 
     Each label's finite heights are taken from its box
     (:func:`scipy.ndimage.find_objects`) and the median from its two middle
-    order statistics (:func:`middle_value`); ``-inf`` for a label without one.
+    order statistics (:func:`middle_value`); ``-inf`` for a label without one,
+    and for those not in ``ids`` (an iterable of labels; ``None``: all).
     """
     height = space.height if space.height is not None else z
     out = np.full(n + 1, -np.inf)
+    wanted = None if ids is None else set(ids)
     for k, box in enumerate(ndimage.find_objects(labels, n), start=1):
-        if box is not None:
+        if box is not None and (wanted is None or k in wanted):
             values = height[box][labels[box] == k]
             out[k] = middle_value(values[np.isfinite(values)])
     return out
@@ -842,7 +845,8 @@ def _unit_note(config: Config) -> str:
 
 def carve_pickable(z: np.ndarray, labels: np.ndarray, pickable: np.ndarray,
                    on_support: np.ndarray | None, n: int, area: int, config: Config,
-                   backend: Backend) -> tuple[np.ndarray, list[Surface], dict[int, int]]:
+                   backend: Backend, low: set[int] | None = None
+                   ) -> tuple[np.ndarray, list[Surface], dict[int, int]]:
     """Pickable pieces of regions the workspace leaves out, as surfaces of their own.
 
     Growing can join a thin item to the floor (its contour not closed); the
@@ -858,7 +862,7 @@ def carve_pickable(z: np.ndarray, labels: np.ndarray, pickable: np.ndarray,
         in the input ``labels`` (new id -> old id); unchanged and empty when
         nothing is carved.
     """
-    low = unpickable_regions(labels, pickable, n)
+    low = unpickable_regions(labels, pickable, n) if low is None else low
     if not low:
         return labels, [], {}
     is_low = np.zeros(n + 1, dtype=bool)
@@ -1344,6 +1348,8 @@ class _Hits:
     accepted at one angle at least; ``ok`` and ``std`` (angles, h, w) hold,
     in the surface's crop (``offset`` from image coordinates), which angles
     are accepted and their AR std; ``edt`` is the crop's distance transform.
+    ``poses`` keeps the (elevation, dz/dx, dz/dy) of :func:`site_poses` that
+    the tilt test computed, by window (curved surfaces: Step 6 reuses them).
     """
 
     surface: Surface
@@ -1360,6 +1366,7 @@ class _Hits:
     steep: int = 0
     min_tilt: float = math.inf
     tilt_state: np.ndarray | None = None
+    poses: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     rough: int = 0
     min_rms: float = math.inf
     scene: Any = None
@@ -1560,7 +1567,7 @@ def _camera_approach(cfg: InputConfig, row: Any, col: Any, height: Any, gx: Any,
 TILT_TOLERANCE = 1e-6
 
 #: Windows whose local pose is computed at once, first (Step 4b); doubled each time.
-TILT_CHUNK = 1024
+TILT_CHUNK = 64
 
 
 def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
@@ -1588,8 +1595,11 @@ def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
 def _judge_tilts(scene: _Scene, hits: _Hits, idx: np.ndarray) -> np.ndarray:
     """Whether windows ``idx`` are level enough (bool); counts the steep ones in ``hits``."""
     r, c = hits.rows[idx], hits.cols[idx]
-    t = tilts(scene.camera, scene.camera.units_per_pixel, r, c,
-              *site_poses(scene, hits.surface, r, c))
+    poses = site_poses(scene, hits.surface, r, c)
+    t = tilts(scene.camera, scene.camera.units_per_pixel, r, c, *poses)
+    if hits.tilt_state is not None:  # the windows stay where they are: keep their poses
+        hits.poses.update(zip(idx.tolist(), zip(*(p.tolist() for p in poses), strict=True),
+                              strict=True))
     ok = t <= scene.cfg.max_tilt + TILT_TOLERANCE  # NaN (no depth): not level
     hits.steep += int(np.count_nonzero(~ok))
     if np.isfinite(t[~ok]).any():
@@ -1958,9 +1968,17 @@ def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
     site = make_site(hits.surface, r, c, object_id=obj.id, clearance=hits.clearance[k],
                      ar_std=ar_std, angle=angle,
                      site_score=score(hits.clearance[k], dist, scene.cfg.size, obj.pixels),
-                     config=config, pose=site_pose(scene, hits.surface, r, c))
+                     config=config, pose=_known_pose(scene, hits, k))
     return dataclasses.replace(site, size=scene.cfg.size,
                                flat_rms=site_flat_rms(scene.z, r, c, scene.footprint(angle)))
+
+
+def _known_pose(scene: _Scene, hits: _Hits, k: int) -> tuple[float, tuple[float, float]]:
+    """:func:`site_pose` of window ``k``, as its tilt test computed it when it did."""
+    if k in hits.poses:
+        height, gx, gy = hits.poses[k]
+        return height, (gx, gy)
+    return site_pose(scene, hits.surface, int(hits.rows[k]), int(hits.cols[k]))
 
 
 def site_flat_rms(z: np.ndarray, row: int, col: int, fp: np.ndarray) -> float:
@@ -2130,8 +2148,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     if space.height is not None:
         with np.errstate(invalid="ignore"):
             on_support = np.abs(space.height) <= space.tolerance
+    low = unpickable_regions(labels, space.pickable, n)
     labels, carved, origin = carve_pickable(z, labels, space.pickable, on_support, n, area,
-                                            config, backend)
+                                            config, backend, low)
     if origin:  # items grown into the floor: their pickable pieces are surfaces of their own
         by_id.update({c.id: c for c in carved})
         n, gaps = int(labels.max()), None
@@ -2140,13 +2159,15 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     framed = _framed(labels)
     border = framed | _near_outer_invalid(labels, valid)
     background_ids = find_background(by_id, border, config.holdsite.background, tol)
-    excluded = unpickable_regions(labels, space.pickable, n) - background_ids
+    if origin:  # the labels changed
+        low = unpickable_regions(labels, space.pickable, n)
+    excluded = low - background_ids
     left_out = background_ids | excluded
     # Step 2: objects, and which are covered by another
     if gaps is None:
         gaps = _known_gaps(labels, coeffs, backend)  # known labels
     object_of, objects = find_objects(by_id, left_out, gaps, tol, border)
-    lift = region_lift(labels, space, z, n)
+    lift = region_lift(labels, space, z, n, ids=object_of)  # step 3 orders only these
     if config.workspace.border_structures:
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
         touching = {(object_of[i], object_of[j]) for i, j in gaps
