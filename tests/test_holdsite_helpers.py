@@ -16,6 +16,7 @@ from rangeseg_cli.stages.holdsite import (
     pixel_sums,
     region_lift,
     same_neighbours,
+    segment_dilation,
     square_dilation,
     sums_at,
     widest_discs,
@@ -138,3 +139,12 @@ def test_a_curved_sites_pose_is_its_local_pose_also_when_its_tilt_was_tested():
             assert ok[0] and site.elevation == float(height[0])
             norm = math.sqrt(gx[0] ** 2 + gy[0] ** 2 + 1.0)
             assert site.normal[2] == pytest.approx(1.0 / norm, rel=1e-12)
+
+
+@pytest.mark.parametrize("size", [1, 3, 5, 7, 11, 15])
+def test_segment_dilation_is_binary_dilation_by_a_segment(size):
+    mask = np.random.default_rng(size).random((9, 31)) < 0.05
+    mask[4, 0] = mask[2, -1] = True
+    for axis, shape in ((1, (1, size)), (0, (size, 1))):
+        want = ndimage.binary_dilation(mask, structure=np.ones(shape, dtype=bool))
+        assert np.array_equal(segment_dilation(mask, size, axis), want)

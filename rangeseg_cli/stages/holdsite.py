@@ -408,13 +408,32 @@ def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
 def square_dilation(mask: np.ndarray, size: int) -> np.ndarray:
     """Binary dilation of ``mask`` by a ``size`` x ``size`` square (odd; outside = False).
 
-    A running maximum (:func:`scipy.ndimage.maximum_filter`, separable: a row
-    segment, then a column segment), the same pixels as
-    :func:`scipy.ndimage.binary_dilation` with that square.
+    Separable: a row segment, then a column segment (:func:`segment_dilation`);
+    the same pixels as :func:`scipy.ndimage.binary_dilation` with that square.
     """
-    grown = ndimage.maximum_filter(np.asarray(mask, dtype=bool).view(np.uint8), size=size,
-                                   mode="constant", cval=0)
-    return grown.view(bool)
+    return segment_dilation(segment_dilation(np.asarray(mask, dtype=bool), size, 1), size, 0)
+
+
+def segment_dilation(mask: np.ndarray, size: int, axis: int) -> np.ndarray:
+    """Whether any pixel of a centred segment of ``size`` (odd) along ``axis`` is in ``mask``.
+
+    The mask framed by ``size // 2`` False pixels on either side; the OR of
+    the ``size`` pixels from each one on built by doubling (1, 2, 4, ...
+    pixels, then the rest as an overlapping stretch).
+    """
+    m = np.moveaxis(np.asarray(mask, dtype=bool), axis, -1)
+    n, half = m.shape[-1], size // 2
+    ahead = np.zeros(m.shape[:-1] + (n + 2 * half,), dtype=bool)
+    ahead[..., half:half + n] = m
+    total = n + 2 * half
+    span = 1  # ahead[..., i]: any of the framed mask's pixels i .. i + span - 1
+    while 2 * span <= size:
+        ahead[..., :total - span] |= ahead[..., span:total].copy()
+        span *= 2
+    if span < size:
+        rest = size - span
+        ahead[..., :total - rest] |= ahead[..., rest:total].copy()
+    return np.moveaxis(ahead[..., :n], -1, axis)
 
 
 def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
@@ -441,20 +460,28 @@ def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[i
     return framed | _near_outer_invalid(labels, np.asarray(valid, dtype=bool))
 
 
-def _same_level(base: Surface, other: Surface, tol: float) -> bool:
+def _same_level(base: Surface, other: Surface, tol: float,
+                known: dict[str, Any] | None = None) -> bool:
     """``other`` continues ``base`` (on base's extended fit, or same mean height on a level base).
 
     Never across a step edge between the two. The mean heights are compared
     only where ``base`` is level (its fit varies by ``tol`` or less over its
     box): on a tilted table a box whose top is as high as the table's middle
-    is not the table.
+    is not the table. ``known``: a dict kept across calls with the same
+    ``base`` and ``tol`` (its step neighbours and whether it is level, found
+    once).
     """
-    if any(nb.id == other.id and nb.edge == "step" for nb in base.neighbors):
+    known = {} if known is None else known
+    if "steps" not in known:
+        known["steps"] = {nb.id for nb in base.neighbors if nb.edge == "step"}
+    if other.id in known["steps"]:
         return False
     row, col = other.centroid
     if abs(base.height_at(row, col) - other.height_at(row, col)) <= tol:
         return True
-    return _level(base, tol) and abs(other.mean_height - base.mean_height) <= tol
+    if "level" not in known:
+        known["level"] = _level(base, tol)
+    return bool(known["level"]) and abs(other.mean_height - base.mean_height) <= tol
 
 
 def _level(surface: Surface, tol: float) -> bool:
@@ -496,7 +523,9 @@ def find_background(surfaces: dict[int, Surface], border: set[int], rule: str, t
         base = max(large, key=lambda s: (s.pixels, -s.mean_height, -s.id))
     else:
         base = min(large, key=lambda s: (s.mean_height, s.id))
-    return {s.id for s in surfaces.values() if s.id == base.id or _same_level(base, s, tol)}
+    known: dict[str, Any] = {}
+    return {s.id for s in surfaces.values()
+            if s.id == base.id or _same_level(base, s, tol, known)}
 
 
 def _edge_kinds(surfaces: dict[int, Surface]) -> dict[tuple[int, int], str]:
@@ -2142,7 +2171,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     coeffs = _coefficient_table(surfaces, n)
     # Step 0: the workspace (beyond the paper): what may be picked
     space = assess(z, config, noise, background=background, roi=roi)
-    depth = -float(np.nanmedian(z)) if valid.any() else 0.0
+    # the median depth only sizes a footprint_mm (the median costs a pass over the image)
+    depth = (-float(np.nanmedian(z)) if valid.any() else 0.0) if footprint_in_mm(
+        config.holdsite, config.input) else 0.0
     area = math.prod(footprint_pixels(config.holdsite, config.input, depth))
     on_support = None
     if space.height is not None:
