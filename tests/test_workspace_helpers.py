@@ -4,6 +4,8 @@ Constructed inputs with known answers; each fast helper is checked against
 the direct computation it stands for.
 """
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
@@ -15,6 +17,8 @@ from rangeseg_cli.cell.workspace import (
     median9,
     median_of_valid,
     plane_shares,
+    prepared_background,
+    same_bits,
     support_hull,
 )
 
@@ -135,3 +139,34 @@ def test_median9_by_row_blocks_of_a_tall_image_equals_the_direct_median():
     want = np.median(windows(z), axis=-1)
     got = median9(np.pad(z, 1, constant_values=np.nan))
     assert np.array_equal(got[1:-1, 1:-1], want[1:-1, 1:-1])
+
+
+def test_same_bits_tells_nan_and_signed_zeros_apart_only_by_their_bits():
+    a = np.array([1.0, np.nan, 0.0])
+    assert same_bits(a, a.copy())
+    assert not same_bits(a, np.array([1.0, np.nan, -0.0]))
+    assert not same_bits(a, a.astype(np.float32)) and not same_bits(a, a[:2])
+
+
+def test_prepared_background_is_the_median_filled_and_its_points_kept_for_one_frame():
+    from rangeseg_cli.cell.workspace import BACKGROUND_REACH, matches_background, points
+    from rangeseg_cli.config import InputConfig
+
+    rng = np.random.default_rng(8)
+    bg = rng.normal(20.0, 0.5, (30, 40))
+    bg[5:9, 5:9] = np.nan
+    camera = InputConfig()
+    smooth, filled, pts = prepared_background(bg, camera)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+        want = np.where(np.isfinite(bg), np.nanmedian(windows(bg), axis=-1), np.nan)
+    np.testing.assert_allclose(smooth, want, rtol=0, atol=1e-12)
+    assert np.isfinite(filled[5:9, 5:9]).all() and BACKGROUND_REACH >= 4
+    assert np.array_equal(pts, points(smooth, camera), equal_nan=True)
+    scene = bg + 5.0
+    assert matches_background(scene, smooth, 1.0, filled=filled).tobytes() == \
+        matches_background(scene, smooth, 1.0).tobytes()
+    again = prepared_background(bg.copy(), camera)
+    assert all(x is y for x, y in zip(again, (smooth, filled, pts), strict=True))
+    other = prepared_background(bg + 1.0, camera)
+    assert other[0] is not smooth and not smooth.flags.writeable

@@ -310,20 +310,67 @@ def region_of_interest(shape: tuple[int, int], ws: WorkspaceConfig,
     return allowed
 
 
-def matches_background(z: np.ndarray, background: np.ndarray, tol: float) -> np.ndarray:
+def matches_background(z: np.ndarray, background: np.ndarray, tol: float, *,
+                       filled: np.ndarray | None = None) -> np.ndarray:
     """Bool (H, W): pixels within ``tol`` of the background frame, or behind it.
 
     Both frames come median-filtered over 3x3 valid pixels (:func:`assess`:
     a pixel's noise should not make it an object). Where the background has
     no reading, its nearest reading within :data:`BACKGROUND_REACH` pixels
     stands in (a depth camera's holes move from frame to frame, most of all
-    along a tote's rim); farther away nothing is known: False.
+    along a tote's rim); farther away nothing is known: False. ``filled``:
+    the background so filled already (:func:`prepared_background`).
     """
-    a, b = z, _filled(background, BACKGROUND_REACH)
+    a, b = z, _filled(background, BACKGROUND_REACH) if filled is None else filled
     known = np.isfinite(a) & np.isfinite(b)
     out = np.zeros(z.shape, dtype=bool)
     out[known] = a[known] - b[known] <= tol
     return out
+
+
+#: The last background frame :func:`prepared_background` was given, and what it made of it.
+_PREPARED: list[tuple[InputConfig, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]] = []
+
+
+def prepared_background(background: np.ndarray, camera: InputConfig
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The background's 3x3 median, that filled (:func:`matches_background`) and its points.
+
+    A batch checks every image against one background frame: the three
+    (read-only) arrays are kept for the last frame given and handed out
+    again while the next frame has the same bits and ``[input]`` (the
+    values :func:`assess` would compute).
+
+    Parameters
+    ----------
+    background
+        float64 (H, W) heights of the empty scene, NaN where no reading.
+    camera
+        ``[input]`` (:func:`points`).
+
+    Returns
+    -------
+    smooth, filled, pts : numpy.ndarray
+        (H, W), (H, W) and (H, W, 3).
+    """
+    frame = np.ascontiguousarray(background)
+    for known_camera, known, made in _PREPARED:
+        if known_camera == camera and same_bits(known, frame):
+            return made
+    smooth = _median3(frame)
+    made = (smooth, _filled(smooth, BACKGROUND_REACH), points(smooth, camera))
+    for arr in made:
+        arr.flags.writeable = False
+    _PREPARED[:] = [(camera, frame.copy(), made)]
+    return made
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two arrays have the same shape, type and bytes (NaN and -0.0 included)."""
+    if a.shape != b.shape or a.dtype != b.dtype:
+        return False
+    return bool(np.array_equal(np.ascontiguousarray(a).view(np.uint8),
+                               np.ascontiguousarray(b).view(np.uint8)))
 
 
 def _filled(z: np.ndarray, reach: int) -> np.ndarray:
@@ -470,24 +517,28 @@ def assess(z: np.ndarray, config: Config, noise: float, *,
         return Workspace(pickable, None, None, tol)
     smooth = _median3(z)
     # the empty scene shows the whole support: found there when given
-    ref = _median3(background) if background is not None else smooth
+    ref, filled, ref_pts = smooth, None, None
     if background is not None:
+        ref, filled, ref_pts = prepared_background(background, config.input)
         bg_tol = ws.background_tolerance or auto
-        pickable &= ~matches_background(smooth, ref, bg_tol)
+        pickable &= ~matches_background(smooth, ref, bg_tol, filled=filled)
     plane = find_support(ref, config.input, tol) if ws.support else None
     if plane is None:
         return Workspace(pickable, None, None, tol)
     pts = points(smooth, config.input)
     height = plane.distance(pts)
     with np.errstate(invalid="ignore"):
-        on = np.abs(height if background is None
-                    else plane.distance(points(ref, config.input))) <= tol
+        on = np.abs(height if ref_pts is None else plane.distance(ref_pts)) <= tol
         pickable &= height > max(tol, ws.min_height)
         if ws.max_height > 0:
             pickable &= height <= ws.max_height
     hull = support_hull(on)
-    pickable = over_support(pts, height, hull, plane, config.input, where=pickable)
-    return Workspace(pickable, height, plane, tol, hull_extent(hull, z.shape))
+    extent = hull_extent(hull, z.shape)
+    if config.input.has_intrinsics:
+        pickable = over_support(pts, height, hull, plane, config.input, where=pickable)
+    else:  # a height map's feet are its pixels, and its extent is not shrunk
+        pickable &= extent
+    return Workspace(pickable, height, plane, tol, extent)
 
 
 def support_hull(on: np.ndarray) -> np.ndarray | None:
