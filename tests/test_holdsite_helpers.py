@@ -13,6 +13,7 @@ from scipy import ndimage
 from rangeseg_cli.cell.workspace import Workspace
 from rangeseg_cli.stages.holdsite import (
     middle_value,
+    outer_invalid,
     pixel_sums,
     region_lift,
     same_neighbours,
@@ -148,3 +149,15 @@ def test_segment_dilation_is_binary_dilation_by_a_segment(size):
     for axis, shape in ((1, (1, size)), (0, (size, 1))):
         want = ndimage.binary_dilation(mask, structure=np.ones(shape, dtype=bool))
         assert np.array_equal(segment_dilation(mask, size, axis), want)
+
+
+def test_outer_invalid_is_the_invalid_areas_joined_to_the_frame():
+    valid = np.ones((8, 10), dtype=bool)
+    assert outer_invalid(valid) is None
+    valid[3:5, 4:6] = False  # a hole inside: not joined
+    assert outer_invalid(valid) is None
+    valid[0, 0] = valid[1, 1] = False  # diagonal: 8-connected to the frame
+    valid[7, 9] = False
+    got = outer_invalid(valid)
+    assert got is not None
+    assert sorted(zip(*np.nonzero(got), strict=True)) == [(0, 0), (1, 1), (7, 9)]

@@ -170,3 +170,16 @@ def test_prepared_background_is_the_median_filled_and_its_points_kept_for_one_fr
     assert all(x is y for x, y in zip(again, (smooth, filled, pts), strict=True))
     other = prepared_background(bg + 1.0, camera)
     assert other[0] is not smooth and not smooth.flags.writeable
+
+
+def test_inside_hull_of_many_positions_in_chunks_is_the_test_of_every_half_plane():
+    rng = np.random.default_rng(9)
+    hull = np.asarray(ConvexHull(rng.uniform(0.0, 50.0, (12, 2))).equations)
+    rows, cols = rng.uniform(-5.0, 55.0, (2, 20000))  # more than HULL_CHUNK
+    rows[::97] = np.nan  # unknown feet count as in
+    want = np.ones(rows.shape, dtype=bool)
+    for a, b, c in hull:
+        with np.errstate(invalid="ignore"):
+            want &= ~(a * cols + b * rows + c > 1.0 - 1.5)
+    assert np.array_equal(inside_hull(hull, rows, cols, 1.5), want)
+    assert inside_hull(hull, rows[:0], cols[:0]).shape == (0,)

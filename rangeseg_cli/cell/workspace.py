@@ -211,14 +211,14 @@ def find_support(z: np.ndarray, camera: InputConfig, tol: float, *, seed: int = 
         plane passes the tests.
     """
     valid = np.isfinite(z) & ((-z > 0) if camera.has_intrinsics else True)
-    rows, cols = np.nonzero(valid)
-    if rows.size < max(100, 0.03 * z.size):
+    flat = np.flatnonzero(valid)  # row-major, as np.nonzero's rows and columns
+    if flat.size < max(100, 0.03 * z.size):
         return None
     rng = np.random.default_rng(seed)
-    pick = rng.choice(rows.size, size=min(SAMPLE, rows.size), replace=False)
+    pick = rng.choice(flat.size, size=min(SAMPLE, flat.size), replace=False)
     pick.sort()
-    sample = points(z[rows[pick], cols[pick]], camera, rows[pick].astype(np.float64),
-                    cols[pick].astype(np.float64))
+    rows, cols = np.divmod(flat[pick], z.shape[1])
+    sample = points(z[rows, cols], camera, rows.astype(np.float64), cols.astype(np.float64))
     normals, offsets = _hypotheses(sample, rng, camera.has_intrinsics)
     scored = sample[:: max(1, sample.shape[0] // SCORED)]  # spread over the image
     on, below = plane_shares(scored @ normals.T, offsets, tol)  # (points, planes) products
@@ -581,19 +581,42 @@ def extreme_pixels(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows, cols
 
 
+#: Positions :func:`inside_hull` tests at once (its buffers stay in the cache).
+HULL_CHUNK = 8192
+
+
 def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray,
                 inset: float = 0.0) -> np.ndarray:
     """Whether image positions lie in the hull shrunk by ``inset`` px (all True without one).
 
     The hull runs through pixel centres: a position within a pixel outside it
-    counts as in (at ``inset`` 0).
+    counts as in (at ``inset`` 0). Flat positions are tested
+    :data:`HULL_CHUNK` at a time, in buffers (the same arithmetic).
     """
     inside = np.ones(np.shape(rows), dtype=bool)
     if hull is None:
         return inside
-    for a, b, c in hull:  # unit normals (a, b), outwards
-        with np.errstate(invalid="ignore"):
-            inside &= ~(a * cols + b * rows + c > 1.0 - inset)
+    rows, cols = np.broadcast_arrays(rows, cols)
+    if rows.ndim != 1:
+        for a, b, c in hull:  # unit normals (a, b), outwards
+            with np.errstate(invalid="ignore"):
+                inside &= ~(a * cols + b * rows + c > 1.0 - inset)
+        return inside
+    limit = 1.0 - inset
+    size = min(HULL_CHUNK, rows.size)
+    value, term, out = np.empty(size), np.empty(size), np.empty(size, dtype=bool)
+    for start in range(0, rows.size, HULL_CHUNK):
+        stop = min(start + HULL_CHUNK, rows.size)
+        rr, cc, k = rows[start:stop], cols[start:stop], stop - start
+        v, t, o, keep = value[:k], term[:k], out[:k], inside[start:stop]
+        for a, b, c in hull:
+            np.multiply(a, cc, out=v)
+            np.multiply(b, rr, out=t)
+            np.add(v, t, out=v)
+            np.add(v, c, out=v)
+            with np.errstate(invalid="ignore"):
+                np.greater(v, limit, out=o)
+            keep &= ~o
     return inside
 
 

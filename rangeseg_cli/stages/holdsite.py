@@ -394,15 +394,22 @@ def _framed(labels: np.ndarray) -> set[int]:
 
 def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
     """Labels within :data:`ADJACENCY_RADIUS` of invalid areas 8-connected to the frame."""
-    if valid.all():
+    zone = outer_invalid(valid)
+    if zone is None:
         return set()
-    blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
-    frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
-    outer = np.unique(frame[frame > 0])
-    if outer.size == 0:
-        return set()
-    zone = np.isin(blobs, outer)
     return _present(labels[square_dilation(zone, 2 * ADJACENCY_RADIUS + 1)])
+
+
+def outer_invalid(valid: np.ndarray) -> np.ndarray | None:
+    """Bool (H, W): invalid pixels 8-connected to an invalid pixel of the frame; ``None``: none."""
+    if valid.all():
+        return None
+    blobs, count = ndimage.label(~valid, structure=np.ones((3, 3)))
+    frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
+    reaching = np.zeros(count + 1, dtype=bool)
+    reaching[frame] = True
+    reaching[0] = False
+    return reaching[blobs] if reaching.any() else None
 
 
 def square_dilation(mask: np.ndarray, size: int) -> np.ndarray:
@@ -671,10 +678,8 @@ def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarr
     zone = np.zeros(valid.shape, dtype=bool)
     k = ADJACENCY_RADIUS + 1
     zone[:k], zone[-k:], zone[:, :k], zone[:, -k:] = True, True, True, True
-    if not valid.all():
-        blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
-        frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
-        outer = np.isin(blobs, np.unique(frame[frame > 0]))
+    outer = outer_invalid(valid)
+    if outer is not None:
         if extent is not None:
             outer &= ~extent
         zone |= square_dilation(outer, 2 * k - 1)
@@ -723,7 +728,9 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     hover = _hovering(spans, touching or set(), space.tolerance)
     zone = border_zone(valid, space.extent)
     bordering = _present(owner[zone])
-    wide = widest_discs(owner, [o.id for o in objects], boxes)
+    # the widest disc counts for the pile (away from the border, not hovering) and standing
+    wide = widest_discs(owner, [o.id for o in objects if o.id in standing
+                                or o.id not in bordering | hover], boxes)
     pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
             and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
     if pile:  # far above the pile: the arm, a mount, a wall
