@@ -161,3 +161,25 @@ def test_outer_invalid_is_the_invalid_areas_joined_to_the_frame():
     got = outer_invalid(valid)
     assert got is not None
     assert sorted(zip(*np.nonzero(got), strict=True)) == [(0, 0), (1, 1), (7, 9)]
+
+
+def test_local_poses_of_sites_in_shared_and_separate_columns_are_the_direct_fits():
+    from rangeseg_cli.models import Surface
+    from rangeseg_cli.stages.holdsite import local_poses
+
+    v, u = np.indices((40, 50), dtype=np.float64)
+    z = 50.0 + 0.3 * u - 0.2 * v + 0.01 * u * v
+    labels = np.ones(z.shape, dtype=np.int32)
+    s = Surface(id=1, pixels=z.size, bbox=(0, 0, 39, 49), centroid=(19.5, 24.5),
+                mean_height=float(z.mean()), coefficients=(0.0,) * 6, rms_error=0.0,
+                type="curved", shape="saddle-ridge")
+    rows, cols = np.array([10, 20, 30, 20]), np.array([15, 15, 30, 40])
+    together = local_poses(z, labels, s, rows, cols, 7)
+    for k in range(rows.size):  # one site at a time: the same bits
+        alone = local_poses(z, labels, s, rows[k:k + 1], cols[k:k + 1], 7)
+        assert all(a[0] == t[k] for a, t in zip(alone, together, strict=True))
+    height, gx, gy, ok = together
+    assert ok.all()
+    np.testing.assert_allclose(height, z[rows, cols], atol=1e-9)
+    np.testing.assert_allclose(gx, 0.3 + 0.01 * rows, atol=1e-9)
+    np.testing.assert_allclose(gy, -0.2 + 0.01 * cols, atol=1e-9)

@@ -1855,8 +1855,9 @@ def local_poses(z: np.ndarray, labels: np.ndarray, s: Surface, rows: np.ndarray,
     images: sums of ``m x^a y^b`` (a + b <= 4) and ``m z x^a y^b`` (a + b <= 2)
     over the square of half side ``reach`` around each pixel, with ``m`` the
     surface's valid pixels and x, y the offsets divided by ``reach``, by two
-    1-D correlations each (the square's weights are separable). Heights are
-    taken relative to the surface's mean height.
+    1-D correlations each (the square's weights are separable; the second
+    only down the sites' columns). Heights are taken relative to the
+    surface's mean height.
 
     Returns
     -------
@@ -1874,10 +1875,12 @@ def local_poses(z: np.ndarray, labels: np.ndarray, s: Surface, rows: np.ndarray,
     weight = mine.astype(np.float64)
     rel = np.where(mine, z[box] - s.mean_height, 0.0)
     taps = np.arange(-reach, reach + 1, dtype=np.float64) / max(reach, 1)
-    at = (rows - box[0].start, cols - box[1].start)
+    # the second (column) pass only down the sites' columns: each column is summed alone
+    used, column = np.unique(cols - box[1].start, return_inverse=True)
+    at = (rows - box[0].start, column.ravel())
 
     def moments(image: np.ndarray, degree: int) -> dict[tuple[int, int], np.ndarray]:
-        across = [ndimage.correlate1d(image, taps ** a, axis=1, mode="constant")
+        across = [ndimage.correlate1d(image, taps ** a, axis=1, mode="constant")[:, used]
                   for a in range(degree + 1)]
         return {(a, b): ndimage.correlate1d(across[a], taps ** b, axis=0, mode="constant")[at]
                 for a in range(degree + 1) for b in range(degree + 1 - a)}
