@@ -12,6 +12,7 @@ from scipy import ndimage
 
 from rangeseg_cli.cell.workspace import Workspace
 from rangeseg_cli.stages.holdsite import (
+    footprint,
     middle_value,
     outer_invalid,
     pixel_sums,
@@ -110,9 +111,11 @@ def test_window_flat_rms_at_some_pixels_is_the_same_there_and_nan_elsewhere():
     z = 300.0 + rng.normal(0.0, 1.5, (25, 35))
     z[4, 6] = np.nan
     at = rng.random(z.shape) < 0.3
-    fp = np.ones((7, 7), dtype=bool)
-    every, some = window_flat_rms(z, fp), window_flat_rms(z, fp, at=at)
-    assert some[at].tobytes() == every[at].tobytes() and np.isnan(some[~at]).all()
+    at[4, 5] = True  # a window with the invalid pixel in it: NaN
+    for fp in (np.ones((7, 7), dtype=bool), footprint((3, 7), 30.0)):
+        every, some = window_flat_rms(z, fp), window_flat_rms(z, fp, at=at)
+        assert some[at].tobytes() == every[at].tobytes() and np.isnan(some[~at]).all()
+        assert np.isnan(some[4, 5])
 
 
 def test_a_curved_sites_pose_is_its_local_pose_also_when_its_tilt_was_tested():

@@ -1190,7 +1190,9 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray, at: np.ndarray | None = None)
     image with a fixed kernel. The heights are taken from their median
     first, so that the squares do not cancel. With ``at`` and a footprint
     that is correlated directly (not by FFT), the moments are summed at
-    those pixels only (:func:`pixel_sums`, the same bits).
+    those pixels only (:func:`sums_at`, the same bits), and a window is full
+    where the footprint fits on the valid pixels (:func:`erode`: then the
+    count of valid pixels under it is the footprint's).
     """
     valid = np.isfinite(z)
     base = float(np.median(z[valid])) if valid.any() else 0.0
@@ -1208,10 +1210,12 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray, at: np.ndarray | None = None)
         moments = [_window_sums(zc, k) for k in kernels]
         squares = _window_sums(zc * zc, w)
         full = _window_sums(valid.astype(np.float64), w) >= n - 0.5
-    else:
-        moments = [sums_at(zc, k, at) for k in kernels]
-        squares = sums_at(zc * zc, w, at)
-        full = (sums_at(valid.astype(np.float64), w, at) >= n - 0.5) & at
+    else:  # a window is full where the footprint lies wholly on valid pixels
+        rows, cols = np.nonzero(at)
+        pixels = (rows, cols)
+        moments = [sums_at(zc, k, at, pixels) for k in kernels]
+        squares = sums_at(zc * zc, w, at, pixels)
+        full = erode(valid, fp) & at
     b = np.stack(moments, axis=-1)
     coef = b @ np.linalg.pinv(a).T
     rss = squares - np.einsum("...i,...i->...", b, coef)
@@ -1254,15 +1258,16 @@ def pixel_sums(a: np.ndarray, kernel: np.ndarray, rows: np.ndarray, cols: np.nda
 PIXEL_SUMS_SHARE = 0.1
 
 
-def sums_at(a: np.ndarray, kernel: np.ndarray, at: np.ndarray) -> np.ndarray:
+def sums_at(a: np.ndarray, kernel: np.ndarray, at: np.ndarray,
+            pixels: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """:func:`scipy.ndimage.correlate` of ``a`` (zeros outside), right at the pixels ``at``.
 
     The correlation of the box of ``at`` grown by the kernel's half sides
     (within ``a``: the sums there see the same values, added in the same
     order), or, for few pixels, :func:`pixel_sums`. Elsewhere zeros, or the
-    box's sums: not to be read.
+    box's sums: not to be read. ``pixels``: ``np.nonzero(at)`` when known.
     """
-    rows, cols = np.nonzero(at)
+    rows, cols = np.nonzero(at) if pixels is None else pixels
     out = np.zeros(a.shape)
     if not rows.size:
         return out
