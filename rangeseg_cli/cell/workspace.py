@@ -211,19 +211,17 @@ def find_support(z: np.ndarray, camera: InputConfig, tol: float, *, seed: int = 
         plane passes the tests.
     """
     valid = np.isfinite(z) & ((-z > 0) if camera.has_intrinsics else True)
-    rows, cols = np.nonzero(valid)
-    if rows.size < max(100, 0.03 * z.size):
+    flat = np.flatnonzero(valid)  # row-major, as np.nonzero's rows and columns
+    if flat.size < max(100, 0.03 * z.size):
         return None
     rng = np.random.default_rng(seed)
-    pick = rng.choice(rows.size, size=min(SAMPLE, rows.size), replace=False)
+    pick = rng.choice(flat.size, size=min(SAMPLE, flat.size), replace=False)
     pick.sort()
-    sample = points(z[rows[pick], cols[pick]], camera, rows[pick].astype(np.float64),
-                    cols[pick].astype(np.float64))
+    rows, cols = np.divmod(flat[pick], z.shape[1])
+    sample = points(z[rows, cols], camera, rows.astype(np.float64), cols.astype(np.float64))
     normals, offsets = _hypotheses(sample, rng, camera.has_intrinsics)
     scored = sample[:: max(1, sample.shape[0] // SCORED)]  # spread over the image
-    dist = scored @ normals.T + offsets  # (points, planes)
-    on = (np.abs(dist) <= tol).mean(axis=0)
-    below = (dist < -tol).mean(axis=0)
+    on, below = plane_shares(scored @ normals.T, offsets, tol)  # (points, planes) products
     ok = below <= MAX_BELOW
     if camera.has_intrinsics:
         ok &= np.degrees(np.arccos(np.clip(np.abs(normals[:, 2]), 0, 1))) <= MAX_SUPPORT_TILT
@@ -236,6 +234,47 @@ def find_support(z: np.ndarray, camera: InputConfig, tol: float, *, seed: int = 
     share = float((np.abs(sample @ normal + offset) <= tol).mean())
     nx, ny, nz = (float(v) for v in normal)
     return Plane((nx, ny, nz), offset, share)
+
+
+#: Points whose distances :func:`plane_shares` takes at once (they stay in the cache).
+VOTE_ROWS = 256
+
+
+def plane_shares(products: np.ndarray, offsets: np.ndarray, tol: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Shares of the points within ``tol`` of each plane and behind it by more than ``tol``.
+
+    Parameters
+    ----------
+    products
+        float64 (points, planes): ``n . p`` of each point and plane normal.
+    offsets
+        float64 (planes,): the planes' offsets (distances ``n . p + e``).
+    tol
+        Tolerance (depth units).
+
+    Returns
+    -------
+    on, below : numpy.ndarray
+        float64 (planes,): ``mean(|d| <= tol)`` and ``mean(d < -tol)`` over the
+        points (the same bits: counts over the count). Counted
+        :data:`VOTE_ROWS` points at a time, ``|d| <= tol`` as ``d <= tol``
+        less ``d < -tol``.
+    """
+    count, planes = products.shape
+    upto = np.zeros(planes, dtype=np.int64)
+    behind = np.zeros(planes, dtype=np.int64)
+    dist = np.empty((min(VOTE_ROWS, count), planes))
+    test = np.empty(dist.shape, dtype=bool)
+    for start in range(0, count, VOTE_ROWS):
+        k = min(VOTE_ROWS, count - start)
+        d, t = dist[:k], test[:k]
+        np.add(products[start:start + k], offsets, out=d)
+        np.less(d, -tol, out=t)
+        behind += t.view(np.uint8).sum(axis=0, dtype=np.int64)
+        np.less_equal(d, tol, out=t)
+        upto += t.view(np.uint8).sum(axis=0, dtype=np.int64)
+    return (upto - behind) / count, behind / count
 
 
 def polygon_mask(shape: tuple[int, int], vertices: tuple[tuple[float, float], ...]
@@ -271,20 +310,67 @@ def region_of_interest(shape: tuple[int, int], ws: WorkspaceConfig,
     return allowed
 
 
-def matches_background(z: np.ndarray, background: np.ndarray, tol: float) -> np.ndarray:
+def matches_background(z: np.ndarray, background: np.ndarray, tol: float, *,
+                       filled: np.ndarray | None = None) -> np.ndarray:
     """Bool (H, W): pixels within ``tol`` of the background frame, or behind it.
 
     Both frames come median-filtered over 3x3 valid pixels (:func:`assess`:
     a pixel's noise should not make it an object). Where the background has
     no reading, its nearest reading within :data:`BACKGROUND_REACH` pixels
     stands in (a depth camera's holes move from frame to frame, most of all
-    along a tote's rim); farther away nothing is known: False.
+    along a tote's rim); farther away nothing is known: False. ``filled``:
+    the background so filled already (:func:`prepared_background`).
     """
-    a, b = z, _filled(background, BACKGROUND_REACH)
+    a, b = z, _filled(background, BACKGROUND_REACH) if filled is None else filled
     known = np.isfinite(a) & np.isfinite(b)
     out = np.zeros(z.shape, dtype=bool)
     out[known] = a[known] - b[known] <= tol
     return out
+
+
+#: The last background frame :func:`prepared_background` was given, and what it made of it.
+_PREPARED: list[tuple[InputConfig, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]] = []
+
+
+def prepared_background(background: np.ndarray, camera: InputConfig
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The background's 3x3 median, that filled (:func:`matches_background`) and its points.
+
+    A batch checks every image against one background frame: the three
+    (read-only) arrays are kept for the last frame given and handed out
+    again while the next frame has the same bits and ``[input]`` (the
+    values :func:`assess` would compute).
+
+    Parameters
+    ----------
+    background
+        float64 (H, W) heights of the empty scene, NaN where no reading.
+    camera
+        ``[input]`` (:func:`points`).
+
+    Returns
+    -------
+    smooth, filled, pts : numpy.ndarray
+        (H, W), (H, W) and (H, W, 3).
+    """
+    frame = np.ascontiguousarray(background)
+    for known_camera, known, made in _PREPARED:
+        if known_camera == camera and same_bits(known, frame):
+            return made
+    smooth = _median3(frame)
+    made = (smooth, _filled(smooth, BACKGROUND_REACH), points(smooth, camera))
+    for arr in made:
+        arr.flags.writeable = False
+    _PREPARED[:] = [(camera, frame.copy(), made)]
+    return made
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two arrays have the same shape, type and bytes (NaN and -0.0 included)."""
+    if a.shape != b.shape or a.dtype != b.dtype:
+        return False
+    return bool(np.array_equal(np.ascontiguousarray(a).view(np.uint8),
+                               np.ascontiguousarray(b).view(np.uint8)))
 
 
 def _filled(z: np.ndarray, reach: int) -> np.ndarray:
@@ -300,18 +386,104 @@ def _filled(z: np.ndarray, reach: int) -> np.ndarray:
 def _median3(z: np.ndarray) -> np.ndarray:
     """3x3 median of the valid values (NaN where the centre is invalid).
 
-    The nine shifted copies sorted along the stack (NaN sorts last), and the
-    middle of each pixel's valid ones taken: :func:`scipy.ndimage.median_filter`
-    has no NaN-aware mode, and :func:`numpy.nanmedian` is several times slower.
+    Where all nine values are valid, the fifth smallest (:func:`median9`);
+    elsewhere (near an invalid pixel or the image's frame), and where that
+    is a zero (the sort decides its sign), the middle of the pixel's valid
+    ones, from the sorted nine (:func:`median_of_valid`):
+    :func:`scipy.ndimage.median_filter` has no NaN-aware mode, and
+    :func:`numpy.nanmedian` is several times slower.
     """
     padded = np.pad(z, 1, mode="constant", constant_values=np.nan)
-    h, w = z.shape
-    stack = np.sort(np.stack([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)]),
+    finite = np.isfinite(z)
+    out = median9(padded if finite.all() or not np.isinf(z).any()
+                  else np.pad(np.where(finite, z, np.nan), 1, constant_values=np.nan))
+    # near an invalid pixel; and a zero, whose sign only the sort tells (0.0 or -0.0 first)
+    rows, cols = np.nonzero((np.isnan(out) & finite) | (out == 0))
+    out[rows, cols] = median_of_valid(padded, rows, cols)
+    return out
+
+
+#: Rows of the image :func:`median9` takes at once (its buffers stay in the cache).
+MEDIAN_ROWS = 32
+
+
+def median9(padded: np.ndarray) -> np.ndarray:
+    """Median of each pixel's 3x3 neighbourhood in ``padded`` (its 1-px frame dropped).
+
+    Each column of three sorted once (shared by three windows); the median of
+    nine is then the middle of the largest of the three smallest, the middle
+    of the middles and the smallest of the largest (exact: one of the nine
+    values). NaN wherever one of the nine is NaN (an infinity is not).
+    :data:`MEDIAN_ROWS` rows at a time, in buffers.
+
+    Parameters
+    ----------
+    padded
+        float64 (H + 2, W + 2).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (H, W).
+    """
+    h, w = padded.shape[0] - 2, padded.shape[1] - 2
+    out = np.empty((h, w))
+    n = max(min(MEDIAN_ROWS, h), 0)
+    columns = np.empty((4, n, w + 2))
+    spare = np.empty((3, n, w))
+    for r0 in range(0, h, MEDIAN_ROWS):
+        k = min(MEDIAN_ROWS, h - r0)
+        low, mid, high, scratch = columns[:, :k]
+        _sort_columns(padded[r0:r0 + k], padded[r0 + 1:r0 + 1 + k], padded[r0 + 2:r0 + 2 + k],
+                      (low, mid, high), scratch)
+        most_low, mid_mid, least_high = spare[:, :k]
+        np.maximum(low[:, :-2], low[:, 1:-1], out=most_low)
+        np.maximum(most_low, low[:, 2:], out=most_low)
+        np.minimum(high[:, :-2], high[:, 1:-1], out=least_high)
+        np.minimum(least_high, high[:, 2:], out=least_high)
+        rows = out[r0:r0 + k]
+        _middle(mid[:, :-2], mid[:, 1:-1], mid[:, 2:], mid_mid, rows)
+        _middle(most_low, mid_mid, least_high, rows, most_low)
+    return out
+
+
+def _sort_columns(a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                  out: tuple[np.ndarray, np.ndarray, np.ndarray], scratch: np.ndarray) -> None:
+    """Element-wise smallest, middle and largest of ``a, b, c`` into ``out`` (NaN to all)."""
+    low, mid, high = out
+    np.minimum(a, b, out=low)
+    np.maximum(a, b, out=high)
+    np.minimum(high, c, out=scratch)
+    np.maximum(high, c, out=high)
+    np.maximum(low, scratch, out=mid)
+    np.minimum(low, scratch, out=low)
+
+
+def _middle(a: np.ndarray, b: np.ndarray, c: np.ndarray, out: np.ndarray,
+            scratch: np.ndarray) -> None:
+    """Element-wise middle of ``a, b, c`` into ``out`` (NaN where any is NaN).
+
+    ``scratch`` may be ``a`` (overwritten); ``out`` none of the three.
+    """
+    np.maximum(a, b, out=out)
+    np.minimum(out, c, out=out)
+    np.minimum(a, b, out=scratch)
+    np.maximum(scratch, out, out=out)
+
+
+def median_of_valid(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Median of the valid values of the 3x3 neighbourhoods at ``(rows, cols)`` of the image.
+
+    ``padded`` is the image with a 1-px NaN frame. The nine values sorted
+    (NaN last), and the middle of the valid ones taken (the mean of the two
+    middle ones for an even count); NaN where none is valid.
+    """
+    stack = np.sort(np.stack([padded[rows + i, cols + j] for i in range(3) for j in range(3)]),
                     axis=0)
     count = np.isfinite(stack).sum(axis=0)
     low = np.take_along_axis(stack, np.maximum(count - 1, 0)[None] // 2, axis=0)[0]
     high = np.take_along_axis(stack, (count // 2)[None], axis=0)[0]
-    return np.where(np.isfinite(z), 0.5 * (low + high), np.nan)
+    return 0.5 * (low + high)
 
 
 def assess(z: np.ndarray, config: Config, noise: float, *,
@@ -345,24 +517,28 @@ def assess(z: np.ndarray, config: Config, noise: float, *,
         return Workspace(pickable, None, None, tol)
     smooth = _median3(z)
     # the empty scene shows the whole support: found there when given
-    ref = _median3(background) if background is not None else smooth
+    ref, filled, ref_pts = smooth, None, None
     if background is not None:
+        ref, filled, ref_pts = prepared_background(background, config.input)
         bg_tol = ws.background_tolerance or auto
-        pickable &= ~matches_background(smooth, ref, bg_tol)
+        pickable &= ~matches_background(smooth, ref, bg_tol, filled=filled)
     plane = find_support(ref, config.input, tol) if ws.support else None
     if plane is None:
         return Workspace(pickable, None, None, tol)
     pts = points(smooth, config.input)
     height = plane.distance(pts)
     with np.errstate(invalid="ignore"):
-        on = np.abs(height if background is None
-                    else plane.distance(points(ref, config.input))) <= tol
+        on = np.abs(height if ref_pts is None else plane.distance(ref_pts)) <= tol
         pickable &= height > max(tol, ws.min_height)
         if ws.max_height > 0:
             pickable &= height <= ws.max_height
     hull = support_hull(on)
-    pickable &= over_support(pts, height, hull, plane, config.input)
-    return Workspace(pickable, height, plane, tol, inside_hull(hull, *np.indices(z.shape)))
+    extent = hull_extent(hull, z.shape)
+    if config.input.has_intrinsics:
+        pickable = over_support(pts, height, hull, plane, config.input, where=pickable)
+    else:  # a height map's feet are its pixels, and its extent is not shrunk
+        pickable &= extent
+    return Workspace(pickable, height, plane, tol, extent)
 
 
 def support_hull(on: np.ndarray) -> np.ndarray | None:
@@ -371,17 +547,42 @@ def support_hull(on: np.ndarray) -> np.ndarray | None:
     The convex hull, in the image, of the 8-connected pieces of the
     support's pixels ``on`` with at least :data:`HULL_PIECE` of the largest
     one's pixels (a tote's floor; a table seen on both sides of a wall);
-    ``None`` when it has no area.
+    ``None`` when it has no area. The hull is taken of their
+    :func:`extreme_pixels` only (every pixel on the hull's boundary is one).
     """
     pieces, count = ndimage.label(on, structure=np.ones((3, 3), dtype=bool))
     if count == 0:
         return None
     sizes = np.bincount(pieces.ravel())
     sizes[0] = 0
-    rows, cols = np.nonzero(sizes[pieces] >= HULL_PIECE * sizes.max())
-    if rows.size < 3 or np.ptp(rows) == 0 or np.ptp(cols) == 0:
+    large = sizes >= HULL_PIECE * sizes.max()
+    rows, cols = extreme_pixels(large[pieces])
+    if int(sizes[large].sum()) < 3 or np.ptp(rows) == 0 or np.ptp(cols) == 0:
         return None
     return np.asarray(ConvexHull(np.column_stack([cols, rows]).astype(np.float64)).equations)
+
+
+def extreme_pixels(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the first and last pixel of ``mask`` in each row and in each column.
+
+    Every pixel on the boundary of the convex hull of ``mask``'s pixels is
+    one of them (no pixel of its row, or of its column for a level edge,
+    lies beyond it), so they have the same hull. Row-major order, each once.
+    """
+    h, w = mask.shape
+    keep = np.zeros(mask.shape, dtype=bool)
+    r = np.flatnonzero(mask.any(axis=1))
+    keep[r, np.argmax(mask[r], axis=1)] = True
+    keep[r, w - 1 - np.argmax(mask[r, ::-1], axis=1)] = True
+    c = np.flatnonzero(mask.any(axis=0))
+    keep[np.argmax(mask[:, c], axis=0), c] = True
+    keep[h - 1 - np.argmax(mask[::-1, c], axis=0), c] = True
+    rows, cols = np.nonzero(keep)
+    return rows, cols
+
+
+#: Positions :func:`inside_hull` tests at once (its buffers stay in the cache).
+HULL_CHUNK = 8192
 
 
 def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray,
@@ -389,28 +590,132 @@ def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray,
     """Whether image positions lie in the hull shrunk by ``inset`` px (all True without one).
 
     The hull runs through pixel centres: a position within a pixel outside it
-    counts as in (at ``inset`` 0).
+    counts as in (at ``inset`` 0). Flat positions are tested
+    :data:`HULL_CHUNK` at a time, in buffers (the same arithmetic).
     """
     inside = np.ones(np.shape(rows), dtype=bool)
     if hull is None:
         return inside
-    for a, b, c in hull:  # unit normals (a, b), outwards
-        with np.errstate(invalid="ignore"):
-            inside &= ~(a * cols + b * rows + c > 1.0 - inset)
+    rows, cols = np.broadcast_arrays(rows, cols)
+    if rows.ndim != 1:
+        for a, b, c in hull:  # unit normals (a, b), outwards
+            with np.errstate(invalid="ignore"):
+                inside &= ~(a * cols + b * rows + c > 1.0 - inset)
+        return inside
+    limit = 1.0 - inset
+    size = min(HULL_CHUNK, rows.size)
+    value, term, out = np.empty(size), np.empty(size), np.empty(size, dtype=bool)
+    for start in range(0, rows.size, HULL_CHUNK):
+        stop = min(start + HULL_CHUNK, rows.size)
+        rr, cc, k = rows[start:stop], cols[start:stop], stop - start
+        v, t, o, keep = value[:k], term[:k], out[:k], inside[start:stop]
+        for a, b, c in hull:
+            np.multiply(a, cc, out=v)
+            np.multiply(b, rr, out=t)
+            np.add(v, t, out=v)
+            np.add(v, c, out=v)
+            with np.errstate(invalid="ignore"):
+                np.greater(v, limit, out=o)
+            keep &= ~o
     return inside
 
 
+def hull_extent(hull: np.ndarray | None, shape: tuple[int, int], inset: float = 0.0
+                ) -> np.ndarray:
+    """Bool ``shape``: :func:`inside_hull` at every pixel of the image (the same bits).
+
+    Along a row a half-plane's test is monotonic in the column, so each row
+    is inside between two columns: per half-plane and row, the column where
+    the test turns, estimated and then checked with the test itself on a few
+    columns around it (:func:`_turning_columns`). A half-plane whose turn is
+    not found there (a level one) is tested at every pixel.
+    """
+    h, w = shape
+    inside = np.ones(shape, dtype=bool)
+    if hull is None:
+        return inside
+    rows = np.arange(h)[:, None]
+    first, stop = np.zeros((h, 1), dtype=np.int64), np.full((h, 1), w, dtype=np.int64)
+    limit = 1.0 - inset
+    for a, b, c in hull:
+        turn = _turning_columns(a, b, c, rows, w, limit) if abs(a) > 1e-9 else None
+        if turn is None:
+            cols = np.arange(w)[None, :]
+            with np.errstate(invalid="ignore"):
+                inside &= ~(a * cols + b * rows + c > limit)
+        elif a > 0:
+            stop = np.minimum(stop, turn)
+        else:
+            first = np.maximum(first, turn)
+    cols = np.arange(w)[None, :]
+    return inside & (cols >= first) & (cols < stop)
+
+
+#: Columns around the estimated turn where :func:`_turning_columns` checks the test.
+TURN_WINDOW = 8
+
+
+def _turning_columns(a: float, b: float, c: float, rows: np.ndarray, w: int, limit: float
+                     ) -> np.ndarray | None:
+    """Per row, the first column where the test turns; ``None`` when not found.
+
+    The test is :func:`inside_hull`'s ``a col + b row + c > limit``; it turns
+    from false to true along a row when ``a > 0``, from true to false when
+    ``a < 0`` (``w``: it never does). Evaluated, as :func:`inside_hull` does,
+    on :data:`TURN_WINDOW` columns from a little before the real-valued
+    crossing, and on the column before them: the turn is found when that
+    column is on the first side (or there is none) and a column of the
+    window on the other (or past the image).
+
+    Parameters
+    ----------
+    a, b, c
+        The half-plane (``a`` not 0).
+    rows
+        int (H, 1) row numbers.
+    w
+        Image width.
+    limit
+        ``1 - inset``.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        int64 (H, 1) columns in [0, w].
+    """
+    with np.errstate(all="ignore"):
+        cross = np.floor((limit - c - b * rows.astype(np.float64)) / a)
+        start = (np.clip(cross, -TURN_WINDOW, w) + 1 - TURN_WINDOW // 2).astype(np.int64)
+    start = np.clip(start, 0, w)
+    cols = start + np.arange(-1, TURN_WINDOW)[None, :]
+    turned = a * cols + b * rows + c > limit
+    if a < 0:
+        turned = ~turned
+    turned[cols >= w] = True
+    window = turned[:, 1:]
+    if not ((~turned[:, 0] | (start[:, 0] == 0)) & window.any(axis=1)).all():
+        return None
+    return start + np.count_nonzero(~window, axis=1)[:, None]
+
+
 def over_support(pts: np.ndarray, height: np.ndarray, hull: np.ndarray | None, plane: Plane,
-                 camera: InputConfig) -> np.ndarray:
+                 camera: InputConfig, where: np.ndarray | None = None) -> np.ndarray:
     """Bool (H, W): pixels whose foot on the support lies within the support's extent.
 
     A pixel's foot is its point moved down the support's normal by its
     height, projected into the image (with intrinsics; a height map's foot is
-    the pixel itself); the extent is :func:`support_hull`. Things outside a
-    tote stand over no floor of it.
+    the pixel itself: :func:`hull_extent`); the extent is :func:`support_hull`.
+    Things outside a tote stand over no floor of it. With ``where``, only its
+    pixels are tested (False elsewhere).
     """
-    fr, fc = _feet(pts, height, plane, camera)
-    return inside_hull(hull, fr, fc, hull_inset(pts, camera))
+    inset = hull_inset(pts, camera)
+    if not camera.has_intrinsics:
+        out = hull_extent(hull, height.shape, inset)
+        return out if where is None else out & where
+    at = np.nonzero(np.ones(height.shape, dtype=bool) if where is None else where)
+    out = np.zeros(height.shape, dtype=bool)
+    out[at] = inside_hull(hull, *_feet(pts[at], height[at], plane, camera), inset)
+    return out
 
 
 def odd_pixels(side_mm: float, focal: float, depth_mm: float) -> int:

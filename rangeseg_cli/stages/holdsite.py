@@ -394,18 +394,53 @@ def _framed(labels: np.ndarray) -> set[int]:
 
 def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
     """Labels within :data:`ADJACENCY_RADIUS` of invalid areas 8-connected to the frame."""
+    zone = outer_invalid(valid)
+    if zone is None:
+        return set()
+    return _present(labels[square_dilation(zone, 2 * ADJACENCY_RADIUS + 1)])
+
+
+def outer_invalid(valid: np.ndarray) -> np.ndarray | None:
+    """Bool (H, W): invalid pixels 8-connected to an invalid pixel of the frame; ``None``: none."""
     if valid.all():
-        return set()
-    blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
+        return None
+    blobs, count = ndimage.label(~valid, structure=np.ones((3, 3)))
     frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
-    outer = np.unique(frame[frame > 0])
-    if outer.size == 0:
-        return set()
-    zone = np.isin(blobs, outer)
-    size = 2 * ADJACENCY_RADIUS + 1  # a square: a row segment, then a column segment
-    near = ndimage.binary_dilation(zone, structure=np.ones((1, size), dtype=bool))
-    near = ndimage.binary_dilation(near, structure=np.ones((size, 1), dtype=bool))
-    return _present(labels[near])
+    reaching = np.zeros(count + 1, dtype=bool)
+    reaching[frame] = True
+    reaching[0] = False
+    return reaching[blobs] if reaching.any() else None
+
+
+def square_dilation(mask: np.ndarray, size: int) -> np.ndarray:
+    """Binary dilation of ``mask`` by a ``size`` x ``size`` square (odd; outside = False).
+
+    Separable: a row segment, then a column segment (:func:`segment_dilation`);
+    the same pixels as :func:`scipy.ndimage.binary_dilation` with that square.
+    """
+    return segment_dilation(segment_dilation(np.asarray(mask, dtype=bool), size, 1), size, 0)
+
+
+def segment_dilation(mask: np.ndarray, size: int, axis: int) -> np.ndarray:
+    """Whether any pixel of a centred segment of ``size`` (odd) along ``axis`` is in ``mask``.
+
+    The mask framed by ``size // 2`` False pixels on either side; the OR of
+    the ``size`` pixels from each one on built by doubling (1, 2, 4, ...
+    pixels, then the rest as an overlapping stretch).
+    """
+    m = np.moveaxis(np.asarray(mask, dtype=bool), axis, -1)
+    n, half = m.shape[-1], size // 2
+    ahead = np.zeros(m.shape[:-1] + (n + 2 * half,), dtype=bool)
+    ahead[..., half:half + n] = m
+    total = n + 2 * half
+    span = 1  # ahead[..., i]: any of the framed mask's pixels i .. i + span - 1
+    while 2 * span <= size:
+        ahead[..., :total - span] |= ahead[..., span:total].copy()
+        span *= 2
+    if span < size:
+        rest = size - span
+        ahead[..., :total - rest] |= ahead[..., rest:total].copy()
+    return np.moveaxis(ahead[..., :n], -1, axis)
 
 
 def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
@@ -432,20 +467,28 @@ def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[i
     return framed | _near_outer_invalid(labels, np.asarray(valid, dtype=bool))
 
 
-def _same_level(base: Surface, other: Surface, tol: float) -> bool:
+def _same_level(base: Surface, other: Surface, tol: float,
+                known: dict[str, Any] | None = None) -> bool:
     """``other`` continues ``base`` (on base's extended fit, or same mean height on a level base).
 
     Never across a step edge between the two. The mean heights are compared
     only where ``base`` is level (its fit varies by ``tol`` or less over its
     box): on a tilted table a box whose top is as high as the table's middle
-    is not the table.
+    is not the table. ``known``: a dict kept across calls with the same
+    ``base`` and ``tol`` (its step neighbours and whether it is level, found
+    once).
     """
-    if any(nb.id == other.id and nb.edge == "step" for nb in base.neighbors):
+    known = {} if known is None else known
+    if "steps" not in known:
+        known["steps"] = {nb.id for nb in base.neighbors if nb.edge == "step"}
+    if other.id in known["steps"]:
         return False
     row, col = other.centroid
     if abs(base.height_at(row, col) - other.height_at(row, col)) <= tol:
         return True
-    return _level(base, tol) and abs(other.mean_height - base.mean_height) <= tol
+    if "level" not in known:
+        known["level"] = _level(base, tol)
+    return bool(known["level"]) and abs(other.mean_height - base.mean_height) <= tol
 
 
 def _level(surface: Surface, tol: float) -> bool:
@@ -487,7 +530,9 @@ def find_background(surfaces: dict[int, Surface], border: set[int], rule: str, t
         base = max(large, key=lambda s: (s.pixels, -s.mean_height, -s.id))
     else:
         base = min(large, key=lambda s: (s.mean_height, s.id))
-    return {s.id for s in surfaces.values() if s.id == base.id or _same_level(base, s, tol)}
+    known: dict[str, Any] = {}
+    return {s.id for s in surfaces.values()
+            if s.id == base.id or _same_level(base, s, tol, known)}
 
 
 def _edge_kinds(surfaces: dict[int, Surface]) -> dict[tuple[int, int], str]:
@@ -591,20 +636,36 @@ def unpickable_regions(labels: np.ndarray, pickable: np.ndarray, n: int) -> set[
     return set(np.flatnonzero(low).tolist())
 
 
-def region_lift(labels: np.ndarray, space: Workspace, z: np.ndarray, n: int) -> np.ndarray:
-    """Median height of each label's pixels above the support (by label), else of ``z``."""
+def region_lift(labels: np.ndarray, space: Workspace, z: np.ndarray, n: int,
+                ids: Any = None) -> np.ndarray:
+    """Median height of each label's pixels above the support (by label), else of ``z``.
+
+    Each label's finite heights are taken from its box
+    (:func:`scipy.ndimage.find_objects`) and the median from its two middle
+    order statistics (:func:`middle_value`); ``-inf`` for a label without one,
+    and for those not in ``ids`` (an iterable of labels; ``None``: all).
+    """
     height = space.height if space.height is not None else z
     out = np.full(n + 1, -np.inf)
-    keep = (labels > 0) & np.isfinite(height)
-    if not keep.any():
-        return out
-    lab, h = labels[keep], height[keep]
-    order = np.lexsort((h, lab))
-    lab, h = lab[order], h[order]
-    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
-    counts = np.diff(np.r_[starts, lab.size])
-    out[lab[starts]] = 0.5 * (h[starts + (counts - 1) // 2] + h[starts + counts // 2])
+    wanted = None if ids is None else set(ids)
+    for k, box in enumerate(ndimage.find_objects(labels, n), start=1):
+        if box is not None and (wanted is None or k in wanted):
+            values = height[box][labels[box] == k]
+            out[k] = middle_value(values[np.isfinite(values)])
     return out
+
+
+def middle_value(values: np.ndarray) -> float:
+    """Median of a 1-D array: the mean of its two middle order statistics; ``-inf`` when empty.
+
+    The one middle value for an odd count (``0.5 * (v + v)``, as a sort's
+    two middle elements give it).
+    """
+    if not values.size:
+        return -math.inf
+    lo, hi = (values.size - 1) // 2, values.size // 2
+    part = np.partition(values, [lo, hi])
+    return float(0.5 * (part[lo] + part[hi]))
 
 
 def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarray:
@@ -617,13 +678,11 @@ def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarr
     zone = np.zeros(valid.shape, dtype=bool)
     k = ADJACENCY_RADIUS + 1
     zone[:k], zone[-k:], zone[:, :k], zone[:, -k:] = True, True, True, True
-    if not valid.all():
-        blobs, _ = ndimage.label(~valid, structure=np.ones((3, 3)))
-        frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
-        outer = np.isin(blobs, np.unique(frame[frame > 0]))
+    outer = outer_invalid(valid)
+    if outer is not None:
         if extent is not None:
             outer &= ~extent
-        zone |= ndimage.binary_dilation(outer, structure=np.ones((2 * k - 1, 2 * k - 1)))
+        zone |= square_dilation(outer, 2 * k - 1)
     return zone
 
 
@@ -662,13 +721,16 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     for o in objects:
         member[list(o.surfaces)] = o.id
     owner = member[labels]
+    boxes = ndimage.find_objects(owner)
     with np.errstate(invalid="ignore"):
         standing = _touching(owner, np.abs(height) <= space.tolerance)
-    spans = {o.id: _height_span(height, owner == o.id) for o in objects}
+    spans = {o.id: _height_span(*_in_box(height, owner, boxes, o.id)) for o in objects}
     hover = _hovering(spans, touching or set(), space.tolerance)
     zone = border_zone(valid, space.extent)
-    bordering = set(np.unique(owner[zone & (owner > 0)]).tolist())
-    wide = _widest(owner, [o.id for o in objects])
+    bordering = _present(owner[zone])
+    # the widest disc counts for the pile (away from the border, not hovering) and standing
+    wide = widest_discs(owner, [o.id for o in objects if o.id in standing
+                                or o.id not in bordering | hover], boxes)
     pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
             and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
     if pile:  # far above the pile: the arm, a mount, a wall
@@ -711,6 +773,15 @@ def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, in
             and low - under[i] > max(HOVER_SHARE * (top - under[i]), HOVER_TOLERANCES * tol)}
 
 
+def _in_box(values: np.ndarray, owner: np.ndarray, boxes: list[Any], oid: int
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """``values`` and the mask of object ``oid`` in its box (``boxes``: of ``owner``)."""
+    box = boxes[oid - 1] if oid <= len(boxes) else None
+    if box is None:
+        return values[:0, :0], np.zeros((0, 0), dtype=bool)
+    return values[box], owner[box] == oid
+
+
 def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     """(5th, 95th) percentiles of ``height`` over ``mask`` (NaN when none is finite)."""
     values = height[mask]
@@ -721,21 +792,47 @@ def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     return float(low), float(top)
 
 
-def _widest(owner: np.ndarray, ids: list[int]) -> dict[int, float]:
-    """Radius in px of the widest disc inside each object's pixels (its clearance)."""
+def widest_discs(owner: np.ndarray, ids: list[int], boxes: list[Any] | None = None
+            ) -> dict[int, float]:
+    """Radius in px of the widest disc inside each object's pixels (its clearance).
+
+    The distance of each pixel of an object to the nearest pixel that is not
+    in its interior (:func:`same_neighbours`: a pixel whose neighbour belongs
+    to another object is a border), taken in the object's box grown by one
+    pixel (within the image; ``boxes``: :func:`scipy.ndimage.find_objects`
+    of ``owner`` when known): the nearest such pixel of the whole image is
+    one of the box's (a nearer pixel off the object is always a border), so
+    the distances are those of the whole image's transform.
+    """
     if not ids:
         return {}
-    same = owner > 0
-    for axis in (0, 1):  # a pixel whose neighbour belongs to another object is a border
-        diff = np.diff(owner, axis=axis) != 0
-        pad = [(0, 0), (0, 0)]
-        pad[axis] = (1, 0)
-        same &= ~np.pad(diff, pad)
-        pad[axis] = (0, 1)
-        same &= ~np.pad(diff, pad)
-    edt = ndimage.distance_transform_edt(same)
-    radii = ndimage.maximum(edt, owner, ids)
-    return {i: float(r) for i, r in zip(ids, np.atleast_1d(radii), strict=True)}
+    boxes = ndimage.find_objects(owner) if boxes is None else boxes
+    h, w = owner.shape
+    out = {}
+    for i in ids:
+        box = boxes[i - 1] if i <= len(boxes) else None
+        if box is None:
+            out[i] = 0.0
+            continue
+        grown = (slice(max(box[0].start - 1, 0), min(box[0].stop + 1, h)),
+                 slice(max(box[1].start - 1, 0), min(box[1].stop + 1, w)))
+        crop = owner[grown]
+        mine = crop == i
+        edt = ndimage.distance_transform_edt(mine & same_neighbours(crop))
+        out[i] = float(edt[mine].max())
+    return out
+
+
+def same_neighbours(owner: np.ndarray) -> np.ndarray:
+    """Bool: pixels whose 4-neighbours (those in the array) all have their value."""
+    same = np.ones(owner.shape, dtype=bool)
+    across = owner[1:] != owner[:-1]
+    same[1:] &= ~across
+    same[:-1] &= ~across
+    along = owner[:, 1:] != owner[:, :-1]
+    same[:, 1:] &= ~along
+    same[:, :-1] &= ~along
+    return same
 
 
 #: With nothing in view, a wall rises to the border and is about the tallest there.
@@ -747,9 +844,7 @@ STAND_REACH = 6
 
 def _touching(owner: np.ndarray, mask: np.ndarray) -> set[int]:
     """Objects (``owner`` ids) within :data:`STAND_REACH` pixels of ``mask``."""
-    k = 2 * STAND_REACH + 1
-    near = ndimage.binary_dilation(mask, structure=np.ones((k, k), dtype=bool))
-    return set(np.unique(owner[near & (owner > 0)]).tolist())
+    return _present(owner[square_dilation(mask, 2 * STAND_REACH + 1)])
 
 
 def _attached(objects: list[ObjectInfo], owner: np.ndarray, structures: set[int],
@@ -786,7 +881,8 @@ def _unit_note(config: Config) -> str:
 
 def carve_pickable(z: np.ndarray, labels: np.ndarray, pickable: np.ndarray,
                    on_support: np.ndarray | None, n: int, area: int, config: Config,
-                   backend: Backend) -> tuple[np.ndarray, list[Surface], dict[int, int]]:
+                   backend: Backend, low: set[int] | None = None
+                   ) -> tuple[np.ndarray, list[Surface], dict[int, int]]:
     """Pickable pieces of regions the workspace leaves out, as surfaces of their own.
 
     Growing can join a thin item to the floor (its contour not closed); the
@@ -802,7 +898,7 @@ def carve_pickable(z: np.ndarray, labels: np.ndarray, pickable: np.ndarray,
         in the input ``labels`` (new id -> old id); unchanged and empty when
         nothing is carved.
     """
-    low = unpickable_regions(labels, pickable, n)
+    low = unpickable_regions(labels, pickable, n) if low is None else low
     if not low:
         return labels, [], {}
     is_low = np.zeros(n + 1, dtype=bool)
@@ -1069,7 +1165,7 @@ def _window_sums(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return ndimage.correlate(a, kernel, mode="constant", cval=0.0)
 
 
-def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
+def window_flat_rms(z: np.ndarray, fp: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
     """RMS residual of the least-squares plane of ``z`` over the footprint at each pixel.
 
     Parameters
@@ -1078,6 +1174,8 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
         float64 (H, W) heights, NaN where invalid.
     fp
         Boolean footprint (odd sides).
+    at
+        bool (H, W): the pixels wanted (NaN elsewhere), or ``None``: all.
 
     Returns
     -------
@@ -1090,7 +1188,11 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
     the offsets from its centre) have a constant matrix; only the moments
     ``sum z, sum x z, sum y z, sum z^2`` vary, each a correlation of the
     image with a fixed kernel. The heights are taken from their median
-    first, so that the squares do not cancel.
+    first, so that the squares do not cancel. With ``at`` and a footprint
+    that is correlated directly (not by FFT), the moments are summed at
+    those pixels only (:func:`sums_at`, the same bits), and a window is full
+    where the footprint fits on the valid pixels (:func:`erode`: then the
+    count of valid pixels under it is the footprint's).
     """
     valid = np.isfinite(z)
     base = float(np.median(z[valid])) if valid.any() else 0.0
@@ -1103,12 +1205,81 @@ def window_flat_rms(z: np.ndarray, fp: np.ndarray) -> np.ndarray:
     a = np.array([[n, (w * x).sum(), (w * y).sum()],
                   [(w * x).sum(), (w * x * x).sum(), (w * x * y).sum()],
                   [(w * y).sum(), (w * x * y).sum(), (w * y * y).sum()]])
-    moments = [_window_sums(zc, k) for k in (w, w * x, w * y)]
+    kernels = (w, w * x, w * y)
+    if at is None or w.size > FFT_FOOTPRINT_PIXELS:
+        moments = [_window_sums(zc, k) for k in kernels]
+        squares = _window_sums(zc * zc, w)
+        full = _window_sums(valid.astype(np.float64), w) >= n - 0.5
+    else:  # a window is full where the footprint lies wholly on valid pixels
+        rows, cols = np.nonzero(at)
+        pixels = (rows, cols)
+        moments = [sums_at(zc, k, at, pixels) for k in kernels]
+        squares = sums_at(zc * zc, w, at, pixels)
+        full = erode(valid, fp) & at
     b = np.stack(moments, axis=-1)
     coef = b @ np.linalg.pinv(a).T
-    rss = _window_sums(zc * zc, w) - np.einsum("...i,...i->...", b, coef)
-    full = _window_sums(valid.astype(np.float64), w) >= n - 0.5
+    rss = squares - np.einsum("...i,...i->...", b, coef)
     return np.where(full, np.sqrt(np.maximum(rss, 0.0) / n), np.nan)
+
+
+def pixel_sums(a: np.ndarray, kernel: np.ndarray, rows: np.ndarray, cols: np.ndarray
+               ) -> np.ndarray:
+    """:func:`scipy.ndimage.correlate` of ``a`` (zeros outside) at the pixels ``(rows, cols)``.
+
+    The same bits: the products of the kernel's non-zero weights (``|w| >
+    eps``, row by row) and the values under them, added one after the other
+    from 0, as scipy does at each pixel.
+
+    Parameters
+    ----------
+    a
+        float64 (H, W).
+    kernel
+        float64 (kr, kc), odd sides, centred.
+    rows, cols
+        int (N,) pixels of ``a``.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (N,).
+    """
+    kr, kc = kernel.shape[0] // 2, kernel.shape[1] // 2
+    padded = np.pad(a, ((kr, kr), (kc, kc)))
+    dr, dc = np.nonzero(np.abs(kernel) > np.finfo(np.float64).eps)
+    flat = (rows[None, :] + dr[:, None]) * padded.shape[1] + cols[None, :] + dc[:, None]
+    terms = np.zeros((dr.size + 1, rows.size))
+    np.multiply(padded.ravel()[flat], kernel[dr, dc][:, None], out=terms[1:])
+    return np.cumsum(terms, axis=0)[-1]
+
+
+#: :func:`sums_at` sums pixel by pixel (:func:`pixel_sums`) when the pixels wanted are
+#: fewer than this share of their box: each costs about as much as ten of a correlation.
+PIXEL_SUMS_SHARE = 0.1
+
+
+def sums_at(a: np.ndarray, kernel: np.ndarray, at: np.ndarray,
+            pixels: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """:func:`scipy.ndimage.correlate` of ``a`` (zeros outside), right at the pixels ``at``.
+
+    The correlation of the box of ``at`` grown by the kernel's half sides
+    (within ``a``: the sums there see the same values, added in the same
+    order), or, for few pixels, :func:`pixel_sums`. Elsewhere zeros, or the
+    box's sums: not to be read. ``pixels``: ``np.nonzero(at)`` when known.
+    """
+    rows, cols = np.nonzero(at) if pixels is None else pixels
+    out = np.zeros(a.shape)
+    if not rows.size:
+        return out
+    kr, kc = kernel.shape[0] // 2, kernel.shape[1] // 2
+    box = (slice(max(int(rows.min()) - kr, 0), int(rows.max()) + kr + 1),
+           slice(max(int(cols.min()) - kc, 0), int(cols.max()) + kc + 1))
+    sub = a[box]
+    if rows.size < PIXEL_SUMS_SHARE * sub.size:
+        out[rows, cols] = pixel_sums(a, kernel, rows, cols)
+    else:
+        out[box] = ndimage.correlate(sub, kernel, mode="constant", cval=0.0)
+    return out
 
 
 def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:
@@ -1218,6 +1389,8 @@ class _Hits:
     accepted at one angle at least; ``ok`` and ``std`` (angles, h, w) hold,
     in the surface's crop (``offset`` from image coordinates), which angles
     are accepted and their AR std; ``edt`` is the crop's distance transform.
+    ``poses`` keeps the (elevation, dz/dx, dz/dy) of :func:`site_poses` that
+    the tilt test computed, by window (curved surfaces: Step 6 reuses them).
     """
 
     surface: Surface
@@ -1234,6 +1407,7 @@ class _Hits:
     steep: int = 0
     min_tilt: float = math.inf
     tilt_state: np.ndarray | None = None
+    poses: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     rough: int = 0
     min_rms: float = math.inf
     scene: Any = None
@@ -1297,7 +1471,7 @@ def _flat_enough(scene: _Scene, heights: np.ndarray, fp: np.ndarray, ok: np.ndar
     """``ok`` less the windows whose plane-fit RMS exceeds the limit (:func:`flat_limit`)."""
     if not math.isfinite(scene.flat_limit) or not ok.any():
         return ok
-    rms = window_flat_rms(heights, fp)
+    rms = window_flat_rms(heights, fp, at=ok)
     flat = ok & (rms <= scene.flat_limit)
     rough = ok & ~flat
     hits.rough += int(rough.sum())
@@ -1434,7 +1608,7 @@ def _camera_approach(cfg: InputConfig, row: Any, col: Any, height: Any, gx: Any,
 TILT_TOLERANCE = 1e-6
 
 #: Windows whose local pose is computed at once, first (Step 4b); doubled each time.
-TILT_CHUNK = 1024
+TILT_CHUNK = 64
 
 
 def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
@@ -1462,8 +1636,11 @@ def _drop_steep(scene: _Scene, hits: _Hits) -> _Hits:
 def _judge_tilts(scene: _Scene, hits: _Hits, idx: np.ndarray) -> np.ndarray:
     """Whether windows ``idx`` are level enough (bool); counts the steep ones in ``hits``."""
     r, c = hits.rows[idx], hits.cols[idx]
-    t = tilts(scene.camera, scene.camera.units_per_pixel, r, c,
-              *site_poses(scene, hits.surface, r, c))
+    poses = site_poses(scene, hits.surface, r, c)
+    t = tilts(scene.camera, scene.camera.units_per_pixel, r, c, *poses)
+    if hits.tilt_state is not None:  # the windows stay where they are: keep their poses
+        hits.poses.update(zip(idx.tolist(), zip(*(p.tolist() for p in poses), strict=True),
+                              strict=True))
     ok = t <= scene.cfg.max_tilt + TILT_TOLERANCE  # NaN (no depth): not level
     hits.steep += int(np.count_nonzero(~ok))
     if np.isfinite(t[~ok]).any():
@@ -1683,8 +1860,9 @@ def local_poses(z: np.ndarray, labels: np.ndarray, s: Surface, rows: np.ndarray,
     images: sums of ``m x^a y^b`` (a + b <= 4) and ``m z x^a y^b`` (a + b <= 2)
     over the square of half side ``reach`` around each pixel, with ``m`` the
     surface's valid pixels and x, y the offsets divided by ``reach``, by two
-    1-D correlations each (the square's weights are separable). Heights are
-    taken relative to the surface's mean height.
+    1-D correlations each (the square's weights are separable; the second
+    only down the sites' columns). Heights are taken relative to the
+    surface's mean height.
 
     Returns
     -------
@@ -1702,10 +1880,12 @@ def local_poses(z: np.ndarray, labels: np.ndarray, s: Surface, rows: np.ndarray,
     weight = mine.astype(np.float64)
     rel = np.where(mine, z[box] - s.mean_height, 0.0)
     taps = np.arange(-reach, reach + 1, dtype=np.float64) / max(reach, 1)
-    at = (rows - box[0].start, cols - box[1].start)
+    # the second (column) pass only down the sites' columns: each column is summed alone
+    used, column = np.unique(cols - box[1].start, return_inverse=True)
+    at = (rows - box[0].start, column.ravel())
 
     def moments(image: np.ndarray, degree: int) -> dict[tuple[int, int], np.ndarray]:
-        across = [ndimage.correlate1d(image, taps ** a, axis=1, mode="constant")
+        across = [ndimage.correlate1d(image, taps ** a, axis=1, mode="constant")[:, used]
                   for a in range(degree + 1)]
         return {(a, b): ndimage.correlate1d(across[a], taps ** b, axis=0, mode="constant")[at]
                 for a in range(degree + 1) for b in range(degree + 1 - a)}
@@ -1832,9 +2012,17 @@ def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
     site = make_site(hits.surface, r, c, object_id=obj.id, clearance=hits.clearance[k],
                      ar_std=ar_std, angle=angle,
                      site_score=score(hits.clearance[k], dist, scene.cfg.size, obj.pixels),
-                     config=config, pose=site_pose(scene, hits.surface, r, c))
+                     config=config, pose=_known_pose(scene, hits, k))
     return dataclasses.replace(site, size=scene.cfg.size,
                                flat_rms=site_flat_rms(scene.z, r, c, scene.footprint(angle)))
+
+
+def _known_pose(scene: _Scene, hits: _Hits, k: int) -> tuple[float, tuple[float, float]]:
+    """:func:`site_pose` of window ``k``, as its tilt test computed it when it did."""
+    if k in hits.poses:
+        height, gx, gy = hits.poses[k]
+        return height, (gx, gy)
+    return site_pose(scene, hits.surface, int(hits.rows[k]), int(hits.cols[k]))
 
 
 def site_flat_rms(z: np.ndarray, row: int, col: int, fp: np.ndarray) -> float:
@@ -1998,14 +2186,17 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     coeffs = _coefficient_table(surfaces, n)
     # Step 0: the workspace (beyond the paper): what may be picked
     space = assess(z, config, noise, background=background, roi=roi)
-    depth = -float(np.nanmedian(z)) if valid.any() else 0.0
+    # the median depth only sizes a footprint_mm (the median costs a pass over the image)
+    depth = (-float(np.nanmedian(z)) if valid.any() else 0.0) if footprint_in_mm(
+        config.holdsite, config.input) else 0.0
     area = math.prod(footprint_pixels(config.holdsite, config.input, depth))
     on_support = None
     if space.height is not None:
         with np.errstate(invalid="ignore"):
             on_support = np.abs(space.height) <= space.tolerance
+    low = unpickable_regions(labels, space.pickable, n)
     labels, carved, origin = carve_pickable(z, labels, space.pickable, on_support, n, area,
-                                            config, backend)
+                                            config, backend, low)
     if origin:  # items grown into the floor: their pickable pieces are surfaces of their own
         by_id.update({c.id: c for c in carved})
         n, gaps = int(labels.max()), None
@@ -2014,13 +2205,15 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     framed = _framed(labels)
     border = framed | _near_outer_invalid(labels, valid)
     background_ids = find_background(by_id, border, config.holdsite.background, tol)
-    excluded = unpickable_regions(labels, space.pickable, n) - background_ids
+    if origin:  # the labels changed
+        low = unpickable_regions(labels, space.pickable, n)
+    excluded = low - background_ids
     left_out = background_ids | excluded
     # Step 2: objects, and which are covered by another
     if gaps is None:
         gaps = _known_gaps(labels, coeffs, backend)  # known labels
     object_of, objects = find_objects(by_id, left_out, gaps, tol, border)
-    lift = region_lift(labels, space, z, n)
+    lift = region_lift(labels, space, z, n, ids=object_of)  # step 3 orders only these
     if config.workspace.border_structures:
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
         touching = {(object_of[i], object_of[j]) for i, j in gaps
