@@ -169,7 +169,8 @@ def stage_grow_and_gaps(z: np.ndarray, edges: np.ndarray, components: np.ndarray
 
 def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
                    config: Config, *, gaps: dict[tuple[int, int], float] | None = None,
-                   background: Any = None, roi: Any = None) -> Any:
+                   background: Any = None, roi: Any = None, noise: float | None = None
+                   ) -> Any:
     """Sec. VII: the holdsite on the highest usable surface.
 
     Parameters
@@ -186,6 +187,9 @@ def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     roi
         (H, W) mask, non-zero where a site may be (integers or booleans);
         ``None``: everywhere.
+    noise
+        :func:`~rangeseg_cli.stages.noise.estimate_noise` of ``z`` when the
+        caller has it (estimated here otherwise).
 
     Raises
     ------
@@ -205,7 +209,7 @@ def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         roi_bool = roi_mask(roi)
         require_shape_of_z(z, roi=roi_bool)
     return find_holdsite(z, labels, surfaces, config, gaps=gaps, background=bg_heights,
-                         roi=roi_bool)
+                         roi=roi_bool, noise=noise)
 
 
 def _finish(result: PipelineResult, z: np.ndarray, edges: np.ndarray, components: np.ndarray,
@@ -219,7 +223,8 @@ def _finish(result: PipelineResult, z: np.ndarray, edges: np.ndarray, components
     if stages >= 4:
         t0 = time.perf_counter()
         result.holdsite = stage_holdsite(z, labels, surfaces, config, gaps=gaps,
-                                         background=frames.background, roi=frames.roi)
+                                         background=frames.background, roi=frames.roi,
+                                         noise=result.noise_sigma)
         result.timings["holdsite"] = time.perf_counter() - t0
 
 

@@ -635,3 +635,18 @@ def test_tilts_computed_a_chunk_at_a_time_choose_as_all_at_once(monkeypatch):
             results.append(run(image, max_tilt=40.0, units_per_pixel=2.0).holdsite.to_dict())
         assert results[0] == results[1]
         assert results[0]["holdsite"] is not None
+
+
+def test_the_noise_the_pipeline_has_gives_the_holdsite_it_would_estimate():
+    z = table()
+    z[20:44, 20:44] = 120.0
+    z[30:34, 26:30] = 90.0  # a hole: the window must move
+    z = noisy(z, sigma=1.0)
+    result = run(z)
+    config = load_config()
+    alone = find_holdsite(result.heights, result.labels, result.surfaces, config)
+    given = find_holdsite(result.heights, result.labels, result.surfaces, config,
+                          noise=result.noise_sigma)
+    assert given.to_dict() == alone.to_dict() == result.holdsite.to_dict()
+    rough = find_holdsite(result.heights, result.labels, result.surfaces, config, noise=40.0)
+    assert rough.to_dict() != alone.to_dict()  # the noise is used

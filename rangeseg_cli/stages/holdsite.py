@@ -2125,7 +2125,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
                   config: Config, *, backend: Backend = "auto",
                   gaps: dict[tuple[int, int], float] | None = None,
                   background: np.ndarray | None = None,
-                  roi: np.ndarray | None = None) -> HoldsiteResult:
+                  roi: np.ndarray | None = None, noise: float | None = None
+                  ) -> HoldsiteResult:
     """Find the vacuum-gripper holdsite of a segmented range image (Sec. VII).
 
     Parameters
@@ -2156,6 +2157,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     roi
         bool (H, W) mask of the pixels that may be picked (``[workspace]
         roi``), or ``None``.
+    noise
+        :func:`~rangeseg_cli.stages.noise.estimate_noise` of ``z`` when the
+        caller has it (estimated here otherwise).
 
     Returns
     -------
@@ -2182,7 +2186,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     known[list(by_id)] = True
     labels = np.where(known[labels], labels, 0)
     tol = config.step.threshold
-    noise = estimate_noise(z, backend=backend)
+    noise = estimate_noise(z, backend=backend) if noise is None else noise
     coeffs = _coefficient_table(surfaces, n)
     # Step 0: the workspace (beyond the paper): what may be picked
     space = assess(z, config, noise, background=background, roi=roi)
