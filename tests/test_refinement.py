@@ -233,11 +233,11 @@ def test_each_pass_is_the_cut_merge_or_assign_of_issue_33():
 
 @pytest.mark.parametrize("name", [n for n in REFINE_PASSES if n != "bridge"])
 def test_noise_and_threads_are_derived_from_the_passes_on(name: str):
-    """All but the fill read the noise; the split, the recovery and the recut share work."""
+    """All but the fill read the noise; the split, recovery, recut and facets share work."""
     config = _passes(name)
     assert [p.name for p in refinement.active_passes(config)] == [name]
     assert refinement.uses_noise(config) == (name != "fill")
-    assert refinement.shares_work(config) == (name in {"split", "recover", "recut"})
+    assert refinement.shares_work(config) == (name in {"split", "recover", "recut", "facets"})
 
 
 def test_the_bridge_runs_only_with_the_fill():
