@@ -224,7 +224,7 @@ def _finish(result: PipelineResult, z: np.ndarray, edges: np.ndarray, components
         t0 = time.perf_counter()
         result.holdsite = stage_holdsite(z, labels, surfaces, config, gaps=gaps,
                                          background=frames.background, roi=frames.roi,
-                                         noise=result.noise_sigma)
+                                         noise=result._noise)  # None: it estimates
         result.timings["holdsite"] = time.perf_counter() - t0
 
 
