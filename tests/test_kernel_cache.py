@@ -101,6 +101,7 @@ def test_the_kernels_compiled_ahead_are_those_a_default_run_calls(monkeypatch):
 
     monkeypatch.delenv("RANGESEG_PURE_NUMPY", raising=False)
     monkeypatch.setenv("RANGESEG_THREADS", "1")
+    monkeypatch.setattr(kernel_cache, "_ready", set(kernel_cache.DEFERRED))  # as once cached
     calls: list[tuple[str, tuple]] = []
 
     def recording(name, dispatcher):
@@ -165,3 +166,22 @@ def test_the_helper_stops_once_its_run_has_ended(tmp_path, monkeypatch):
             pytest.fail(f"{name} compiled for a run that has ended")
 
     kernel_cache.compile_ahead(Kernels(), parent=-1)  # not this process's parent
+
+
+def test_a_deferred_kernel_runs_once_compiled_or_cached(tmp_path, monkeypatch):
+    # the first run after installing takes the numpy reference (the same bits) for
+    # these; the helper compiles them meanwhile and later runs load them
+    monkeypatch.setattr(kernel_cache, "_ready", set())
+    monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+
+    class Dispatcher:  # nothing compiled in this process
+        overloads: dict = {}
+
+    kernels = type("Kernels", (), {name: Dispatcher() for name in kernel_cache.DEFERRED})
+    assert not kernel_cache.ready(kernels, "crease_votes")
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "compiled.crease_votes-2450.py311.nbi").write_bytes(b"")
+    assert kernel_cache.ready(kernels, "crease_votes")
+    assert not kernel_cache.ready(kernels, "neighbour_accepts")
+    Dispatcher.overloads = {"(int64,)": object()}  # compiled here
+    assert kernel_cache.ready(kernels, "neighbour_accepts")

@@ -95,8 +95,6 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
                  " int64[::1], float64)"),
     ("crease_votes", "(int32[:, ::1], int64[::1], int64[::1], int64[::1], float64[::1],"
                      " float64[:, ::1], int64)"),
-    ("settle_boundaries", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], int8[:, ::1],"
-                          " float64, float64, float64, boolean)"),
     ("boundary_measures", "(int32[:, ::1], int64, float64[:, ::1])"),
     ("pair_medians", "(int64[::1], int64[::1], int64, float64[:, ::1])"),
     ("label_boxes", "(int32[:, ::1], int64)"),
@@ -115,6 +113,37 @@ def _cache_dirs() -> list[Path]:
     if os.environ.get("NUMBA_CACHE_DIR"):
         dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]))
     return dirs
+
+
+#: Kernels that only speed up a step whose numpy reference gives the same bits: a run
+#: whose cache lacks them takes the reference and leaves their compiling to the helper
+#: (:func:`ready`), so that the first run after installing does not wait for them.
+DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts")
+
+_ready: set[str] = set()
+
+
+def ready(kernels: ModuleType, name: str) -> bool:
+    """Whether kernel ``name`` of :data:`DEFERRED` can run without compiling in this process.
+
+    True once this process has it compiled or loaded, or when the cache holds
+    it (an index file ``compiled.<name>-*.nbi`` no older than the source);
+    the callers take the numpy reference otherwise (the same results).
+    """
+    if name in _ready:
+        return True
+    found = bool(getattr(getattr(kernels, name), "overloads", None))
+    folder = _cache_dirs()[-1]  # where numba looks: NUMBA_CACHE_DIR when it is set
+    pattern = f"compiled.{name}-*.nbi"
+    try:
+        stamp = SOURCE.stat().st_mtime
+        hits = folder.glob(pattern) if folder.name == "__pycache__" else folder.rglob(pattern)
+        found = found or any(p.stat().st_mtime >= stamp for p in hits)
+    except OSError:
+        pass
+    if found:
+        _ready.add(name)
+    return found
 
 
 def cold_kernel_cache() -> bool:

@@ -2021,7 +2021,8 @@ def _quadric_at(a: np.ndarray, y: float, x: float) -> float:  # pragma: no cover
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _coeff_at(coeffs: np.ndarray, lab: int, y: float, x: float) -> float:  # pragma: no cover
+def _coeff_at(coeffs: np.ndarray, lab: int | np.integer[Any], y: float, x: float
+              ) -> float:  # pragma: no cover - compiled
     """:func:`_quadric_at` of row ``lab`` of ``coeffs``, without a view of the row."""
     return (coeffs[lab, 0] + coeffs[lab, 1] * x + coeffs[lab, 2] * y + coeffs[lab, 3] * x * x
             + coeffs[lab, 4] * x * y + coeffs[lab, 5] * y * y)
@@ -2514,86 +2515,6 @@ def crease_votes(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def settle_boundaries(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, kinds: np.ndarray,
-                      scale: float, smoothness: float, close: float, creases: bool
-                      ) -> np.ndarray:  # pragma: no cover - compiled
-    """One pass of ``refine.boundaries``: each boundary pixel's cheapest label.
-
-    A boundary pixel (labelled, with an 8-neighbour of another positive
-    label) costs ``r^2 / scale + smoothness * m`` under each candidate label
-    (its own, then its 8-neighbours' in raster order, a candidate taken when
-    strictly cheaper); with ``creases``, a pixel within ``close`` of a
-    neighbour's surface across a crease of ``kinds`` takes the visible one.
-    The same operations in the same order as the numpy reference.
-    """
-    height, width = labels.shape
-    out = labels.copy()
-    near = np.empty(8, np.int64)
-    for r in range(height):
-        for c in range(width):
-            own = labels[r, c]
-            if own <= 0:
-                continue
-            k = 0
-            edge = False
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    if dr == 0 and dc == 0:
-                        continue
-                    rr, cc = r + dr, c + dc
-                    lab = labels[rr, cc] if 0 <= rr < height and 0 <= cc < width else 0
-                    near[k] = lab
-                    edge |= lab > 0 and lab != own
-                    k += 1
-            if edge:
-                out[r, c] = _settle_pixel(z[r, c], near, own, float(r), float(c), coeffs,
-                                          kinds, scale, smoothness, close, creases)
-    return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _settle_pixel(height: float, near: np.ndarray, own: int, y: float, x: float,
-                  coeffs: np.ndarray, kinds: np.ndarray, scale: float, smoothness: float,
-                  close: float, creases: bool) -> int:  # pragma: no cover - compiled
-    """:func:`settle_boundaries` at one boundary pixel."""
-    best, lowest = own, _label_cost(height, near, own, y, x, coeffs, scale, smoothness)
-    for k in range(8):
-        ids = near[k]
-        if ids > 0 and ids != best:
-            trial = _label_cost(height, near, ids, y, x, coeffs, scale, smoothness)
-            if trial < lowest:
-                best, lowest = ids, trial
-    if not creases:
-        return best
-    mine = _coeff_at(coeffs, own, y, x)
-    decided, visible, margin = False, own, 0.0
-    for k in range(8):
-        other = near[k] if near[k] > 0 and near[k] != own else 0
-        kind = kinds[own, other]
-        if kind == 0:
-            continue
-        step = kind * (_coeff_at(coeffs, other, y, x) - mine)
-        if abs(_coeff_at(coeffs, other, y, x) - mine) < close:
-            decided = True
-            if step > margin:
-                visible, margin = other, step
-    return visible if decided else best
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _label_cost(height: float, near: np.ndarray, lab: int, y: float, x: float,
-                coeffs: np.ndarray, scale: float, smoothness: float
-                ) -> float:  # pragma: no cover - compiled
-    """``r^2 / scale + smoothness * m`` of one pixel under label ``lab``."""
-    residual = height - _coeff_at(coeffs, lab, y, x)
-    disagree = 0
-    for k in range(8):
-        disagree += near[k] > 0 and near[k] != lab
-    return residual * residual / scale + smoothness * disagree
-
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
 def neighbour_accepts(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limit: np.ndarray,
                       rows: np.ndarray, cols: np.ndarray, reach: int
                       ) -> np.ndarray:  # pragma: no cover - compiled
@@ -2610,7 +2531,7 @@ def neighbour_accepts(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, lim
         y, x = float(r), float(c)
         for rr in range(max(r - reach, 0), min(r + reach + 1, height)):
             for cc in range(max(c - reach, 0), min(c + reach + 1, width)):
-                lab = labels[rr, cc]
+                lab = np.int64(labels[rr, cc])  # one signature of _coeff_at
                 if lab > 0:
                     res = z[r, c] - _coeff_at(coeffs, lab, y, x)
                     if res * res < limit[lab]:

@@ -57,6 +57,7 @@ from scipy import ndimage
 
 from ..config import Config
 from ..kernels.backend import Backend, select_kernels
+from ..kernels.cache import ready
 from ..stages.grow import evaluate_quadric
 from ..stages.rangeimage import (
     HALF_NEIGHBOUR_PAIRS,
@@ -152,7 +153,8 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
         ``"numpy"``: the reference, a vote per pixel and offset; ``"numba"``:
         :func:`rangeseg_cli.kernels.compiled.crease_votes`, one vote per pixel
         and nearby region weighted by its pixels (the same counts); ``"auto"``:
-        numba when installed.
+        numba when installed and the kernel compiled
+        (:func:`~rangeseg_cli.kernels.cache.ready`).
 
     Returns
     -------
@@ -171,7 +173,7 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
     mine = evaluate_quadric(coeffs[own], rows, cols)
     padded = np.pad(labels, reach)
     kernels = select_kernels(backend)
-    if kernels is None:
+    if kernels is None or backend == "auto" and not ready(kernels, "crease_votes"):
         keys, below, votes = _crease_votes(padded, rows, cols, own, mine, coeffs, reach)
     else:
         keys, below, votes = kernels.crease_votes(
@@ -208,14 +210,6 @@ def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: floa
               smoothness: float, creases: bool, backend: Backend) -> np.ndarray:
     """Each boundary pixel's cheapest label (Notes 2, 5); ``labels`` elsewhere."""
     boundary = _boundary(labels)
-    kernels = select_kernels(backend)
-    if kernels is not None:  # the same labels, in one sweep
-        kinds = (crease_kinds(labels, coeffs, boundary=boundary, backend=backend) if creases
-                 else np.zeros((1, 1), np.int8))
-        return kernels.settle_boundaries(
-            np.require(z, np.float64, ["C"]), np.require(labels, np.int32, ["C"]),
-            np.require(coeffs, np.float64, ["C"]), kinds, scale, smoothness,
-            CREASE_CLOSE * math.sqrt(scale), creases)
     rows, cols = np.nonzero(boundary)
     near = _neighbour_labels(labels, rows, cols)
     heights = z[rows, cols]
@@ -261,9 +255,7 @@ def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, nois
         Noise sigma of ``z`` (:func:`~rangeseg_cli.stages.noise.estimate_noise`);
         NaN counts as 0.
     backend
-        ``"numpy"``: the reference; ``"numba"``: each pass in one sweep of
-        :func:`rangeseg_cli.kernels.compiled.settle_boundaries` (the same
-        labels); ``"auto"``: numba when installed.
+        Of the crease votes (:func:`crease_kinds`: the same labels either way).
 
     Returns
     -------

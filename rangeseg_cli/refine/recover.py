@@ -68,6 +68,7 @@ from scipy import ndimage
 
 from ..config import Config
 from ..kernels.backend import Backend, select_kernels
+from ..kernels.cache import ready
 from ..kernels.parallel import map_tasks
 from ..stages.grow import (
     EIGHT_NEIGHBOURS,
@@ -166,7 +167,8 @@ def fits_a_neighbour(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limi
     backend
         ``"numpy"``: the reference, offset by offset; ``"numba"``:
         :func:`rangeseg_cli.kernels.compiled.neighbour_accepts`, pixel by
-        pixel (the same answer); ``"auto"``: numba when installed.
+        pixel (the same answer); ``"auto"``: numba when installed and the
+        kernel compiled (:func:`~rangeseg_cli.kernels.cache.ready`).
 
     Returns
     -------
@@ -175,7 +177,7 @@ def fits_a_neighbour(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limi
         pixel with a squared residual below its ``limit``.
     """
     kernels = select_kernels(backend)
-    if kernels is not None:
+    if kernels is not None and (backend != "auto" or ready(kernels, "neighbour_accepts")):
         return np.asarray(kernels.neighbour_accepts(
             np.require(z, np.float64, ["C"]), np.require(labels, np.int32, ["C"]),
             np.require(coeffs, np.float64, ["C"]), np.require(limit, np.float64, ["C"]),
