@@ -13,8 +13,9 @@ Notes
 The first run: ``rangeseg run`` of a 128x128 image with the defaults, on two
 idle cores, cache empty (``benchmarks/first_run.py``, medians of 3). It took
 29.3 s, nearly all of it compiling 88 signatures of 79 kernels (and about 90
-of numba's own functions); it takes 8.3 s now (14.9 s in one process), by
-two means, chosen by measuring each:
+of numba's own functions); it takes 8.3-9.7 s now (14.9-16.5 s in one
+process; the machine's speed varies between days), by three means, chosen
+by measuring each:
 
 1. Less to compile: 30 kernels of one signature each (29.3 s to 14.9 s).
    A literal ``0`` or ``1`` passed to another kernel, or a read-only array,
@@ -33,6 +34,10 @@ two means, chosen by measuring each:
    its start; each loads from the cache what the other has compiled. It
    stops when done or when the process that started it ends
    (``RANGESEG_COMPILE_AHEAD=0``: no helper).
+3. Kernels that only speed up a step whose numpy reference gives the same
+   bits (:data:`DEFERRED`) run once compiled or cached (:func:`ready`): the
+   first run takes the reference while the helper compiles them (with
+   them compiled in the run: 10.1-10.5 s against 9.5 s).
 
 Measured and not taken: numba's options (``error_model="python"``,
 reference counts everywhere, no ``nogil``, no inlining: each within 1 s of
