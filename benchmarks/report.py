@@ -47,12 +47,13 @@ changes absolute times by up to 2× between runs. Speed is measured in
 
 ## What to expect
 
-- The defaults spend most of their time in the refinement's passes (the
-  split, the recut, the recovery, the boundaries) and the rest in the
-  holdsite's workspace step (the support, the background, the border
-  structures); `--preset paper`, without either, is a few Gaussian passes
-  (the table below, last row). The table below says what each pass costs
-  and earns.
+- The defaults spend most of their time in the refinement's passes: on the
+  real frame the split, the facets and the recut, which test hundreds of
+  regions and change few of them ("Where the defaults' time goes" says
+  what each pass costs and changes); the holdsite's workspace step (the
+  support, the background, the border structures) costs several Gaussian
+  passes more. `--preset paper` leaves the passes out. "Speed or quality"
+  says what each pass costs and earns.
 - Time grows about linearly with the pixels or slower (exponents below).
 - A real camera frame costs more than a synthetic pile of its size: its
   noise estimate reads low (the camera smooths its noise), so many regions
