@@ -106,6 +106,17 @@ def _speed(bench: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _pass_order() -> list[str]:
+    """The default passes in the order they run, a second run named ``name#2``."""
+    from rangeseg_cli.config import load_config
+    from rangeseg_cli.refine.passes import active_passes
+
+    names: list[str] = []
+    for step in active_passes(load_config()):
+        names.append(step.name if step.name not in names else f"{step.name}#2")
+    return names
+
+
 def _passes(bench: dict[str, Any]) -> list[str]:
     """Each refinement pass alone, where bench.json has them (the 640x480 pile, SR300)."""
     columns = [(f"{f['cols']}×{f['rows']} pile", f["passes"]) for f in bench["frames"]
@@ -114,7 +125,7 @@ def _passes(bench: dict[str, Any]) -> list[str]:
         columns.append(("SR300 frame", bench["real_frame"]["passes"]))
     if not columns:
         return []
-    names = list(dict.fromkeys(n for _, p in columns for n in p["gaussian_passes"]))
+    names = [n for n in _pass_order() if any(n in p["gaussian_passes"] for _, p in columns)]
     lines = ["", "### Where the defaults' time goes", "",
              "Each refinement pass alone, on the labels it gets in a run (medians; `#2`: "
              "the pass's second run), with the pixels it gives another surface and the "
