@@ -593,15 +593,12 @@ def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray,
     counts as in (at ``inset`` 0). Flat positions are tested
     :data:`HULL_CHUNK` at a time, in buffers (the same arithmetic).
     """
-    inside = np.ones(np.shape(rows), dtype=bool)
-    if hull is None:
-        return inside
     rows, cols = np.broadcast_arrays(rows, cols)
-    if rows.ndim != 1:
-        for a, b, c in hull:  # unit normals (a, b), outwards
-            with np.errstate(invalid="ignore"):
-                inside &= ~(a * cols + b * rows + c > 1.0 - inset)
-        return inside
+    shape = rows.shape
+    inside = np.ones(rows.size, dtype=bool)
+    if hull is None:
+        return inside.reshape(shape)
+    rows, cols = rows.ravel(), cols.ravel()
     limit = 1.0 - inset
     size = min(HULL_CHUNK, rows.size)
     value, term, out = np.empty(size), np.empty(size), np.empty(size, dtype=bool)
@@ -609,7 +606,7 @@ def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray,
         stop = min(start + HULL_CHUNK, rows.size)
         rr, cc, k = rows[start:stop], cols[start:stop], stop - start
         v, t, o, keep = value[:k], term[:k], out[:k], inside[start:stop]
-        for a, b, c in hull:
+        for a, b, c in hull:  # unit normals (a, b), outwards
             np.multiply(a, cc, out=v)
             np.multiply(b, rr, out=t)
             np.add(v, t, out=v)
@@ -617,7 +614,7 @@ def inside_hull(hull: np.ndarray | None, rows: np.ndarray, cols: np.ndarray,
             with np.errstate(invalid="ignore"):
                 np.greater(v, limit, out=o)
             keep &= ~o
-    return inside
+    return inside.reshape(shape)
 
 
 def hull_extent(hull: np.ndarray | None, shape: tuple[int, int], inset: float = 0.0

@@ -467,28 +467,22 @@ def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[i
     return framed | _near_outer_invalid(labels, np.asarray(valid, dtype=bool))
 
 
-def _same_level(base: Surface, other: Surface, tol: float,
-                known: dict[str, Any] | None = None) -> bool:
+def _same_level(base: Surface, other: Surface, tol: float, steps: set[int], level: bool
+                ) -> bool:
     """``other`` continues ``base`` (on base's extended fit, or same mean height on a level base).
 
-    Never across a step edge between the two. The mean heights are compared
-    only where ``base`` is level (its fit varies by ``tol`` or less over its
+    Never across a step edge between the two (``steps``: base's step
+    neighbours). The mean heights are compared only where ``base`` is
+    ``level`` (:func:`_level`: its fit varies by ``tol`` or less over its
     box): on a tilted table a box whose top is as high as the table's middle
-    is not the table. ``known``: a dict kept across calls with the same
-    ``base`` and ``tol`` (its step neighbours and whether it is level, found
-    once).
+    is not the table.
     """
-    known = {} if known is None else known
-    if "steps" not in known:
-        known["steps"] = {nb.id for nb in base.neighbors if nb.edge == "step"}
-    if other.id in known["steps"]:
+    if other.id in steps:
         return False
     row, col = other.centroid
     if abs(base.height_at(row, col) - other.height_at(row, col)) <= tol:
         return True
-    if "level" not in known:
-        known["level"] = _level(base, tol)
-    return bool(known["level"]) and abs(other.mean_height - base.mean_height) <= tol
+    return level and abs(other.mean_height - base.mean_height) <= tol
 
 
 def _level(surface: Surface, tol: float) -> bool:
@@ -530,9 +524,10 @@ def find_background(surfaces: dict[int, Surface], border: set[int], rule: str, t
         base = max(large, key=lambda s: (s.pixels, -s.mean_height, -s.id))
     else:
         base = min(large, key=lambda s: (s.mean_height, s.id))
-    known: dict[str, Any] = {}
+    steps = {nb.id for nb in base.neighbors if nb.edge == "step"}
+    level = _level(base, tol)
     return {s.id for s in surfaces.values()
-            if s.id == base.id or _same_level(base, s, tol, known)}
+            if s.id == base.id or _same_level(base, s, tol, steps, level)}
 
 
 def _edge_kinds(surfaces: dict[int, Surface]) -> dict[tuple[int, int], str]:
@@ -793,7 +788,7 @@ def _height_span(height: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
 
 
 def widest_discs(owner: np.ndarray, ids: list[int], boxes: list[Any] | None = None
-            ) -> dict[int, float]:
+                 ) -> dict[int, float]:
     """Radius in px of the widest disc inside each object's pixels (its clearance).
 
     The distance of each pixel of an object to the nearest pixel that is not
