@@ -66,6 +66,7 @@ from ..stages.rangeimage import (
     labels_on_valid,
 )
 from .fill import NEIGHBOUR_OFFSETS, surface_models
+from .regions import c_array
 
 #: Chessboard reach (pixels) of the pixels that tell a pair's crease kind (Notes 5).
 CREASE_REACH = 3
@@ -165,7 +166,7 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
         not within ``reach`` of each other.
     """
     n = int(labels.max(initial=0))
-    coeffs = np.require(coeffs[: n + 1], np.float64, ["C"])
+    coeffs = c_array(coeffs[: n + 1], np.float64)
     boundary = _boundary(labels) if boundary is None else boundary
     near = ndimage.maximum_filter(boundary, size=2 * reach + 1)
     rows, cols = np.nonzero(near & (labels > 0))
@@ -177,8 +178,8 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
         keys, below, votes = _crease_votes(padded, rows, cols, own, mine, coeffs, reach)
     else:
         keys, below, votes = kernels.crease_votes(
-            np.require(padded, np.int32, ["C"]), np.ascontiguousarray(rows),
-            np.ascontiguousarray(cols), own.astype(np.int64), mine, coeffs, reach).T
+            c_array(padded, np.int32), c_array(rows, np.int64), c_array(cols, np.int64),
+            own.astype(np.int64), mine, coeffs, reach).T
     lower, total = _pair_counts(keys, below, votes, (n + 1) ** 2)
     frac = (lower / np.maximum(total, 1)).reshape(n + 1, n + 1)
     seen = total.reshape(n + 1, n + 1) > 0

@@ -80,7 +80,7 @@ from ..stages.grow import (
 from ..stages.noise import estimate_noise
 from ..stages.rangeimage import require_shape_of_z
 from .planes import local_planes
-from .regions import adjacent_pairs, join_box
+from .regions import adjacent_pairs, c_array, join_box
 
 #: Chessboard reach (pixels) of the neighbours a label-0 pixel may be the boundary of.
 REACH = 2
@@ -179,9 +179,9 @@ def fits_a_neighbour(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limi
     kernels = select_kernels(backend)
     if kernels is not None and (backend != "auto" or ready(kernels, "neighbour_accepts")):
         return np.asarray(kernels.neighbour_accepts(
-            np.require(z, np.float64, ["C"]), np.require(labels, np.int32, ["C"]),
-            np.require(coeffs, np.float64, ["C"]), np.require(limit, np.float64, ["C"]),
-            np.ascontiguousarray(rows), np.ascontiguousarray(cols), reach))
+            c_array(z, np.float64), c_array(labels, np.int32), c_array(coeffs, np.float64),
+            c_array(limit, np.float64), c_array(rows, np.int64), c_array(cols, np.int64),
+            reach))
     h, w = labels.shape
     out = np.zeros(rows.size, bool)
     for dr in range(-reach, reach + 1):
