@@ -650,3 +650,13 @@ def test_the_noise_the_pipeline_has_gives_the_holdsite_it_would_estimate():
     assert given.to_dict() == alone.to_dict() == result.holdsite.to_dict()
     rough = find_holdsite(result.heights, result.labels, result.surfaces, config, noise=40.0)
     assert rough.to_dict() != alone.to_dict()  # the noise is used
+
+
+@pytest.mark.parametrize("noise", ["x", -1.0, float("nan"), float("inf")])
+def test_a_bad_noise_given_to_the_holdsite_is_one_line(noise):
+    z = table()
+    z[20:44, 20:44] = 120.0
+    result = run(z)
+    with pytest.raises(ValueError, match=r"^`noise` must be a finite number >= 0 .*, got ") as err:
+        find_holdsite(result.heights, result.labels, result.surfaces, load_config(), noise=noise)
+    assert "\n" not in str(err.value)

@@ -2116,6 +2116,19 @@ def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: Holdsite
     return text
 
 
+def _check_noise(noise: Any) -> None:
+    """Raise a one-line ValueError unless ``noise`` is None or a finite number >= 0."""
+    if noise is None:
+        return
+    try:
+        ok = math.isfinite(float(noise)) and float(noise) >= 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"`noise` must be a finite number >= 0 (the image's noise in depth "
+                         f"units, as estimate_noise gives it), got {noise!r}")
+
+
 def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
                   config: Config, *, backend: Backend = "auto",
                   gaps: dict[tuple[int, int], float] | None = None,
@@ -2171,8 +2184,11 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     ConfigError, TypeError
         For a configuration value out of range or a table of the wrong class
         (:func:`~rangeseg_cli.config.check_config`).
+    ValueError
+        When ``noise`` is given and is not a finite number >= 0.
     """
     z, labels = _check(z, labels, backend, background=background, roi=roi)
+    _check_noise(noise)
     check_config(config)
     valid = np.isfinite(z)
     n = int(labels.max(initial=0))
