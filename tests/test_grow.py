@@ -16,7 +16,6 @@ from rangeseg_cli.stages.grow import (
     single_neighbour_label,
     single_neighbour_label_at,
     sums_of_squares,
-    union_quadric_mse,
 )
 
 N = 128
@@ -152,27 +151,6 @@ def test_plane_fits_are_the_least_squares_planes_direct_or_degenerate() -> None:
         assert mse[k] == pytest.approx(np.mean((z[rows, cols] - a @ best) ** 2), abs=1e-9)
         assert np.all(coeffs[k, 3:] == 0.0) and counts[k] == rows.size
 
-
-def test_the_union_fit_from_moments_is_the_fit_of_the_union_pixels() -> None:
-    # Two regions side by side (a step, a crease, curvature, noise, holes, NaNs):
-    # one quadric of both from their moment sums equals the direct fit to 1e-8.
-    rng = np.random.default_rng(0)
-    for trial in range(120):
-        h, w = (int(v) for v in rng.integers(20, 100, 2))
-        y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-        z = (50.0 + rng.normal(0.0, 3.0) * x / w * 10.0 + 0.02 * rng.normal() * (x - w / 2) ** 2
-             + 0.01 * rng.normal() * x * y + rng.normal(0.0, rng.uniform(0.0, 2.0), (h, w))
-             + np.where(x > w * rng.uniform(0.3, 0.7), rng.uniform(0.0, 20.0), 0.0))
-        if trial % 4 == 0:
-            z = np.round(z)  # 8-bit steps, noise-free: the smallest errors
-        labels = np.where(x < int(w * rng.uniform(0.2, 0.8)), 1, 2).astype(np.int32)
-        labels[rng.random((h, w)) < 0.05] = 0
-        if trial % 3 == 0:
-            z[rng.random((h, w)) < 0.02] = np.nan
-        fits = region_fits(z, labels, 2, (2,))
-        got = union_quadric_mse(fits.moments, sums_of_squares(z, labels, 2), 1, 2)
-        _, mse, _ = fit_quadrics(z, (labels > 0).astype(np.int32), 1)
-        assert got == pytest.approx(float(mse[1]), rel=1e-8, abs=1e-9)
 
 
 def test_fit_quadrics_leaves_out_nan_pixels() -> None:

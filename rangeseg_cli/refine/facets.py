@@ -70,8 +70,9 @@ from scipy import ndimage
 
 from ..config import Config
 from ..kernels.parallel import map_tasks
-from ..stages.grow import EIGHT_NEIGHBOURS, region_fits, sums_of_squares, union_quadric_mse
+from ..stages.grow import EIGHT_NEIGHBOURS, region_fits
 from ..stages.rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
+from .graph import RegionGraph, merge_cheapest, region_graph
 from .recover import consensus_plane, fit_plane
 from .recut import MIN_GAIN  # the least gain of a cut, s^2 per pixel (Notes 5)
 from .regions import adjacent_pairs, raster_renumber
@@ -285,37 +286,18 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float) -> np.ndarray:
     """
     pieces = consecutive_labels(pieces)
     n = int(pieces.max(initial=0))
-    quadric = np.zeros(n + 1, bool)  # a piece's own surface: its quadric, not its plane
-    fits = _Fits(z, pieces, n, quadric)
-    gains = {(i, j): fits.gain(i, j, s2) for i, j in adjacent_pairs(pieces, 1)}
-    while gains:
-        gain, (i, j) = min((g, pair) for pair, g in gains.items())
-        if gain >= MIN_GAIN:
-            break
-        pieces[pieces == j] = i
-        quadric[i] = True
-        fits = _Fits(z, pieces, n, quadric)
-        near = {k for pair in gains if i in pair or j in pair for k in pair} - {i, j}
-        gains = {pair: g for pair, g in gains.items() if i not in pair and j not in pair}
-        gains.update({(min(i, k), max(i, k)): fits.gain(i, k, s2) for k in near})
-    return consecutive_labels(pieces)
+    fitted = region_fits(z, pieces, n, (1,))
+    graph = region_graph(z, pieces, n, fitted.fits[0][1], fitted)  # own surface: the plane
 
+    def gain(g: RegionGraph, a: int, b: int) -> float:
+        """Squared error per pixel, in ``s2``, one quadric of a and b adds to their own."""
+        return g.excess(a, b, g.union_mse(a, b)) / ((g.counts[a] + g.counts[b]) * s2)
 
-class _Fits:
-    """The pieces' own squared errors and the moments for their unions (:func:`merge_back`)."""
+    def union(g: RegionGraph, a: int, b: int) -> float:
+        return g.union_mse(a, b)  # the merged piece's own surface: its quadric
 
-    def __init__(self, z: np.ndarray, pieces: np.ndarray, n: int, quadric: np.ndarray) -> None:
-        fitted = region_fits(z, pieces, n, (2, 1))
-        ((_, mse), (_, mse_plane)), self.counts = fitted.fits, fitted.counts
-        self.own = self.counts * np.where(quadric, mse, mse_plane)
-        self.moments = fitted.moments
-        self.squares = sums_of_squares(z, pieces, n)
-
-    def gain(self, i: int, j: int, s2: float) -> float:
-        """Squared error per pixel, in ``s2``, one quadric of i and j adds to their own."""
-        both = self.counts[i] + self.counts[j]
-        union = union_quadric_mse(self.moments, self.squares, i, j) * both
-        return float(union - self.own[i] - self.own[j]) / (both * s2)
+    merge_cheapest(graph, adjacent_pairs(pieces, 1), gain, union, limit=MIN_GAIN)
+    return consecutive_labels(graph.labels)
 
 
 def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,

@@ -30,10 +30,16 @@ Notes
    18 degrees at noise sigma 2 while one plane fits both pieces as well as
    their own).
 3. Order: candidate pairs are taken by increasing RMS error of their union
-   (ties by ids), and a pair whose regions already belong to larger groups is
-   tested again on the groups, so no group is merged that its union would
-   not pass. Merged regions take the smallest id of the group; ids are then
-   made consecutive in their order.
+   (ties by ids), each once (:func:`~rangeseg_cli.refine.graph.merge_ranked`);
+   a pair whose regions already belong to larger groups is tested on the
+   groups, from the moment sums of the region graph
+   (:mod:`rangeseg_cli.refine.graph`). A pair whose two regions both still
+   give their groups' ids keeps the union error it was ranked by, of the
+   two regions alone, though one may have grown since: the passes after
+   the merge are tuned with this (testing the grown groups there costs 1-3
+   correct detections at noise sigma 2 on each seed set of docs/quality.md).
+   Merged regions take the smallest id of the group; ids are then made
+   consecutive in their order.
 4. Planes (:func:`merge_planes`, the pass ``merge_planes``, after the
    boundary refinement of :mod:`rangeseg_cli.refine.boundaries`). The same rules with
    a plane in the quadric's place, on planar regions only, the crease angle
@@ -50,12 +56,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import ndimage
 
 from ..config import Config
-from ..stages.grow import evaluate_quadric, fit_models, fit_quadrics, planar_regions
+from ..stages.grow import evaluate_quadric, planar_regions, region_fits
 from ..stages.rangeimage import HALF_NEIGHBOUR_PAIRS, consecutive_labels, labels_on_valid
-from .regions import crease_angle, join_box
+from .graph import RegionGraph, merge_ranked, region_graph
+from .regions import crease_angle
 
 
 def touching_pairs(labels: np.ndarray, coeffs: np.ndarray, max_gap: float
@@ -93,59 +99,6 @@ def touching_pairs(labels: np.ndarray, coeffs: np.ndarray, max_gap: float
     uniq, inverse = np.unique(key, return_inverse=True)
     mean_gap = np.bincount(inverse, np.concatenate(gaps)) / np.bincount(inverse)
     return [(int(k // big), int(k % big)) for k in uniq[mean_gap <= max_gap]]
-
-
-def _union_rms(z: np.ndarray, groups: np.ndarray, boxes: dict[int, tuple[slice, slice]],
-               a: int, b: int, order: int = 2) -> float:
-    """RMS error of one quadric (``order`` 2) or plane (1) fitted to the pixels of groups a, b."""
-    box = join_box(boxes[a], boxes[b])
-    both = np.isin(groups[box], (a, b)).astype(np.int32)
-    _, mse, _ = fit_quadrics(z[box], both, 1, order=order)
-    return math.sqrt(max(float(mse[1]), 0.0))
-
-
-class _Groups:
-    """Union-find over region ids with each group's pixels, box and RMS error."""
-
-    def __init__(self, labels: np.ndarray, rms: np.ndarray, counts: np.ndarray):
-        self.labels = labels.copy()
-        self.rms = rms.copy()
-        self.parent = np.arange(rms.size)
-        self.boxes = {k + 1: b for k, b in enumerate(ndimage.find_objects(labels)) if b}
-        self.counts = counts.astype(np.float64)  # pixels per group, as the fits counted them
-
-    def root(self, k: int) -> int:
-        """The group of region k (the smallest id in it)."""
-        while self.parent[k] != k:
-            k = int(self.parent[k])
-        return k
-
-    def join(self, a: int, b: int, rms: float) -> None:
-        """Merge groups a and b (roots) whose union fits with RMS error ``rms``."""
-        keep, gone = min(a, b), max(a, b)
-        self.parent[gone] = keep
-        box = join_box(self.boxes[keep], self.boxes.pop(gone))
-        self.boxes[keep] = box
-        sub = self.labels[box]
-        sub[sub == gone] = keep
-        self.rms[keep] = rms
-        self.counts[keep] += self.counts[gone]
-
-    def excess(self, a: int, b: int, union: float) -> float:
-        """Squared error one surface of groups a, b leaves beyond their own two surfaces."""
-        return union_excess(union, self.rms, self.counts, a, b)
-
-
-def union_excess(union: float, rms: np.ndarray, counts: np.ndarray, a: int, b: int) -> float:
-    """Squared error one surface of a and b (RMS ``union``) leaves beyond their own two.
-
-    ``rms`` and ``counts``: each region's (or group's) own RMS error and pixel
-    count. For two pieces of one surface it is the noise variance times a
-    chi-square variable (3 degrees of freedom for planes): the statistic of
-    ``split.crease_evidence``.
-    """
-    return float(union ** 2 * (counts[a] + counts[b]) - rms[a] ** 2 * counts[a]
-                 - rms[b] ** 2 * counts[b])
 
 
 def merge_regions(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: float
@@ -212,34 +165,33 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
         return consecutive_labels(lab)  # a label only on invalid pixels leaves a gap
     zc = np.where(np.isfinite(z), z, 0.0)
     level = config.split.fit_factor * max(noise, math.sqrt(config.grow.min_error))
-    ((quad, mse), (planes, mse_plane)), counts = fit_models(zc, lab, n, (2, 1))
+    fitted = region_fits(zc, lab, n, (2, 1))
+    ((quad, mse), (planes, mse_plane)), counts = fitted.fits, fitted.counts
     is_plane = planar_regions(mse, mse_plane, counts, config.grow)
     if order == 2:
-        rms = np.sqrt(np.maximum(mse, 0.0))
-        flat = (rms <= level) & is_plane
+        own = mse
+        flat = (np.sqrt(np.maximum(mse, 0.0)) <= level) & is_plane
         pairs = touching_pairs(lab, np.where(is_plane[:, None], planes, quad), 3.0 * level)
     else:  # planes only; the crease angle is tested on every pair
-        rms, flat = np.sqrt(np.maximum(mse_plane, 0.0)), is_plane
+        own, flat = mse_plane, is_plane
         pairs = [(i, j) for i, j in touching_pairs(lab, planes, 3.0 * level)
                  if is_plane[i] and is_plane[j]]
     if not pairs:
         return consecutive_labels(lab)
-    groups = _Groups(lab, rms, counts)
-    first = [(_union_rms(zc, lab, groups.boxes, i, j, order), i, j) for i, j in pairs]
+    graph = region_graph(zc, lab, n, np.maximum(own, 0.0), fitted)
     floor = math.sqrt(config.grow.min_error)
-    for union, i, j in sorted(first):
-        a, b = groups.root(i), groups.root(j)
-        if a == b:
-            continue
-        if (a, b) != (i, j):
-            union = _union_rms(zc, groups.labels, groups.boxes, a, b, order)
-        bound = min(level, config.split.min_gain * max(groups.rms[a], groups.rms[b], floor))
-        if union > bound:
-            continue
+
+    def judge(g: RegionGraph, a: int, b: int, i: int, j: int, first: float) -> float | None:
+        union = first if (a, b) == (i, j) else g.union_mse(a, b, order)  # Notes 3
+        worst = math.sqrt(max(g.own[a], g.own[b]))
+        if math.sqrt(union) > min(level, config.split.min_gain * max(worst, floor)):
+            return None
         if (flat[i] and flat[j] and crease_angle(lab, planes, i, j) >= config.split.min_crease
-                and _crease_shown(groups.excess(a, b, union), noise, config)):
-            continue
-        groups.join(a, b, union)
-    roots = np.array([groups.root(k) for k in range(n + 1)])
-    roots[0] = 0
-    return consecutive_labels(roots[lab])  # a group's root is its smallest id
+                and _crease_shown(g.excess(a, b, union), noise, config)):
+            return None
+        return union
+
+    ranked = sorted((graph.union_mse(i, j, order), i, j) for i, j in pairs)
+    if not merge_ranked(graph, ranked, judge):
+        return consecutive_labels(lab)
+    return consecutive_labels(graph.labels)  # a group's id is its smallest region id

@@ -46,17 +46,9 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..config import Config
-from ..stages.grow import (
-    RegionFits,
-    evaluate_quadric,
-    fit_models,
-    planar_regions,
-    region_fits,
-    sums_of_squares,
-    union_quadric_mse,
-)
+from ..stages.grow import RegionFits, evaluate_quadric, planar_regions, region_fits
 from ..stages.rangeimage import consecutive_labels, labels_on_valid
-from .merge import union_excess
+from .graph import RegionGraph, merge_ranked, region_graph
 from .regions import adjacent_pairs, join_box
 
 #: Pixels between two patches must lie within this many ``s`` of the surface, or above it.
@@ -100,14 +92,14 @@ def join_occluded(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: f
     flat = planar_regions(mse_quad, mse_plane, fits.counts, config.grow)
     coeffs = np.where(flat[:, None], plane, quad)  # the rule of fill.surface_models
     rms = np.sqrt(np.maximum(np.where(flat, mse_plane, mse_quad), 0.0))
-    pairs = _candidate_pairs(zc, lab, fits, coeffs, rms, level, config.link.min_component)
-    if not pairs:
+    graph = region_graph(zc, lab, n, rms * rms, fits)
+    pairs = _candidate_pairs(graph, fits, coeffs, rms, level, config.link.min_component)
+    if not pairs or not _join(z, graph, pairs, flat, s, config):
         return lab
-    joined = _join(z, lab, pairs, flat, rms, fits.counts, s, config)
-    return consecutive_labels(joined) if joined is not lab else lab
+    return consecutive_labels(graph.labels)
 
 
-def _candidate_pairs(z: np.ndarray, lab: np.ndarray, fits: RegionFits, coeffs: np.ndarray,
+def _candidate_pairs(graph: RegionGraph, fits: RegionFits, coeffs: np.ndarray,
                      rms: np.ndarray, level: float, min_pixels: int
                      ) -> list[tuple[float, int, int]]:
     """Pairs (i < j) of well-fitted regions that do not touch and may be one surface (Notes 1).
@@ -116,7 +108,7 @@ def _candidate_pairs(z: np.ndarray, lab: np.ndarray, fits: RegionFits, coeffs: n
     height at its centroid within :data:`SCREEN` times the level (all pairs
     at once; a narrow patch's quadric extrapolates badly, the wide one's does
     not), and one quadric of the union passes the fit test, from the regions'
-    moment sums (:func:`~rangeseg_cli.stages.grow.union_quadric_mse`, without
+    moment sums (:class:`~rangeseg_cli.refine.graph.RegionGraph`, without
     visiting a pixel; a plane of the union fits no better).
 
     Returns
@@ -124,7 +116,6 @@ def _candidate_pairs(z: np.ndarray, lab: np.ndarray, fits: RegionFits, coeffs: n
     list of (float, int, int)
         The union quadric's mean squared error and the pair, in increasing order.
     """
-    n = rms.size - 1
     ids = np.nonzero((fits.counts >= min_pixels) & (rms <= level))[0]
     ids = ids[ids > 0]
     if ids.size < 2:
@@ -135,22 +126,10 @@ def _candidate_pairs(z: np.ndarray, lab: np.ndarray, fits: RegionFits, coeffs: n
     first, second = np.nonzero(np.triu(np.minimum(off, off.T) <= SCREEN * level, 1))
     if first.size == 0:
         return []
-    squares = sums_of_squares(z, lab, n)
-    touching = set(adjacent_pairs(lab, 1))
+    touching = set(adjacent_pairs(graph.labels, 1))
     pairs = [(int(ids[a]), int(ids[b])) for a, b in zip(first, second, strict=True)]
-    scored = [(union_quadric_mse(fits.moments, squares, i, j), i, j) for i, j in pairs
-              if (i, j) not in touching]
+    scored = [(graph.union_mse(i, j), i, j) for i, j in pairs if (i, j) not in touching]
     return sorted(t for t in scored if t[0] <= level * level)
-
-
-def _union_fit(z: np.ndarray, groups: np.ndarray, a: int, b: int, box: tuple[slice, slice],
-               order: int) -> tuple[float, np.ndarray]:
-    """RMS error and image coefficients of one surface of groups a, b (both within ``box``)."""
-    both = np.isin(groups[box], (a, b)).astype(np.int32)
-    zs = z[box]
-    ((coeffs, mse),), _ = fit_models(np.where(np.isfinite(zs), zs, 0.0), both, 1, (order,),
-                                     origin=(box[0].start, box[1].start))
-    return math.sqrt(max(float(mse[1]), 0.0)), coeffs[1]
 
 
 def _border(mask: np.ndarray) -> np.ndarray:
@@ -182,39 +161,32 @@ def _occluded(z: np.ndarray, groups: np.ndarray, a: int, b: int, coeffs: np.ndar
     return bool(above.min() >= -OCCLUSION_MARGIN * s and above.max() > OCCLUSION_MARGIN * s)
 
 
-def _join(z: np.ndarray, lab: np.ndarray, pairs: list[tuple[float, int, int]],
-          flat: np.ndarray, rms: np.ndarray, counts: np.ndarray, s: float, config: Config
-          ) -> np.ndarray:
+def _join(z: np.ndarray, graph: RegionGraph, pairs: list[tuple[float, int, int]],
+          flat: np.ndarray, s: float, config: Config) -> bool:
     """Join the pairs that pass Notes 2 and 3, by increasing union error (Notes 4).
 
-    ``rms`` and ``counts``: each region's own RMS error and pixel count.
+    ``graph.own``: each region's own mean squared error. Returns whether any
+    pair was joined.
     """
     level = config.split.fit_factor * s
     floor = math.sqrt(config.grow.min_error)
-    groups, grms, counts = lab.copy(), rms.copy(), counts.astype(np.float64)
-    boxes = dict(enumerate(ndimage.find_objects(lab), start=1))
-    root = np.arange(rms.size)
-    changed = False
     evidence = config.split.crease_evidence * s * s
 
-    def one_surface(a: int, b: int, union: float) -> bool:  # Notes 2
-        if union > min(level, config.split.min_gain * max(grms[a], grms[b], floor)):
+    def one_surface(g: RegionGraph, a: int, b: int, union: float) -> bool:  # Notes 2
+        worst = math.sqrt(max(g.own[a], g.own[b]))
+        if union > min(level, config.split.min_gain * max(worst, floor)):
             return False
-        return not 0 < evidence <= union_excess(union, grms, counts, a, b)
+        return not 0 < evidence <= g.excess(a, b, union * union)
 
-    for mse_quadric, i, j in pairs:
-        a, b = int(root[i]), int(root[j])
-        if a == b or (a, b) == (i, j) and not one_surface(a, b, math.sqrt(mse_quadric)):
-            continue  # the union's quadric fits no worse than its plane: a bound, no fit
-        box = join_box(boxes[a], boxes[b])
-        union, c = _union_fit(z, groups, a, b, box, 1 if flat[i] and flat[j] else 2)
-        if not one_surface(a, b, union) or not _occluded(z, groups, a, b, c, box, s):
-            continue
-        keep, gone = min(a, b), max(a, b)
-        sub = groups[box]
-        sub[sub == gone] = keep
-        root[root == gone] = keep
-        boxes[keep] = box
-        grms[keep], counts[keep] = union, counts[a] + counts[b]
-        changed = True
-    return groups if changed else lab
+    def judge(g: RegionGraph, a: int, b: int, i: int, j: int, mse_quadric: float
+              ) -> float | None:
+        if (a, b) == (i, j) and not one_surface(g, a, b, math.sqrt(mse_quadric)):
+            return None  # the union's quadric fits no worse than its plane: a bound
+        coeffs, mse = g.union_fit(a, b, 1 if flat[i] and flat[j] else 2)
+        union = math.sqrt(max(mse, 0.0))
+        box = join_box(g.boxes[a], g.boxes[b])
+        if not one_surface(g, a, b, union) or not _occluded(z, g.labels, a, b, coeffs, box, s):
+            return None
+        return union * union
+
+    return merge_ranked(graph, pairs, judge)

@@ -86,12 +86,11 @@ from ..stages.grow import (
     grow_regions,
     planar,
     region_fits,
-    sums_of_squares,
-    union_quadric_mse,
 )
 from ..stages.link import FOUR_CONNECTED
 from ..stages.noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
 from ..stages.surfaces import label_boxes
+from .graph import region_graph
 from .planes import blur_radius, blur_weights, local_gradients, local_planes
 from .recover import INLIER_FACTOR, MAX_PIECES, consensus_plane, plane_pieces
 from .recut import MIN_GAIN, crease_side
@@ -841,13 +840,13 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
         return pieces
     fitted = region_fits(z, pieces, n, (2, 1))
     ((_, mse), (planes, mse_plane)), counts = fitted.fits, fitted.counts
-    squares = sums_of_squares(z, pieces, n)
+    graph = region_graph(z, pieces, n, mse, fitted)
     rms = np.sqrt(np.maximum(mse, 0.0))
     flat = (rms <= level) & planar(mse, mse_plane, planar_tolerance, min_error,
                                    counts if noise_test else None)
     parent = np.arange(n + 1)
     for i, j in adjacent_pairs(pieces):
-        union = math.sqrt(union_quadric_mse(fitted.moments, squares, i, j))
+        union = math.sqrt(graph.union_mse(i, j))
         apart = union > max(floor, min_gain * max(rms[i], rms[j]))
         if not apart and excess is not None:
             both = counts[i] + counts[j]
@@ -951,7 +950,7 @@ def _two_planes(pieces: np.ndarray, i: int, j: int, sse_planes: float, union_rms
     ``sse_planes`` (each piece's own plane: 6 coefficients in all) is below
     the sum of squared errors of one quadric of their union (also 6; its
     RMS error ``union_rms``, from
-    :func:`~rangeseg_cli.stages.grow.union_quadric_mse`) by ``gain`` per pixel or
+    :meth:`~rangeseg_cli.refine.graph.RegionGraph.union_mse`) by ``gain`` per pixel or
     more, and the planes meet at ``min_crease`` degrees or more along the
     boundary.
     """

@@ -355,34 +355,19 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
                       moments.rhs[:, 0] / safe, moments)
 
 
-def union_quadric_mse(moments: RegionMoments, squares: np.ndarray, i: int, j: int) -> float:
-    """Mean squared error of one quadric fitted to regions i and j together (Sec. V-4).
+def union_moments(moments: RegionMoments, i: int, j: int
+                  ) -> tuple[float, float, float, float, np.ndarray, np.ndarray]:
+    """The moment sums of regions i and j together, as one region's (Sec. V-4).
 
-    From the regions' moment sums alone, without visiting a pixel: each
-    region's sums (in its own frame, :class:`RegionMoments`) are carried
+    Each region's sums (in its own frame, :class:`RegionMoments`) are carried
     into a frame of the union (``u' = a u + b``: the binomial expansion, a
-    small matrix product per region), added, and solved as
-    :func:`region_fits` solves them; the squared error is ``sum z^2 - 2 c.r
-    + c.M c`` with ``squares`` the regions' sums of squared heights. Equal
-    to the fit of the union's pixels up to rounding (a sum of squares minus
-    a nearly equal quantity: relative error about 1e-16 of ``sum z^2 /
-    SSE``).
-
-    Parameters
-    ----------
-    moments
-        :class:`RegionMoments` of a label image holding regions i and j
-        (``region_fits(...).moments``).
-    squares
-        float64 (n+1,) sum of squared heights per region
-        (:func:`sums_of_squares`).
-    i, j
-        Two distinct regions with pixels.
+    small matrix product per region) and added.
 
     Returns
     -------
-    float
-        The union's mean squared residual, at least 0.
+    tuple
+        ``(count, cx, cy, scale, sums (5, 5), rhs (6,))``: one row of
+        :class:`RegionMoments` for the union.
     """
     ci, cj = moments.counts[i], moments.counts[j]
     total = ci + cj
@@ -400,10 +385,44 @@ def union_quadric_mse(moments: RegionMoments, squares: np.ndarray, i: int, j: in
         rhs += tu[:3, :3] @ np.array([[r[0], r[2], r[5]], [r[1], r[4], 0.0],
                                       [r[3], 0.0, 0.0]]) @ tv[:3, :3].T
     vec = np.array([rhs[e] for e in _EXPONENTS])
+    return float(total), float(cx), float(cy), float(scale), sums, vec
+
+
+def moment_fit(sums: np.ndarray, rhs: np.ndarray, count: float, square: float,
+               order: int = 2) -> tuple[np.ndarray, float]:
+    """The least-squares fit of one region from its moment sums (Sec. V-4).
+
+    Solved as :func:`region_fits` solves it (:func:`_solve_cascade`); the
+    squared error is ``sum z^2 - 2 c.r + c.M c``.
+
+    Parameters
+    ----------
+    sums, rhs
+        (5, 5) and (6,): one row of :class:`RegionMoments`.
+    count
+        Pixels of the region (> 0).
+    square
+        Sum of its squared heights.
+    order
+        2 quadric, 1 plane, 0 constant.
+
+    Returns
+    -------
+    tuple
+        The six coefficients in the region's frame (``u, v``; zeros beyond
+        the order) and the mean squared error, at least 0.
+    """
     mat = sums[_POWER_U, _POWER_V]
-    coef = _solve_cascade((mat / total)[None], (vec / total)[None], np.array([total]), 2)[0]
-    sse = squares[i] + squares[j] - 2.0 * float(coef @ vec) + float(coef @ mat @ coef)
-    return max(sse / total, 0.0)
+    coef = _solve_cascade((mat / count)[None], (rhs / count)[None], np.array([count]),
+                          order)[0]
+    sse = square - 2.0 * float(coef @ rhs) + float(coef @ mat @ coef)
+    return coef, max(sse / count, 0.0)
+
+
+def image_coefficients(coef: np.ndarray, cx: float, cy: float, scale: float) -> np.ndarray:
+    """One fit's six coefficients in a region's frame, as image coefficients a0..a5."""
+    return _to_image_coefficients(coef[None], np.array([cx]), np.array([cy]),
+                                  np.array([scale]))[0]
 
 
 def sums_of_squares(z: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
