@@ -12,10 +12,8 @@ from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.stages.grow import (
     fit_quadrics,
     grow_regions,
-    region_fits,
     single_neighbour_label,
     single_neighbour_label_at,
-    sums_of_squares,
 )
 
 N = 128
