@@ -244,8 +244,8 @@ def plane_height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.nd
     return plane[0] + plane[1] * cols + plane[2] * rows
 
 
-def plane_pieces(z: np.ndarray, mask: np.ndarray, *, level: float, min_pixels: int
-                 ) -> list[np.ndarray]:
+def plane_pieces(z: np.ndarray, mask: np.ndarray, *, level: float, min_pixels: int,
+                 found: tuple[np.ndarray | None] | None = None) -> list[np.ndarray]:
     """Cut the pixels of ``mask`` into planes by consensus (Notes, step 2).
 
     Parameters
@@ -259,6 +259,10 @@ def plane_pieces(z: np.ndarray, mask: np.ndarray, *, level: float, min_pixels: i
         ``INLIER_FACTOR * level``.
     min_pixels
         Smallest piece kept.
+    found
+        The first consensus plane's pixels, ``consensus_plane(z, mask,
+        INLIER_FACTOR * level)``, in a 1-tuple when the caller has already
+        found it (None inside: there is none); None: found here.
 
     Returns
     -------
@@ -269,10 +273,10 @@ def plane_pieces(z: np.ndarray, mask: np.ndarray, *, level: float, min_pixels: i
     left = mask.copy()
     pieces: list[np.ndarray] = []
     tol = INLIER_FACTOR * level
-    for _ in range(MAX_PIECES):
+    for i in range(MAX_PIECES):
         if np.count_nonzero(left) < min_pixels:
             break
-        piece = consensus_plane(z, left, tol)
+        piece = found[0] if i == 0 and found is not None else consensus_plane(z, left, tol)
         if piece is None:
             break
         left &= ~piece

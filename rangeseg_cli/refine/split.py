@@ -92,7 +92,7 @@ from ..stages.noise import estimate_noise, noise_scaled_config  # noqa: F401 (re
 from ..stages.surfaces import label_boxes
 from .graph import region_graph
 from .planes import blur_radius, blur_weights, local_gradients, local_planes
-from .recover import INLIER_FACTOR, MAX_PIECES, consensus_plane, plane_pieces
+from .recover import INLIER_FACTOR, consensus_plane, plane_pieces
 from .recut import MIN_GAIN, crease_side
 from .regions import (
     adjacent_pairs,
@@ -1170,12 +1170,11 @@ def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
     whole; where they hold it, :func:`merge_back` judges the planes as any
     other pieces. ``found`` holds the piece's consensus plane when the
     caller has it (the first plane of
-    :func:`~rangeseg_cli.refine.recover.plane_pieces`: :func:`consensus_pieces`).
+    :func:`~rangeseg_cli.refine.recover.plane_pieces`).
     Returns whether the piece was cut.
     """
     mask = pieces == k
-    faces = (plane_pieces(z, mask, level=level, min_pixels=cfg.min_piece) if found is None
-             else consensus_pieces(z, mask, found[0], level=level, min_pixels=cfg.min_piece))
+    faces = plane_pieces(z, mask, level=level, min_pixels=cfg.min_piece, found=found)
     held = sum(int(np.count_nonzero(f)) for f in faces)
     if (len(faces) < 2 or held < PLANE_CUT_COVER * np.count_nonzero(mask)
             or n + len(faces) - 1 > cfg.max_pieces):
@@ -1184,29 +1183,6 @@ def _plane_cut(z: np.ndarray, pieces: np.ndarray, k: int, n: int, level: float,
     for i, face in enumerate(faces):
         pieces[face] = k if i == 0 else n + i
     return True
-
-
-def consensus_pieces(z: np.ndarray, mask: np.ndarray, first: np.ndarray | None, *,
-                     level: float, min_pixels: int) -> list[np.ndarray]:
-    """:func:`~rangeseg_cli.refine.recover.plane_pieces` with its first consensus plane given.
-
-    ``first`` is ``consensus_plane(z, mask, INLIER_FACTOR * level)`` (None:
-    there is none); the pieces are those ``plane_pieces(z, mask, level=level,
-    min_pixels=min_pixels)`` gives, without finding that plane again
-    (:func:`_plane_cut` after :func:`_trim`, Sec. VIII Notes 3).
-    """
-    left = mask.copy()
-    faces: list[np.ndarray] = []
-    for i in range(MAX_PIECES):
-        if np.count_nonzero(left) < min_pixels:
-            break
-        piece = first if i == 0 else consensus_plane(z, left, INLIER_FACTOR * level)
-        if piece is None:
-            break
-        left &= ~piece
-        if np.count_nonzero(piece) >= min_pixels:
-            faces.append(piece)
-    return faces
 
 
 def _separate(labels: np.ndarray) -> np.ndarray:
