@@ -8,14 +8,15 @@ and sum of squared heights, so that every such question is answered from
 the sums of the two (:func:`~rangeseg_cli.stages.grow.union_moments`, a few
 small matrix products) without visiting a pixel, and a merge adds the sums.
 
-:func:`merge_cheapest` is the one merge of the refinement: the candidate
-pairs are taken cheapest first (a priority queue, as
-``skimage.graph.merge_hierarchical``), a pair is tested on the groups its
-regions belong to when it comes up, and after a merge the new group's pairs
-with its neighbours are costed again. What "cheapest" and "one surface" mean
-is the caller's: the merges of :mod:`~rangeseg_cli.refine.merge`,
-:mod:`~rangeseg_cli.refine.split`, :mod:`~rangeseg_cli.refine.facets` and
-:mod:`~rangeseg_cli.refine.occlusion` pass their cost and test.
+:func:`merge_cheapest` and :func:`merge_ranked` are the merges of the
+refinement. The first takes the candidate pairs cheapest first (a priority
+queue, as ``skimage.graph.merge_hierarchical``) and costs the new group's
+pairs with its neighbours again after each merge; the second judges pairs
+ranked once, each on the groups its regions then belong to. What "cheapest"
+and "one surface" mean is the caller's: the merges of
+:mod:`~rangeseg_cli.refine.merge`, :mod:`~rangeseg_cli.refine.facets` and
+:mod:`~rangeseg_cli.refine.occlusion` pass their cost and test, and
+:func:`~rangeseg_cli.refine.split.merge_back` reads its unions from the graph.
 """
 
 from __future__ import annotations
@@ -126,7 +127,8 @@ def region_graph(z: np.ndarray, labels: np.ndarray, n: int, own: np.ndarray | No
     n
         Largest label.
     own
-        (n+1,) each region's own mean squared error (default: its quadric's).
+        (n+1,) each region's own mean squared error (default: that of the
+        first order of ``fitted``, the quadric when it is made here).
     fitted
         ``region_fits(z, labels, n, ...)`` when the caller has it.
     """

@@ -142,6 +142,17 @@ def merge_planes(z: np.ndarray, labels: np.ndarray, config: Config, *, noise: fl
     return _merged(z, labels, config, noise, order=1)
 
 
+def union_bound(g: RegionGraph, a: int, b: int, level: float, config: Config) -> float:
+    """The largest RMS error of one surface of groups a, b that lets them merge (Notes 2).
+
+    The fit test's ``level``, and at most ``split.min_gain`` times the larger
+    of the two groups' own RMS errors (``g.own``), floored at
+    ``sqrt(grow.min_error)``; :mod:`~rangeseg_cli.refine.occlusion` joins by it too.
+    """
+    worst = math.sqrt(max(g.own[a], g.own[b], config.grow.min_error))
+    return min(level, config.split.min_gain * worst)
+
+
 def _crease_shown(excess: float, noise: float, config: Config) -> bool:
     """Whether a union's excess squared error is evidence of a crease (Notes 2).
 
@@ -179,12 +190,9 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
     if not pairs:
         return consecutive_labels(lab)
     graph = region_graph(zc, lab, n, np.maximum(own, 0.0), fitted)
-    floor = math.sqrt(config.grow.min_error)
-
     def judge(g: RegionGraph, a: int, b: int, i: int, j: int, first: float) -> float | None:
         union = first if (a, b) == (i, j) else g.union_mse(a, b, order)  # Notes 3
-        worst = math.sqrt(max(g.own[a], g.own[b]))
-        if math.sqrt(union) > min(level, config.split.min_gain * max(worst, floor)):
+        if math.sqrt(union) > union_bound(g, a, b, level, config):
             return None
         if (flat[i] and flat[j] and crease_angle(lab, planes, i, j) >= config.split.min_crease
                 and _crease_shown(g.excess(a, b, union), noise, config)):

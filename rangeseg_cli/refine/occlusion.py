@@ -49,6 +49,7 @@ from ..config import Config
 from ..stages.grow import RegionFits, evaluate_quadric, planar_regions, region_fits
 from ..stages.rangeimage import consecutive_labels, labels_on_valid
 from .graph import RegionGraph, merge_ranked, region_graph
+from .merge import union_bound
 from .regions import adjacent_pairs, join_box
 
 #: Pixels between two patches must lie within this many ``s`` of the surface, or above it.
@@ -169,12 +170,10 @@ def _join(z: np.ndarray, graph: RegionGraph, pairs: list[tuple[float, int, int]]
     pair was joined.
     """
     level = config.split.fit_factor * s
-    floor = math.sqrt(config.grow.min_error)
     evidence = config.split.crease_evidence * s * s
 
     def one_surface(g: RegionGraph, a: int, b: int, union: float) -> bool:  # Notes 2
-        worst = math.sqrt(max(g.own[a], g.own[b]))
-        if union > min(level, config.split.min_gain * max(worst, floor)):
+        if union > union_bound(g, a, b, level, config):
             return False
         return not 0 < evidence <= g.excess(a, b, union * union)
 
