@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Iterator
 from dataclasses import replace
 
 import numpy as np
@@ -372,19 +373,20 @@ def test_local_planes_of_a_crop_equal_those_of_the_whole_array_bit_for_bit() -> 
     np.testing.assert_array_equal(cropped, height[rows, cols])  # NaN where out of reach
 
 
-def test_core_from_window_extremes_equals_the_chessboard_depth_rule() -> None:
-    from scipy import ndimage
-
-    rng = np.random.default_rng(13)
-    cfg = SPLIT.split
+def _block_parts(rng: np.random.Generator
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray, split_module._Frame]]:
+    """200 random labels of 4x4 blocks (0-3, up to 29x29) with their masks and frames."""
     for _ in range(200):
         h, w = (int(v) for v in rng.integers(2, 30, size=2))
         coarse = rng.integers(0, 4, (h // 4 + 1, w // 4 + 1))
         parts = np.kron(coarse, np.ones((4, 4), int))[:h, :w].astype(np.int32)
         mask = parts > 0
-        if not mask.any():
-            continue
-        frame = split_module._Frame.of(mask, cfg)
+        if mask.any():
+            yield parts, mask, split_module._Frame.of(mask, SPLIT.split)
+
+
+def test_core_from_window_extremes_equals_the_chessboard_depth_rule() -> None:
+    for parts, _, frame in _block_parts(np.random.default_rng(13)):
         padded = np.pad(split_module._fill_nearest(parts, frame.solid), 1)
         uniform = (ndimage.minimum_filter(padded, size=3)
                    == ndimage.maximum_filter(padded, size=3))
@@ -394,16 +396,7 @@ def test_core_from_window_extremes_equals_the_chessboard_depth_rule() -> None:
 
 
 def test_core_bound_holds_every_core_and_counts_the_eroded_mask() -> None:
-    rng = np.random.default_rng(17)
-    cfg = SPLIT.split
-    for _ in range(200):
-        h, w = (int(v) for v in rng.integers(2, 30, size=2))
-        coarse = rng.integers(0, 4, (h // 4 + 1, w // 4 + 1))
-        parts = np.kron(coarse, np.ones((4, 4), int))[:h, :w].astype(np.int32)
-        mask = parts > 0
-        if not mask.any():
-            continue
-        frame = split_module._Frame.of(mask, cfg)
+    for parts, mask, frame in _block_parts(np.random.default_rng(17)):
         bound = split_module.core_bound(frame)
         assert np.count_nonzero(split_module._core(parts, frame)) <= bound
         assert np.count_nonzero(split_module._core(mask.astype(np.int32), frame)) == bound
@@ -1066,7 +1059,7 @@ def test_a_plane_cut_stays_inside_its_piece_and_within_max_pieces(seed, shape, b
         assert np.count_nonzero(pieces[blob] == k) >= cfg.min_piece
 
 
-def test_consensus_pieces_with_the_first_plane_given_are_the_plane_pieces() -> None:
+def test_plane_pieces_with_the_first_plane_given_are_the_plane_pieces() -> None:
     from rangeseg_cli.refine.recover import INLIER_FACTOR, consensus_plane, plane_pieces
 
     y, x = np.mgrid[0:30, 0:36].astype(np.float64)
@@ -1077,12 +1070,12 @@ def test_consensus_pieces_with_the_first_plane_given_are_the_plane_pieces() -> N
         mask = np.ones(z.shape, bool)
         mask[:3, :5] = False
         first = consensus_plane(noisy, mask, INLIER_FACTOR * 0.625)
-        got = split_module.consensus_pieces(noisy, mask, first, level=0.625, min_pixels=20)
+        got = plane_pieces(noisy, mask, level=0.625, min_pixels=20, found=(first,))
         want = plane_pieces(noisy, mask, level=0.625, min_pixels=20)
         assert len(got) == len(want) >= 2
         for a, b in zip(got, want, strict=True):
             np.testing.assert_array_equal(a, b)
-    assert split_module.consensus_pieces(z, mask, None, level=0.625, min_pixels=20) == []
+    assert plane_pieces(z, mask, level=0.625, min_pixels=20, found=(None,)) == []
 
 
 def test_near_part_from_the_label_extremes_equals_the_window_search() -> None:
