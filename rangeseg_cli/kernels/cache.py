@@ -100,6 +100,8 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
                  " int64[::1], float64)"),
     ("crease_votes", "(int32[:, ::1], int64[::1], int64[::1], int64[::1], float64[::1],"
                      " float64[:, ::1], int64)"),
+    ("boundary_labels", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64, float64,"
+                        " int8[:, ::1], float64, boolean)"),
     ("boundary_measures", "(int32[:, ::1], int64, float64[:, ::1])"),
     ("pair_medians", "(int64[::1], int64[::1], int64, float64[:, ::1])"),
     ("label_boxes", "(int32[:, ::1], int64)"),
@@ -123,7 +125,7 @@ def _cache_dirs() -> list[Path]:
 #: Kernels that only speed up a step whose numpy reference gives the same bits: a run
 #: whose cache lacks them takes the reference and leaves their compiling to the helper
 #: (:func:`ready`), so that the first run after installing does not wait for them.
-DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts")
+DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels")
 
 _ready: set[str] = set()
 

@@ -2515,6 +2515,86 @@ def crease_votes(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def boundary_labels(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: float,
+                    smoothness: float, kinds: np.ndarray, close: float, creases: bool
+                    ) -> np.ndarray:  # pragma: no cover - compiled
+    """``refine.boundaries``' pass: each boundary pixel's cheapest label (the same labels).
+
+    A boundary pixel is labelled and has an 8-neighbour of another positive
+    label; it takes, of its own label and its neighbours' (in raster order of
+    the 3x3 window, a tie keeping the earlier), the one of least ``r^2 /
+    scale + smoothness * m``; with ``creases``, the crease rule's label
+    (``kinds``) where it decides. Residuals as ``grow.evaluate_quadric``.
+    """
+    height, width = labels.shape
+    out = labels.copy()
+    near = np.zeros(8, np.int64)
+    for r in range(height):
+        for c in range(width):
+            own = np.int64(labels[r, c])
+            if own == 0:
+                continue
+            edge = False
+            k = 0
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    if dr == 0 and dc == 0:
+                        continue
+                    rr, cc = r + dr, c + dc
+                    lab = np.int64(0)
+                    if 0 <= rr < height and 0 <= cc < width:
+                        lab = np.int64(labels[rr, cc])
+                    near[k] = lab
+                    edge = edge or (lab > 0 and lab != own)
+                    k += 1
+            if edge:
+                out[r, c] = _cheapest(z[r, c], near, own, coeffs, float(r), float(c), scale,
+                                      smoothness, kinds, close, creases)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _disagreeing(near: np.ndarray, lab: np.int64) -> int:  # pragma: no cover - compiled
+    """The labelled neighbours whose label is not ``lab``."""
+    m = 0
+    for k in range(8):
+        if near[k] > 0 and near[k] != lab:
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _cheapest(h: float, near: np.ndarray, own: np.int64, coeffs: np.ndarray, y: float, x: float,
+              scale: float, smoothness: float, kinds: np.ndarray, close: float, creases: bool
+              ) -> np.int64:  # pragma: no cover - compiled
+    """One boundary pixel of :func:`boundary_labels`."""
+    res = h - _coeff_at(coeffs, own, y, x)
+    best, lowest = own, res * res / scale + smoothness * _disagreeing(near, own)
+    for k in range(8):
+        lab = near[k]
+        if lab > 0 and lab != best:
+            res = h - _coeff_at(coeffs, lab, y, x)
+            trial = res * res / scale + smoothness * _disagreeing(near, lab)
+            if trial < lowest:
+                best, lowest = lab, trial
+    if not creases:
+        return best
+    mine = _coeff_at(coeffs, own, y, x)
+    decided, visible, margin = False, own, 0.0
+    for k in range(8):
+        other = near[k] if near[k] > 0 and near[k] != own else np.int64(0)
+        kind = kinds[own, other]
+        if kind == 0:
+            continue
+        theirs = _coeff_at(coeffs, other, y, x)
+        if abs(theirs - mine) < close:
+            decided = True
+            if kind * (theirs - mine) > margin:
+                visible, margin = other, kind * (theirs - mine)
+    return visible if decided else best
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def neighbour_accepts(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limit: np.ndarray,
                       rows: np.ndarray, cols: np.ndarray, reach: int
                       ) -> np.ndarray:  # pragma: no cover - compiled

@@ -209,8 +209,21 @@ def _visible(kinds: np.ndarray, own: np.ndarray, near: np.ndarray, rows: np.ndar
 
 def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: float,
               smoothness: float, creases: bool, backend: Backend) -> np.ndarray:
-    """Each boundary pixel's cheapest label (Notes 2, 5); ``labels`` elsewhere."""
+    """Each boundary pixel's cheapest label (Notes 2, 5); ``labels`` elsewhere.
+
+    ``backend``: numpy calls over the boundary pixels (the reference) or
+    :func:`rangeseg_cli.kernels.compiled.boundary_labels`, one compiled sweep
+    (the same labels), as :func:`crease_kinds` chooses.
+    """
     boundary = _boundary(labels)
+    kernels = select_kernels(backend)
+    if kernels is not None and (backend != "auto" or ready(kernels, "boundary_labels")):
+        kinds = (crease_kinds(labels, coeffs, boundary=boundary, backend=backend) if creases
+                 else np.zeros((1, 1), np.int8))
+        return kernels.boundary_labels(c_array(z, np.float64), c_array(labels, np.int32),
+                                       c_array(coeffs, np.float64), scale, smoothness,
+                                       c_array(kinds, np.int8), CREASE_CLOSE * math.sqrt(scale),
+                                       creases)
     rows, cols = np.nonzero(boundary)
     near = _neighbour_labels(labels, rows, cols)
     heights = z[rows, cols]
@@ -256,7 +269,8 @@ def refine_boundaries(z: np.ndarray, labels: np.ndarray, config: Config, *, nois
         Noise sigma of ``z`` (:func:`~rangeseg_cli.stages.noise.estimate_noise`);
         NaN counts as 0.
     backend
-        Of the crease votes (:func:`crease_kinds`: the same labels either way).
+        Of the crease votes (:func:`crease_kinds`) and of each pass (numpy or one
+        compiled sweep): the same labels either way.
 
     Returns
     -------
