@@ -61,7 +61,7 @@ from ..config import Config
 from ..stages.grow import evaluate_quadric, planar_regions, region_fits
 from ..stages.rangeimage import HALF_NEIGHBOUR_PAIRS, consecutive_labels, labels_on_valid
 from .graph import RegionGraph, merge_ranked, region_graph
-from .regions import crease_angle
+from .regions import crease_angle, join_box
 
 
 def touching_pairs(labels: np.ndarray, coeffs: np.ndarray, max_gap: float
@@ -190,11 +190,15 @@ def _merged(z: np.ndarray, labels: np.ndarray, config: Config, noise: float, *, 
     if not pairs:
         return consecutive_labels(lab)
     graph = region_graph(zc, lab, n, np.maximum(own, 0.0), fitted)
+    boxes = dict(graph.boxes)  # the regions' own, before any merge
+
     def judge(g: RegionGraph, a: int, b: int, i: int, j: int, first: float) -> float | None:
         union = first if (a, b) == (i, j) else g.union_mse(a, b, order)  # Notes 3
         if math.sqrt(union) > union_bound(g, a, b, level, config):
             return None
-        if (flat[i] and flat[j] and crease_angle(lab, planes, i, j) >= config.split.min_crease
+        if (flat[i] and flat[j]
+                and crease_angle(lab, planes, i, j, join_box(boxes[i], boxes[j]))
+                >= config.split.min_crease
                 and _crease_shown(g.excess(a, b, union), noise, config)):
             return None
         return union

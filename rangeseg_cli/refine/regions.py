@@ -118,9 +118,20 @@ def box_area(box: tuple[slice, slice]) -> int:
     return int((box[0].stop - box[0].start) * (box[1].stop - box[1].start))
 
 
-def crease_angle(pieces: np.ndarray, coeffs: np.ndarray, i: int, j: int) -> float:
-    """Median angle in degrees between the fits of pieces i and j along their boundary."""
-    box = bounding_box((pieces == i) | (pieces == j), 2)
+def crease_angle(pieces: np.ndarray, coeffs: np.ndarray, i: int, j: int,
+                 within: tuple[slice, slice] | None = None) -> float:
+    """Median angle in degrees between the fits of pieces i and j along their boundary.
+
+    ``within``: a box of ``pieces`` (slices with set ends) that holds both
+    pieces, when the caller knows one; only it is searched for them (the
+    same angle, without a pass over the whole array).
+    """
+    r0, c0 = (within[0].start, within[1].start) if within else (0, 0)
+    area = pieces[within] if within else pieces
+    inner = bounding_box((area == i) | (area == j), 0)
+    h, w = pieces.shape
+    box = (slice(max(r0 + inner[0].start - 2, 0), min(r0 + inner[0].stop + 2, h)),
+           slice(max(c0 + inner[1].start - 2, 0), min(c0 + inner[1].stop + 2, w)))
     sub = pieces[box]
     near = _within_two(sub == i) & _within_two(sub == j)
     rows, cols = np.nonzero(near)
