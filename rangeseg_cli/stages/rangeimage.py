@@ -265,4 +265,6 @@ def consecutive_labels(labels: np.ndarray) -> np.ndarray:
     """
     present = np.bincount(labels.ravel()) > 0
     present[0] = True
+    if present.all():  # already consecutive: a copy, without the lookup
+        return labels.astype(np.int32)
     return (np.cumsum(present, dtype=np.int32) - 1)[labels]
