@@ -15,8 +15,8 @@ pairs with its neighbours again after each merge; the second judges pairs
 ranked once, each on the groups its regions then belong to. What "cheapest"
 and "one surface" mean is the caller's: the merges of
 :mod:`~rangeseg_cli.refine.merge`, :mod:`~rangeseg_cli.refine.facets` and
-:mod:`~rangeseg_cli.refine.occlusion` pass their cost and test, and
-:func:`~rangeseg_cli.refine.split.merge_back` reads its unions from the graph.
+:mod:`~rangeseg_cli.refine.occlusion` and
+:func:`~rangeseg_cli.refine.split.merge_back` pass their cost and test.
 """
 
 from __future__ import annotations

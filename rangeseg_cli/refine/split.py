@@ -89,8 +89,9 @@ from ..stages.grow import (
 )
 from ..stages.link import FOUR_CONNECTED
 from ..stages.noise import estimate_noise, noise_scaled_config  # noqa: F401 (re-exported)
+from ..stages.rangeimage import consecutive_labels
 from ..stages.surfaces import label_boxes
-from .graph import region_graph
+from .graph import RegionGraph, merge_ranked, region_graph
 from .planes import blur_radius, blur_weights, local_gradients, local_planes
 from .recover import INLIER_FACTOR, consensus_plane, plane_pieces
 from .recut import MIN_GAIN, crease_side
@@ -785,7 +786,10 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     crease between them well defined), when the planes meet at a median
     angle of ``min_crease`` degrees or more along the boundary, or (with
     ``excess``) when the union's quadric leaves much more error than the
-    pieces' own. Otherwise they are merged. A piece is a plane when its
+    pieces' own. Otherwise they are merged: every pair is judged on its own
+    two pieces, and pieces linked by pairs judged one surface become one
+    region (:func:`~rangeseg_cli.refine.graph.merge_ranked`, whose judge here
+    ignores what joined them before). A piece is a plane when its
     quadric lowers the plane's mean squared error by at most
     ``planar_tolerance`` of it (floored at ``min_error``), as in
     :func:`~rangeseg_cli.stages.surfaces.describe_surfaces`.
@@ -844,9 +848,9 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
     rms = np.sqrt(np.maximum(mse, 0.0))
     flat = (rms <= level) & planar(mse, mse_plane, planar_tolerance, min_error,
                                    counts if noise_test else None)
-    parent = np.arange(n + 1)
-    for i, j in adjacent_pairs(pieces):
-        union = math.sqrt(graph.union_mse(i, j))
+
+    def judge(g: RegionGraph, a: int, b: int, i: int, j: int, union: float) -> float | None:
+        """Pieces i, j judged on their own, whatever joined them before (0: one surface)."""
         apart = union > max(floor, min_gain * max(rms[i], rms[j]))
         if not apart and excess is not None:
             both = counts[i] + counts[j]
@@ -859,24 +863,11 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, *, level: float, floor: float,
             apart = _two_planes(pieces, i, j, float(counts[i] * mse_plane[i]
                                                     + counts[j] * mse_plane[j]),
                                 union, planes, min_crease, creases)
-        if not apart:
-            _union(parent, i, j)
-    roots = np.array([_root(parent, k) for k in range(n + 1)])
-    _, dense = np.unique(roots, return_inverse=True)
-    return dense.astype(np.int32)[pieces]
+        return None if apart else 0.0
 
-
-def _union(parent: np.ndarray, i: int, j: int) -> None:
-    """Join the sets of i and j (the smaller root wins)."""
-    a, b = _root(parent, i), _root(parent, j)
-    parent[max(a, b)] = min(a, b)
-
-
-def _root(parent: np.ndarray, k: int) -> int:
-    """Root of ``k`` in a union-find forest."""
-    while parent[k] != k:
-        k = int(parent[k])
-    return k
+    ranked = [(math.sqrt(graph.union_mse(i, j)), i, j) for i, j in adjacent_pairs(pieces)]
+    merge_ranked(graph, ranked, judge)
+    return consecutive_labels(graph.labels)  # a group's id is its smallest piece's
 
 
 def _replace(pieces: np.ndarray, k: int, sub: np.ndarray, n: int, max_pieces: int
