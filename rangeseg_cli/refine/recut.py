@@ -48,9 +48,17 @@ Notes
 4. Crease (:func:`split_crease`), when no smooth edge is found: the model's
    RMS error and each side's plane pass the fit test, both sides have
    ``link.min_component`` pixels or more. A single region is cut when the
-   model gains ``MIN_GAIN`` against its quadric and the two planes meet at
+   model gains ``MIN_GAIN`` per pixel or ``TOTAL_GAIN`` in all (both in
+   units of ``s^2``) against its quadric and the two planes meet at
    ``split.min_crease`` degrees or more (the split's rule for keeping two
-   planes apart); a pair is re-cut when the two sides' own planes fit
+   planes apart). The total lets a wide region's shallow crease through:
+   its evidence adds up over the pixels though each gains little (a 15
+   degree roof 128 pixels wide at noise sigma 2 gains 0.09 per pixel,
+   about 1,460 in all), while on a plane of noise alone the knot search
+   gains a few ``s^2`` at most. The total counts only where ``s^2`` is the
+   noise's variance: where ``grow.min_error`` stands in for it (an image
+   without noise), what is left over a quadric is the model's misfit, not
+   noise, and does not add up to evidence; a pair is re-cut when the two sides' own planes fit
    within ``_PAIR_TOLERANCE`` times the sum of squared errors of the two
    regions' own surfaces (the line explains them as well as the boundary
    they had).
@@ -86,6 +94,9 @@ from .regions import box_area, join_box
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
 MIN_GAIN = 0.15
+#: A crease cut gaining less per pixel is still taken when it gains this much in all
+#: (SSE over s^2; Notes 4): on planes of pure noise the crease model gains at most 6.
+TOTAL_GAIN = 100.0
 #: Least gain of a smooth edge against a crease.
 _MIN_SMOOTH = 0.06
 #: A pair is re-cut at a crease when its new sides fit within this times the old SSE.
@@ -553,8 +564,10 @@ def crease_side(z: np.ndarray, mask: np.ndarray, *, noise: float, level: float,
     numpy.ndarray or None
         bool (H, W) the side before the line, or None: the model or a side's
         plane fails the fit test, a side is under ``min_pixels``, the model
-        lowers the squared error per pixel against one quadric by less than
-        ``MIN_GAIN`` s^2, or the planes meet at less than ``min_crease``.
+        lowers the squared error against one quadric by less than
+        ``MIN_GAIN`` s^2 per pixel and (or where ``s^2`` is ``grow.min_error``,
+        not the noise's variance) less than ``TOTAL_GAIN`` s^2 in all, or the
+        planes meet at less than ``min_crease``.
     """
     box = _box_of(mask.shape, box)
     side = _side(z, mask[box], box, noise=noise, level=level, min_pixels=min_pixels,
@@ -571,9 +584,11 @@ def _side(z: np.ndarray, mask: np.ndarray, box: Box, *, noise: float, level: flo
         return None
     if quadric_sse is None:
         quadric_sse = _quadric_sse(z, mask, box)
-    gain = ((quadric_sse - crease.sse)
-            / (int(np.count_nonzero(mask)) * max(noise ** 2, grow.min_error)))
-    if gain < MIN_GAIN or plane_angle(crease.planes[1], crease.planes[2]) < min_crease:
+    pixels = int(np.count_nonzero(mask))
+    gain = (quadric_sse - crease.sse) / (pixels * max(noise ** 2, grow.min_error))
+    evidence = noise ** 2 > grow.min_error and gain * pixels >= TOTAL_GAIN  # Notes 4
+    if ((gain < MIN_GAIN and not evidence)
+            or plane_angle(crease.planes[1], crease.planes[2]) < min_crease):
         return None
     return crease.side
 
