@@ -58,10 +58,10 @@ Notes
    gains a few ``s^2`` at most. The total counts only where ``s^2`` is the
    noise's variance: where ``grow.min_error`` stands in for it (an image
    without noise), what is left over a quadric is the model's misfit, not
-   noise, and does not add up to evidence; a pair is re-cut when the two sides' own planes fit
-   within ``_PAIR_TOLERANCE`` times the sum of squared errors of the two
-   regions' own surfaces (the line explains them as well as the boundary
-   they had).
+   noise, and does not add up to evidence. A pair is re-cut when the two
+   sides' own planes fit within ``_PAIR_TOLERANCE`` times the sum of
+   squared errors of the two regions' own surfaces (the line explains them
+   as well as the boundary they had).
 5. Cuts are applied by decreasing gain (creases count 0; then pairs before
    single regions, then by ids), each region at most once: a single region
    keeps its id beyond the line and the plane side gets a new one; a pair
