@@ -2545,7 +2545,8 @@ def boundary_labels(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale
                     if 0 <= rr < height and 0 <= cc < width:
                         lab = np.int64(labels[rr, cc])
                     near[k] = lab
-                    edge = edge or (lab > 0 and lab != own)
+                    if lab > 0 and lab != own:
+                        edge = True
                     k += 1
             if edge:
                 out[r, c] = _cheapest(z[r, c], near, own, coeffs, float(r), float(c), scale,
