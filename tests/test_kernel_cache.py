@@ -185,3 +185,17 @@ def test_a_deferred_kernel_runs_once_compiled_or_cached(tmp_path, monkeypatch):
     assert not kernel_cache.ready(kernels, "neighbour_accepts")
     Dispatcher.overloads = {"(int64,)": object()}  # compiled here
     assert kernel_cache.ready(kernels, "neighbour_accepts")
+
+
+def test_select_deferred_gives_the_reference_until_the_kernel_is_ready(monkeypatch):
+    from rangeseg_cli.kernels import backend
+
+    kernels = backend.select_kernels("numba")
+    name = kernel_cache.DEFERRED[-1]
+    monkeypatch.setattr(backend, "_USE_NUMBA", True)  # "auto" picks numba (installed)
+    monkeypatch.setattr(backend, "ready", lambda found, which: False)  # cold cache
+    assert backend.select_deferred("auto", name) is None
+    assert backend.select_deferred("numba", name) is kernels  # asked for by name
+    assert backend.select_deferred("numpy", name) is None
+    monkeypatch.setattr(backend, "ready", lambda found, which: which == name)
+    assert backend.select_deferred("auto", name) is kernels

@@ -17,6 +17,8 @@ import os
 from types import ModuleType
 from typing import Literal, get_args
 
+from .cache import ready
+
 Backend = Literal["auto", "numba", "numpy"]
 
 #: Whether ``backend="auto"`` uses the compiled kernels: numba is installed and
@@ -57,4 +59,18 @@ def select_kernels(backend: str) -> ModuleType | None:
     if kernels is None and backend == "numba":
         raise ImportError("`backend` 'numba' needs the numba package, which is not installed "
                           "or cannot be imported; use backend='numpy' or 'auto'")
+    return kernels
+
+
+def select_deferred(backend: str, name: str) -> ModuleType | None:
+    """:func:`select_kernels` for ``name``, a kernel of :data:`~.cache.DEFERRED`.
+
+    Under ``"auto"`` None until the kernel is compiled or cached in this
+    process's reach (:func:`~.cache.ready`): until then the caller takes its
+    numpy reference (the same results), and the first run after installing
+    does not wait for the kernel to compile.
+    """
+    kernels = select_kernels(backend)
+    if kernels is None or (backend == "auto" and not ready(kernels, name)):
+        return None
     return kernels

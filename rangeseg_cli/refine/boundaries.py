@@ -56,8 +56,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..config import Config
-from ..kernels.backend import Backend, select_kernels
-from ..kernels.cache import ready
+from ..kernels.backend import Backend, select_deferred
 from ..stages.grow import evaluate_quadric
 from ..stages.rangeimage import (
     HALF_NEIGHBOUR_PAIRS,
@@ -173,8 +172,8 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
     own = labels[rows, cols]
     mine = evaluate_quadric(coeffs[own], rows, cols)
     padded = np.pad(labels, reach)
-    kernels = select_kernels(backend)
-    if kernels is None or backend == "auto" and not ready(kernels, "crease_votes"):
+    kernels = select_deferred(backend, "crease_votes")
+    if kernels is None:
         keys, below, votes = _crease_votes(padded, rows, cols, own, mine, coeffs, reach)
     else:
         keys, below, votes = kernels.crease_votes(
@@ -215,15 +214,15 @@ def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: floa
     :func:`rangeseg_cli.kernels.compiled.boundary_labels`, one compiled sweep
     (the same labels), as :func:`crease_kinds` chooses.
     """
-    boundary = _boundary(labels)
-    kernels = select_kernels(backend)
-    if kernels is not None and (backend != "auto" or ready(kernels, "boundary_labels")):
-        kinds = (crease_kinds(labels, coeffs, boundary=boundary, backend=backend) if creases
+    kernels = select_deferred(backend, "boundary_labels")
+    if kernels is not None:  # the kernel finds the boundary pixels itself
+        kinds = (crease_kinds(labels, coeffs, backend=backend) if creases
                  else np.zeros((1, 1), np.int8))
         return kernels.boundary_labels(c_array(z, np.float64), c_array(labels, np.int32),
                                        c_array(coeffs, np.float64), scale, smoothness,
                                        c_array(kinds, np.int8), CREASE_CLOSE * math.sqrt(scale),
                                        creases)
+    boundary = _boundary(labels)
     rows, cols = np.nonzero(boundary)
     near = _neighbour_labels(labels, rows, cols)
     heights = z[rows, cols]

@@ -67,8 +67,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..config import Config
-from ..kernels.backend import Backend, select_kernels
-from ..kernels.cache import ready
+from ..kernels.backend import Backend, select_deferred, select_kernels
 from ..kernels.parallel import map_tasks
 from ..stages.grow import (
     EIGHT_NEIGHBOURS,
@@ -176,8 +175,8 @@ def fits_a_neighbour(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limi
         bool (N,): some region with a pixel within ``reach`` predicts the
         pixel with a squared residual below its ``limit``.
     """
-    kernels = select_kernels(backend)
-    if kernels is not None and (backend != "auto" or ready(kernels, "neighbour_accepts")):
+    kernels = select_deferred(backend, "neighbour_accepts")
+    if kernels is not None:
         return np.asarray(kernels.neighbour_accepts(
             c_array(z, np.float64), c_array(labels, np.int32), c_array(coeffs, np.float64),
             c_array(limit, np.float64), c_array(rows, np.int64), c_array(cols, np.int64),

@@ -279,7 +279,7 @@ class RegionFits:
         float64 (n+1,) mean of the fitted heights.
     moments
         The moment sums the fits were solved from (for
-        :func:`union_quadric_mse`).
+        :class:`~rangeseg_cli.refine.graph.RegionGraph`).
     """
 
     fits: list[tuple[np.ndarray, np.ndarray]]
@@ -428,7 +428,7 @@ def image_coefficients(coef: np.ndarray, cx: float, cy: float, scale: float) -> 
 def sums_of_squares(z: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
     """Sum of squared heights of each label's finite pixels, float64 (n+1,).
 
-    The ``squares`` of :func:`union_quadric_mse`.
+    The ``squares`` of :class:`~rangeseg_cli.refine.graph.RegionGraph`.
     """
     keep = (labels > 0) & np.isfinite(z)
     return np.bincount(labels[keep], z[keep] ** 2, minlength=n + 1)
