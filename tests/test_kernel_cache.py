@@ -172,6 +172,8 @@ def test_a_deferred_kernel_runs_once_compiled_or_cached(tmp_path, monkeypatch):
     # the first run after installing takes the numpy reference (the same bits) for
     # these; the helper compiles them meanwhile and later runs load them
     monkeypatch.setattr(kernel_cache, "_ready", set())
+    monkeypatch.setattr(kernel_cache, "_looked", {})
+    monkeypatch.setattr(kernel_cache, "RECHECK_S", 0.0)
     monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
 
     class Dispatcher:  # nothing compiled in this process
@@ -185,6 +187,28 @@ def test_a_deferred_kernel_runs_once_compiled_or_cached(tmp_path, monkeypatch):
     assert not kernel_cache.ready(kernels, "neighbour_accepts")
     Dispatcher.overloads = {"(int64,)": object()}  # compiled here
     assert kernel_cache.ready(kernels, "neighbour_accepts")
+
+
+def test_a_kernel_not_ready_is_looked_for_at_most_once_per_recheck_interval(tmp_path,
+                                                                              monkeypatch):
+    # the consensus asks thousands of times a frame: one directory listing per interval
+    clock = [100.0]
+    monkeypatch.setattr(kernel_cache.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(kernel_cache, "_ready", set())
+    monkeypatch.setattr(kernel_cache, "_looked", {})
+    monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+
+    class Dispatcher:
+        overloads: dict = {}
+
+    kernels = type("Kernels", (), {name: Dispatcher() for name in kernel_cache.DEFERRED})
+    name = kernel_cache.DEFERRED[-1]
+    assert not kernel_cache.ready(kernels, name)
+    (tmp_path / f"compiled.{name}-1.py311.nbi").write_bytes(b"")  # the helper is done
+    clock[0] += kernel_cache.RECHECK_S / 2
+    assert not kernel_cache.ready(kernels, name)  # not looked for again yet
+    clock[0] += kernel_cache.RECHECK_S
+    assert kernel_cache.ready(kernels, name)
 
 
 def test_select_deferred_gives_the_reference_until_the_kernel_is_ready(monkeypatch):

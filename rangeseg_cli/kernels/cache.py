@@ -57,6 +57,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -89,9 +90,8 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
                   " float64[::1])"),
     ("neighbour_accepts", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[::1],"
                           " int64[::1], int64[::1], int64)"),
-    ("plane_fit", "(float64[:, ::1], boolean[:, ::1], float64[::1], float64, float64, float64)"),
-    ("plane_votes", "(float64[::1], int64[:], int64[:], float64[::1], float64[::1],"
-                    " float64[::1], int64[::1], int64[::1], float64)"),
+    ("consensus_plane", "(float64[:, ::1], boolean[:, ::1], float64[::1], float64, float64,"
+                        " float64, int64, float64)"),
     ("explained_faces", "(float64[:, ::1], int64[:], int64[:], int64[::1], int64,"
                         " float64[:, ::1], float64[::1], int64[::1])"),
     ("neighbour_pairs", "(int32[:, ::1], int64)"),
@@ -125,9 +125,16 @@ def _cache_dirs() -> list[Path]:
 #: Kernels that only speed up a step whose numpy reference gives the same bits: a run
 #: whose cache lacks them takes the reference and leaves their compiling to the helper
 #: (:func:`ready`), so that the first run after installing does not wait for them.
-DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels")
+DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels",
+                              "consensus_plane")
 
 _ready: set[str] = set()
+
+#: Seconds between two looks into the cache for a kernel not ready yet (a look is a
+#: directory listing, and the consensus asks thousands of times a frame).
+RECHECK_S = 0.5
+
+_looked: dict[str, float] = {}  # when each kernel not ready was last looked for
 
 
 def ready(kernels: ModuleType, name: str) -> bool:
@@ -140,6 +147,9 @@ def ready(kernels: ModuleType, name: str) -> bool:
     if name in _ready:
         return True
     found = bool(getattr(getattr(kernels, name), "overloads", None))
+    if not found and name in _looked and time.monotonic() - _looked[name] < RECHECK_S:
+        return False
+    _looked[name] = time.monotonic()
     folder = _cache_dirs()[-1]  # where numba looks: NUMBA_CACHE_DIR when it is set
     pattern = f"compiled.{name}-*.nbi"
     try:

@@ -2286,25 +2286,201 @@ def knot_sse(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, knots:
 # --------------------------------------------------------------------------- recovery
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def plane_votes(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: np.ndarray,
-                gx: np.ndarray, gy: np.ndarray, hr: np.ndarray, hc: np.ndarray, tol: float
-                ) -> np.ndarray:  # pragma: no cover - compiled
-    """Pixels each hypothesis plane fits within ``tol`` (``recover.consensus_plane``).
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _refit_inliers(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, zs: np.ndarray,
+                   inliers: np.ndarray, tol: float) -> bool:  # pragma: no cover - compiled
+    """Refit the plane to ``inliers`` and mark its inliers anew; False: not clearly conditioned.
 
-    Hypothesis i predicts ``height[i] + gx[i] (col - hc[i]) + gy[i] (row - hr[i])``
-    at every pixel (the same operations in the same order as the numpy
-    reference, so the same votes), without the hypotheses x pixels temporaries.
+    ``recover.fit_plane`` of the inliers (``plane_sums`` in the pixels' order,
+    ``solve_plane``'s Cramer's rule and test, the same operations), then
+    ``|z - plane| < tol`` at every pixel (``recover.plane_height``).
     """
-    out = np.zeros(hr.shape[0], np.int64)
+    n, sr, sc = 0, 0.0, 0.0
+    for j in range(rows.shape[0]):
+        if inliers[j]:
+            n += 1
+            sr += rows[j]
+            sc += cols[j]
+    cr, cc = sr / n, sc / n
+    s = np.zeros(8)
+    first = True
+    for j in range(rows.shape[0]):
+        if not inliers[j]:
+            continue
+        du, dv = cols[j] - cc, rows[j] - cr
+        terms = (du, dv, du * du, du * dv, dv * dv, zs[j], du * zs[j], dv * zs[j])
+        for i in range(8):
+            s[i] = terms[i] if first else s[i] + terms[i]
+        first = False
+    su, sv, suu, suv, svv, sz, suz, svz = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]
+    nf = float(n)
+    m_uu = suu * svv - suv * suv
+    det = nf * m_uu - su * (su * svv - sv * suv) + sv * (su * suv - sv * suu)
+    t = nf + suu + svv
+    if not det > 100.0 * 1e-10 * t * t * t:
+        return False
+    a0 = (sz * m_uu - su * (suz * svv - suv * svz) + sv * (suz * suv - suu * svz)) / det
+    a1 = (nf * (suz * svv - suv * svz) - sz * (su * svv - suv * sv)
+          + sv * (su * svz - suz * sv)) / det
+    a2 = (nf * (suu * svz - suz * suv) - su * (su * svz - suz * sv)
+          + sz * (su * suv - suu * sv)) / det
+    b0, b1, b2 = a0 - a1 * cc - a2 * cr, a1, a2
+    for j in range(rows.shape[0]):
+        inliers[j] = abs(zs[j] - (b0 + b1 * cols[j] + b2 * rows[j])) < tol
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _vote(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: float, gx: float,
+          gy: float, hr: int, hc: int, tol: float, j: int) -> bool:  # pragma: no cover
+    """Whether pixel ``j`` fits the hypothesis plane within ``tol`` (``recover.consensus_plane``).
+
+    The reference's operations in its order, so the same votes.
+    """
+    pred = height + gx * float(cols[j] - hc) + gy * float(rows[j] - hr)
+    return abs(zs[j] - pred) < tol
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _best_hypothesis(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: np.ndarray,
+                     gx: np.ndarray, gy: np.ndarray, hr: np.ndarray, hc: np.ndarray,
+                     tol: float) -> int:  # pragma: no cover - compiled
+    """The first hypothesis with the most votes (the ``argmax`` of ``recover.consensus_plane``).
+
+    A hypothesis stops counting once the pixels left cannot lift it above
+    the best so far (a later one wins only with more votes): the same
+    winner, sooner.
+    """
+    size = zs.shape[0]
+    best, most = 0, -1
     for i in range(hr.shape[0]):
         count = 0
-        for j in range(zs.shape[0]):
-            pred = height[i] + gx[i] * float(cols[j] - hc[i]) + gy[i] * float(rows[j] - hr[i])
-            if abs(zs[j] - pred) < tol:
+        for j in range(size):
+            if _vote(zs, rows, cols, height[i], gx[i], gy[i], hr[i], hc[i], tol, j):
                 count += 1
-        out[i] = count
-    return out
+            elif count + size - 1 - j <= most:
+                break
+        if count > most:
+            best, most = i, count
+    return best
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _eight_flood(mask: np.ndarray, out: np.ndarray, r0: int, c0: int, part: int,
+                 stack: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Set ``out`` to ``part`` on the 8-connected part of ``mask`` holding (r0, c0): its size."""
+    height, width = mask.shape
+    out[r0, c0] = part
+    stack[0] = r0 * width + c0
+    top, count = 1, 1
+    while top > 0:
+        top -= 1
+        r, c = stack[top] // width, stack[top] % width
+        for rr in range(max(r - 1, 0), min(r + 2, height)):
+            for cc in range(max(c - 1, 0), min(c + 2, width)):
+                if mask[rr, cc] and out[rr, cc] == 0:
+                    out[rr, cc] = part
+                    stack[top] = rr * width + cc
+                    top += 1
+                    count += 1
+    return count
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _seed_part(found: np.ndarray, r0: int, c0: int) -> np.ndarray:  # pragma: no cover
+    """The 8-connected part of ``found`` holding (r0, c0), else its largest (first on ties).
+
+    ``scipy.ndimage.label`` numbers parts by their first pixel in raster
+    order, and ``argmax`` of their sizes takes the first of the largest.
+    """
+    height, width = found.shape
+    parts = np.zeros((height, width), np.int64)
+    stack = np.empty(height * width, np.int64)
+    if found[r0, c0]:
+        _eight_flood(found, parts, r0, c0, 1, stack)
+        return parts == 1
+    best, most, part = 0, 0, 0
+    for r in range(height):
+        for c in range(width):
+            if found[r, c] and parts[r, c] == 0:
+                part += 1
+                size = _eight_flood(found, parts, r, c, part, stack)
+                if size > most:
+                    best, most = part, size
+    return parts == best
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _left_pixels(z: np.ndarray, left: np.ndarray, gx: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Rows, columns and heights of ``left``'s pixels, in raster order (``np.nonzero``).
+
+    And the indices of those whose local plane is not degenerate (finite ``gx``).
+    """
+    size = 0
+    for r in range(left.shape[0]):
+        for c in range(left.shape[1]):
+            size += left[r, c]
+    rows, cols, zs = np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size)
+    usable = np.empty(size, np.int64)
+    j, found = 0, 0
+    for r in range(left.shape[0]):
+        for c in range(left.shape[1]):
+            if left[r, c]:
+                rows[j], cols[j], zs[j] = r, c, z[r, c]
+                if np.isfinite(gx[r, c]):
+                    usable[found] = j
+                    found += 1
+                j += 1
+    return rows, cols, zs, usable[:found]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def consensus_plane(z: np.ndarray, left: np.ndarray, w: np.ndarray, u0: float, v0: float,
+                    min_det: float, max_hypotheses: int, tol: float
+                    ) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+    """``recover.consensus_plane`` in one call: the winning plane's connected inliers.
+
+    The local planes (:func:`plane_fit`), the hypotheses at the pixels of
+    ``left`` whose plane is not degenerate (every ``ceil(count /
+    max_hypotheses)``-th in raster order), the votes, two refits and the
+    8-connected part: the same operations as the numpy reference, so the
+    same pixels.
+
+    Returns
+    -------
+    found, status
+        bool (h, w) and 1; 0 when there is no plane (``found`` empty); 2
+        when a refit's pixels lie nearly on a line (the caller takes the
+        reference, whose least squares handles them).
+    """
+    height, width = left.shape
+    empty = np.zeros((height, width), np.bool_)
+    mu, mv, mz, gx, gy = plane_fit(z, left, w, u0, v0, min_det)
+    rows, cols, zs, usable = _left_pixels(z, left, gx)
+    if usable.shape[0] == 0:
+        return empty, 0
+    step = -(-usable.shape[0] // max_hypotheses)
+    hr, hc = rows[usable[::step]], cols[usable[::step]]
+    hh, hx, hy = np.empty(hr.shape[0]), np.empty(hr.shape[0]), np.empty(hr.shape[0])
+    for i in range(hr.shape[0]):
+        r, c = hr[i], hc[i]
+        hx[i], hy[i] = gx[r, c], gy[r, c]
+        hh[i] = mz[r, c] + gx[r, c] * ((c + u0) - mu[r, c]) + gy[r, c] * ((r + v0) - mv[r, c])
+    best = _best_hypothesis(zs, rows, cols, hh, hx, hy, hr, hc, tol)
+    inliers = np.empty(zs.shape[0], np.bool_)
+    for j in range(zs.shape[0]):
+        inliers[j] = _vote(zs, rows, cols, hh[best], hx[best], hy[best], hr[best], hc[best], tol, j)
+    for _ in range(2):
+        if not inliers.any():
+            return empty, 0
+        if not _refit_inliers(z, rows, cols, zs, inliers, tol):
+            return empty, 2
+    if not inliers.any():
+        return empty, 0
+    for j in range(zs.shape[0]):
+        empty[rows[j], cols[j]] = inliers[j]
+    return _seed_part(empty, hr[best], hc[best]), 1
 
 
 # --------------------------------------------------------------------------- fill (edge pixels)

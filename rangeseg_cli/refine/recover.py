@@ -78,7 +78,7 @@ from ..stages.grow import (
 )
 from ..stages.noise import estimate_noise
 from ..stages.rangeimage import require_shape_of_z
-from .planes import local_planes
+from .planes import local_planes, writeable_weights
 from .regions import adjacent_pairs, c_array, join_box
 
 #: Chessboard reach (pixels) of the neighbours a label-0 pixel may be the boundary of.
@@ -198,44 +198,66 @@ def fits_a_neighbour(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, limi
 def fit_plane(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Least-squares plane (a0, a1, a2) of ``z = a0 + a1 col + a2 row`` through pixels.
 
-    From the 3x3 normal equations in centred coordinates when they are
-    well-conditioned (the consensus refits planes thousands of times per
-    frame); pixels on a line get the minimum-norm solution (``lstsq``).
+    From the 3x3 normal equations in centred coordinates (:func:`plane_sums`,
+    :func:`solve_plane`) when they are well-conditioned (the consensus refits
+    planes thousands of times per frame); pixels on a line get the
+    minimum-norm solution (``lstsq``). The compiled consensus
+    (:func:`rangeseg_cli.kernels.compiled.consensus_plane`) makes the same
+    sums and solve, so the same bits.
     """
     cr, cc = rows.sum(dtype=np.float64) / rows.size, cols.sum(dtype=np.float64) / cols.size
-    a = np.empty((rows.size, 3))  # the columns 1, col - cc, row - cr
-    a[:, 0] = 1.0
-    np.subtract(cols, cc, out=a[:, 1])
-    np.subtract(rows, cr, out=a[:, 2])
-    zs = z[rows, cols]
+    du, dv, zs = cols - cc, rows - cr, z[rows, cols]
+    plane = solve_plane(float(rows.size), plane_sums(du, dv, zs), cr, cc)
+    if plane is not None:
+        return plane
+    a = np.column_stack([np.ones(rows.size), du, dv])  # pixels on a line: the minimum norm
     gram = a.T @ a
-    if _clearly_conditioned(gram) or _conditioned(gram):  # as the region fits: ~6x faster
+    if _conditioned(gram):
         coef = np.linalg.solve(gram, a.T @ zs)
-    else:  # pixels on a line: the minimum-norm solution
+    else:
         coef = np.linalg.lstsq(a, zs, rcond=None)[0]
     return np.array([coef[0] - coef[1] * cc - coef[2] * cr, coef[1], coef[2]])
+
+
+def plane_sums(du: np.ndarray, dv: np.ndarray, zs: np.ndarray) -> list[float]:
+    """Sums of u, v, uu, uv, vv, z, uz and vz over the pixels, one after another.
+
+    Summed in the pixels' order (``cumsum``), as a loop sums them, so that a
+    compiled loop gets the same bits (:func:`fit_plane`).
+    """
+    terms = np.stack([du, dv, du * du, du * dv, dv * dv, zs, du * zs, dv * zs])
+    return np.cumsum(terms, axis=1)[:, -1].tolist()  # type: ignore[no-any-return]
+
+
+def solve_plane(n: float, sums: list[float], cr: float, cc: float) -> np.ndarray | None:
+    """The plane of :func:`fit_plane` by Cramer's rule; None unless clearly conditioned.
+
+    ``sums`` are :func:`plane_sums` (su, sv, suu, suv, svv, sz, suz, svz) of
+    ``n`` pixels centred on (cr, cc). The Gram matrix ``[[n, su, sv], [su,
+    suu, suv], [sv, suv, svv]]`` is clearly conditioned when its determinant
+    exceeds ``100 RCOND t^3`` (``t`` its trace): its largest eigenvalue is at
+    most ``t`` and its smallest at least ``det / t^2``, so their ratio is a
+    hundred times above RCOND (the region fits' test). Scalar float64
+    operations, in the order of the compiled twin.
+    """
+    su, sv, suu, suv, svv, sz, suz, svz = sums
+    m_uu = suu * svv - suv * suv
+    det = n * m_uu - su * (su * svv - sv * suv) + sv * (su * suv - sv * suu)
+    t = n + suu + svv
+    if not det > 100.0 * RCOND * t * t * t:
+        return None
+    a0 = (sz * m_uu - su * (suz * svv - suv * svz) + sv * (suz * suv - suu * svz)) / det
+    a1 = (n * (suz * svv - suv * svz) - sz * (su * svv - suv * sv) + sv * (su * svz - suz * sv)
+          ) / det
+    a2 = (n * (suu * svz - suz * suv) - su * (su * svz - suz * sv) + sz * (su * suv - suu * sv)
+          ) / det
+    return np.array([a0 - a1 * cc - a2 * cr, a1, a2])
 
 
 def _conditioned(gram: np.ndarray) -> bool:
     """The region fits' test: smallest / largest eigenvalue of ``gram`` above RCOND."""
     eig = np.linalg.eigvalsh(gram)
     return bool(eig[0] > RCOND * eig[-1])
-
-
-def _clearly_conditioned(gram: np.ndarray) -> bool:
-    """A sufficient condition for :func:`_conditioned` of a 3x3 Gram matrix, without LAPACK.
-
-    For a positive semi-definite matrix the largest eigenvalue is at most the
-    trace t and the smallest at least det / t^2; ``det > 100 RCOND t^3``
-    leaves the ratio a hundred times above RCOND, far beyond the rounding
-    of the determinant or of the eigenvalues (~1e-15 t^3), so whenever it
-    holds :func:`_conditioned` holds too (and it holds for any well-spread
-    pixels; pixels nearly on a line are left to the eigenvalues).
-    """
-    (a, b, c), (_, d, e), (_, _, f) = gram.tolist()
-    det = a * (d * f - e * e) - b * (b * f - c * e) + c * (b * e - c * d)
-    t = a + d + f
-    return det > 100.0 * RCOND * t * t * t
 
 
 def plane_height(plane: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -294,14 +316,20 @@ def _votes_of(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: np.nda
     return np.abs(zs - pred) < tol
 
 
+#: Hypotheses voted on at once by the numpy reference (:func:`_votes`): a bound on
+#: its temporaries (hypotheses x pixels).
+VOTE_CHUNK = 16
+
+
 def _votes(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: np.ndarray,
-           gx: np.ndarray, gy: np.ndarray, hr: np.ndarray, hc: np.ndarray, tol: float,
-           backend: Backend) -> np.ndarray:
+           gx: np.ndarray, gy: np.ndarray, hr: np.ndarray, hc: np.ndarray, tol: float
+           ) -> np.ndarray:
     """How many pixels each hypothesis plane fits within ``tol``: int (hypotheses,)."""
-    kernels = select_kernels(backend)
-    if kernels is not None:
-        return np.asarray(kernels.plane_votes(zs, rows, cols, height, gx, gy, hr, hc, tol))
-    return _votes_of(zs, rows, cols, height, gx, gy, hr, hc, tol).sum(axis=1)
+    return np.concatenate([
+        _votes_of(zs, rows, cols, height[k:k + VOTE_CHUNK], gx[k:k + VOTE_CHUNK],
+                  gy[k:k + VOTE_CHUNK], hr[k:k + VOTE_CHUNK], hc[k:k + VOTE_CHUNK],
+                  tol).sum(axis=1)
+        for k in range(0, hr.size, VOTE_CHUNK)])
 
 
 def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Backend = "auto"
@@ -312,9 +340,23 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Bac
     :data:`MAX_HYPOTHESES`, in raster order); the one most pixels fit within ``tol`` wins,
     is refitted twice to its inliers, and the connected part (8-neighbours) of the
     inliers holding the winning pixel is returned (bool, ``left``'s shape).
+    ``backend``: this numpy reference or, once compiled
+    (:func:`~rangeseg_cli.kernels.backend.select_deferred`),
+    :func:`rangeseg_cli.kernels.compiled.consensus_plane` in one call (the
+    same pixels).
     """
+    kernels = select_deferred(backend, "consensus_plane")
+    if kernels is not None:
+        h, w = left.shape
+        found, status = kernels.consensus_plane(
+            c_array(z, np.float64), c_array(left, np.bool_), writeable_weights(HYPOTHESIS_SIGMA),
+            -w / 2.0, -h / 2.0, 1e-3 * HYPOTHESIS_SIGMA**4, MAX_HYPOTHESES, float(tol))
+        if status != 2:  # 2: a refit's pixels nearly on a line, left to the reference
+            return found if status == 1 else None
+    # the reference, numpy throughout under "auto" (the kernel is not compiled yet)
     rows, cols = np.nonzero(left)
-    height, gx, gy = local_planes(z, left, HYPOTHESIS_SIGMA)
+    height, gx, gy = local_planes(z, left, HYPOTHESIS_SIGMA,
+                                  backend="numpy" if backend == "auto" else backend)
     hyp = np.flatnonzero(np.isfinite(gx[rows, cols]))
     if hyp.size == 0:
         return None
@@ -322,7 +364,7 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Bac
     hr, hc = rows[hyp], cols[hyp]
     zs = z[rows, cols]
     best = int(np.argmax(_votes(zs, rows, cols, height[hr, hc], gx[hr, hc],
-                                gy[hr, hc], hr, hc, tol, backend)))
+                                gy[hr, hc], hr, hc, tol)))
     inliers = _votes_of(zs, rows, cols, height[hr[best], hc[best]],
                         gx[hr[best], hc[best]], gy[hr[best], hc[best]], hr[best], hc[best], tol)
     for _ in range(2):  # refit to the inliers
