@@ -193,3 +193,28 @@ def test_disagreeing_counts_the_neighbours_another_plane_holds():
     assert out[0, 0] == 0.0 and out[1, 0] == 3.0
     # the bottom-right corner: neighbours 4 (plane 0), 5 and 7 (plane 1)
     assert out[0, 8] == 2.0 and out[1, 8] == 1.0
+
+
+def test_the_compiled_k_plane_passes_give_the_references_planes_and_pixels():
+    # a frustum's corner and a noisy roof, seeded with planes a little off, with
+    # two, three and four seeds (one of them on no pixel: it is dropped)
+    from rangeseg_cli.refine import facets
+
+    outcomes = set()
+    for noise, seed in [(0.0, 0), (0.5, 1), (1.0, 2), (2.0, 3)]:
+        z, truth = corner(noise, seed)
+        rows, cols = np.nonzero(truth > 0)
+        rng = np.random.default_rng(seed)
+        exact = [facets.fit_plane(z, *np.nonzero(truth == k)) for k in (1, 2, 3)]
+        for seeds in (exact[:2], exact, [*exact, np.array([1e3, 0.0, 0.0])]):
+            planes = [p + rng.normal(0.0, [0.5, 0.02, 0.02]) for p in seeds]
+            pixels = (rows, cols, rows.astype(np.float64), cols.astype(np.float64),
+                      facets.neighbour_table(rows, cols, z.shape))
+            numpy = facets._passes(z, pixels, list(planes), 1.0, backend="numpy")
+            compiled = facets._passes(z, pixels, list(planes), 1.0, backend="numba")
+            assert (numpy is None) == (compiled is None)
+            if numpy is not None:
+                np.testing.assert_array_equal(compiled[0], numpy[0])
+                np.testing.assert_array_equal(np.asarray(compiled[1]), np.asarray(numpy[1]))
+                outcomes.add(len(numpy[1]))
+    assert {2, 3} <= outcomes

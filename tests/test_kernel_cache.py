@@ -7,6 +7,7 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -223,3 +224,54 @@ def test_select_deferred_gives_the_reference_until_the_kernel_is_ready(monkeypat
     assert backend.select_deferred("numpy", name) is None
     monkeypatch.setattr(backend, "ready", lambda found, which: which == name)
     assert backend.select_deferred("auto", name) is kernels
+
+
+def test_a_run_missing_a_later_kernel_starts_the_helper_once(tmp_path, monkeypatch):
+    # kernels a small frame's run never calls are compiled by the helper after the
+    # first run's; a run that needs one uncompiled asks for the helper
+    started = []
+    monkeypatch.setattr(kernel_cache, "_start_helper", lambda: started.append(1))
+    monkeypatch.setattr(kernel_cache, "_asked", False)
+    monkeypatch.setattr(kernel_cache, "_ready", set())
+    monkeypatch.setattr(kernel_cache, "_looked", {})
+    monkeypatch.setattr(kernel_cache, "RECHECK_S", 0.0)
+    monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+    monkeypatch.delenv("RANGESEG_COMPILE_AHEAD", raising=False)
+    monkeypatch.delenv("RANGESEG_COMPILING_AHEAD", raising=False)
+
+    class Dispatcher:
+        overloads: dict = {}
+
+    kernels = type("Kernels", (), {name: Dispatcher() for name in kernel_cache.DEFERRED})
+    first_run = {name for name, _ in kernel_cache.FIRST_RUN}
+    assert not kernel_cache.ready(kernels, "crease_votes")  # the first run's: no helper
+    assert started == []
+    for name, _ in kernel_cache.LATER:
+        assert name in kernel_cache.DEFERRED and name not in first_run
+        assert not kernel_cache.ready(kernels, name)
+        assert not kernel_cache.ready(kernels, name)
+    assert started == [1]
+
+
+@requires_numba
+def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
+    from numba import typeof
+    from numba.core.sigutils import normalize_signature
+
+    from rangeseg_cli.kernels import compiled as _kernels
+    from rangeseg_cli.refine import facets
+
+    seen = []
+    real = _kernels.k_plane_passes
+    monkeypatch.setattr(_kernels, "k_plane_passes",
+                        lambda *args: seen.append(tuple(typeof(a) for a in args)) or real(*args))
+    y, x = np.mgrid[0:20, 0:20].astype(np.float64)
+    z = np.minimum(x, 20.0 - x) + 0.1 * y
+    rows, cols = np.nonzero(np.ones_like(z, bool))
+    pixels = (rows, cols, rows.astype(np.float64), cols.astype(np.float64),
+              facets.neighbour_table(rows, cols, z.shape))
+    facets._passes(z, pixels, [np.array([0.0, 1.0, 0.1]), np.array([20.0, -1.0, 0.1])], 1.0,
+                   backend="numba")
+    (name, signature), = kernel_cache.LATER
+    assert name == "k_plane_passes"
+    assert seen == [tuple(normalize_signature(signature)[0])]

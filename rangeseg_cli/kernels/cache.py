@@ -108,6 +108,15 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
     ("ar_2d", "(float64[:, ::1], float64[::1])"),
 )
 
+#: Kernels of :data:`DEFERRED` that a default run on a small frame does not call (a
+#: real frame's does): the helper compiles them after :data:`FIRST_RUN`, and a run
+#: that finds one of them neither compiled nor cached starts the helper
+#: (:func:`ready`).
+LATER: tuple[tuple[str, str], ...] = (
+    ("k_plane_passes", "(float64[:, ::1], int64[::1], int64[::1], int64[:, ::1],"
+                       " float64[:, ::1], float64, int64, float64)"),
+)
+
 #: Set in the helper's environment: it compiles, it starts no helper.
 _HELPER = "RANGESEG_COMPILING_AHEAD"
 
@@ -126,7 +135,7 @@ def _cache_dirs() -> list[Path]:
 #: whose cache lacks them takes the reference and leaves their compiling to the helper
 #: (:func:`ready`), so that the first run after installing does not wait for them.
 DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels",
-                              "consensus_plane")
+                              "consensus_plane", "k_plane_passes")
 
 _ready: set[str] = set()
 
@@ -160,6 +169,8 @@ def ready(kernels: ModuleType, name: str) -> bool:
         pass
     if found:
         _ready.add(name)
+    elif any(name == later for later, _ in LATER):
+        _ask_helper()
     return found
 
 
@@ -195,8 +206,7 @@ def compile_ahead_when_cold() -> None:
     cache, starts the helper (not in the helper itself, nor with
     ``RANGESEG_COMPILE_AHEAD=0``). The helper is ended when this process exits.
     """
-    if (os.environ.get(_HELPER) or os.environ.get("RANGESEG_COMPILE_AHEAD") == "0"
-            or getattr(sys, "frozen", False)):  # a frozen app's executable is not python
+    if not _helper_allowed():
         return
     from numba.core import event
 
@@ -210,11 +220,23 @@ def compile_ahead_when_cold() -> None:
     event.register("numba:compile", Compiles())
 
 
+def _helper_allowed() -> bool:
+    """Whether this process may start the helper (not the helper itself, nor switched off)."""
+    return not (os.environ.get(_HELPER) or os.environ.get("RANGESEG_COMPILE_AHEAD") == "0"
+                or getattr(sys, "frozen", False))  # a frozen app's executable is not python
+
+
 def _on_compile(dispatcher: Any) -> None:
     """At the first compilation of a kernel (not of numba's own code), start the helper."""
-    global _asked
     module = getattr(dispatcher.py_func, "__module__", "")
-    if not _asked and module == "rangeseg_cli.kernels.compiled":
+    if module == "rangeseg_cli.kernels.compiled":
+        _ask_helper()
+
+
+def _ask_helper() -> None:
+    """Start the helper, once per process."""
+    global _asked
+    if not _asked and _helper_allowed():
         _asked = True
         _start_helper()
 
@@ -241,7 +263,7 @@ def _end_helper() -> None:
 
 
 def compile_ahead(kernels: ModuleType, parent: int) -> None:
-    """Compile :data:`FIRST_RUN` of ``kernels`` into the cache, last first, while ``parent`` lives.
+    """Compile :data:`FIRST_RUN` (last first), then :data:`LATER`, while ``parent`` lives.
 
     The run that started the helper compiles from the first kernel on; once
     one reaches what the other has compiled, numba loads it from the cache.
@@ -254,7 +276,7 @@ def compile_ahead(kernels: ModuleType, parent: int) -> None:
     from numba.core.sigutils import normalize_signature
 
     try:
-        for name, signature in reversed(FIRST_RUN):
+        for name, signature in (*reversed(FIRST_RUN), *LATER):
             if os.getppid() != parent:
                 return
             args, _ = normalize_signature(signature)

@@ -2286,18 +2286,18 @@ def knot_sse(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, knots:
 # --------------------------------------------------------------------------- recovery
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _refit_inliers(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, zs: np.ndarray,
-                   inliers: np.ndarray, tol: float) -> bool:  # pragma: no cover - compiled
-    """Refit the plane to ``inliers`` and mark its inliers anew; False: not clearly conditioned.
+@njit(cache=True, nogil=True, error_model="numpy")
+def _plane_of(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, chosen: np.ndarray
+              ) -> tuple[bool, float, float, float]:  # pragma: no cover - compiled
+    """``recover.fit_plane`` of the ``chosen`` pixels: (clearly conditioned, a0, a1, a2).
 
-    ``recover.fit_plane`` of the inliers (``plane_sums`` in the pixels' order,
-    ``solve_plane``'s Cramer's rule and test, the same operations), then
-    ``|z - plane| < tol`` at every pixel (``recover.plane_height``).
+    ``plane_sums`` in the pixels' order and ``solve_plane``'s Cramer's rule
+    and test, the same operations; False (and zeros) where the pixels lie
+    nearly on a line, which only the reference's least squares answers.
     """
     n, sr, sc = 0, 0.0, 0.0
     for j in range(rows.shape[0]):
-        if inliers[j]:
+        if chosen[j]:
             n += 1
             sr += rows[j]
             sc += cols[j]
@@ -2305,7 +2305,7 @@ def _refit_inliers(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, zs: np.nda
     s = np.zeros(8)
     first = True
     for j in range(rows.shape[0]):
-        if not inliers[j]:
+        if not chosen[j]:
             continue
         du, dv = cols[j] - cc, rows[j] - cr
         terms = (du, dv, du * du, du * dv, dv * dv, zs[j], du * zs[j], dv * zs[j])
@@ -2318,13 +2318,26 @@ def _refit_inliers(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, zs: np.nda
     det = nf * m_uu - su * (su * svv - sv * suv) + sv * (su * suv - sv * suu)
     t = nf + suu + svv
     if not det > 100.0 * 1e-10 * t * t * t:
-        return False
+        return False, 0.0, 0.0, 0.0
     a0 = (sz * m_uu - su * (suz * svv - suv * svz) + sv * (suz * suv - suu * svz)) / det
     a1 = (nf * (suz * svv - suv * svz) - sz * (su * svv - suv * sv)
           + sv * (su * svz - suz * sv)) / det
     a2 = (nf * (suu * svz - suz * suv) - su * (su * svz - suz * sv)
           + sz * (su * suv - suu * sv)) / det
-    b0, b1, b2 = a0 - a1 * cc - a2 * cr, a1, a2
+    return True, a0 - a1 * cc - a2 * cr, a1, a2
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _refit_inliers(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, inliers: np.ndarray,
+                   tol: float) -> bool:  # pragma: no cover - compiled
+    """Refit the plane to ``inliers`` and mark its inliers anew; False: not clearly conditioned.
+
+    :func:`_plane_of` the inliers, then ``|z - plane| < tol`` at every pixel
+    (``recover.plane_height``, the same operations).
+    """
+    ok, b0, b1, b2 = _plane_of(rows, cols, zs, inliers)
+    if not ok:
+        return False
     for j in range(rows.shape[0]):
         inliers[j] = abs(zs[j] - (b0 + b1 * cols[j] + b2 * rows[j])) < tol
     return True
@@ -2474,13 +2487,109 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, w: np.ndarray, u0: float, v
     for _ in range(2):
         if not inliers.any():
             return empty, 0
-        if not _refit_inliers(z, rows, cols, zs, inliers, tol):
+        if not _refit_inliers(rows, cols, zs, inliers, tol):
             return empty, 2
     if not inliers.any():
         return empty, 0
     for j in range(zs.shape[0]):
         empty[rows[j], cols[j]] = inliers[j]
     return _seed_part(empty, hr[best], hc[best]), 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _first_min(cost: np.ndarray, planes: np.ndarray, j: int) -> int:  # pragma: no cover
+    """``np.argmin`` of ``cost[planes, j]``: the first smallest, or the first NaN."""
+    best, low = 0, np.inf
+    for i in range(planes.shape[0]):
+        value = cost[planes[i], j]
+        if np.isnan(value):
+            return i
+        if value < low:
+            best, low = i, value
+    return best
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _nearest_planes(cost: np.ndarray, planes: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """``np.argmin(cost[planes], axis=0)``: each pixel's cheapest of ``planes`` (an index)."""
+    out = np.empty(cost.shape[1], np.int64)
+    for j in range(cost.shape[1]):
+        out[j] = _first_min(cost, planes, j)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _k_plane_costs(zs: np.ndarray, rf: np.ndarray, cf: np.ndarray, planes: np.ndarray,
+                   s2: float, assign: np.ndarray, table: np.ndarray, smoothness: float
+                   ) -> np.ndarray:  # pragma: no cover - compiled
+    """The cost of ``facets.k_planes``' passes: squared residuals in ``s2``.
+
+    Plus ``smoothness`` per 8-neighbour in the region that another plane
+    holds (none while ``assign[0] < 0``: the first pass).
+    """
+    k, n = planes.shape[0], zs.shape[0]
+    cost = np.empty((k, n))
+    for i in range(k):
+        for j in range(n):
+            d = zs[j] - (planes[i, 0] + planes[i, 1] * cf[j] + planes[i, 2] * rf[j])
+            cost[i, j] = d * d / s2
+    if assign[0] < 0:
+        return cost
+    same = np.zeros(k, np.int64)
+    for j in range(n):
+        held = 0
+        same[:] = 0
+        for o in range(table.shape[0]):
+            t = table[o, j]
+            if t >= 0:
+                held += 1
+                same[assign[t]] += 1
+        for i in range(k):
+            cost[i, j] = cost[i, j] + smoothness * float(held - same[i])
+    return cost
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def k_plane_passes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, table: np.ndarray,
+                   planes: np.ndarray, s2: float, passes: int, smoothness: float
+                   ) -> tuple[np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
+    """The passes of ``facets.k_planes`` in one call: each pixel's plane, the planes refitted.
+
+    Returns
+    -------
+    assign, planes, status
+        int64 (N,) and float64 (k, 3), status 1; status 0 when fewer than
+        two planes keep three pixels; 2 when a refit's pixels lie nearly on
+        a line (the caller takes the reference). The same operations as the
+        numpy reference, so the same values.
+    """
+    n = rows.shape[0]
+    zs, rf, cf = np.empty(n), np.empty(n), np.empty(n)
+    for j in range(n):
+        zs[j], rf[j], cf[j] = z[rows[j], cols[j]], float(rows[j]), float(cols[j])
+    assign = np.full(n, -1, np.int64)
+    if n == 0:
+        return assign, planes, 0
+    for _ in range(passes):
+        k = planes.shape[0]
+        cost = _k_plane_costs(zs, rf, cf, planes, s2, assign, table, smoothness)
+        new = _nearest_planes(cost, np.arange(k))
+        keep = np.flatnonzero(np.bincount(new, minlength=k) >= 3)
+        if keep.shape[0] < k:
+            if keep.shape[0] < 2:
+                return assign, planes, 0
+            planes = planes[keep]
+            new = _nearest_planes(cost, keep)
+        elif assign[0] >= 0 and (new == assign).all():
+            break
+        assign = new
+        fitted = np.empty((planes.shape[0], 3))
+        for i in range(planes.shape[0]):
+            ok, fitted[i, 0], fitted[i, 1], fitted[i, 2] = _plane_of(rows, cols, zs, assign == i)
+            if not ok:
+                return assign, planes, 2
+        planes = fitted
+    return assign, planes, 0 if assign[0] < 0 else 1
 
 
 # --------------------------------------------------------------------------- fill (edge pixels)

@@ -69,13 +69,14 @@ import numpy as np
 from scipy import ndimage
 
 from ..config import Config
+from ..kernels.backend import Backend, select_deferred
 from ..kernels.parallel import map_tasks
 from ..stages.grow import EIGHT_NEIGHBOURS, region_fits
 from ..stages.rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
 from .graph import RegionGraph, merge_cheapest, region_graph
 from .recover import consensus_plane, fit_plane
 from .recut import MIN_GAIN  # the least gain of a cut, s^2 per pixel (Notes 5)
-from .regions import adjacent_pairs, raster_renumber
+from .regions import adjacent_pairs, c_array, raster_renumber
 from .split import failing_components
 
 #: A pixel fits a seed plane within this many times the fit-test level (Notes 2).
@@ -214,17 +215,26 @@ def k_planes(z: np.ndarray, rows: np.ndarray, cols: np.ndarray, planes: list[np.
 _Pixels = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-def _passes(z: np.ndarray, pixels: _Pixels, planes: list[np.ndarray], s2: float
-            ) -> tuple[np.ndarray, list[np.ndarray]] | None:
+def _passes(z: np.ndarray, pixels: _Pixels, planes: list[np.ndarray], s2: float, *,
+            backend: Backend = "auto") -> tuple[np.ndarray, list[np.ndarray]] | None:
     """The passes of :func:`k_planes`: each pixel's plane 0..k-1, and the planes; or None.
 
     ``pixels``: the region's rows, cols (int and float) and :func:`neighbour_table`.
     None when fewer than two planes are left; the planes are those fitted to
-    the returned indices.
+    the returned indices. ``backend``: this numpy reference or, once compiled
+    (:func:`~rangeseg_cli.kernels.backend.select_deferred`),
+    :func:`rangeseg_cli.kernels.compiled.k_plane_passes` (the same values).
     """
     rows, cols, rf, cf, table = pixels
+    kernels = select_deferred(backend, "k_plane_passes")
+    if kernels is not None:
+        assign, fitted, status = kernels.k_plane_passes(
+            c_array(z, np.float64), c_array(rows, np.int64), c_array(cols, np.int64),
+            c_array(table, np.int64), np.array(planes, np.float64), s2, PASSES, SMOOTHNESS)
+        if status != 2:  # 2: a refit's pixels nearly on a line, left to the reference
+            return (assign, list(fitted)) if status == 1 else None
     zs = z[rows, cols]
-    assign: np.ndarray | None = None
+    assign = None
     for _ in range(PASSES):
         cost = _squared_residuals(zs, rf, cf, planes, s2)
         if assign is not None:
