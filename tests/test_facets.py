@@ -218,3 +218,28 @@ def test_the_compiled_k_plane_passes_give_the_references_planes_and_pixels():
                 np.testing.assert_array_equal(np.asarray(compiled[1]), np.asarray(numpy[1]))
                 outcomes.add(len(numpy[1]))
     assert {2, 3} <= outcomes
+
+
+def test_the_compiled_k_plane_passes_hand_over_a_line_and_give_up_on_one_plane():
+    from rangeseg_cli.kernels import compiled
+    from rangeseg_cli.refine import facets
+
+    rows, cols = np.full(20, 5), np.arange(20)  # one row: every refit on a line
+    z = np.zeros((10, 20))
+    z[5] = np.where(cols < 10, 0.5 * cols, 10.0 - 0.5 * cols)
+    table = facets.neighbour_table(rows, cols, z.shape)
+    pixels = (rows, cols, rows.astype(np.float64), cols.astype(np.float64), table)
+    seeds = np.array([[0.0, 0.5, 0.0], [10.0, -0.5, 0.0]])
+    *_, status = compiled.k_plane_passes(z, rows, cols, table, seeds, 1.0, facets.PASSES,
+                                         facets.SMOOTHNESS)
+    assert status == 2  # the reference's least squares answers
+    numpy = facets._passes(z, pixels, list(seeds), 1.0, backend="numpy")
+    compiled_path = facets._passes(z, pixels, list(seeds), 1.0, backend="numba")
+    assert numpy is not None and compiled_path is not None
+    np.testing.assert_array_equal(compiled_path[0], numpy[0])
+    assert set(numpy[0][:9]) == {0} and set(numpy[0][11:]) == {1}  # the two slopes
+    far = np.array([[0.0, 0.5, 0.0], [1e3, 0.0, 0.0]])  # a seed no pixel is near
+    *_, status = compiled.k_plane_passes(z, rows, cols, table, far, 1.0, facets.PASSES,
+                                         facets.SMOOTHNESS)
+    assert status == 0
+    assert facets._passes(z, pixels, list(far), 1.0, backend="numpy") is None

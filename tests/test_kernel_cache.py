@@ -195,6 +195,7 @@ def test_a_kernel_not_ready_is_looked_for_at_most_once_per_recheck_interval(tmp_
     # the consensus asks thousands of times a frame: one directory listing per interval
     clock = [100.0]
     monkeypatch.setattr(kernel_cache.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(kernel_cache, "_start_helper", lambda: None)
     monkeypatch.setattr(kernel_cache, "_ready", set())
     monkeypatch.setattr(kernel_cache, "_looked", {})
     monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
@@ -251,6 +252,25 @@ def test_a_run_missing_a_later_kernel_starts_the_helper_once(tmp_path, monkeypat
         assert not kernel_cache.ready(kernels, name)
         assert not kernel_cache.ready(kernels, name)
     assert started == [1]
+
+
+def test_a_forked_child_of_a_pass_never_starts_the_helper(monkeypatch):
+    started = []
+    monkeypatch.setattr(kernel_cache, "_start_helper", lambda: started.append(1))
+    monkeypatch.setattr(kernel_cache, "_asked", False)
+    monkeypatch.delenv("RANGESEG_COMPILE_AHEAD", raising=False)
+    monkeypatch.delenv("RANGESEG_COMPILING_AHEAD", raising=False)
+    kernel_cache.skip_helper()  # what parallel.map_processes' children call first
+    kernel_cache._ask_helper()
+    assert started == []
+
+
+@requires_numba
+def test_the_kernels_conditioning_bound_is_the_region_fits():
+    from rangeseg_cli.kernels import compiled as _kernels
+    from rangeseg_cli.stages.grow import RCOND
+
+    assert _kernels._RCOND == RCOND
 
 
 @requires_numba

@@ -57,6 +57,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from types import ModuleType
@@ -122,6 +123,7 @@ _HELPER = "RANGESEG_COMPILING_AHEAD"
 
 _helper: subprocess.Popen[bytes] | None = None
 _asked = False  # whether this process has started (or tried to start) the helper
+_asking = threading.Lock()
 
 
 def _cache_dirs() -> list[Path]:
@@ -234,11 +236,24 @@ def _on_compile(dispatcher: Any) -> None:
 
 
 def _ask_helper() -> None:
-    """Start the helper, once per process."""
+    """Start the helper, once per process (:func:`skip_helper`: never)."""
     global _asked
-    if not _asked and _helper_allowed():
+    with _asking:
+        if _asked or not _helper_allowed():
+            return
         _asked = True
-        _start_helper()
+    _start_helper()
+
+
+def skip_helper() -> None:
+    """Never start the helper from this process.
+
+    For a child of :func:`~.parallel.map_processes`: it ends with its share
+    of one pass, and the helper ends with the process that started it. (No
+    lock: a fork may copy it held.)
+    """
+    global _asked
+    _asked = True
 
 
 def _start_helper() -> None:

@@ -71,6 +71,9 @@ from numba import njit
 from .cache import compile_ahead_when_cold
 from .parallel import map_bands, row_bands
 
+#: ``stages.grow.RCOND``: the conditioning bound of the region fits (a test checks it).
+_RCOND = 1e-10
+
 #: Options of the helpers that allocate nothing and only use views of the arrays they
 #: are given: no reference counts (numba's ``_nrt`` target option; see the Notes).
 _NO_REFCOUNTS: dict[str, Any] = {"_nrt": False}
@@ -2317,7 +2320,7 @@ def _plane_of(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, chosen: np.nda
     m_uu = suu * svv - suv * suv
     det = nf * m_uu - su * (su * svv - sv * suv) + sv * (su * suv - sv * suu)
     t = nf + suu + svv
-    if not det > 100.0 * 1e-10 * t * t * t:
+    if not det > 100.0 * _RCOND * t * t * t:
         return False, 0.0, 0.0, 0.0
     a0 = (sz * m_uu - su * (suz * svv - suv * svz) + sv * (suz * suv - suu * svz)) / det
     a1 = (nf * (suz * svv - suv * svz) - sz * (su * svv - suv * sv)

@@ -48,6 +48,8 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, TypeVar
 
+from .cache import skip_helper
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -322,6 +324,7 @@ def _fork_child(run: Callable[[T], R], items: Sequence[T], order: list[int],
     try:  # the child: never returns into the caller's code
         os.close(read)
         _inside.task = True
+        skip_helper()
         done: dict[int, Any] = {}
         try:
             while (k := ends.take(True)) is not None:
