@@ -675,6 +675,37 @@ def test_knot_search_kernels_are_bitwise_equal_to_the_reference(seed, powers):
                                   recut.knot_sse(rows, cols, zs, d, knots, powers, "numba"))
 
 
+@requires_numba
+def test_the_compiled_knot_search_gives_the_references_knot_and_errors():
+    # creases and smooth edges across a line in any direction, few and many pixels (the
+    # coarse and the fine searches subsample above 1,500 and 20,000), pixels on one row,
+    # and bounds that make the search give up
+    from rangeseg_cli.kernels import compiled as _kernels
+    from rangeseg_cli.refine import recut
+
+    rng = np.random.default_rng(3)
+    outcomes = set()
+    for trial in range(60):
+        size = int(rng.choice([8, 400, 3000, 25000]))
+        rows, cols = np.sort(rng.integers(0, 200, size)), rng.integers(0, 200, size)
+        if trial % 13 == 0:
+            rows = np.full(size, 7)
+        angle = rng.uniform(0.0, np.pi)
+        d = np.array([np.cos(angle), np.sin(angle)])
+        u = d[0] * rows + d[1] * cols
+        zs = (0.3 * rows - 0.1 * cols + np.maximum(u - rng.uniform(u.min(), u.max() + 1e-9), 0)
+              ** rng.choice([1, 2]) + rng.normal(0.0, rng.choice([0.0, 0.5, 2.0]), size))
+        powers = recut.SMOOTH if trial % 2 else recut.CREASE
+        max_mse = float(rng.choice([np.inf, 0.5, 5.0]))
+        numpy = recut.best_knot(rows, cols, zs, d, powers, max_mse, backend="numpy")
+        compiled = _kernels.best_knot(rows, cols, zs.astype(np.float64), float(d[0]),
+                                      float(d[1]), np.asarray(powers, np.int64), max_mse,
+                                      recut._SEARCH, recut._PIVOT_TOL)
+        np.testing.assert_array_equal(np.array(compiled), np.array(numpy))
+        outcomes.add((bool(np.isnan(numpy[0])), size))
+    assert {(False, 25000), (False, 3000), (True, 8)} <= outcomes
+
+
 @pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
 @pytest.mark.parametrize("powers", [(1,), (2, 3)])
 def test_knot_sse_is_the_least_squares_error_at_every_knot(powers, backend):

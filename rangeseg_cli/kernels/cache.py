@@ -97,8 +97,8 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
                         " float64[:, ::1], float64[::1], int64[::1])"),
     ("neighbour_pairs", "(int32[:, ::1], int64)"),
     ("fill_passes", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[::1])"),
-    ("knot_sse", "(float64[::1], float64[::1], float64[::1], float64[::1], float64[::1],"
-                 " int64[::1], float64)"),
+    ("best_knot", "(int64[::1], int64[::1], float64[::1], float64, float64, int64[::1],"
+                  " float64, int64[::1], float64)"),
     ("crease_votes", "(int32[:, ::1], int64[::1], int64[::1], int64[::1], float64[::1],"
                      " float64[:, ::1], int64)"),
     ("boundary_labels", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64, float64,"
@@ -137,7 +137,7 @@ def _cache_dirs() -> list[Path]:
 #: whose cache lacks them takes the reference and leaves their compiling to the helper
 #: (:func:`ready`), so that the first run after installing does not wait for them.
 DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels",
-                              "consensus_plane", "k_plane_passes")
+                              "consensus_plane", "k_plane_passes", "best_knot")
 
 _ready: set[str] = set()
 

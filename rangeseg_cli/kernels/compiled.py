@@ -63,6 +63,7 @@ imports it lazily and only when numba is installed.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -2284,6 +2285,93 @@ def knot_sse(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, knots:
     for i in range(zs.shape[0]):
         zz = zz + zs[i] * zs[i]
     return projected_sse(gram, rhs, zz, tol)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _float_range(start: float, stop: float, step: float) -> np.ndarray:  # pragma: no cover
+    """``np.arange(start, stop, step)`` of floats as numpy fills it.
+
+    ``ceil((stop - start) / step)`` values: ``start``, ``start + step``, then
+    ``start + i * delta`` with ``delta = (start + step) - start``.
+    """
+    n = int(np.ceil((stop - start) / step))
+    out = np.empty(max(n, 0))
+    if n > 0:
+        out[0] = start
+    if n > 1:
+        second = start + step
+        out[1] = second
+        delta = second - start
+        for i in range(2, n):
+            out[i] = start + i * delta
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _strided_knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d0: float,
+                      d1: float, every: int, knots: np.ndarray, powers: np.ndarray,
+                      tol: float) -> np.ndarray:  # pragma: no cover - compiled
+    """``recut.knot_sse`` of every ``every``-th pixel: the same u, centred x, y and SSE."""
+    m = -(-rows.shape[0] // every)
+    sr, sc = 0.0, 0.0
+    for i in range(m):
+        sr += rows[i * every]
+        sc += cols[i * every]
+    mr, mc = sr / m, sc / m
+    u, x, y, z = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    for i in range(m):
+        j = i * every
+        u[i] = d0 * rows[j] + d1 * cols[j]
+        x[i], y[i], z[i] = cols[j] - mc, rows[j] - mr, zs[j]
+    return knot_sse(u, x, y, z, knots, powers, tol)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _first_smallest(values: np.ndarray, start: int) -> int:  # pragma: no cover - compiled
+    """``np.argmin(values[start:]) + start``: the first smallest, or the first NaN."""
+    best, low = start, np.inf
+    for i in range(start, values.shape[0]):
+        if np.isnan(values[i]):
+            return i
+        if values[i] < low:
+            best, low = i, values[i]
+    return best
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d0: float, d1: float,
+              powers: np.ndarray, max_mse: float, search: np.ndarray, tol: float
+              ) -> tuple[float, float, float]:  # pragma: no cover - compiled
+    """``recut.best_knot`` in one call: the best knot along (d0, d1) and two SSEs.
+
+    ``search``: int64 (3,) the coarse search's most knots and pixels and the
+    fine search's most pixels. The coarse knots, the subsampled pixels and
+    the fine grid as the reference makes them (:func:`_float_range` for
+    ``np.arange``), each SSE by :func:`knot_sse`: the same values.
+    """
+    n = zs.shape[0]
+    umin, umax = np.inf, -np.inf
+    for j in range(n):
+        u = d0 * rows[j] + d1 * cols[j]
+        umin, umax = min(umin, u), max(umax, u)
+    step = max(1.0, float(np.ceil((umax - umin) / search[0])))
+    knots = _float_range(math.floor(umin) + step, umax, step)
+    if knots.shape[0] == 0:
+        return np.nan, np.inf, np.inf
+    sub = max(1, -(-n // search[1]))
+    coarse = _strided_knot_sse(rows, cols, zs, d0, d1, sub, knots, powers, tol)
+    k = _first_smallest(coarse, 0)
+    if coarse[k] > max_mse * (-(-n // sub)):
+        return np.nan, np.inf, np.inf
+    grid = _float_range(knots[k] - 1.0, knots[k] + 1.0001, 0.1)
+    fine = np.empty(grid.shape[0] + 1)
+    fine[0] = umin - 0.5
+    fine[1:] = grid
+    every = max(1, -(-n // search[2]))
+    sse = _strided_knot_sse(rows, cols, zs, d0, d1, every, fine, powers, tol)
+    sse *= n / (-(-n // every))
+    j = _first_smallest(sse, 1)
+    return fine[j], sse[j], sse[0]
 
 
 # --------------------------------------------------------------------------- recovery

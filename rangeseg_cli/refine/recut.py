@@ -85,12 +85,12 @@ import numpy as np
 from scipy import ndimage
 
 from ..config import Config, GrowConfig
-from ..kernels.backend import Backend, select_kernels
+from ..kernels.backend import Backend, select_deferred, select_kernels
 from ..kernels.parallel import map_tasks
 from ..stages.grow import fit_models, planar_regions, plane_angle
 from ..stages.rangeimage import consecutive_labels, labels_on_valid
 from .merge import touching_pairs
-from .regions import box_area, join_box
+from .regions import box_area, c_array, join_box
 
 #: Least gain (SSE per pixel over s^2) of a cut against one surface.
 MIN_GAIN = 0.15
@@ -113,6 +113,8 @@ _GIVE_UP = 2.0
 #: A knot's column whose Cholesky pivot (unit-diagonal normal equations) is at most
 #: this depends on the others and is dropped (as a pseudo-inverse drops it).
 _PIVOT_TOL = 1e-10
+#: The three bounds of the knot search, for the compiled :func:`best_knot`.
+_SEARCH = np.array([_COARSE_KNOTS, _COARSE_PIXELS, _FINE_PIXELS], np.int64)
 #: Powers of ``q`` beside the plane: a smooth edge and a crease.
 SMOOTH: tuple[int, ...] = (2, 3)
 CREASE: tuple[int, ...] = (1,)
@@ -260,8 +262,8 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
 
 
 def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
-              powers: tuple[int, ...], max_mse: float = math.inf
-              ) -> tuple[float, float, float]:
+              powers: tuple[int, ...], max_mse: float = math.inf, *,
+              backend: Backend = "auto") -> tuple[float, float, float]:
     """The best knot along ``d``, its SSE, and the SSE with no plane side (Notes 2).
 
     Parameters
@@ -271,6 +273,10 @@ def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
     max_mse
         Give up (NaN, infinities) when the coarse search's best mean squared
         error is above this: the model cannot pass (a step between the regions).
+    backend
+        This numpy reference (with :func:`knot_sse`) or, once compiled
+        (:func:`~rangeseg_cli.kernels.backend.select_deferred`),
+        :func:`rangeseg_cli.kernels.compiled.best_knot` in one call (the same values).
 
     Returns
     -------
@@ -278,20 +284,29 @@ def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
         (knot c, SSE at c, SSE with the knot before every pixel); NaN and
         infinities when the pixels span less than a pixel along ``d``.
     """
+    kernels = select_deferred(backend, "best_knot")
+    if kernels is not None:
+        c, sse, across = kernels.best_knot(
+            c_array(rows, np.int64), c_array(cols, np.int64), c_array(zs, np.float64),
+            float(d[0]), float(d[1]), np.asarray(powers, np.int64), float(max_mse),
+            _SEARCH, _PIVOT_TOL)
+        return float(c), float(sse), float(across)
+    # the reference, numpy throughout under "auto" (the kernel is not compiled yet)
+    sse_of = "numpy" if backend == "auto" else backend
     u = d[0] * rows + d[1] * cols
     step = max(1.0, float(np.ceil((u.max() - u.min()) / _COARSE_KNOTS)))
     knots = np.arange(math.floor(u.min()) + step, u.max(), step)
     if knots.size == 0:
         return math.nan, math.inf, math.inf
     sub = slice(None, None, max(1, -(-zs.size // _COARSE_PIXELS)))
-    coarse = knot_sse(rows[sub], cols[sub], zs[sub], d, knots, powers)
+    coarse = knot_sse(rows[sub], cols[sub], zs[sub], d, knots, powers, sse_of)
     k = int(np.argmin(coarse))
     if coarse[k] > max_mse * zs[sub].size:
         return math.nan, math.inf, math.inf
     c = float(knots[k])
     fine = np.concatenate([[u.min() - 0.5], np.arange(c - 1.0, c + 1.0001, 0.1)])
     every = max(1, -(-zs.size // _FINE_PIXELS))
-    sse = knot_sse(rows[::every], cols[::every], zs[::every], d, fine, powers)
+    sse = knot_sse(rows[::every], cols[::every], zs[::every], d, fine, powers, sse_of)
     sse *= zs.size / zs[::every].size
     j = int(np.argmin(sse[1:])) + 1
     return float(fine[j]), float(sse[j]), float(sse[0])
