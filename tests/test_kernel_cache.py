@@ -102,7 +102,10 @@ def test_the_kernels_compiled_ahead_are_those_a_default_run_calls(monkeypatch):
 
     monkeypatch.delenv("RANGESEG_PURE_NUMPY", raising=False)
     monkeypatch.setenv("RANGESEG_THREADS", "1")
-    monkeypatch.setattr(kernel_cache, "_ready", set(kernel_cache.DEFERRED))  # as once cached
+    later = {name for name, _ in kernel_cache.LATER}  # a first run does without these
+    monkeypatch.setattr(kernel_cache, "_ready", set(kernel_cache.DEFERRED) - later)
+    monkeypatch.setattr(kernel_cache, "cached", lambda name: name not in later)
+    monkeypatch.setattr(kernel_cache, "_start_helper", lambda: None)
     calls: list[tuple[str, tuple]] = []
 
     def recording(name, dispatcher):
@@ -176,6 +179,7 @@ def test_a_deferred_kernel_runs_once_compiled_or_cached(tmp_path, monkeypatch):
     monkeypatch.setattr(kernel_cache, "_looked", {})
     monkeypatch.setattr(kernel_cache, "RECHECK_S", 0.0)
     monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+    monkeypatch.setattr(kernel_cache, "_start_helper", lambda: None)
 
     class Dispatcher:  # nothing compiled in this process
         overloads: dict = {}
@@ -227,9 +231,9 @@ def test_select_deferred_gives_the_reference_until_the_kernel_is_ready(monkeypat
     assert backend.select_deferred("auto", name) is kernels
 
 
-def test_a_run_missing_a_later_kernel_starts_the_helper_once(tmp_path, monkeypatch):
-    # kernels a small frame's run never calls are compiled by the helper after the
-    # first run's; a run that needs one uncompiled asks for the helper
+def test_a_run_missing_a_deferred_kernel_starts_the_helper_once(tmp_path, monkeypatch):
+    # the first run's helper may end before it reaches the deferred kernels (they come
+    # last); a later run that finds one uncompiled asks for the helper again
     started = []
     monkeypatch.setattr(kernel_cache, "_start_helper", lambda: started.append(1))
     monkeypatch.setattr(kernel_cache, "_asked", False)
@@ -244,14 +248,21 @@ def test_a_run_missing_a_later_kernel_starts_the_helper_once(tmp_path, monkeypat
         overloads: dict = {}
 
     kernels = type("Kernels", (), {name: Dispatcher() for name in kernel_cache.DEFERRED})
-    first_run = {name for name, _ in kernel_cache.FIRST_RUN}
-    assert not kernel_cache.ready(kernels, "crease_votes")  # the first run's: no helper
-    assert started == []
-    for name, _ in kernel_cache.LATER:
-        assert name in kernel_cache.DEFERRED and name not in first_run
-        assert not kernel_cache.ready(kernels, name)
+    for name in kernel_cache.DEFERRED:
         assert not kernel_cache.ready(kernels, name)
     assert started == [1]
+
+
+def test_the_helper_compiles_the_first_run_last_first_then_the_later_ones(tmp_path,
+                                                                            monkeypatch):
+    monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+    order = [name for name, _ in kernel_cache.ahead_order()]
+    first_run = [name for name, _ in kernel_cache.FIRST_RUN]
+    later = [name for name, _ in kernel_cache.LATER]
+    assert order == first_run[::-1] + later
+    assert set(later) <= set(kernel_cache.DEFERRED) and not set(later) & set(first_run)
+    (tmp_path / f"compiled.{later[0]}-1.py311.nbi").write_bytes(b"")  # cached: skipped
+    assert [name for name, _ in kernel_cache.ahead_order()] == first_run[::-1] + later[1:]
 
 
 def test_a_forked_child_of_a_pass_never_starts_the_helper(monkeypatch):
@@ -279,12 +290,13 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     from numba.core.sigutils import normalize_signature
 
     from rangeseg_cli.kernels import compiled as _kernels
-    from rangeseg_cli.refine import facets
+    from rangeseg_cli.refine import facets, recut
 
-    seen = []
-    real = _kernels.k_plane_passes
-    monkeypatch.setattr(_kernels, "k_plane_passes",
-                        lambda *args: seen.append(tuple(typeof(a) for a in args)) or real(*args))
+    seen: dict[str, list] = {}
+    for name, _ in kernel_cache.LATER:
+        real = getattr(_kernels, name)
+        monkeypatch.setattr(_kernels, name, lambda *args, name=name, real=real: seen.setdefault(
+            name, []).append(tuple(typeof(a) for a in args)) or real(*args))
     y, x = np.mgrid[0:20, 0:20].astype(np.float64)
     z = np.minimum(x, 20.0 - x) + 0.1 * y
     rows, cols = np.nonzero(np.ones_like(z, bool))
@@ -292,6 +304,7 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
               facets.neighbour_table(rows, cols, z.shape))
     facets._passes(z, pixels, [np.array([0.0, 1.0, 0.1]), np.array([20.0, -1.0, 0.1])], 1.0,
                    backend="numba")
-    (name, signature), = kernel_cache.LATER
-    assert name == "k_plane_passes"
-    assert seen == [tuple(normalize_signature(signature)[0])]
+    recut.best_knot(rows, cols, z[rows, cols], np.array([0.0, 1.0]), recut.CREASE,
+                    backend="numba")
+    assert {name: calls[0] for name, calls in seen.items()} == {
+        name: tuple(normalize_signature(signature)[0]) for name, signature in kernel_cache.LATER}

@@ -32,8 +32,8 @@ by measuring each:
    first kernel compiled starts one helper process (:func:`compile_ahead`)
    that compiles :data:`FIRST_RUN` from its end while the run compiles from
    its start; each loads from the cache what the other has compiled. It
-   stops when done or when the process that started it ends
-   (``RANGESEG_COMPILE_AHEAD=0``: no helper).
+   stops when done or, after the kernel it is compiling, when the process
+   that started it has ended (``RANGESEG_COMPILE_AHEAD=0``: no helper).
 3. Kernels that only speed up a step whose numpy reference gives the same
    bits (:data:`DEFERRED`) run once compiled or cached (:func:`ready`): the
    first run takes the reference while the helper compiles them (with
@@ -97,8 +97,8 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
                         " float64[:, ::1], float64[::1], int64[::1])"),
     ("neighbour_pairs", "(int32[:, ::1], int64)"),
     ("fill_passes", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[::1])"),
-    ("best_knot", "(int64[::1], int64[::1], float64[::1], float64, float64, int64[::1],"
-                  " float64, int64[::1], float64)"),
+    ("knot_sse", "(float64[::1], float64[::1], float64[::1], float64[::1], float64[::1],"
+                 " int64[::1], float64)"),
     ("crease_votes", "(int32[:, ::1], int64[::1], int64[::1], int64[::1], float64[::1],"
                      " float64[:, ::1], int64)"),
     ("boundary_labels", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64, float64,"
@@ -109,11 +109,12 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
     ("ar_2d", "(float64[:, ::1], float64[::1])"),
 )
 
-#: Kernels of :data:`DEFERRED` that a default run on a small frame does not call (a
-#: real frame's does): the helper compiles them after :data:`FIRST_RUN`, and a run
-#: that finds one of them neither compiled nor cached starts the helper
-#: (:func:`ready`).
+#: Kernels of :data:`DEFERRED` that the first run does without (it takes their
+#: reference, on the kernels of :data:`FIRST_RUN`): the helper compiles them after
+#: those (:func:`ahead_order`). ``k_plane_passes`` only a real frame's run calls.
 LATER: tuple[tuple[str, str], ...] = (
+    ("best_knot", "(int64[::1], int64[::1], float64[::1], float64, float64, int64[::1],"
+                  " float64, int64[::1], float64)"),
     ("k_plane_passes", "(float64[:, ::1], int64[::1], int64[::1], int64[:, ::1],"
                        " float64[:, ::1], float64, int64, float64)"),
 )
@@ -153,7 +154,8 @@ def ready(kernels: ModuleType, name: str) -> bool:
 
     True once this process has it compiled or loaded, or when the cache holds
     it (an index file ``compiled.<name>-*.nbi`` no older than the source);
-    the callers take the numpy reference otherwise (the same results).
+    the callers take the numpy reference otherwise (the same results), and
+    the helper is started to compile it (once per process).
     """
     if name in _ready:
         return True
@@ -161,19 +163,24 @@ def ready(kernels: ModuleType, name: str) -> bool:
     if not found and name in _looked and time.monotonic() - _looked[name] < RECHECK_S:
         return False
     _looked[name] = time.monotonic()
+    found = found or cached(name)
+    if found:
+        _ready.add(name)
+    else:  # the helper compiles it (a first run's helper may have ended before it)
+        _ask_helper()
+    return found
+
+
+def cached(name: str) -> bool:
+    """Whether the cache holds kernel ``name``: an index file no older than the source."""
     folder = _cache_dirs()[-1]  # where numba looks: NUMBA_CACHE_DIR when it is set
     pattern = f"compiled.{name}-*.nbi"
     try:
         stamp = SOURCE.stat().st_mtime
         hits = folder.glob(pattern) if folder.name == "__pycache__" else folder.rglob(pattern)
-        found = found or any(p.stat().st_mtime >= stamp for p in hits)
+        return any(p.stat().st_mtime >= stamp for p in hits)
     except OSError:
-        pass
-    if found:
-        _ready.add(name)
-    elif any(name == later for later, _ in LATER):
-        _ask_helper()
-    return found
+        return False
 
 
 def cold_kernel_cache() -> bool:
@@ -206,7 +213,8 @@ def compile_ahead_when_cold() -> None:
     Called once by :mod:`rangeseg_cli.kernels.compiled` on import: numba's
     ``numba:compile`` event, which it sends only when a kernel is not in the
     cache, starts the helper (not in the helper itself, nor with
-    ``RANGESEG_COMPILE_AHEAD=0``). The helper is ended when this process exits.
+    ``RANGESEG_COMPILE_AHEAD=0``). The helper stops after this process exits
+    (:func:`_end_helper`).
     """
     if not _helper_allowed():
         return
@@ -272,13 +280,27 @@ def _start_helper() -> None:
 
 
 def _end_helper() -> None:
+    """At exit: the helper finishes the kernel it compiles, then stops (:func:`compile_ahead`).
+
+    Each short run thus adds a kernel to the cache, where ending the helper
+    at once left the DEFERRED ones uncompiled for good. It is not waited
+    for (its ``returncode`` set, so the interpreter does not warn of it).
+    """
     if _helper is not None and _helper.poll() is None:
-        _helper.terminate()
-        _helper.wait()
+        _helper.returncode = 0
+
+
+def ahead_order() -> list[tuple[str, str]]:
+    """The helper's order: :data:`FIRST_RUN` last first, then :data:`LATER`.
+
+    The run compiles from the first on, and the two meet. Kernels already
+    in the cache (:func:`cached`) are left out.
+    """
+    return [k for k in (*reversed(FIRST_RUN), *LATER) if not cached(k[0])]
 
 
 def compile_ahead(kernels: ModuleType, parent: int) -> None:
-    """Compile :data:`FIRST_RUN` (last first), then :data:`LATER`, while ``parent`` lives.
+    """Compile the kernels in :func:`ahead_order` while ``parent`` lives.
 
     The run that started the helper compiles from the first kernel on; once
     one reaches what the other has compiled, numba loads it from the cache.
@@ -291,7 +313,7 @@ def compile_ahead(kernels: ModuleType, parent: int) -> None:
     from numba.core.sigutils import normalize_signature
 
     try:
-        for name, signature in (*reversed(FIRST_RUN), *LATER):
+        for name, signature in ahead_order():
             if os.getppid() != parent:
                 return
             args, _ = normalize_signature(signature)

@@ -291,22 +291,20 @@ def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
             float(d[0]), float(d[1]), np.asarray(powers, np.int64), float(max_mse),
             _SEARCH, _PIVOT_TOL)
         return float(c), float(sse), float(across)
-    # the reference, numpy throughout under "auto" (the kernel is not compiled yet)
-    sse_of = "numpy" if backend == "auto" else backend
     u = d[0] * rows + d[1] * cols
     step = max(1.0, float(np.ceil((u.max() - u.min()) / _COARSE_KNOTS)))
     knots = np.arange(math.floor(u.min()) + step, u.max(), step)
     if knots.size == 0:
         return math.nan, math.inf, math.inf
     sub = slice(None, None, max(1, -(-zs.size // _COARSE_PIXELS)))
-    coarse = knot_sse(rows[sub], cols[sub], zs[sub], d, knots, powers, sse_of)
+    coarse = knot_sse(rows[sub], cols[sub], zs[sub], d, knots, powers, backend)
     k = int(np.argmin(coarse))
     if coarse[k] > max_mse * zs[sub].size:
         return math.nan, math.inf, math.inf
     c = float(knots[k])
     fine = np.concatenate([[u.min() - 0.5], np.arange(c - 1.0, c + 1.0001, 0.1)])
     every = max(1, -(-zs.size // _FINE_PIXELS))
-    sse = knot_sse(rows[::every], cols[::every], zs[::every], d, fine, powers, sse_of)
+    sse = knot_sse(rows[::every], cols[::every], zs[::every], d, fine, powers, backend)
     sse *= zs.size / zs[::every].size
     j = int(np.argmin(sse[1:])) + 1
     return float(fine[j]), float(sse[j]), float(sse[0])
