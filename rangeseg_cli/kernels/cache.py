@@ -173,8 +173,15 @@ def ready(kernels: ModuleType, name: str) -> bool:
 
 def cached(name: str) -> bool:
     """Whether the cache holds kernel ``name``: an index file no older than the source."""
-    folder = _cache_dirs()[-1]  # where numba looks: NUMBA_CACHE_DIR when it is set
-    pattern = f"compiled.{name}-*.nbi"
+    # where numba looks: NUMBA_CACHE_DIR when it is set
+    return _fresh_index(_cache_dirs()[-1], f"compiled.{name}-*.nbi")
+
+
+def _fresh_index(folder: Path, pattern: str) -> bool:
+    """Whether cache directory ``folder`` holds an index file ``pattern`` no older than the source.
+
+    False when either cannot be read.
+    """
     try:
         stamp = SOURCE.stat().st_mtime
         hits = folder.glob(pattern) if folder.name == "__pycache__" else folder.rglob(pattern)
@@ -193,18 +200,10 @@ def cold_kernel_cache() -> bool:
     if os.environ.get("RANGESEG_PURE_NUMPY") == "1" or importlib.util.find_spec("numba") is None:
         return False
     try:
-        stamp = SOURCE.stat().st_mtime
+        SOURCE.stat()
     except OSError:
         return False
-    for folder in _cache_dirs():
-        pattern = "compiled.*.nbi"
-        found = folder.glob(pattern) if folder.name == "__pycache__" else folder.rglob(pattern)
-        try:
-            if any(p.stat().st_mtime >= stamp for p in found):
-                return False
-        except OSError:
-            continue
-    return True
+    return not any(_fresh_index(folder, "compiled.*.nbi") for folder in _cache_dirs())
 
 
 def compile_ahead_when_cold() -> None:

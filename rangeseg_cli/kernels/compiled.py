@@ -2327,14 +2327,15 @@ def _strided_knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d0: fl
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _first_smallest(values: np.ndarray, start: int) -> int:  # pragma: no cover - compiled
-    """``np.argmin(values[start:]) + start``: the first smallest, or the first NaN."""
-    best, low = start, np.inf
-    for i in range(start, values.shape[0]):
-        if np.isnan(values[i]):
+def _first_min(values: np.ndarray, picks: np.ndarray) -> int:  # pragma: no cover - compiled
+    """``np.argmin(values[picks])``, an index into ``picks``: the first smallest or first NaN."""
+    best, low = 0, np.inf
+    for i in range(picks.shape[0]):
+        value = values[picks[i]]
+        if np.isnan(value):
             return i
-        if values[i] < low:
-            best, low = i, values[i]
+        if value < low:
+            best, low = i, value
     return best
 
 
@@ -2360,7 +2361,7 @@ def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d0: float, d1:
         return np.nan, np.inf, np.inf
     sub = max(1, -(-n // search[1]))
     coarse = _strided_knot_sse(rows, cols, zs, d0, d1, sub, knots, powers, tol)
-    k = _first_smallest(coarse, 0)
+    k = _first_min(coarse, np.arange(coarse.shape[0]))
     if coarse[k] > max_mse * (-(-n // sub)):
         return np.nan, np.inf, np.inf
     grid = _float_range(knots[k] - 1.0, knots[k] + 1.0001, 0.1)
@@ -2370,7 +2371,7 @@ def best_knot(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d0: float, d1:
     every = max(1, -(-n // search[2]))
     sse = _strided_knot_sse(rows, cols, zs, d0, d1, every, fine, powers, tol)
     sse *= n / (-(-n // every))
-    j = _first_smallest(sse, 1)
+    j = 1 + _first_min(sse, np.arange(1, sse.shape[0]))
     return fine[j], sse[j], sse[0]
 
 
@@ -2588,24 +2589,11 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, w: np.ndarray, u0: float, v
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _first_min(cost: np.ndarray, planes: np.ndarray, j: int) -> int:  # pragma: no cover
-    """``np.argmin`` of ``cost[planes, j]``: the first smallest, or the first NaN."""
-    best, low = 0, np.inf
-    for i in range(planes.shape[0]):
-        value = cost[planes[i], j]
-        if np.isnan(value):
-            return i
-        if value < low:
-            best, low = i, value
-    return best
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _nearest_planes(cost: np.ndarray, planes: np.ndarray) -> np.ndarray:  # pragma: no cover
     """``np.argmin(cost[planes], axis=0)``: each pixel's cheapest of ``planes`` (an index)."""
     out = np.empty(cost.shape[1], np.int64)
     for j in range(cost.shape[1]):
-        out[j] = _first_min(cost, planes, j)
+        out[j] = _first_min(cost[:, j], planes)
     return out
 
 
