@@ -2156,49 +2156,40 @@ def _knot_power(q: float, p: int) -> float:  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _one_knot_term(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, c: float,
-                   p: int, g: np.ndarray, r: np.ndarray) -> None:  # pragma: no cover
-    """Column 3 (``a = q**p``) of one knot's normal equations, in scalar accumulators."""
-    g03 = g13 = g23 = g33 = r3 = 0.0
-    for i in range(u.shape[0]):
-        q = u[i] - c
-        if q <= 0.0:
-            continue
-        a = _knot_power(q, p)
-        g03 += 1.0 * a
-        g13 += x[i] * a
-        g23 += y[i] * a
-        g33 += a * a
-        r3 += a * zs[i]
-    g[0, 3], g[1, 3], g[2, 3], g[3, 3], r[3] = g03, g13, g23, g33, r3
+def _knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
+                knots: np.ndarray, p: int, p2: int) -> np.ndarray:  # pragma: no cover
+    """The sums of the knots' columns, (11, K): ``a, x a, y a, a a, a z``, then ``b`` ones.
 
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _two_knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray, c: float,
-                    p1: int, p2: int, g: np.ndarray, r: np.ndarray) -> None:  # pragma: no cover
-    """Columns 3, 4 (``q**p1``, ``q**p2``) of one knot's normal equations."""
-    g03 = g13 = g23 = g33 = r3 = 0.0
-    g04 = g14 = g24 = g34 = g44 = r4 = 0.0
+    With ``a = q**p`` and, when ``p2 > 0``, ``b = q**p2`` (rows 5-10: ``b, x
+    b, y b, a b, b b, b z``), for q > 0. Each knot's sums run over the
+    pixels in their order; a pixel with q <= 0 adds zeros, which change no
+    sum (none of them is ever -0.0), so the loop over the knots runs
+    without branches and vectorises.
+    """
+    nk = knots.shape[0]
+    acc = np.zeros((11, nk))
     for i in range(u.shape[0]):
-        q = u[i] - c
-        if q <= 0.0:
-            continue
-        a = _knot_power(q, p1)
-        b = _knot_power(q, p2)
-        xi, yi, zi = x[i], y[i], zs[i]
-        g03 += 1.0 * a
-        g04 += 1.0 * b
-        g13 += xi * a
-        g14 += xi * b
-        g23 += yi * a
-        g24 += yi * b
-        g33 += a * a
-        g34 += a * b
-        g44 += b * b
-        r3 += a * zi
-        r4 += b * zi
-    g[0, 3], g[1, 3], g[2, 3], g[3, 3], r[3] = g03, g13, g23, g33, r3
-    g[0, 4], g[1, 4], g[2, 4], g[3, 4], g[4, 4], r[4] = g04, g14, g24, g34, g44, r4
+        ui, xi, yi, zi = u[i], x[i], y[i], zs[i]
+        for k in range(nk):
+            q = ui - knots[k]
+            a = _knot_power(q, p) if q > 0.0 else 0.0
+            acc[0, k] += 1.0 * a
+            acc[1, k] += xi * a
+            acc[2, k] += yi * a
+            acc[3, k] += a * a
+            acc[4, k] += a * zi
+        if p2 > 0:
+            for k in range(nk):
+                q = ui - knots[k]
+                a = _knot_power(q, p) if q > 0.0 else 0.0
+                b = _knot_power(q, p2) if q > 0.0 else 0.0
+                acc[5, k] += 1.0 * b
+                acc[6, k] += xi * b
+                acc[7, k] += yi * b
+                acc[8, k] += a * b
+                acc[9, k] += b * b
+                acc[10, k] += b * zi
+    return acc
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -2210,11 +2201,12 @@ def knot_normal_equations(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.nd
     Terms ``a = (1, x, y, q^p1[, q^p2])`` (one or two powers, each 1, 2 or
     3); ``gram[k] = sum a a^T`` and ``rhs[k] = sum a z``, summed in pixel
     order; the plane block once for all knots, the terms with q over the
-    pixels with q > 0 only (the others add zeros): bit for bit
-    ``rangeseg_cli.refine.recut._knot_normal_equations``.
+    pixels with q > 0 only (the others add zeros, :func:`_knot_terms`): bit
+    for bit ``rangeseg_cli.refine.recut._knot_normal_equations``.
     """
     nk, t = knots.shape[0], 3 + powers.shape[0]
     plane, plane_rhs = _plane_sums(x, y, zs)
+    acc = _knot_terms(u, x, y, zs, knots, powers[0], powers[1] if t == 5 else 0)
     gram = np.zeros((nk, t, t))
     rhs = np.zeros((nk, t))
     for k in range(nk):
@@ -2223,10 +2215,11 @@ def knot_normal_equations(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.nd
             for j in range(3):
                 g[i, j] = plane[i, j]
             r[i] = plane_rhs[i]
-        if t == 4:
-            _one_knot_term(u, x, y, zs, knots[k], powers[0], g, r)
-        else:
-            _two_knot_terms(u, x, y, zs, knots[k], powers[0], powers[1], g, r)
+        g[0, 3], g[1, 3], g[2, 3], g[3, 3], r[3] = (acc[0, k], acc[1, k], acc[2, k], acc[3, k],
+                                                     acc[4, k])
+        if t == 5:
+            g[0, 4], g[1, 4], g[2, 4], g[3, 4] = acc[5, k], acc[6, k], acc[7, k], acc[8, k]
+            g[4, 4], r[4] = acc[9, k], acc[10, k]
         for s in range(t):
             for v in range(s):
                 g[s, v] = g[v, s]
@@ -2435,6 +2428,10 @@ def _refit_inliers(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, inliers: 
     return True
 
 
+#: Pixels whose votes are counted between two checks of :func:`_best_hypothesis`.
+_VOTE_BLOCK = 64
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _vote(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height: float, gx: float,
           gy: float, hr: int, hc: int, tol: float, j: int) -> bool:  # pragma: no cover
@@ -2452,18 +2449,25 @@ def _best_hypothesis(zs: np.ndarray, rows: np.ndarray, cols: np.ndarray, height:
                      tol: float) -> int:  # pragma: no cover - compiled
     """The first hypothesis with the most votes (the ``argmax`` of ``recover.consensus_plane``).
 
-    A hypothesis stops counting once the pixels left cannot lift it above
-    the best so far (a later one wins only with more votes): the same
-    winner, sooner.
+    The votes are counted in blocks of :data:`_VOTE_BLOCK` pixels (a loop
+    without branches, which vectorises); a hypothesis stops counting once
+    the pixels left cannot lift it above the best so far (a later one wins
+    only with more votes): the same winner, sooner. The column and row
+    offsets are formed in float64 from exact integers, so each prediction
+    is the reference's value bit for bit.
     """
     size = zs.shape[0]
+    fr, fc = rows.astype(np.float64), cols.astype(np.float64)
     best, most = 0, -1
     for i in range(hr.shape[0]):
+        h, a, b = height[i], gx[i], gy[i]
+        r0, c0 = float(hr[i]), float(hc[i])
         count = 0
-        for j in range(size):
-            if _vote(zs, rows, cols, height[i], gx[i], gy[i], hr[i], hc[i], tol, j):
-                count += 1
-            elif count + size - 1 - j <= most:
+        for start in range(0, size, _VOTE_BLOCK):
+            stop = min(start + _VOTE_BLOCK, size)
+            for j in range(start, stop):
+                count += abs(zs[j] - (h + a * (fc[j] - c0) + b * (fr[j] - r0))) < tol
+            if count + size - stop <= most:
                 break
         if count > most:
             best, most = i, count
