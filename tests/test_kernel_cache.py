@@ -289,8 +289,9 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     from numba import typeof
     from numba.core.sigutils import normalize_signature
 
+    from rangeseg_cli.config import Config
     from rangeseg_cli.kernels import compiled as _kernels
-    from rangeseg_cli.refine import facets, recut
+    from rangeseg_cli.refine import facets, recut, split
 
     seen: dict[str, list] = {}
     for name, _ in kernel_cache.LATER:
@@ -306,5 +307,7 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
                    backend="numba")
     recut.best_knot(rows, cols, z[rows, cols], np.array([0.0, 1.0]), recut.CREASE,
                     backend="numba")
+    halves = np.where(x < 10, 1, 2).astype(np.int32)
+    split._clean(halves, split._Frame.of(halves > 0, Config().split, "numba"))
     assert {name: calls[0] for name, calls in seen.items()} == {
         name: tuple(normalize_signature(signature)[0]) for name, signature in kernel_cache.LATER}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 from collections.abc import Iterator
 from dataclasses import replace
@@ -1133,3 +1134,29 @@ def test_clean_keeps_parts_that_are_all_wide_as_they_are() -> None:
     out = split_module._clean(parts, frame)
     assert set(np.unique(out).tolist()) == {0, 1, 2}
     assert (out[2:28, 36:38] == 2).all()
+
+
+@requires_numba
+def test_compiled_clean_gives_the_references_parts_or_hands_back() -> None:
+    # clean_parts is split._clean in one compiled call: the same parts (numbers and
+    # dtype included); status 0 where a pixel lies beyond the far nearest-label search,
+    # which only the reference's feature transform answers.
+    from rangeseg_cli.kernels import compiled as _kernels
+
+    rng = np.random.default_rng(31)
+    statuses = set()
+    for parts, mask, frame in _block_parts(rng):
+        noisy = np.where(rng.random(parts.shape) < 0.1, rng.integers(0, 4, parts.shape),
+                         parts).astype(np.int32) * mask
+        out, status = _kernels.clean_parts(noisy, mask, frame.solid, frame.min_piece,
+                                           frame.thickness, *split_module._FAR_OFFSETS)
+        statuses.add(status)
+        if status == 1:
+            reference = split_module._clean(noisy, dataclasses.replace(frame, backend="numpy"))
+            assert out.dtype == reference.dtype
+            np.testing.assert_array_equal(out, reference)
+    far = np.zeros((40, 40), np.int32)
+    far[0, 0] = 1  # the opposite corner is beyond the far search
+    whole = np.ones(far.shape, bool)
+    _, status = _kernels.clean_parts(far, whole, whole, 1, 1, *split_module._FAR_OFFSETS)
+    assert 1 in statuses and status == 0

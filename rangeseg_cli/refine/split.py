@@ -75,7 +75,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..config import Config, GrowConfig, SplitConfig
-from ..kernels.backend import Backend, select_kernels
+from ..kernels.backend import Backend, select_deferred, select_kernels
 from ..kernels.parallel import map_bands, map_tasks, row_bands
 from ..stages.grow import (
     EIGHT_NEIGHBOURS,
@@ -536,8 +536,17 @@ def _clean(labels: np.ndarray, frame: _Frame) -> np.ndarray:
     Parts below ``min_piece`` pixels (speckle of noisy normals) are filled
     from their nearest neighbours first; then parts with a core (:func:`_core`)
     below ``min_piece`` pixels -- a sliver along a crease, the steep rim of a
-    curved surface, whose fit could not be judged -- go the same way.
+    curved surface, whose fit could not be judged -- go the same way. Once
+    compiled (:func:`~rangeseg_cli.kernels.backend.select_deferred`), in one
+    call of :func:`rangeseg_cli.kernels.compiled.clean_parts` (the same parts).
     """
+    kernels = select_deferred(frame.backend, "clean_parts")
+    if kernels is not None:
+        out, status = kernels.clean_parts(
+            c_array(labels, np.int32), c_array(frame.mask, np.bool_),
+            c_array(frame.solid, np.bool_), frame.min_piece, frame.thickness, *_FAR_OFFSETS)
+        if status == 1:  # 0: a pixel far from every label, left to the feature transform
+            return out
     parts = np.where(frame.mask, _parts(_fill_nearest(labels, frame.solid, frame.backend),
                                         frame.backend), 0)
     sizes = np.bincount(parts.ravel())
