@@ -308,6 +308,8 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     recut.best_knot(rows, cols, z[rows, cols], np.array([0.0, 1.0]), recut.CREASE,
                     backend="numba")
     halves = np.where(x < 10, 1, 2).astype(np.int32)
-    split._clean(halves, split._Frame.of(halves > 0, Config().split, "numba"))
+    frame = split._Frame.of(halves > 0, Config().split, "numba")
+    split._clean(halves, frame)
+    split._reassign(z, halves, frame)
     assert {name: calls[0] for name, calls in seen.items()} == {
         name: tuple(normalize_signature(signature)[0]) for name, signature in kernel_cache.LATER}

@@ -19,7 +19,7 @@ from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.pipeline import run_pipeline, stage_edges, stage_grow
 from rangeseg_cli.refine import regions
 from rangeseg_cli.refine import split as split_module
-from rangeseg_cli.refine.planes import local_planes
+from rangeseg_cli.refine.planes import local_planes, writeable_weights
 from rangeseg_cli.refine.split import (
     estimate_noise,
     failing_components,
@@ -1160,3 +1160,34 @@ def test_compiled_clean_gives_the_references_parts_or_hands_back() -> None:
     whole = np.ones(far.shape, bool)
     _, status = _kernels.clean_parts(far, whole, whole, 1, 1, *split_module._FAR_OFFSETS)
     assert 1 in statuses and status == 0
+
+
+@requires_numba
+def test_compiled_reassign_gives_the_references_labels_or_hands_back() -> None:
+    # reassign_parts is split._reassign in one compiled call: each pixel near two parts
+    # goes to the part whose local plane predicts it best, with the same labels as the
+    # reference; status 0 where a part's core needs the feature transform.
+    from rangeseg_cli.kernels import compiled as _kernels
+
+    rng = np.random.default_rng(37)
+    changed = 0
+    for parts, mask, frame in _block_parts(rng):
+        y, x = np.mgrid[0:parts.shape[0], 0:parts.shape[1]].astype(np.float64)
+        z = np.where(x < rng.integers(1, parts.shape[1] + 1), 0.5 * x, 20.0 - 0.7 * x) + y
+        z += rng.normal(0.0, 0.3, z.shape)
+        reference = split_module._reassign(z, parts, dataclasses.replace(frame, backend="numpy"))
+        out, status = _kernels.reassign_parts(
+            z, parts, mask, frame.solid, frame.band, frame.thickness,
+            frame.band + int(np.ceil(3.0 * frame.sigma)), writeable_weights(frame.sigma),
+            1e-3 * frame.sigma**4, *split_module._FAR_OFFSETS)
+        assert status == 1
+        assert out.dtype == reference.dtype
+        np.testing.assert_array_equal(out, reference)
+        changed += int(not np.array_equal(out, parts))
+    assert changed > 10  # the cases move pixels, not only keep them
+    far = np.zeros((40, 40), np.int32)
+    far[0, 0], far[0, 1] = 1, 2  # the opposite corner is beyond the far search
+    whole = np.ones(far.shape, bool)
+    _, status = _kernels.reassign_parts(np.zeros(far.shape), far, whole, whole, 2, 1, 8,
+                                        writeable_weights(2.0), 1e-3, *split_module._FAR_OFFSETS)
+    assert status == 0

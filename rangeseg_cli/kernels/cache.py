@@ -119,6 +119,8 @@ LATER: tuple[tuple[str, str], ...] = (
                        " float64[:, ::1], float64, int64, float64)"),
     ("clean_parts", "(int32[:, ::1], boolean[:, ::1], boolean[:, ::1], int64, int64,"
                     " int64[::1], int64[::1])"),
+    ("reassign_parts", "(float64[:, ::1], int32[:, ::1], boolean[:, ::1], boolean[:, ::1],"
+                       " int64, int64, int64, float64[::1], float64, int64[::1], int64[::1])"),
 )
 
 #: Set in the helper's environment: it compiles, it starts no helper.
@@ -140,7 +142,8 @@ def _cache_dirs() -> list[Path]:
 #: whose cache lacks them takes the reference and leaves their compiling to the helper
 #: (:func:`ready`), so that the first run after installing does not wait for them.
 DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels",
-                              "consensus_plane", "k_plane_passes", "best_knot", "clean_parts")
+                              "consensus_plane", "k_plane_passes", "best_knot", "clean_parts",
+                              "reassign_parts")
 
 _ready: set[str] = set()
 

@@ -1647,6 +1647,166 @@ def clean_parts(labels: np.ndarray, mask: np.ndarray, solid: np.ndarray, min_pie
     return out, 0 if missing else 1
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _doubt_pixels(low: np.ndarray, high: np.ndarray, mask: np.ndarray, margin: int
+                  ) -> tuple[np.ndarray, np.ndarray, int, int, int, int]:  # pragma: no cover
+    """Pixels of ``mask`` near two or more parts, in raster order, and their box.
+
+    Near two or more: ``high > 0`` and ``low != high`` (:func:`label_extremes`).
+    Returns their rows and columns relative to their bounding box grown by
+    ``margin`` and clipped to the array, and that box (r0, r1, c0, c1).
+    """
+    height, width = mask.shape
+    r_lo, r_hi, c_lo, c_hi, count = height, -1, width, -1, 0
+    for r in range(height):
+        for c in range(width):
+            if mask[r, c] and high[r, c] > 0 and low[r, c] != high[r, c]:
+                count += 1
+                r_lo, r_hi = min(r_lo, r), max(r_hi, r)
+                c_lo, c_hi = min(c_lo, c), max(c_hi, c)
+    r0, r1 = max(r_lo - margin, 0), min(r_hi + margin + 1, height)
+    c0, c1 = max(c_lo - margin, 0), min(c_hi + margin + 1, width)
+    rows, cols = np.empty(count, np.int64), np.empty(count, np.int64)
+    i = 0
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            if count and mask[r, c] and high[r, c] > 0 and low[r, c] != high[r, c]:
+                rows[i], cols[i] = r - r0, c - c0
+                i += 1
+    return rows, cols, r0, r1, c0, c1
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _near_label(sub: np.ndarray, k: int, r: int, c: int, reach: int
+                ) -> bool:  # pragma: no cover - compiled
+    """Whether a pixel of ``sub`` within chessboard ``reach`` of (r, c) holds k."""
+    for rr in range(max(r - reach, 0), min(r + reach + 1, sub.shape[0])):
+        for cc in range(max(c - reach, 0), min(c + reach + 1, sub.shape[1])):
+            if sub[rr, cc] == k:
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _heights_near(z: np.ndarray, core: np.ndarray, w: np.ndarray, min_det: float,
+                  rows: np.ndarray, cols: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """``split._plane_heights``: local plane heights of ``core`` at (rows, cols), else NaN.
+
+    On the rows and columns within the blur's reach of both the pixels and
+    ``core`` (:func:`plane_heights_at`, the same values bit for bit).
+    """
+    reach = w.shape[0] // 2
+    height, width = z.shape
+    used_r0, used_r1, used_c0, used_c1 = height, -1, width, -1
+    for r in range(height):
+        for c in range(width):
+            if core[r, c]:
+                used_r0, used_r1 = min(used_r0, r), max(used_r1, r)
+                used_c0, used_c1 = min(used_c0, c), max(used_c1, c)
+    r0 = max(rows.min() - reach, used_r0 - reach, 0)
+    r1 = min(rows.max() + reach + 1, used_r1 + reach + 1, height)
+    c0 = max(cols.min() - reach, used_c0 - reach, 0)
+    c1 = min(cols.max() + reach + 1, used_c1 + reach + 1, width)
+    out = np.full(rows.shape[0], np.nan)
+    if r1 <= r0 or c1 <= c0:
+        return out
+    inside = np.flatnonzero((rows >= r0) & (rows < r1) & (cols >= c0) & (cols < c1))
+    found = plane_heights_at(np.ascontiguousarray(z[r0:r1, c0:c1]),
+                             np.ascontiguousarray(core[r0:r1, c0:c1]), w,
+                             c0 - width / 2.0, r0 - height / 2.0, min_det,
+                             rows[inside] - r0, cols[inside] - c0)
+    for i in range(inside.shape[0]):
+        out[inside[i]] = found[i]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _part_core(sub: np.ndarray, k: int, inner: np.ndarray, core: np.ndarray
+               ) -> bool:  # pragma: no cover - compiled
+    """``core`` = the pixels of part k in ``inner`` (its core); whether there is one."""
+    found = False
+    for r in range(sub.shape[0]):
+        for c in range(sub.shape[1]):
+            core[r, c] = sub[r, c] == k and inner[r, c]
+            found |= core[r, c]
+    return found
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _near_part(sub: np.ndarray, k: int, low: np.ndarray, high: np.ndarray, rows: np.ndarray,
+               cols: np.ndarray, band: int) -> np.ndarray:  # pragma: no cover - compiled
+    """Indices of the pixels (rows, cols) within ``band`` of part k (``split._near_part``).
+
+    ``low``, ``high``: the smallest and largest part within ``band`` of each pixel.
+    """
+    near = np.empty(rows.shape[0], np.int64)
+    count = 0
+    for i in range(rows.shape[0]):
+        lo, hi = low[i], high[i]
+        if lo == k or hi == k or (lo < k < hi and _near_label(sub, k, rows[i], cols[i], band)):
+            near[count] = i
+            count += 1
+    return near[:count]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _values_at(a: np.ndarray, b: np.ndarray, c: np.ndarray, rows: np.ndarray, cols: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """``a[rows, cols]``, ``b[rows, cols]`` and ``c[rows, cols]`` (int32 arrays)."""
+    out = np.empty((3, rows.shape[0]), np.int32)
+    for i in range(rows.shape[0]):
+        r, k = rows[i], cols[i]
+        out[0, i], out[1, i], out[2, i] = a[r, k], b[r, k], c[r, k]
+    return out[0], out[1], out[2].copy()
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def reassign_parts(z: np.ndarray, parts: np.ndarray, mask: np.ndarray, solid: np.ndarray,
+                   band: int, thickness: int, margin: int, w: np.ndarray, min_det: float,
+                   dr: np.ndarray, dc: np.ndarray
+                   ) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+    """``split._reassign`` in one call: pixels near two parts to the one predicting them best.
+
+    The same steps on the same kernels (:func:`label_extremes`,
+    :func:`fill_nearest`, :func:`window_extremes`, :func:`plane_heights_at`),
+    the parts taken in increasing order, ties kept by the earlier: the same
+    labels. Status 1; 0 when a nearest-label search of the parts' cores finds
+    no label within the offsets (dr, dc), which the caller's reference
+    answers with the feature transform.
+    """
+    low, high = label_extremes(parts, band)
+    rows, cols, r0, r1, c0, c1 = _doubt_pixels(low, high, mask, margin)
+    if rows.shape[0] == 0:
+        return parts.copy(), 1
+    whole, missing = fill_nearest(parts, solid, dr, dc)
+    if missing:
+        return whole, 0
+    in_low, in_high = window_extremes(whole, thickness, 0)
+    inner = (in_low == in_high) & mask
+    sub, zb, inner = parts[r0:r1, c0:c1], z[r0:r1, c0:c1], inner[r0:r1, c0:c1]
+    low_at, high_at, best = _values_at(low[r0:r1, c0:c1], high[r0:r1, c0:c1], sub, rows, cols)
+    best_cost = np.full(rows.shape[0], np.inf)
+    present = np.zeros(sub.max() + 1, np.bool_)
+    for v in sub.ravel():
+        present[v] = True
+    core = np.empty(sub.shape, np.bool_)
+    for k in range(1, present.shape[0]):
+        if not (present[k] and _part_core(sub, k, inner, core)):
+            continue
+        near = _near_part(sub, k, low_at, high_at, rows, cols, band)
+        if near.shape[0] == 0:
+            continue
+        heights = _heights_near(zb, core, w, min_det, rows[near], cols[near])
+        for j in range(near.shape[0]):
+            cost = abs(zb[rows[near[j]], cols[near[j]]] - heights[j])
+            if np.isfinite(cost) and cost < best_cost[near[j]]:
+                best[near[j]], best_cost[near[j]] = k, cost
+    out = parts.copy()
+    for i in range(rows.shape[0]):
+        out[r0 + rows[i], c0 + cols[i]] = best[i]
+    return out, 1
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _fold_extremes(lo: np.ndarray, hi: np.ndarray, src_lo: np.ndarray, src_hi: np.ndarray
                    ) -> None:  # pragma: no cover - compiled

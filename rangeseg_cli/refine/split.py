@@ -92,7 +92,13 @@ from ..stages.noise import estimate_noise, noise_scaled_config  # noqa: F401 (re
 from ..stages.rangeimage import consecutive_labels
 from ..stages.surfaces import label_boxes
 from .graph import RegionGraph, merge_ranked, region_graph
-from .planes import blur_radius, blur_weights, local_gradients, local_planes
+from .planes import (
+    blur_radius,
+    blur_weights,
+    local_gradients,
+    local_planes,
+    writeable_weights,
+)
 from .recover import INLIER_FACTOR, consensus_plane, plane_pieces
 from .recut import MIN_GAIN, crease_side
 from .regions import (
@@ -571,8 +577,19 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
     ``frame.band``, so no plane is extrapolated far. Pixels near one part
     only keep their label. The work is confined to the bounding box of the
     doubtful pixels, and each part's planes to the pixels within reach of
-    both its doubtful pixels and its core (:func:`_plane_heights`).
+    both its doubtful pixels and its core (:func:`_plane_heights`). Once
+    compiled (:func:`~rangeseg_cli.kernels.backend.select_deferred`), in one
+    call of :func:`rangeseg_cli.kernels.compiled.reassign_parts` (the same labels).
     """
+    kernels = select_deferred(frame.backend, "reassign_parts")
+    if kernels is not None:
+        out, status = kernels.reassign_parts(
+            c_array(z, np.float64), c_array(parts, np.int32), c_array(frame.mask, np.bool_),
+            c_array(frame.solid, np.bool_), frame.band, frame.thickness,
+            frame.band + int(math.ceil(3.0 * frame.sigma)), writeable_weights(frame.sigma),
+            1e-3 * frame.sigma**4, *_FAR_OFFSETS)
+        if status == 1:  # 0: a pixel far from every label, left to the feature transform
+            return out
     low, high = _label_extremes(parts, frame.band, frame.backend)
     doubt = frame.mask & (high > 0) & (low != high)
     if not doubt.any():
