@@ -1683,32 +1683,28 @@ def _near_label(sub: np.ndarray, k: int, r: int, c: int, reach: int
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _heights_near(z: np.ndarray, core: np.ndarray, w: np.ndarray, min_det: float,
-                  rows: np.ndarray, cols: np.ndarray) -> np.ndarray:  # pragma: no cover
-    """``split._plane_heights``: local plane heights of ``core`` at (rows, cols), else NaN.
+def _heights_near(z: np.ndarray, cores: np.ndarray, k: int, box: np.ndarray, w: np.ndarray,
+                  min_det: float, rows: np.ndarray, cols: np.ndarray
+                  ) -> np.ndarray:  # pragma: no cover - compiled
+    """``split._plane_heights``: local plane heights of part k's core at (rows, cols), else NaN.
 
-    On the rows and columns within the blur's reach of both the pixels and
-    ``core`` (:func:`plane_heights_at`, the same values bit for bit).
+    ``cores`` holds each core pixel's part, ``box`` part k's core box (first
+    and last row, first and last column). On the rows and columns within the
+    blur's reach of both the pixels and the core (:func:`plane_heights_at`,
+    the same values bit for bit).
     """
     reach = w.shape[0] // 2
     height, width = z.shape
-    used_r0, used_r1, used_c0, used_c1 = height, -1, width, -1
-    for r in range(height):
-        for c in range(width):
-            if core[r, c]:
-                used_r0, used_r1 = min(used_r0, r), max(used_r1, r)
-                used_c0, used_c1 = min(used_c0, c), max(used_c1, c)
-    r0 = max(rows.min() - reach, used_r0 - reach, 0)
-    r1 = min(rows.max() + reach + 1, used_r1 + reach + 1, height)
-    c0 = max(cols.min() - reach, used_c0 - reach, 0)
-    c1 = min(cols.max() + reach + 1, used_c1 + reach + 1, width)
+    r0 = max(rows.min() - reach, box[0] - reach, 0)
+    r1 = min(rows.max() + reach + 1, box[1] + reach + 1, height)
+    c0 = max(cols.min() - reach, box[2] - reach, 0)
+    c1 = min(cols.max() + reach + 1, box[3] + reach + 1, width)
     out = np.full(rows.shape[0], np.nan)
     if r1 <= r0 or c1 <= c0:
         return out
     inside = np.flatnonzero((rows >= r0) & (rows < r1) & (cols >= c0) & (cols < c1))
-    found = plane_heights_at(np.ascontiguousarray(z[r0:r1, c0:c1]),
-                             np.ascontiguousarray(core[r0:r1, c0:c1]), w,
-                             c0 - width / 2.0, r0 - height / 2.0, min_det,
+    found = plane_heights_at(np.ascontiguousarray(z[r0:r1, c0:c1]), cores[r0:r1, c0:c1] == k,
+                             w, c0 - width / 2.0, r0 - height / 2.0, min_det,
                              rows[inside] - r0, cols[inside] - c0)
     for i in range(inside.shape[0]):
         out[inside[i]] = found[i]
@@ -1716,15 +1712,28 @@ def _heights_near(z: np.ndarray, core: np.ndarray, w: np.ndarray, min_det: float
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _part_core(sub: np.ndarray, k: int, inner: np.ndarray, core: np.ndarray
-               ) -> bool:  # pragma: no cover - compiled
-    """``core`` = the pixels of part k in ``inner`` (its core); whether there is one."""
-    found = False
+def _core_labels(sub: np.ndarray, inner: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """``sub`` on ``inner`` (each core pixel's part), 0 elsewhere; each part's core box.
+
+    The box of part k: first and last row, first and last column of its
+    core pixels (last row -1 when it has none).
+    """
+    top = 0
+    for v in sub.ravel():
+        top = max(top, v)
+    boxes = np.empty((top + 1, 4), np.int64)
+    boxes[:, 0], boxes[:, 1] = sub.shape[0], -1
+    boxes[:, 2], boxes[:, 3] = sub.shape[1], -1
+    cores = np.zeros(sub.shape, np.int32)
     for r in range(sub.shape[0]):
         for c in range(sub.shape[1]):
-            core[r, c] = sub[r, c] == k and inner[r, c]
-            found |= core[r, c]
-    return found
+            k = sub[r, c]
+            if inner[r, c] and k > 0:
+                cores[r, c] = k
+                b = boxes[k]
+                b[0], b[1], b[2], b[3] = min(b[0], r), max(b[1], r), min(b[2], c), max(b[3], c)
+    return cores, boxes
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -1781,17 +1790,14 @@ def reassign_parts(z: np.ndarray, parts: np.ndarray, mask: np.ndarray, solid: np
     sub, zb, inner = parts[r0:r1, c0:c1], z[r0:r1, c0:c1], inner[r0:r1, c0:c1]
     low_at, high_at, best = _values_at(low[r0:r1, c0:c1], high[r0:r1, c0:c1], sub, rows, cols)
     best_cost = np.full(rows.shape[0], np.inf)
-    present = np.zeros(sub.max() + 1, np.bool_)
-    for v in sub.ravel():
-        present[v] = True
-    core = np.empty(sub.shape, np.bool_)
-    for k in range(1, present.shape[0]):
-        if not (present[k] and _part_core(sub, k, inner, core)):
+    cores, boxes = _core_labels(sub, inner)
+    for k in range(1, boxes.shape[0]):
+        if boxes[k, 1] < 0:  # absent, or no core
             continue
         near = _near_part(sub, k, low_at, high_at, rows, cols, band)
         if near.shape[0] == 0:
             continue
-        heights = _heights_near(zb, core, w, min_det, rows[near], cols[near])
+        heights = _heights_near(zb, cores, k, boxes[k], w, min_det, rows[near], cols[near])
         for j in range(near.shape[0]):
             cost = abs(zb[rows[near[j]], cols[near[j]]] - heights[j])
             if np.isfinite(cost) and cost < best_cost[near[j]]:
