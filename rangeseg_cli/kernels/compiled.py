@@ -1230,28 +1230,46 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
     return mu, mv, mz, gx, gy
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _column_blurs(pad: np.ndarray, w: np.ndarray, r: int, c0: int, c1: int, out: np.ndarray
-                  ) -> None:  # pragma: no cover - compiled
-    """The first (axis 0) blur of :func:`_blur_row` of the products ``pad`` at row r.
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _row_starts(rows: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """Where each row's run of pixels starts in ``rows`` (sorted), and its end: (R + 1,)."""
+    starts = np.empty(rows.shape[0] + 1, np.int64)
+    count = 0
+    for i in range(rows.shape[0]):
+        if i == 0 or rows[i] != rows[i - 1]:
+            starts[count] = i
+            count += 1
+    starts[count] = rows.shape[0]
+    return starts[:count + 1]
 
-    ``pad`` (9, H + 2 radius, W + 2 radius) holds the nine zero-padded
-    products; ``out[which, k]`` gets ``acc[c0 + k]`` of :func:`_blur_row`
-    for padded columns c0..c1-1 (the same sums, in the same order).
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _column_blurs(pad: np.ndarray, w: np.ndarray, r: int, need: np.ndarray, out: np.ndarray
+                  ) -> None:  # pragma: no cover - compiled
+    """The first (axis 0) blur of :func:`_blur_row` of one padded product at row r.
+
+    Into ``out[c]`` at the padded columns c where ``need`` is set, run by
+    run (the same sums, in the same order, as ``acc`` of :func:`_blur_row`).
     """
     radius = w.shape[0] // 2
     wc = w[radius]
-    for which in range(9):
-        acc = out[which, :c1 - c0]
-        centre = pad[which, r + radius, c0:c1]
-        for k in range(c1 - c0):
+    c, wide = 0, need.shape[0]
+    while c < wide:
+        if not need[c]:
+            c += 1
+            continue
+        end = c
+        while end < wide and need[end]:
+            end += 1
+        acc, centre = out[c:end], pad[r + radius, c:end]
+        for k in range(end - c):
             acc[k] = centre[k] * wc
         for d in range(radius, 0, -1):
-            above = pad[which, r + radius - d, c0:c1]
-            below = pad[which, r + radius + d, c0:c1]
+            above, below = pad[r + radius - d, c:end], pad[r + radius + d, c:end]
             wd = w[radius - d]
-            for k in range(c1 - c0):
+            for k in range(end - c):
                 acc[k] += (above[k] + below[k]) * wd
+        c = end
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1264,66 +1282,41 @@ def plane_heights_at(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, 
     the same blurred products, summed in the same order, as :func:`plane_fit`
     forms them for the whole array: the same values bit for bit, NaN where
     the fit is degenerate. The first blur runs only on the rows asked for, over
-    the columns within reach of their pixels, so the cost follows the number
-    of pixels asked for rather than the array's size. Pixels of one row are
-    best given together (raster order, as ``np.nonzero`` gives them); any
-    order gives the same values.
+    the columns within reach of their pixels, one product after the other
+    (each stays in the cache), so the cost follows the number of pixels
+    asked for rather than the array's size. Pixels of one row are best given
+    together (raster order, as ``np.nonzero`` gives them); any order gives
+    the same values.
     """
     height, width = z.shape
     radius = w.shape[0] // 2
     wc = w[radius]
-    pad = np.zeros((9, height + 2 * radius, width + 2 * radius))
+    wide = width + 2 * radius
+    starts = _row_starts(rows)
+    count = starts.shape[0] - 1
+    need = np.zeros((count, wide), dtype=np.bool_)
+    for q in range(count):
+        for i in range(starts[q], starts[q + 1]):
+            need[q, cols[i]: cols[i] + 2 * radius + 1] = True
+    blurred = np.empty((9, count, wide))
+    pad = np.zeros((height + 2 * radius, wide))
     for which in range(9):
-        _masked_product(z, mask, u0, v0, which, radius, pad[which])
+        _masked_product(z, mask, u0, v0, which, radius, pad)
+        for q in range(count):
+            _column_blurs(pad, w, rows[starts[q]], need[q], blurred[which, q])
     out = np.empty(rows.shape[0])
-    buf = np.empty((9, width + 2 * radius))
-    need = np.zeros(width + 2 * radius, dtype=np.bool_)
     b = np.empty(9)
-    start = 0
-    while start < rows.shape[0]:
-        r = rows[start]
-        stop = start
-        while stop < rows.shape[0] and rows[stop] == r:
-            stop += 1
-        # the first blur at the padded columns within reach of the row's pixels only
-        _blur_needed_columns(pad, w, r, cols[start:stop], need, buf)
-        for i in range(start, stop):
+    for q in range(count):
+        for i in range(starts[q], starts[q + 1]):
             c = cols[i] + radius
             for which in range(9):
-                src = buf[which]
+                src = blurred[which, q]
                 a = src[c] * wc
                 for d in range(radius, 0, -1):
                     a += (src[c - d] + src[c + d]) * w[radius - d]
                 b[which] = a
-            out[i] = _height(b, min_det, cols[i] + u0, r + v0)
-        start = stop
+            out[i] = _height(b, min_det, cols[i] + u0, rows[i] + v0)
     return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _blur_needed_columns(pad: np.ndarray, w: np.ndarray, r: int, cols: np.ndarray,
-                         need: np.ndarray, buf: np.ndarray) -> None:  # pragma: no cover
-    """:func:`_column_blurs` of row r at the padded columns the pixels ``cols`` need.
-
-    Into ``buf[:, c]`` at the padded columns c that the second blur of the
-    pixels ``cols`` of that row reads (``cols[i] .. cols[i] + 2 radius``),
-    run by run; ``need`` (all False) is a scratch mask, left all False.
-    """
-    reach = w.shape[0] - 1
-    for c in cols:
-        need[c: c + reach + 1] = True
-    n = need.shape[0]
-    c = 0
-    while c < n:
-        if not need[c]:
-            c += 1
-            continue
-        end = c
-        while end < n and need[end]:
-            need[end] = False
-            end += 1
-        _column_blurs(pad, w, r, c, end, buf[:, c:end])
-        c = end
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
