@@ -676,6 +676,23 @@ def test_knot_search_kernels_are_bitwise_equal_to_the_reference(seed, powers):
 
 
 @requires_numba
+@pytest.mark.parametrize("powers", [(1,), (2, 3)])
+def test_knot_sums_carry_a_nan_as_the_reference_does(powers):
+    # The kernel adds zeros for q <= 0 without a branch; a NaN q must still count.
+    from rangeseg_cli.kernels import compiled as _kernels
+    from rangeseg_cli.refine import recut
+
+    u = np.array([0.5, np.nan, 2.0, 3.0, 4.5])
+    x, y, zs = np.arange(5.0), np.array([0.0, 1, 0, 1, 0]), np.array([1.0, 2, 3, 4, 5])
+    knots, p = np.array([1.0, np.nan, 2.5]), np.asarray(powers, dtype=np.int64)
+    ref = recut._knot_normal_equations(u, x, y, zs, knots, p)
+    fast = _kernels.knot_normal_equations(u, x, y, zs, knots, p)
+    assert np.isnan(ref[1][:, 3]).all()
+    for a, b in zip(ref, fast, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+@requires_numba
 def test_the_compiled_knot_search_gives_the_references_knot_and_errors():
     # creases and smooth edges across a line in any direction, few and many pixels (the
     # coarse and the fine searches subsample above 1,500 and 20,000), pixels on one row,

@@ -1232,7 +1232,7 @@ def plane_fit(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: flo
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _row_starts(rows: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """Where each row's run of pixels starts in ``rows`` (sorted), and its end: (R + 1,)."""
+    """Where each run of equal ``rows`` starts, and where the last ends: (runs + 1,)."""
     starts = np.empty(rows.shape[0] + 1, np.int64)
     count = 0
     for i in range(rows.shape[0]):
@@ -1284,10 +1284,25 @@ def plane_heights_at(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, 
     the fit is degenerate. The first blur runs only on the rows asked for, over
     the columns within reach of their pixels, one product after the other
     (each stays in the cache), so the cost follows the number of pixels
-    asked for rather than the array's size. Pixels of one row are best given
-    together (raster order, as ``np.nonzero`` gives them); any order gives
-    the same values.
+    asked for rather than the array's size. Pixels in any order; sorted by
+    row here when they are not (raster order, as ``np.nonzero`` gives them,
+    needs no sort).
     """
+    for i in range(1, rows.shape[0]):
+        if rows[i] < rows[i - 1]:
+            order = np.argsort(rows, kind="mergesort")
+            out = np.empty(rows.shape[0])
+            out[order] = _heights_in_rows(z, mask, w, u0, v0, min_det, rows[order],
+                                          cols[order])
+            return out
+    return _heights_in_rows(z, mask, w, u0, v0, min_det, rows, cols)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _heights_in_rows(z: np.ndarray, mask: np.ndarray, w: np.ndarray, u0: float, v0: float,
+                     min_det: float, rows: np.ndarray, cols: np.ndarray
+                     ) -> np.ndarray:  # pragma: no cover - compiled
+    """:func:`plane_heights_at` of pixels sorted by row (each row's blurs formed once)."""
     height, width = z.shape
     radius = w.shape[0] // 2
     wc = w[radius]
@@ -2419,10 +2434,12 @@ def _knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
     """The sums of the knots' columns, (11, K): ``a, x a, y a, a a, a z``, then ``b`` ones.
 
     With ``a = q**p`` and, when ``p2 > 0``, ``b = q**p2`` (rows 5-10: ``b, x
-    b, y b, a b, b b, b z``), for q > 0. Each knot's sums run over the
-    pixels in their order; a pixel with q <= 0 adds zeros, which change no
-    sum (none of them is ever -0.0), so the loop over the knots runs
-    without branches and vectorises.
+    b, y b, a b, b b, b z``), for q > 0 (and NaN, as the reference's
+    ``np.maximum``). Each knot's sums run over the pixels in their order,
+    from +0.0; a pixel with q <= 0 adds zeros, which change no finite sum,
+    so the loop over the knots runs without branches and vectorises. (A
+    sum of zeros only is +0.0 here where the reference's may be -0.0: the
+    SSEs of :func:`projected_sse` are the same.)
     """
     nk = knots.shape[0]
     acc = np.zeros((11, nk))
@@ -2430,7 +2447,7 @@ def _knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
         ui, xi, yi, zi = u[i], x[i], y[i], zs[i]
         for k in range(nk):
             q = ui - knots[k]
-            a = _knot_power(q, p) if q > 0.0 else 0.0
+            a = 0.0 if q <= 0.0 else _knot_power(q, p)
             acc[0, k] += 1.0 * a
             acc[1, k] += xi * a
             acc[2, k] += yi * a
@@ -2439,8 +2456,8 @@ def _knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
         if p2 > 0:
             for k in range(nk):
                 q = ui - knots[k]
-                a = _knot_power(q, p) if q > 0.0 else 0.0
-                b = _knot_power(q, p2) if q > 0.0 else 0.0
+                a = 0.0 if q <= 0.0 else _knot_power(q, p)
+                b = 0.0 if q <= 0.0 else _knot_power(q, p2)
                 acc[5, k] += 1.0 * b
                 acc[6, k] += xi * b
                 acc[7, k] += yi * b
