@@ -403,10 +403,10 @@ def _seed_faces(z: np.ndarray, labels: np.ndarray, fits: _Fits, config: Config, 
         return plane_pieces(z[boxes[g - 1]], groups[boxes[g - 1]] == g, level=level,
                             min_pixels=min_seed)
 
-    # The groups are independent: many (a real frame's) go to processes. Their work is
-    # the consensus votes, MAX_HYPOTHESES per pixel (parallel.map_tasks' cost).
-    found = dict(zip(cut, map_tasks(pieces_of, cut, cost=[
-        float(MAX_HYPOTHESES * planes.counts[g]) for g in cut]), strict=True))
+    # The groups are independent: many with enough pixels go to processes
+    # (parallel.map_tasks' cost, in pixels as for the other passes).
+    found = dict(zip(cut, map_tasks(pieces_of, cut, cost=[float(planes.counts[g]) for g in cut]),
+                     strict=True))
     count = 0
     for g in seeds:
         box = boxes[g - 1]
