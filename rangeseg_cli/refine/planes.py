@@ -102,8 +102,7 @@ class _PlaneFit:
         if kernels is not None:
             mu, mv, mz, gx, gy = _compiled_plane_fit(
                 kernels, c_array(z, np.float64), c_array(mask, np.bool_),
-                writeable_weights(sigma), float(u0), float(v0),
-                1e-3 * sigma**4)
+                writeable_weights(sigma), float(u0), float(v0), min_det(sigma))
             return cls(u=u, v=v, mu=mu, mv=mv, mz=mz, gx=gx, gy=gy)
         m = mask.astype(np.float64)
         zc = np.where(mask, z, 0.0)
@@ -129,7 +128,7 @@ class _PlaneFit:
         cvz = mean(zc * v)
         cvz -= mv * mz
         det = cuu * cvv - cuv * cuv
-        ok &= det > 1e-3 * sigma**4
+        ok &= det > min_det(sigma)
         safe = np.where(ok, det, 1.0)
         gx = np.where(ok, (cvv * cuz - cuv * cvz) / safe, np.nan)
         gy = np.where(ok, (cuu * cvz - cuv * cuz) / safe, np.nan)
@@ -183,6 +182,15 @@ def writeable_weights(sigma: float) -> np.ndarray:
     tenth of the consensus planes' time.
     """
     return np.array(blur_weights(sigma))
+
+
+def min_det(sigma: float) -> float:
+    """Smallest determinant of a local plane fit's covariance (blur ``sigma``): ``1e-3 sigma^4``.
+
+    Below it the mask's pixels near a point lie nearly on a line and the
+    fit is degenerate (its slopes NaN).
+    """
+    return 1e-3 * sigma**4
 
 
 def blur_radius(sigma: float) -> int:

@@ -78,7 +78,7 @@ from ..stages.grow import (
 )
 from ..stages.noise import estimate_noise
 from ..stages.rangeimage import require_shape_of_z
-from .planes import local_planes, writeable_weights
+from .planes import local_planes, min_det, writeable_weights
 from .regions import adjacent_pairs, c_array, join_box
 
 #: Chessboard reach (pixels) of the neighbours a label-0 pixel may be the boundary of.
@@ -350,7 +350,7 @@ def consensus_plane(z: np.ndarray, left: np.ndarray, tol: float, *, backend: Bac
         h, w = left.shape
         found, status = kernels.consensus_plane(
             c_array(z, np.float64), c_array(left, np.bool_), writeable_weights(HYPOTHESIS_SIGMA),
-            -w / 2.0, -h / 2.0, 1e-3 * HYPOTHESIS_SIGMA**4, MAX_HYPOTHESES, float(tol))
+            -w / 2.0, -h / 2.0, min_det(HYPOTHESIS_SIGMA), MAX_HYPOTHESES, float(tol))
         if status != 2:  # 2: a refit's pixels nearly on a line, left to the reference
             return found if status == 1 else None
     # the reference, numpy throughout under "auto" (the kernel is not compiled yet)

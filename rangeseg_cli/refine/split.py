@@ -97,6 +97,7 @@ from .planes import (
     blur_weights,
     local_gradients,
     local_planes,
+    min_det,
     writeable_weights,
 )
 from .recover import INLIER_FACTOR, consensus_plane, plane_pieces
@@ -309,6 +310,11 @@ class _Frame:
     band: int
     sigma: float
     backend: Backend = "auto"
+
+    @property
+    def reach(self) -> int:
+        """How far around the doubtful pixels :func:`_reassign` works: ``band`` + 3 sigma."""
+        return self.band + int(math.ceil(3.0 * self.sigma))
 
     @classmethod
     def of(cls, mask: np.ndarray, cfg: SplitConfig, backend: Backend = "auto") -> _Frame:
@@ -586,15 +592,14 @@ def _reassign(z: np.ndarray, parts: np.ndarray, frame: _Frame) -> np.ndarray:
         out, status = kernels.reassign_parts(
             c_array(z, np.float64), c_array(parts, np.int32), c_array(frame.mask, np.bool_),
             c_array(frame.solid, np.bool_), frame.band, frame.thickness,
-            frame.band + int(math.ceil(3.0 * frame.sigma)), writeable_weights(frame.sigma),
-            1e-3 * frame.sigma**4, *_FAR_OFFSETS)
+            frame.reach, writeable_weights(frame.sigma), min_det(frame.sigma), *_FAR_OFFSETS)
         if status == 1:  # 0: a pixel far from every label, left to the feature transform
             return out
     low, high = _label_extremes(parts, frame.band, frame.backend)
     doubt = frame.mask & (high > 0) & (low != high)
     if not doubt.any():
         return parts
-    box = bounding_box(doubt, frame.band + int(math.ceil(3.0 * frame.sigma)))
+    box = bounding_box(doubt, frame.reach)
     sub, zb, doubt = parts[box], z[box], doubt[box]
     core = _core(parts, frame)[box]
     rows, cols = np.nonzero(doubt)
@@ -688,7 +693,7 @@ def _plane_heights(z: np.ndarray, mask: np.ndarray, sigma: float, rows: np.ndarr
         out[inside] = _compiled_heights(
             kernels, c_array(z[r0:r1, c0:c1], np.float64),
             c_array(mask[r0:r1, c0:c1], np.bool_), blur_weights(sigma),
-            (float(c0 - w / 2.0), float(r0 - h / 2.0), 1e-3 * sigma**4),
+            (float(c0 - w / 2.0), float(r0 - h / 2.0), min_det(sigma)),
             np.ascontiguousarray(rows[inside] - r0, np.int64),
             np.ascontiguousarray(cols[inside] - c0, np.int64))
         return out
