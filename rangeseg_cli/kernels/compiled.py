@@ -2453,10 +2453,7 @@ def _knot_terms(u: np.ndarray, x: np.ndarray, y: np.ndarray, zs: np.ndarray,
             acc[2, k] += yi * a
             acc[3, k] += a * a
             acc[4, k] += a * zi
-        if p2 > 0:
-            for k in range(nk):
-                q = ui - knots[k]
-                a = 0.0 if q <= 0.0 else _knot_power(q, p)
+            if p2 > 0:  # the same for every knot: the loop is split on it
                 b = 0.0 if q <= 0.0 else _knot_power(q, p2)
                 acc[5, k] += 1.0 * b
                 acc[6, k] += xi * b
