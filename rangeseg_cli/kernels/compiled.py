@@ -1769,7 +1769,7 @@ def _values_at(a: np.ndarray, b: np.ndarray, c: np.ndarray, rows: np.ndarray, co
     for i in range(rows.shape[0]):
         r, k = rows[i], cols[i]
         out[0, i], out[1, i], out[2, i] = a[r, k], b[r, k], c[r, k]
-    return out[0], out[1], out[2].copy()
+    return out[0], out[1], out[2]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
