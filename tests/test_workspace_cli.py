@@ -190,3 +190,33 @@ def test_run_pipeline_reads_the_configured_files_or_takes_arrays(scene):
     missing = load_config(overrides={"workspace": {"background": str(scene / "no.png")}})
     with pytest.raises(ConfigError, match=r"\[workspace\] background: .*no.png: file not"):
         run_pipeline(two_boxes(), missing)
+
+
+@pytest.mark.parametrize("extra, warned", [
+    ((), "needs camera intrinsics (--intrinsics or [input] intrinsics)"),
+    (("--set", "input.metres_per_unit=0"), "needs camera intrinsics (--intrinsics or [input] "
+     "intrinsics) and metric depth ([input] metres_per_unit)"),
+    (("--intrinsics", "CAM"), None),
+    (("--set", "holdsite.footprint_mm=[0, 0]"), None)])
+def test_a_depth_run_warns_once_when_the_cup_size_cannot_apply(tmp_path, write_png, extra,
+                                                                warned):
+    depth = (1000 - box_scene(48)).astype(np.uint16)
+    write_png(tmp_path / "a.png", depth)
+    write_png(tmp_path / "b.png", depth)
+    cam = str(intrinsics_yaml(tmp_path, 48, 48))
+    args = [a.replace("CAM", cam) for a in extra]
+    res = CliRunner().invoke(main, ["run", str(tmp_path / "a.png"), str(tmp_path / "b.png"),
+                                    "-o", str(tmp_path / "out"), "--preset", "mm-depth",
+                                    "-j", "1", *args])
+    assert res.exit_code == 0, res.output
+    lines = [line for line in res.stderr.splitlines() if line.startswith("warning:")]
+    reason = json.loads((tmp_path / "out" / "a.holdsite.json").read_text())["reason"]
+    if warned is None:
+        assert lines == [] and "footprint_mm" not in reason
+    else:
+        assert len(lines) == 1 and warned in lines[0] and "holdsite.size, 7x7 px" in lines[0]
+        assert warned in reason
+        quiet = CliRunner().invoke(main, ["run", str(tmp_path / "a.png"), "-o",
+                                          str(tmp_path / "q"), "--preset", "mm-depth", "-q",
+                                          *args])
+        assert quiet.exit_code == 0 and "warning" not in quiet.stderr

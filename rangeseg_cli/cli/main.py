@@ -242,6 +242,7 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
     if opts.get("rerun"):
         _check_rerun(opts["rerun"])
     _say_if_compiling(opts)
+    _warn_footprint(config, stages, opts)
     reporter = BatchReporter(quiet=opts["quiet"] > 0, verbose=opts["verbose"])
     # Dask: --jobs caps the images in flight; without it the cluster sets the parallelism.
     n_jobs = opts["jobs"] if opts["executor"] == "dask" else opts["jobs"] or default_jobs()
@@ -302,6 +303,15 @@ def _say_if_compiling(opts: dict[str, Any]) -> None:
 
     if not opts["quiet"] and opts["executor"] == "local" and cold_kernel_cache():
         click.echo(MESSAGE, err=True)
+
+
+def _warn_footprint(config: Any, stages: tuple[str, ...], opts: dict[str, Any]) -> None:
+    """On stderr, unless -q: the cup's footprint_mm cannot apply (e.g. no intrinsics)."""
+    from ..stages.holdsite import footprint_fallback
+
+    why = footprint_fallback(config) if "holdsite" in stages else ""
+    if why and not opts["quiet"]:
+        click.echo(f"warning: {why}", err=True)
 
 
 def _set_threads(threads: int | None) -> None:

@@ -866,12 +866,29 @@ def _rises_to_border(mine: np.ndarray, height: np.ndarray, zone: np.ndarray, tol
 
 
 def _unit_note(config: Config) -> str:
-    """What the reason says when ``footprint_mm`` cannot apply (no intrinsics or metric depth)."""
-    hold = config.holdsite
-    if not any(hold.footprint_mm) or footprint_in_mm(hold, config.input):
+    """What the reason says when ``footprint_mm`` cannot apply (:func:`footprint_fallback`)."""
+    why = footprint_fallback(config)
+    return f" ({why})" if why else ""
+
+
+def footprint_fallback(config: Config) -> str:
+    """Why ``holdsite.footprint_mm`` cannot size the footprint ("" when it can or is unset).
+
+    The cup's size in mm becomes pixels only with camera intrinsics, metric
+    depth and depth along the optical axis (:func:`footprint_in_mm`); without
+    them the search uses ``holdsite.size`` in pixels, which on a real frame is
+    seldom the cup (Sec. VII: the window is the gripper's footprint).
+    """
+    hold, cam = config.holdsite, config.input
+    if not any(hold.footprint_mm) or footprint_in_mm(hold, cam):
         return ""
-    return (f" (footprint_mm needs camera intrinsics and metric depth: the footprint is "
-            f"size, {hold.size[0]}x{hold.size[1]} px)")
+    lacking = [what for what, missing in (
+        ("camera intrinsics (--intrinsics or [input] intrinsics)", not cam.has_intrinsics),
+        ("metric depth ([input] metres_per_unit)", cam.metres_per_unit <= 0),
+        ("depth along the optical axis ([input] larger_is_closer = false)",
+         cam.larger_is_closer)) if missing]
+    return (f"holdsite.footprint_mm = {list(hold.footprint_mm)} needs {' and '.join(lacking)}:"
+            f" the footprint is holdsite.size, {hold.size[0]}x{hold.size[1]} px")
 
 
 def carve_pickable(z: np.ndarray, labels: np.ndarray, pickable: np.ndarray,
