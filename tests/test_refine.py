@@ -230,6 +230,36 @@ def test_the_compiled_crease_votes_give_the_references_kinds(seed):
     np.testing.assert_array_equal(crease_kinds(rough, coeffs, backend="numba"), reference)
 
 
+@pytest.mark.parametrize("threads", [2, 5])
+def test_the_compiled_pass_in_row_bands_gives_the_references_labels(monkeypatch, threads,
+                                                                    tuning):
+    # bands of a few rows: each band's boundary pixels read the rows either side, and
+    # the crease votes of the bands follow each other in raster order
+    from rangeseg_cli.kernels import parallel
+
+    monkeypatch.setattr(parallel, "MIN_BAND_ROWS", 1)
+    monkeypatch.setattr(parallel, "MIN_BAND_PIXELS", 1)
+    parallel.set_threads(threads)
+    assert len(parallel.row_bands(72, 96, 1)) == threads
+    z, rough = pyramid_and_dome(3)
+    tuning(refine_creases=True)
+    reference = refine_boundaries(z, rough, CONFIG, noise=1.5, backend="numpy")
+    np.testing.assert_array_equal(refine_boundaries(z, rough, CONFIG, noise=1.5,
+                                                    backend="numba"), reference)
+    coeffs, _ = surface_models(z, rough, 6, CONFIG.grow)
+    np.testing.assert_array_equal(crease_kinds(rough, coeffs, backend="numba"),
+                                  crease_kinds(rough, coeffs, backend="numpy"))
+    rng = np.random.default_rng(7)  # many regions near each pixel: every vote counts
+    labels = rng.integers(1, 25, (30, 30)).astype(np.int32)
+    coeffs = np.zeros((25, 6))
+    coeffs[:, 0] = rng.normal(100.0, 5.0, 25)
+    coeffs[:, 1:3] = rng.normal(0.0, 1.0, (25, 2))
+    for agreement in (0.5, 0.6, 0.7):
+        np.testing.assert_array_equal(
+            crease_kinds(labels, coeffs, agreement=agreement, backend="numba"),
+            crease_kinds(labels, coeffs, agreement=agreement, backend="numpy"))
+
+
 def test_crease_kinds_of_many_small_regions_match_the_reference():
     # every pixel sees a dozen regions within reach: the compiled votes outgrow their
     # first buffer

@@ -102,7 +102,7 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
     ("crease_votes", "(int32[:, ::1], int64[::1], int64[::1], int64[::1], float64[::1],"
                      " float64[:, ::1], int64)"),
     ("boundary_labels", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64, float64,"
-                        " int8[:, ::1], float64, boolean)"),
+                        " int8[:, ::1], float64, boolean, int32[:, ::1], int64, int64)"),
     ("boundary_measures", "(int32[:, ::1], int64, float64[:, ::1])"),
     ("pair_medians", "(int64[::1], int64[::1], int64, float64[:, ::1])"),
     ("label_boxes", "(int32[:, ::1], int64)"),

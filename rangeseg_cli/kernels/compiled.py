@@ -3146,20 +3146,22 @@ def crease_votes(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def boundary_labels(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: float,
-                    smoothness: float, kinds: np.ndarray, close: float, creases: bool
-                    ) -> np.ndarray:  # pragma: no cover - compiled
-    """``refine.boundaries``' pass: each boundary pixel's cheapest label (the same labels).
+                    smoothness: float, kinds: np.ndarray, close: float, creases: bool,
+                    out: np.ndarray, first: int, stop: int
+                    ) -> None:  # pragma: no cover - compiled
+    """``refine.boundaries``' pass on rows ``first..stop-1``: boundary pixels' cheapest labels.
 
     A boundary pixel is labelled and has an 8-neighbour of another positive
     label; it takes, of its own label and its neighbours' (in raster order of
     the 3x3 window, a tie keeping the earlier), the one of least ``r^2 /
     scale + smoothness * m``; with ``creases``, the crease rule's label
     (``kinds``) where it decides. Residuals as ``grow.evaluate_quadric``.
+    Written into ``out`` (a copy of ``labels``, which is only read): row
+    bands may run at once and give the same labels.
     """
     height, width = labels.shape
-    out = labels.copy()
     near = np.zeros(8, np.int64)
-    for r in range(height):
+    for r in range(first, stop):
         for c in range(width):
             own = np.int64(labels[r, c])
             if own == 0:
@@ -3181,7 +3183,6 @@ def boundary_labels(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale
             if edge:
                 out[r, c] = _cheapest(z[r, c], near, own, coeffs, float(r), float(c), scale,
                                       smoothness, kinds, close, creases)
-    return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")

@@ -51,12 +51,14 @@ Notes
 from __future__ import annotations
 
 import math
+from types import ModuleType
 
 import numpy as np
 from scipy import ndimage
 
 from ..config import Config
 from ..kernels.backend import Backend, select_deferred
+from ..kernels.parallel import map_bands
 from ..stages.grow import evaluate_quadric
 from ..stages.rangeimage import (
     HALF_NEIGHBOUR_PAIRS,
@@ -129,6 +131,29 @@ def _crease_votes(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: n
     return key, np.concatenate(below).astype(np.float64), np.ones(key.size)
 
 
+def _compiled_votes(kernels: ModuleType, padded: np.ndarray, rows: np.ndarray,
+                    cols: np.ndarray, own: np.ndarray, mine: np.ndarray, coeffs: np.ndarray,
+                    reach: int) -> np.ndarray:
+    """:func:`rangeseg_cli.kernels.compiled.crease_votes` by row bands of the pixels, at once.
+
+    The pixels come in raster order; each band's votes are those of its
+    pixels, and the bands' votes follow each other in that order: the same
+    (V, 3) rows, transposed, as one call.
+    """
+    padded, rows, cols = c_array(padded, np.int32), c_array(rows, np.int64), c_array(cols, np.int64)
+    own = own.astype(np.int64)
+    height = padded.shape[0] - 2 * reach
+    parts: dict[int, np.ndarray] = {}
+
+    def band(first: int, stop: int, _lo: int, _hi: int) -> None:
+        i, j = np.searchsorted(rows, (first, stop))
+        parts[first] = kernels.crease_votes(padded, rows[i:j], cols[i:j], own[i:j], mine[i:j],
+                                            coeffs, reach)
+
+    map_bands(band, height, padded.shape[1] - 2 * reach, 0)
+    return np.concatenate([parts[k] for k in sorted(parts)]).T
+
+
 def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_REACH,
                  agreement: float = CREASE_AGREEMENT, boundary: np.ndarray | None = None,
                  backend: Backend = "auto") -> np.ndarray:
@@ -176,9 +201,8 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
     if kernels is None:
         keys, below, votes = _crease_votes(padded, rows, cols, own, mine, coeffs, reach)
     else:
-        keys, below, votes = kernels.crease_votes(
-            c_array(padded, np.int32), c_array(rows, np.int64), c_array(cols, np.int64),
-            own.astype(np.int64), mine, coeffs, reach).T
+        keys, below, votes = _compiled_votes(kernels, padded, rows, cols, own, mine, coeffs,
+                                             reach)
     lower, total = _pair_counts(keys, below, votes, (n + 1) ** 2)
     frac = (lower / np.maximum(total, 1)).reshape(n + 1, n + 1)
     seen = total.reshape(n + 1, n + 1) > 0
@@ -218,10 +242,16 @@ def _one_pass(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, scale: floa
     if kernels is not None:  # the kernel finds the boundary pixels itself
         kinds = (crease_kinds(labels, coeffs, backend=backend) if creases
                  else np.zeros((1, 1), np.int8))
-        return kernels.boundary_labels(c_array(z, np.float64), c_array(labels, np.int32),
-                                       c_array(coeffs, np.float64), scale, smoothness,
-                                       c_array(kinds, np.int8), CREASE_CLOSE * math.sqrt(scale),
-                                       creases)
+        z, labels = c_array(z, np.float64), c_array(labels, np.int32)
+        out = labels.copy()
+        coeffs, kinds = c_array(coeffs, np.float64), c_array(kinds, np.int8)
+
+        def band(first: int, stop: int, _lo: int, _hi: int) -> None:  # reads rows +-1
+            kernels.boundary_labels(z, labels, coeffs, scale, smoothness, kinds,
+                                    CREASE_CLOSE * math.sqrt(scale), creases, out, first, stop)
+
+        map_bands(band, labels.shape[0], labels.shape[1], 1)
+        return out
     boundary = _boundary(labels)
     rows, cols = np.nonzero(boundary)
     near = _neighbour_labels(labels, rows, cols)
