@@ -879,16 +879,21 @@ def footprint_fallback(config: Config) -> str:
     them the search uses ``holdsite.size`` in pixels, which on a real frame is
     seldom the cup (Sec. VII: the window is the gripper's footprint).
     """
-    hold, cam = config.holdsite, config.input
-    if not any(hold.footprint_mm) or footprint_in_mm(hold, cam):
+    hold = config.holdsite
+    lacking = _footprint_lacks(config.input)
+    if not any(hold.footprint_mm) or not lacking:
         return ""
-    lacking = [what for what, missing in (
-        ("camera intrinsics (--intrinsics or [input] intrinsics)", not cam.has_intrinsics),
-        ("metric depth ([input] metres_per_unit)", cam.metres_per_unit <= 0),
-        ("depth along the optical axis ([input] larger_is_closer = false)",
-         cam.larger_is_closer)) if missing]
     return (f"holdsite.footprint_mm = {list(hold.footprint_mm)} needs {' and '.join(lacking)}:"
             f" the footprint is holdsite.size, {hold.size[0]}x{hold.size[1]} px")
+
+
+def _footprint_lacks(camera: InputConfig) -> list[str]:
+    """What ``footprint_mm`` needs and ``camera`` lacks (none: it applies when set)."""
+    return [what for what, missing in (
+        ("camera intrinsics (--intrinsics or [input] intrinsics)", not camera.has_intrinsics),
+        ("metric depth ([input] metres_per_unit)", camera.metres_per_unit <= 0),
+        ("depth along the optical axis ([input] larger_is_closer = false)",
+         camera.larger_is_closer)) if missing]
 
 
 def carve_pickable(z: np.ndarray, labels: np.ndarray, pickable: np.ndarray,
@@ -1315,8 +1320,7 @@ AR_MARGIN = 2
 
 def footprint_in_mm(cfg: HoldsiteConfig, camera: InputConfig) -> bool:
     """Whether ``footprint_mm`` applies: set, with intrinsics and metric depth."""
-    return (any(cfg.footprint_mm) and camera.has_intrinsics and camera.metres_per_unit > 0
-            and not camera.larger_is_closer)
+    return any(cfg.footprint_mm) and not _footprint_lacks(camera)
 
 
 def footprint_pixels(cfg: HoldsiteConfig, camera: InputConfig, depth: float
