@@ -380,10 +380,12 @@ def bench_compile() -> dict[str, Any]:
 
 
 def _helper_done(cache: Path) -> None:
-    """Wait until no helper holds the lock of ``cache`` (``kernels.cache``'s lock file)."""
+    """Wait until no helper holds the lock of ``cache`` (``kernels.cache.LOCK_FILE``)."""
     import fcntl
 
-    lock = cache / "rangeseg-compile-ahead.lock"
+    from rangeseg_cli.kernels.cache import LOCK_FILE
+
+    lock = cache / LOCK_FILE
     if lock.exists():
         with open(lock) as handle:
             fcntl.flock(handle, fcntl.LOCK_EX)  # blocks while the helper compiles

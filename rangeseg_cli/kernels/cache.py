@@ -329,6 +329,10 @@ def compile_ahead(kernels: ModuleType, parent: int) -> None:
             lock.close()
 
 
+#: The helper's lock file in the cache folder: held while it compiles (:func:`compile_ahead`).
+LOCK_FILE = "rangeseg-compile-ahead.lock"
+
+
 def _lock() -> Any:
     """An exclusive lock (an open file) for the helper of this cache; False when held."""
     try:
@@ -338,7 +342,7 @@ def _lock() -> Any:
     folder = Path(os.environ.get("NUMBA_CACHE_DIR") or SOURCE.parent / "__pycache__")
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        handle = open(folder / "rangeseg-compile-ahead.lock", "w")  # noqa: SIM115
+        handle = open(folder / LOCK_FILE, "w")  # noqa: SIM115
     except OSError:
         return None
     try:
