@@ -48,6 +48,8 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, TypeVar
 
+import numpy as np
+
 from .cache import skip_helper
 
 T = TypeVar("T")
@@ -194,6 +196,21 @@ def map_bands(run: Callable[[int, int, int, int], None], height: int, width: int
     finally:
         for future in futures:
             future.result()
+
+
+def map_pixel_bands(run: Callable[[int, int, int, int], None], rows: np.ndarray, height: int,
+                    width: int, margin: int) -> None:
+    """:func:`map_bands` over pixels in raster order: ``run(i, j, first_read, stop_read)``.
+
+    ``rows`` (ascending) are the pixels' rows; each band with pixels gets
+    those of its own rows, ``i..j-1``, and reads the rows of its band.
+    """
+    def band(first: int, stop: int, lo: int, hi: int) -> None:
+        i, j = np.searchsorted(rows, (first, stop))
+        if j > i:
+            run(int(i), int(j), lo, hi)
+
+    map_bands(band, height, width, margin)
 
 
 def map_tasks(run: Callable[[T], R], items: Sequence[T], cost: Sequence[float] | None = None

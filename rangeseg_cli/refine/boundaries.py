@@ -58,7 +58,7 @@ from scipy import ndimage
 
 from ..config import Config
 from ..kernels.backend import Backend, select_deferred
-from ..kernels.parallel import map_bands
+from ..kernels.parallel import map_bands, map_pixel_bands
 from ..stages.grow import evaluate_quadric
 from ..stages.rangeimage import (
     HALF_NEIGHBOUR_PAIRS,
@@ -142,15 +142,13 @@ def _compiled_votes(kernels: ModuleType, padded: np.ndarray, rows: np.ndarray,
     """
     padded, rows, cols = c_array(padded, np.int32), c_array(rows, np.int64), c_array(cols, np.int64)
     own = own.astype(np.int64)
-    height = padded.shape[0] - 2 * reach
-    parts: dict[int, np.ndarray] = {}
+    parts = {-1: np.empty((0, 3), np.int64)}  # none when no pixel is near a boundary
 
-    def band(first: int, stop: int, _lo: int, _hi: int) -> None:
-        i, j = np.searchsorted(rows, (first, stop))
-        parts[first] = kernels.crease_votes(padded, rows[i:j], cols[i:j], own[i:j], mine[i:j],
-                                            coeffs, reach)
+    def band(i: int, j: int, _lo: int, _hi: int) -> None:
+        parts[i] = kernels.crease_votes(padded, rows[i:j], cols[i:j], own[i:j], mine[i:j],
+                                        coeffs, reach)
 
-    map_bands(band, height, padded.shape[1] - 2 * reach, 0)
+    map_pixel_bands(band, rows, padded.shape[0] - 2 * reach, padded.shape[1] - 2 * reach, 0)
     return np.concatenate([parts[k] for k in sorted(parts)]).T
 
 

@@ -76,7 +76,7 @@ from scipy import ndimage
 
 from ..config import Config, GrowConfig, SplitConfig
 from ..kernels.backend import Backend, select_deferred, select_kernels
-from ..kernels.parallel import map_bands, map_tasks, row_bands
+from ..kernels.parallel import map_pixel_bands, map_tasks, row_bands
 from ..stages.grow import (
     EIGHT_NEIGHBOURS,
     Fits,
@@ -709,7 +709,7 @@ def _compiled_heights(kernels: ModuleType, z: np.ndarray, mask: np.ndarray, w: n
     """:func:`rangeseg_cli.kernels.compiled.plane_heights_at` (``frame``: u0, v0, min_det) in bands.
 
     The pixels (in raster order) are divided by row among the bands of
-    :func:`~rangeseg_cli.kernels.parallel.map_bands`; each band's call sees its rows
+    :func:`~rangeseg_cli.kernels.parallel.map_pixel_bands`; each band's call sees its rows
     and the blur's reach either side, with its own row origin: the same
     heights bit for bit (as the local plane fits of :mod:`rangeseg_cli.refine.planes`).
     """
@@ -720,13 +720,11 @@ def _compiled_heights(kernels: ModuleType, z: np.ndarray, mask: np.ndarray, w: n
         return kernels.plane_heights_at(z, mask, w, u0, v0, min_det, rows, cols)
     out = np.empty(rows.size)
 
-    def band(first: int, stop: int, lo: int, hi: int) -> None:
-        i, j = np.searchsorted(rows, (first, stop))
-        if j > i:
-            out[i:j] = kernels.plane_heights_at(z[lo:hi], mask[lo:hi], w, u0, v0 + lo,
-                                                min_det, rows[i:j] - lo, cols[i:j])
+    def band(i: int, j: int, lo: int, hi: int) -> None:
+        out[i:j] = kernels.plane_heights_at(z[lo:hi], mask[lo:hi], w, u0, v0 + lo, min_det,
+                                            rows[i:j] - lo, cols[i:j])
 
-    map_bands(band, height, width, reach)
+    map_pixel_bands(band, rows, height, width, reach)
     return out
 
 
