@@ -54,7 +54,11 @@ Notes
    merged; a merged piece's own surface is its quadric. The strips of a
    curved surface come back together here.
 6. The cut is kept when two pieces or more are left and each one's plane
-   passes the fit test; otherwise the region is left as it was.
+   passes the fit test; otherwise the region is left as it was. Merging
+   cannot lower the planes' squared errors, so a region whose pieces'
+   planes leave more than the test allows over all its pixels is left
+   before the merge-back (:func:`beyond_planes`; on the SR300 frame of
+   ``sample_data/arc`` most regions the passes reach).
 
 New regions are numbered after the existing ones, in the order of the
 regions they are cut from; a cut region keeps its id for its first piece in
@@ -71,7 +75,7 @@ from scipy import ndimage
 from ..config import Config
 from ..kernels.backend import Backend, select_deferred
 from ..kernels.parallel import map_tasks
-from ..stages.grow import EIGHT_NEIGHBOURS, region_fits
+from ..stages.grow import EIGHT_NEIGHBOURS, RegionFits, region_fits
 from ..stages.rangeimage import chessboard_offsets, consecutive_labels, labels_on_valid
 from .graph import RegionGraph, merge_cheapest, region_graph
 from .recover import consensus_plane, fit_plane
@@ -277,7 +281,8 @@ def _parts(assign: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[
     return consecutive_labels(pieces)
 
 
-def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float) -> np.ndarray:
+def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float,
+               fitted: RegionFits | None = None) -> np.ndarray:
     """Merge touching pieces one quadric explains almost as well, least gain first (Notes 5).
 
     Parameters
@@ -288,15 +293,19 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float) -> np.ndarray:
         int (h, w) pieces 1..m, 0 = none; each piece's own surface is its plane.
     s2
         ``s^2``, the unit of the gain.
+    fitted
+        ``region_fits(z, pieces, m, (1,))`` when the caller has it (``pieces``
+        numbered 1..m then).
 
     Returns
     -------
     numpy.ndarray
         int32 (h, w) pieces renumbered 1..k in the order of their ids.
     """
-    pieces = consecutive_labels(pieces)
+    if fitted is None:
+        pieces = consecutive_labels(pieces)
+        fitted = region_fits(z, pieces, int(pieces.max(initial=0)), (1,))
     n = int(pieces.max(initial=0))
-    fitted = region_fits(z, pieces, n, (1,))
     graph = region_graph(z, pieces, n, fitted.fits[0][1], fitted)  # own surface: the plane
 
     def gain(g: RegionGraph, a: int, b: int) -> float:
@@ -308,6 +317,26 @@ def merge_back(z: np.ndarray, pieces: np.ndarray, s2: float) -> np.ndarray:
 
     merge_cheapest(graph, adjacent_pairs(pieces, 1), gain, union, limit=MIN_GAIN)
     return consecutive_labels(graph.labels)
+
+
+#: Relative margin of :func:`beyond_planes` over rounding in the squared errors.
+BOUND_MARGIN = 1e-6
+
+
+def beyond_planes(fitted: RegionFits, level: float) -> bool:
+    """Whether no merge of these pieces can leave pieces whose planes all pass (Notes 6).
+
+    The merge-back (Notes 5) only joins pieces, and the best plane of a
+    union leaves at least the squared errors of the pieces' own best planes
+    together. So when the pieces' planes (``fitted``: order 1) leave more
+    than ``level^2`` per pixel of them all, whatever is merged, some piece's
+    plane fails the fit test at the end: the cut is known to be dropped
+    before the merge-back's work.
+    """
+    (_, mse), = fitted.fits
+    counts = fitted.counts[1:].astype(np.float64)
+    total = float(counts.sum())
+    return total > 0 and float(mse[1:] @ counts) > level * level * total * (1.0 + BOUND_MARGIN)
 
 
 def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,
@@ -340,8 +369,11 @@ def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,
     assign = k_planes(z, rows, cols, planes, s2, mask.shape)
     if assign is None:
         return None
-    pieces = raster_renumber(merge_back(z, _parts(assign, rows, cols, mask.shape, min_piece),
-                                          s2))
+    parts = _parts(assign, rows, cols, mask.shape, min_piece)
+    fitted = region_fits(z, parts, int(parts.max(initial=0)), (1,))
+    if beyond_planes(fitted, level):
+        return None
+    pieces = raster_renumber(merge_back(z, parts, s2, fitted))
     k = int(pieces.max(initial=0))
     if k < 2:
         return None
