@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from conftest import passes_without
 from rangeseg_cli.config import load_config
 from rangeseg_cli.refine.facets import (
+    beyond_planes,
     cut_into_planes,
     disagreeing,
     facet_regions,
@@ -19,7 +20,7 @@ from rangeseg_cli.refine.facets import (
     neighbour_table,
 )
 from rangeseg_cli.refine.passes import Scene, refine_regions
-from rangeseg_cli.stages.grow import fit_quadrics
+from rangeseg_cli.stages.grow import fit_quadrics, region_fits
 from rangeseg_cli.synth.evaluate import hoover_compare
 
 CONFIG = load_config()
@@ -103,6 +104,44 @@ def test_a_region_with_one_plane_and_noise_is_not_cut():
     # even when asked directly, with a level the noise fails: no two planes of min_piece
     assert cut_into_planes(z, np.ones(z.shape, bool), level=0.5 * level, s2=4.0,
                            min_piece=CONFIG.split.min_piece) is None
+
+
+def plane_sse(z: np.ndarray, pieces: np.ndarray) -> np.ndarray:
+    """Sum of squared errors of each piece's best plane, (n+1,)."""
+    n = int(pieces.max())
+    fitted = region_fits(z, pieces, n, (1,))
+    return fitted.fits[0][1] * fitted.counts
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), parts=st.integers(2, 6), groups=st.integers(1, 3))
+def test_merging_pieces_never_lowers_their_planes_squared_error(seed, parts, groups):
+    # What beyond_planes rests on: a union's best plane leaves at least its pieces' own.
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:24, 0:24].astype(np.float64)
+    z = 0.01 * (x - 12) ** 2 + 0.3 * y + rng.normal(0.0, rng.uniform(0.1, 3.0), x.shape)
+    pieces = rng.integers(1, parts + 1, size=(4, 4)).repeat(6, 0).repeat(6, 1).astype(np.int32)
+    pieces = np.unique(pieces, return_inverse=True)[1].reshape(pieces.shape).astype(np.int32) + 1
+    merged = (rng.integers(0, groups, size=int(pieces.max()) + 1) + 1)[pieces].astype(np.int32)
+    merged = np.unique(merged, return_inverse=True)[1].reshape(merged.shape).astype(np.int32) + 1
+    assert plane_sse(z, merged).sum() >= plane_sse(z, pieces).sum() * (1.0 - 1e-9)
+
+
+def test_pieces_beyond_the_planes_bound_end_with_a_failing_piece_whatever_is_merged():
+    y, x = np.mgrid[0:32, 0:32].astype(np.float64)
+    z = 0.5 * x + np.random.default_rng(5).normal(0.0, 1.0, x.shape)  # one rough plane
+    pieces = (x >= 16).astype(np.int32) + 1
+    mse_pieces = region_fits(z, pieces, 2, (1,)).fits[0][1][1:]
+    mse_whole = region_fits(z, np.ones(z.shape, np.int32), 1, (1,)).fits[0][1][1]
+    level = 0.9  # below the noise: some piece fails the test however the two are merged
+    assert beyond_planes(region_fits(z, pieces, 2, (1,)), level)
+    assert max(mse_pieces) > level**2 and mse_whole > level**2
+    # the bound is the pixels' mean: one piece may pass while the cut is still doomed
+    smooth = np.where(pieces == 1, 0.5 * x, z)
+    fitted = region_fits(smooth, pieces, 2, (1,))
+    assert fitted.fits[0][1][1] < level**2 < fitted.fits[0][1][2]
+    assert beyond_planes(fitted, 0.6) and not beyond_planes(fitted, 0.8)
+    assert not beyond_planes(region_fits(z, pieces, 2, (1,)), 1.2)  # the noise passes
 
 
 def test_other_regions_keep_their_ids_and_new_pieces_come_after_them():
