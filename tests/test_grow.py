@@ -12,6 +12,7 @@ from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.stages.grow import (
     fit_quadrics,
     grow_regions,
+    region_fits,
     single_neighbour_label,
     single_neighbour_label_at,
 )
@@ -403,3 +404,21 @@ def test_the_single_neighbour_label_at_some_pixels_is_the_whole_images():
     whole = single_neighbour_label(labels)[rows, cols]
     assert (whole > 0).any() and (whole == 0).any()
     np.testing.assert_array_equal(single_neighbour_label_at(labels, rows, cols), whole)
+
+
+def test_a_region_fitted_alone_has_the_bits_of_a_fit_of_many_regions_at_once():
+    # One system is solved without the batch's gathers: the same LAPACK calls, the same
+    # bits, on every branch of the cascade (quadric, plane, pseudo-inverse, constant).
+    rng = np.random.default_rng(7)
+    z = rng.normal(0.0, 1.0, (30, 30)) + np.add.outer(np.arange(30.0), 0.5 * np.arange(30.0))
+    labels = np.zeros(z.shape, np.int32)
+    labels[2:12, 2:12] = 1            # a block: the quadric
+    labels[15, 2:14] = 2              # a line: the pseudo-inverse along it
+    labels[20, 20:22] = 3             # two pixels: below a plane's three
+    labels[25:27, 25:27] = 4          # four pixels: the plane, not the quadric
+    labels[20:28, 2:9] = 5
+    whole = region_fits(z, labels, 5, (2, 1, 0))
+    for k in range(1, 6):
+        alone = region_fits(z, np.where(labels == k, k, 0), 5, (2, 1, 0))
+        for (cw, ew), (ca, ea) in zip(whole.fits, alone.fits, strict=True):
+            assert cw[k].tobytes() == ca[k].tobytes() and ew[k] == ea[k]

@@ -228,6 +228,15 @@ def _solve_conditioned(mat: np.ndarray, rhs: np.ndarray, counts: np.ndarray, tod
     """
     if not todo.size:
         return todo
+    if todo.size == 1:  # one system (a crop's region, most calls): no gathers, same bits
+        t = int(todo[0])
+        if counts[t] < k:
+            return todo
+        eig = np.linalg.eigvalsh(mat[t, :k, :k])
+        if not eig[0] > RCOND * eig[-1]:
+            return todo
+        coef[t, :k] = np.linalg.solve(mat[t, :k, :k], rhs[t, :k, None])[:, 0]
+        return todo[:0]
     eig = np.linalg.eigvalsh(mat[todo, :k, :k])
     good = (counts[todo] >= k) & (eig[:, 0] > RCOND * eig[:, -1])
     ok = todo[good]
