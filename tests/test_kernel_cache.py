@@ -292,6 +292,7 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     from rangeseg_cli.config import Config
     from rangeseg_cli.kernels import compiled as _kernels
     from rangeseg_cli.refine import facets, recut, split
+    from rangeseg_cli.stages.grow import union_sse
 
     seen: dict[str, list] = {}
     for name, _ in kernel_cache.LATER:
@@ -311,5 +312,7 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     frame = split._Frame.of(halves > 0, Config().split, "numba")
     split._clean(halves, frame)
     split._reassign(z, halves, frame)
+    union_sse(z, halves, np.array([[1, 2]], np.int64), np.array([[0, 20, 0, 20]], np.int64),
+              backend="numba")
     assert {name: calls[0] for name, calls in seen.items()} == {
         name: tuple(normalize_signature(signature)[0]) for name, signature in kernel_cache.LATER}

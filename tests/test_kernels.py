@@ -22,7 +22,7 @@ from rangeseg_cli.kernels import backend as backend_module
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.stages import edges
 from rangeseg_cli.stages.edges import DIRECTIONS, absolute_residual, detect_edges, gaussian_taps
-from rangeseg_cli.stages.grow import grow_regions, region_fits
+from rangeseg_cli.stages.grow import grow_regions, region_fits, union_sse
 from rangeseg_cli.stages.surfaces import describe_surfaces, neighbour_pairs
 
 CFG = load_config()
@@ -737,3 +737,23 @@ def test_knot_sse_is_the_least_squares_error_at_every_knot(powers, backend):
         want = float(np.sum((zs - a @ coef) ** 2))
         assert got[k] == pytest.approx(want, rel=1e-6, abs=1e-6), k
     assert 1 <= int(np.argmin(got[1:])) <= len(knots) - 3  # the crease is found inside
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
+@pytest.mark.parametrize("seed", range(3))
+def test_each_pairs_union_sse_is_that_of_its_pixels_fitted_as_one_region(seed, backend):
+    # Pairs share regions and meet along rows (a run spans both); NaN pixels are left out.
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:60, 0:70].astype(np.float64)
+    z = 0.02 * (x - 30) ** 2 + 0.5 * y + rng.normal(0.0, 1.0, x.shape)
+    z[10:14, 20:30] = np.nan
+    labels = rng.integers(1, 7, size=(6, 7)).repeat(10, 0).repeat(10, 1).astype(np.int32)
+    pairs = np.array([(1, 2), (2, 3), (1, 3), (4, 6), (5, 6), (2, 5)], dtype=np.int64)
+    boxes = []
+    for i, j in pairs.tolist():
+        rows, cols = np.nonzero((labels == i) | (labels == j))
+        boxes.append((rows.min(), rows.max() + 1, cols.min(), cols.max() + 1))
+    got = union_sse(z, labels, pairs, np.array(boxes, dtype=np.int64), backend=backend)
+    for (i, j), union in zip(pairs.tolist(), got.tolist(), strict=True):
+        fitted = region_fits(z, ((labels == i) | (labels == j)).astype(np.int32), 1, (2,))
+        assert union == float(fitted.fits[0][1][1]) * int(fitted.counts[1])

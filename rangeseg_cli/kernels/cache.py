@@ -121,6 +121,7 @@ LATER: tuple[tuple[str, str], ...] = (
                     " int64[::1], int64[::1])"),
     ("reassign_parts", "(float64[:, ::1], int32[:, ::1], boolean[:, ::1], boolean[:, ::1],"
                        " int64, int64, int64, float64[::1], float64, int64[::1], int64[::1])"),
+    ("union_runs", "(float64[:, ::1], int32[:, ::1], int64[:, ::1], int64[:, ::1])"),
 )
 
 #: Set in the helper's environment: it compiles, it starts no helper.
@@ -143,7 +144,7 @@ def _cache_dirs() -> list[Path]:
 #: (:func:`ready`), so that the first run after installing does not wait for them.
 DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels",
                               "consensus_plane", "k_plane_passes", "best_knot", "clean_parts",
-                              "reassign_parts")
+                              "reassign_parts", "union_runs")
 
 _ready: set[str] = set()
 

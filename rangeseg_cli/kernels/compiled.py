@@ -661,6 +661,52 @@ def _put_flagged(flags: np.ndarray, out: np.ndarray, k: int) -> int:  # pragma: 
     return k
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def union_runs(z: np.ndarray, labels: np.ndarray, pairs: np.ndarray, boxes: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """:func:`fitted_runs` of regions i and j together, for each pair p = (i, j): label p + 1.
+
+    ``boxes[p]`` (first row, stop row, first column, stop column) holds both
+    regions. Per pair, the runs of the pixels of either region at finite
+    heights, in raster order: a run spans the two where they meet along a
+    row, as when the pair's pixels are one label. Pairs may share regions
+    (the runs overlap): :func:`run_moments` and :func:`run_sse` sum each
+    label's runs in their order, so each pair gets the sums of its own pixels
+    fitted alone, bit for bit. One sweep counts the runs, a second records them.
+    """
+    none = np.empty(0, dtype=np.int64)
+    count = _union_sweep(z, labels, pairs, boxes, (none, none, none, none), False)
+    runs = (np.empty(count, dtype=np.int64), np.empty(count, dtype=np.int64),
+            np.empty(count, dtype=np.int64), np.empty(count, dtype=np.int64))
+    _union_sweep(z, labels, pairs, boxes, runs, True)
+    return runs
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _union_sweep(z: np.ndarray, labels: np.ndarray, pairs: np.ndarray, boxes: np.ndarray,
+                 runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], write: bool
+                 ) -> int:  # pragma: no cover - compiled
+    """The runs of :func:`union_runs`, written to ``runs`` when ``write``; their number."""
+    rows, first, stop, labs = runs
+    k = 0
+    for p in range(pairs.shape[0]):
+        i, j = pairs[p, 0], pairs[p, 1]
+        for r in range(boxes[p, 0], boxes[p, 1]):
+            c, end = boxes[p, 2], boxes[p, 3]
+            while c < end:
+                a = c
+                while c < end and (labels[r, c] == i or labels[r, c] == j) \
+                        and np.isfinite(z[r, c]):
+                    c += 1
+                if c == a:
+                    c += 1
+                    continue
+                if write:
+                    rows[k], first[k], stop[k], labs[k] = r, a, c, p + 1
+                k += 1
+    return k
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _region_centres(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], n: int,
                     r0: int, c0: int

@@ -87,7 +87,7 @@ from scipy import ndimage
 from ..config import Config, GrowConfig
 from ..kernels.backend import Backend, select_deferred, select_kernels
 from ..kernels.parallel import map_tasks
-from ..stages.grow import fit_models, planar_regions, plane_angle
+from ..stages.grow import fit_models, planar_regions, plane_angle, union_sse
 from ..stages.rangeimage import consecutive_labels, labels_on_valid
 from .merge import touching_pairs
 from .regions import box_area, c_array, join_box
@@ -644,12 +644,16 @@ def candidates(z: np.ndarray, labels: np.ndarray, config: Config, level: float
            for k in np.nonzero(curved)[0].tolist() if sizes[k] >= 2 * config.link.min_component]
     coeffs = np.where(curved[:, None], quad, planes)
     boxes = ndimage.find_objects(labels)
-    for i, j in touching_pairs(labels, coeffs, _MAX_GAP * level):
-        if curved[i] or curved[j]:
-            box = join_box(boxes[i - 1], boxes[j - 1])
-            union = _quadric_sse(z, _pixels(labels[box], i, j), box)
-            out.append((i, j, union > level ** 2 * (sizes[i] + sizes[j]), union))
-    return out
+    pairs = [(i, j) for i, j in touching_pairs(labels, coeffs, _MAX_GAP * level)
+             if curved[i] or curved[j]]
+    if not pairs:
+        return out
+    spans = [join_box(boxes[i - 1], boxes[j - 1]) for i, j in pairs]
+    unions = union_sse(z, labels, np.array(pairs, dtype=np.int64),
+                       np.array([(r.start, r.stop, c.start, c.stop) for r, c in spans],
+                                dtype=np.int64))
+    return out + [(i, j, bool(union > level ** 2 * (sizes[i] + sizes[j])), float(union))
+                  for (i, j), union in zip(pairs, unions.tolist(), strict=True)]
 
 
 _Test = tuple[int, int, bool, float, Box]

@@ -51,7 +51,7 @@ import numpy as np
 from scipy import ndimage, special
 
 from ..config import GrowConfig
-from ..kernels.backend import Backend, select_kernels
+from ..kernels.backend import Backend, select_deferred, select_kernels
 from .rangeimage import require_shape_of_z
 
 #: Number of terms of the quadric, of the plane and of the constant model.
@@ -485,6 +485,61 @@ def fit_models(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ...
     """
     result = region_fits(z, labels, n, orders, backend=backend, origin=origin)
     return result.fits, result.counts
+
+
+def union_sse(z: np.ndarray, labels: np.ndarray, pairs: np.ndarray, boxes: np.ndarray, *,
+              backend: Backend = "auto") -> np.ndarray:
+    """Squared error of one quadric of regions i and j together, for each pair (Sec. V-4).
+
+    Beyond the paper: the recut (Sec. VIII's fit test on touching pairs)
+    asks it of every pair of touching regions at once. Each pair's sum is
+    the one :func:`region_fits` gives its pixels as one region (mean squared
+    error times pixels), bit for bit: the reference fits each pair in its
+    box; once compiled (:func:`~rangeseg_cli.kernels.backend.select_deferred`),
+    :func:`rangeseg_cli.kernels.compiled.union_runs` gives every pair's runs
+    at once, and one :func:`region_fits`-like sweep fits them all.
+
+    Parameters
+    ----------
+    z
+        float64 (H, W) heights; NaN pixels are left out.
+    labels
+        int32 (H, W) regions.
+    pairs
+        int64 (P, 2) the two regions of each pair.
+    boxes
+        int64 (P, 4) first row, stop row, first column, stop column of a box
+        holding both regions of the pair.
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` (the same values).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (P,).
+    """
+    kernels = select_deferred(backend, "union_runs")
+    if kernels is None:
+        return np.array([_union_sse(z, labels, i, j, box, backend) for (i, j), box
+                         in zip(pairs.tolist(), boxes.tolist(), strict=True)], dtype=np.float64)
+    zc = np.require(z, np.float64, ["C", "W"])
+    runs = kernels.union_runs(zc, np.require(labels, np.int32, ["C"]), pairs, boxes)
+    moments = RegionMoments(*kernels.run_moments(zc, runs, pairs.shape[0], 0, 0))
+    mat, rhs = _normal_equations(moments)
+    coef = _solve_cascade(mat, rhs, moments.counts, 2)[None]
+    sse = kernels.run_sse(zc, runs, moments.cx, moments.cy, moments.scale, coef, 0, 0)[0]
+    mse = sse / np.maximum(moments.counts, 1.0)
+    return (mse * moments.counts.astype(np.int64))[1:]
+
+
+def _union_sse(z: np.ndarray, labels: np.ndarray, i: int, j: int, box: list[int],
+               backend: Backend) -> float:
+    """:func:`union_sse` of one pair: its pixels in its box, fitted as one region."""
+    r0, r1, c0, c1 = box
+    sub = labels[r0:r1, c0:c1]
+    ((_, mse),), counts = fit_models(z[r0:r1, c0:c1], ((sub == i) | (sub == j)).astype(np.int32),
+                                     1, (2,), backend=backend, origin=(r0, c0))
+    return float(mse[1]) * int(counts[1])
 
 
 def fit_quadrics(z: np.ndarray, labels: np.ndarray, n: int, *, order: int = 2,
