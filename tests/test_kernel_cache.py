@@ -289,6 +289,7 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     from numba import typeof
     from numba.core.sigutils import normalize_signature
 
+    from rangeseg_cli.cell.workspace import plane_shares
     from rangeseg_cli.config import Config
     from rangeseg_cli.kernels import compiled as _kernels
     from rangeseg_cli.refine import facets, recut, split
@@ -314,5 +315,6 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     split._reassign(z, halves, frame)
     union_sse(z, halves, np.array([[1, 2]], np.int64), np.array([[0, 20, 0, 20]], np.int64),
               backend="numba")
+    plane_shares(np.ones((3, 2)), np.zeros(2), 1.0, backend="numba")
     assert {name: calls[0] for name, calls in seen.items()} == {
         name: tuple(normalize_signature(signature)[0]) for name, signature in kernel_cache.LATER}

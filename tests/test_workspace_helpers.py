@@ -117,21 +117,23 @@ def test_hull_extent_of_level_and_nearly_level_edges_and_of_no_hull():
     assert hull_extent(None, shape).all()
 
 
-def test_plane_shares_are_the_means_of_the_two_tests():
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_plane_shares_are_the_means_of_the_two_tests(backend):
     rng = np.random.default_rng(3)
     products = rng.normal(0.0, 3.0, (1000, 17))
     offsets = rng.normal(0.0, 1.0, 17)
     products[5, 2], products[6, 3] = -2.0 - offsets[2], 2.0 - offsets[3]  # at the limits
     dist = products + offsets
-    on, below = plane_shares(products, offsets, 2.0)
+    on, below = plane_shares(products, offsets, 2.0, backend=backend)
     assert on.tobytes() == (np.abs(dist) <= 2.0).mean(axis=0).tobytes()
     assert below.tobytes() == (dist < -2.0).mean(axis=0).tobytes()
 
 
-def test_plane_shares_of_points_on_in_front_and_behind():
-    products = np.array([[0.0], [0.5], [-3.0], [3.0]])
-    on, below = plane_shares(products, np.array([0.0]), 1.0)
-    assert on.tolist() == [0.5] and below.tolist() == [0.25]
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_plane_shares_of_points_on_in_front_and_behind(backend):
+    products = np.array([[0.0], [0.5], [-3.0], [3.0], [1.0], [-1.0], [-1.0000001]])
+    on, below = plane_shares(products, np.array([0.0]), 1.0, backend=backend)
+    assert on.tolist() == [4 / 7] and below.tolist() == [2 / 7]
 
 
 def test_median9_by_row_blocks_of_a_tall_image_equals_the_direct_median():

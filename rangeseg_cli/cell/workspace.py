@@ -52,6 +52,7 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull
 
 from ..config import Config, InputConfig, WorkspaceConfig
+from ..kernels.backend import Backend, select_deferred
 
 #: Points of the consensus sample.
 SAMPLE = 20000
@@ -240,8 +241,8 @@ def find_support(z: np.ndarray, camera: InputConfig, tol: float, *, seed: int = 
 VOTE_ROWS = 256
 
 
-def plane_shares(products: np.ndarray, offsets: np.ndarray, tol: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def plane_shares(products: np.ndarray, offsets: np.ndarray, tol: float, *,
+                 backend: Backend = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Shares of the points within ``tol`` of each plane and behind it by more than ``tol``.
 
     Parameters
@@ -252,6 +253,8 @@ def plane_shares(products: np.ndarray, offsets: np.ndarray, tol: float
         float64 (planes,): the planes' offsets (distances ``n . p + e``).
     tol
         Tolerance (depth units).
+    backend
+        ``"auto"``, ``"numba"`` or ``"numpy"`` (the same values).
 
     Returns
     -------
@@ -259,9 +262,16 @@ def plane_shares(products: np.ndarray, offsets: np.ndarray, tol: float
         float64 (planes,): ``mean(|d| <= tol)`` and ``mean(d < -tol)`` over the
         points (the same bits: counts over the count). Counted
         :data:`VOTE_ROWS` points at a time, ``|d| <= tol`` as ``d <= tol``
-        less ``d < -tol``.
+        less ``d < -tol``; once compiled
+        (:func:`~rangeseg_cli.kernels.backend.select_deferred`), by
+        :func:`rangeseg_cli.kernels.compiled.plane_counts` (the same counts).
     """
     count, planes = products.shape
+    kernels = select_deferred(backend, "plane_counts")
+    if kernels is not None:
+        upto, behind = kernels.plane_counts(np.require(products, np.float64, ["C"]),
+                                            np.require(offsets, np.float64, ["C"]), float(tol))
+        return (upto - behind) / count, behind / count
     upto = np.zeros(planes, dtype=np.int64)
     behind = np.zeros(planes, dtype=np.int64)
     dist = np.empty((min(VOTE_ROWS, count), planes))

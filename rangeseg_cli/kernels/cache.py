@@ -122,6 +122,7 @@ LATER: tuple[tuple[str, str], ...] = (
     ("reassign_parts", "(float64[:, ::1], int32[:, ::1], boolean[:, ::1], boolean[:, ::1],"
                        " int64, int64, int64, float64[::1], float64, int64[::1], int64[::1])"),
     ("union_runs", "(float64[:, ::1], int32[:, ::1], int64[:, ::1], int64[:, ::1])"),
+    ("plane_counts", "(float64[:, ::1], float64[::1], float64)"),
 )
 
 #: Set in the helper's environment: it compiles, it starts no helper.
@@ -144,7 +145,7 @@ def _cache_dirs() -> list[Path]:
 #: (:func:`ready`), so that the first run after installing does not wait for them.
 DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels",
                               "consensus_plane", "k_plane_passes", "best_knot", "clean_parts",
-                              "reassign_parts", "union_runs")
+                              "reassign_parts", "union_runs", "plane_counts")
 
 _ready: set[str] = set()
 
