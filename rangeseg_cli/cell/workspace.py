@@ -762,12 +762,3 @@ def _feet(pts: np.ndarray, height: np.ndarray, plane: Plane, camera: InputConfig
         col = camera.fx * foot[..., 0] / foot[..., 2] + camera.cx
         row = camera.fy * foot[..., 1] / foot[..., 2] + camera.cy
     return row, col
-
-
-def top_height(height: np.ndarray | None, mask: np.ndarray) -> float:
-    """95th percentile of ``height`` over ``mask`` (NaN when unknown)."""
-    if height is None:
-        return math.nan
-    values = height[mask]
-    values = values[np.isfinite(values)]
-    return float(np.percentile(values, 95)) if values.size else math.nan

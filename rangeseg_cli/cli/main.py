@@ -20,7 +20,6 @@ import click
 from .. import __version__
 
 log = logging.getLogger("rangeseg")
-STAGE_NAMES = ("edges", "link", "grow", "holdsite")
 PRESET_NAMES = ("paper", "mm-depth", "tenth-mm-depth", "metre-depth")
 #: rangeseg_cli.batch.runner.EXECUTORS (not imported: a fast --help).
 EXECUTOR_NAMES = ("local", "dask")
