@@ -316,5 +316,7 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     union_sse(z, halves, np.array([[1, 2]], np.int64), np.array([[0, 20, 0, 20]], np.int64),
               backend="numba")
     plane_shares(np.ones((3, 2)), np.zeros(2), 1.0, backend="numba")
+    recut.knot_sse(rows, cols, z[rows, cols], np.array([0.0, 1.0]), np.array([5.0, 9.0]),
+                   recut.CREASE, backend="numba")
     assert {name: calls[0] for name, calls in seen.items()} == {
         name: tuple(normalize_signature(signature)[0]) for name, signature in kernel_cache.LATER}

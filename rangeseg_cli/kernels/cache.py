@@ -97,8 +97,6 @@ FIRST_RUN: tuple[tuple[str, str], ...] = (
                         " float64[:, ::1], float64[::1], int64[::1])"),
     ("neighbour_pairs", "(int32[:, ::1], int64)"),
     ("fill_passes", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64[::1])"),
-    ("knot_sse", "(float64[::1], float64[::1], float64[::1], float64[::1], float64[::1],"
-                 " int64[::1], float64)"),
     ("crease_votes", "(int32[:, ::1], int64[::1], int64[::1], int64[::1], float64[::1],"
                      " float64[:, ::1], int64)"),
     ("boundary_labels", "(float64[:, ::1], int32[:, ::1], float64[:, ::1], float64, float64,"
@@ -123,6 +121,8 @@ LATER: tuple[tuple[str, str], ...] = (
                        " int64, int64, int64, float64[::1], float64, int64[::1], int64[::1])"),
     ("union_runs", "(float64[:, ::1], int32[:, ::1], int64[:, ::1], int64[:, ::1])"),
     ("plane_counts", "(float64[:, ::1], float64[::1], float64)"),
+    ("knot_sse", "(float64[::1], float64[::1], float64[::1], float64[::1], float64[::1],"
+                 " int64[::1], float64)"),
 )
 
 #: Set in the helper's environment: it compiles, it starts no helper.
@@ -145,7 +145,7 @@ def _cache_dirs() -> list[Path]:
 #: (:func:`ready`), so that the first run after installing does not wait for them.
 DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels",
                               "consensus_plane", "k_plane_passes", "best_knot", "clean_parts",
-                              "reassign_parts", "union_runs", "plane_counts")
+                              "reassign_parts", "union_runs", "plane_counts", "knot_sse")
 
 _ready: set[str] = set()
 

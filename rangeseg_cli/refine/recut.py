@@ -85,7 +85,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..config import Config, GrowConfig
-from ..kernels.backend import Backend, select_deferred, select_kernels
+from ..kernels.backend import Backend, select_deferred
 from ..kernels.parallel import map_tasks
 from ..stages.grow import fit_models, planar_regions, plane_angle, union_sse
 from ..stages.rangeimage import consecutive_labels, labels_on_valid
@@ -231,7 +231,8 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
         (one or two of 1, 2, 3).
     backend
         ``"numba"`` (:func:`rangeseg_cli.kernels.compiled.knot_sse`), ``"numpy"``
-        (the reference) or ``"auto"``: the same values either way.
+        (the reference) or ``"auto"`` (the kernel once compiled:
+        :func:`~rangeseg_cli.kernels.backend.select_deferred`): the same values.
 
     Returns
     -------
@@ -254,7 +255,7 @@ def knot_sse(rows: np.ndarray, cols: np.ndarray, zs: np.ndarray, d: np.ndarray,
     z = np.ascontiguousarray(zs, dtype=np.float64)
     args = (u, x, y, z, np.ascontiguousarray(knots, dtype=np.float64),
             np.asarray(powers, dtype=np.int64))
-    kernels = select_kernels(backend)
+    kernels = select_deferred(backend, "knot_sse")
     if kernels is not None:
         return np.asarray(kernels.knot_sse(*args, _PIVOT_TOL))
     gram, rhs = _knot_normal_equations(*args)
