@@ -30,8 +30,9 @@ by measuring each:
    are the same bytes, and warm runs as fast.
 2. Compiling in two processes (14.9 s to 8.3 s): on a cold cache, the
    first kernel compiled starts one helper process (:func:`compile_ahead`)
-   that compiles :data:`FIRST_RUN` from its end while the run compiles from
-   its start; each loads from the cache what the other has compiled. It
+   that compiles :data:`FIRST_RUN` from its end (:func:`ahead_order`) while
+   the run compiles from its start; each loads from the cache what the
+   other has compiled. It
    stops when done or, after the kernel it is compiling, when the process
    that started it has ended (``RANGESEG_COMPILE_AHEAD=0``: no helper).
 3. Kernels that only speed up a step whose numpy reference gives the same
@@ -297,12 +298,19 @@ def _end_helper() -> None:
 
 
 def ahead_order() -> list[tuple[str, str]]:
-    """The helper's order: :data:`FIRST_RUN` last first, then :data:`LATER`.
+    """The helper's order: :data:`FIRST_RUN` last first (:data:`DEFERRED` after), :data:`LATER`.
 
-    The run compiles from the first on, and the two meet. Kernels already
-    in the cache (:func:`cached`) are left out.
+    The run compiles from the first on, and the two meet. The run does
+    without a kernel of :data:`DEFERRED` until it is ready, so the helper
+    first compiles what the run would wait for: a cold first run of a
+    128x128 image ends about 2 s sooner than with FIRST_RUN's own order,
+    which had the helper spend 5 s (the consensus, 4 s) on kernels the run
+    could not use in time. Kernels already in the cache (:func:`cached`)
+    are left out.
     """
-    return [k for k in (*reversed(FIRST_RUN), *LATER) if not cached(k[0])]
+    now = [k for k in reversed(FIRST_RUN) if k[0] not in DEFERRED]
+    later = [k for k in FIRST_RUN if k[0] in DEFERRED]
+    return [k for k in (*now, *later, *LATER) if not cached(k[0])]
 
 
 def compile_ahead(kernels: ModuleType, parent: int) -> None:
