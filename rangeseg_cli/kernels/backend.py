@@ -62,15 +62,16 @@ def select_kernels(backend: str) -> ModuleType | None:
     return kernels
 
 
-def select_deferred(backend: str, name: str) -> ModuleType | None:
-    """:func:`select_kernels` for ``name``, a kernel of :data:`~.cache.DEFERRED`.
+def select_deferred(backend: str, *names: str) -> ModuleType | None:
+    """:func:`select_kernels` for ``names``, kernels of :data:`~.cache.DEFERRED`.
 
-    Under ``"auto"`` None until the kernel is compiled or cached in this
+    Under ``"auto"`` None until each kernel is compiled or cached in this
     process's reach (:func:`~.cache.ready`): until then the caller takes its
     numpy reference (the same results), and the first run after installing
-    does not wait for the kernel to compile.
+    does not wait for the kernels to compile.
     """
     kernels = select_kernels(backend)
-    if kernels is None or (backend == "auto" and not ready(kernels, name)):
+    if kernels is None or (backend == "auto"
+                           and not all([ready(kernels, name) for name in names])):
         return None
     return kernels

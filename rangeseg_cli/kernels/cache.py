@@ -13,9 +13,9 @@ Notes
 The first run: ``rangeseg run`` of a 128x128 image with the defaults, on two
 idle cores, cache empty (``benchmarks/first_run.py``, medians of 3). It took
 29.3 s, nearly all of it compiling 88 signatures of 79 kernels (and about 90
-of numba's own functions); it takes 8.3-9.7 s now (14.9-16.5 s in one
-process; the machine's speed varies between days), by three means, chosen
-by measuring each:
+of numba's own functions); it takes about 6 s now (16 s in one process
+without the deferred kernels' references; the machine's speed varies
+between days), by three means, chosen by measuring each:
 
 1. Less to compile: 30 kernels of one signature each (29.3 s to 14.9 s).
    A literal ``0`` or ``1`` passed to another kernel, or a read-only array,
@@ -32,13 +32,17 @@ by measuring each:
    first kernel compiled starts one helper process (:func:`compile_ahead`)
    that compiles :data:`FIRST_RUN` from its end (:func:`ahead_order`) while
    the run compiles from its start; each loads from the cache what the
-   other has compiled. It
-   stops when done or, after the kernel it is compiling, when the process
-   that started it has ended (``RANGESEG_COMPILE_AHEAD=0``: no helper).
+   other has compiled. It stops when done or, after the kernel it is
+   compiling, when the process that started it has ended
+   (``RANGESEG_COMPILE_AHEAD=0``: no helper).
 3. Kernels that only speed up a step whose numpy reference gives the same
    bits (:data:`DEFERRED`) run once compiled or cached (:func:`ready`): the
-   first run takes the reference while the helper compiles them (with
-   them compiled in the run: 10.1-10.5 s against 9.5 s).
+   first run takes the reference while the helper compiles them, after
+   the kernels the run waits for. Among them the edges' and the noise
+   estimate's (5.4 s of compiling; their references take 8 ms more on a
+   128x128 image, 170 ms more on 640x480, until they are compiled): a cold
+   first run of a 128x128 image went from 10.9 s to 6.3 s on a machine
+   where it once took 9.2 s.
 
 Measured and not taken: numba's options (``error_model="python"``,
 reference counts everywhere, no ``nogil``, no inlining: each within 1 s of
@@ -68,7 +72,7 @@ SOURCE = Path(__file__).with_name("compiled.py")
 
 #: What the command line prints on stderr when the cache is cold.
 MESSAGE = ("rangeseg: compiling the numba kernels (first run after installing only, "
-           "about 10 s; later runs load them in under a second)...")
+           "a few seconds; later runs load them in under a second)...")
 
 #: The kernels a default run calls from Python, with the argument types its call
 #: sites give them, in the order of first call (``heights``, whose type follows
@@ -144,7 +148,8 @@ def _cache_dirs() -> list[Path]:
 #: Kernels that only speed up a step whose numpy reference gives the same bits: a run
 #: whose cache lacks them takes the reference and leaves their compiling to the helper
 #: (:func:`ready`), so that the first run after installing does not wait for them.
-DEFERRED: tuple[str, ...] = ("crease_votes", "neighbour_accepts", "boundary_labels",
+DEFERRED: tuple[str, ...] = ("noise_residuals", "smallest_keys", "edges_pass", "roof_passes",
+                              "crease_votes", "neighbour_accepts", "boundary_labels",
                               "consensus_plane", "k_plane_passes", "best_knot", "clean_parts",
                               "reassign_parts", "union_runs", "plane_counts", "knot_sse")
 

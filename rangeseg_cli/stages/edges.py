@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config, RoofConfig, StepConfig
-from ..kernels.backend import Backend, select_kernels
+from ..kernels.backend import Backend, select_deferred, select_kernels
 
 #: The four search directions of Fig. 8, as (row step, column step).
 DIRECTIONS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (1, 1), (1, -1))
@@ -276,7 +276,7 @@ def detect_edges(z: np.ndarray, config: Config, *, backend: Backend = "auto") ->
     ImportError
         For ``backend="numba"`` without numba installed.
     """
-    kernels = select_kernels(backend)
+    kernels = select_deferred(backend, "edges_pass", "roof_passes")
     if kernels is not None:
         step, roof_a, roof_b = kernels.detect_edges_numba(
             z, gaussian_taps(config.step.sigma, config.step.taps), config.step.threshold,
@@ -362,7 +362,7 @@ def small_filter_residuals(z: np.ndarray, weights: np.ndarray, max_samples: int,
         float64 1-D |AR| values.
     """
     z = np.asarray(z, dtype=np.float64)
-    kernels = select_kernels(backend)
+    kernels = select_deferred(backend, "noise_residuals")
     if kernels is not None:
         return kernels.noise_residuals(np.require(z, np.float64, ["C"]),
                                        np.ascontiguousarray(weights, dtype=np.float64),

@@ -75,7 +75,7 @@ import numpy as np
 from scipy import special
 
 from ..config import Config, InputConfig
-from ..kernels.backend import Backend, select_kernels
+from ..kernels.backend import Backend, select_deferred
 from .edges import gaussian_taps, small_filter_residuals
 
 #: Depth units per pixel of lateral size assumed for the paper's 8-bit ERIM
@@ -157,7 +157,7 @@ def estimate_noise(z: np.ndarray, *, backend: Backend = "auto") -> float:
     k = int(_NOISE_FRACTION * ar.size)
     if k < 10:
         return 0.0
-    kernels = select_kernels(backend)
+    kernels = select_deferred(backend, "smallest_keys")
     low = _smallest_sorted(ar, k) if kernels is None else kernels.smallest_sorted(ar, k)
     moment = float(np.mean(low * low))
     return math.sqrt(moment / (_truncated_second_moment(_NOISE_FRACTION) * _ar_gain(weights)))
