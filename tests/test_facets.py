@@ -144,6 +144,30 @@ def test_pieces_beyond_the_planes_bound_end_with_a_failing_piece_whatever_is_mer
     assert not beyond_planes(region_fits(z, pieces, 2, (1,)), 1.2)  # the noise passes
 
 
+@pytest.mark.parametrize("case", ["corner", "cylinder", "sphere", "rough"])
+@pytest.mark.parametrize("noise", [0.0, 1.0, 2.0])
+def test_the_planes_bound_only_drops_cuts_that_would_be_dropped_anyway(case, noise,
+                                                                       monkeypatch):
+    if case == "corner":
+        z, truth = corner(noise, 1, slope=2.5, width=7)
+        mask = np.ones(z.shape, bool)
+    elif case == "rough":
+        y, x = np.mgrid[0:40, 0:40].astype(np.float64)
+        z = 0.3 * x + np.random.default_rng(4).normal(0.0, 1.0 + noise, x.shape)
+        mask = np.ones(z.shape, bool)
+    else:
+        z, mask = curved(case, noise, 3)
+    s2 = max(noise * noise, CONFIG.grow.min_error)
+    args = {"level": CONFIG.split.fit_factor * math.sqrt(s2), "s2": s2,
+            "min_piece": CONFIG.split.min_piece}
+    with_bound = cut_into_planes(z, mask, **args)
+    monkeypatch.setattr("rangeseg_cli.refine.facets.beyond_planes", lambda *_: False)
+    without = cut_into_planes(z, mask, **args)
+    assert (with_bound is None) == (without is None)
+    if without is not None:
+        np.testing.assert_array_equal(with_bound, without)
+
+
 def test_other_regions_keep_their_ids_and_new_pieces_come_after_them():
     z, truth = corner(0.0, 0)
     labels = np.where(truth == 1, 2, 1).astype(np.int32)  # region 1 holds both sides

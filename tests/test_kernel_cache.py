@@ -298,6 +298,9 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
     from rangeseg_cli.refine import facets, recut, split
     from rangeseg_cli.stages.grow import union_sse
 
+    # best_knot calls knot_sse inside compiled code: compiled before knot_sse is wrapped
+    recut.best_knot(np.arange(9), np.arange(9), np.arange(9.0), np.array([0.0, 1.0]),
+                    recut.CREASE, backend="numba")
     seen: dict[str, list] = {}
     for name, _ in kernel_cache.LATER:
         real = getattr(_kernels, name)
@@ -323,3 +326,35 @@ def test_the_later_kernels_signatures_are_those_their_callers_give(monkeypatch):
                    recut.CREASE, backend="numba")
     assert {name: calls[0] for name, calls in seen.items()} == {
         name: tuple(normalize_signature(signature)[0]) for name, signature in kernel_cache.LATER}
+
+
+def test_deferred_kernels_are_selected_only_when_each_of_them_is_ready(monkeypatch):
+    from rangeseg_cli.kernels import backend
+
+    ready = {"edges_pass"}
+    monkeypatch.setattr(backend, "ready", lambda kernels, name: name in ready)
+    assert backend.select_deferred("auto", "edges_pass") is not None
+    assert backend.select_deferred("auto", "edges_pass", "roof_passes") is None
+    assert backend.select_deferred("numba", "edges_pass", "roof_passes") is not None
+    ready.add("roof_passes")
+    assert backend.select_deferred("auto", "edges_pass", "roof_passes") is not None
+
+
+def test_without_a_helper_a_deferred_kernel_compiles_in_the_run(monkeypatch):
+    class Dispatcher:  # nothing compiled in this process
+        overloads: dict = {}
+
+    kernels = type("Kernels", (), {name: Dispatcher() for name in kernel_cache.DEFERRED})
+    monkeypatch.setattr(kernel_cache, "_ready", set())
+    monkeypatch.setattr(kernel_cache, "cached", lambda name: False)
+    monkeypatch.setattr(kernel_cache, "_start_helper", lambda: None)
+    monkeypatch.delenv("RANGESEG_COMPILE_AHEAD", raising=False)
+    monkeypatch.delenv("RANGESEG_COMPILING_AHEAD", raising=False)
+    name = kernel_cache.DEFERRED[0]
+    monkeypatch.setattr(kernel_cache, "_looked", {})
+    assert not kernel_cache.ready(kernels, name)  # a helper will compile it
+    monkeypatch.setenv("RANGESEG_COMPILE_AHEAD", "0")
+    assert kernel_cache.ready(kernels, name)  # no helper: the run compiles it
+    monkeypatch.delenv("RANGESEG_COMPILE_AHEAD")
+    monkeypatch.setattr(kernel_cache, "_no_helper", True)  # the helper could not start
+    assert kernel_cache.ready(kernels, name)

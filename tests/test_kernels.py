@@ -757,3 +757,16 @@ def test_each_pairs_union_sse_is_that_of_its_pixels_fitted_as_one_region(seed, b
     for (i, j), union in zip(pairs.tolist(), got.tolist(), strict=True):
         fitted = region_fits(z, ((labels == i) | (labels == j)).astype(np.int32), 1, (2,))
         assert union == float(fitted.fits[0][1][1]) * int(fitted.counts[1])
+
+
+def test_a_union_sse_box_outside_the_image_is_refused():
+    labels = np.ones((10, 12), np.int32)
+    labels[:, 6:] = 2
+    z = np.zeros(labels.shape)
+    pairs = np.array([[1, 2]])
+    for box in ([0, 11, 0, 12], [-1, 10, 0, 12], [0, 10, 3, 2]):
+        with pytest.raises(ValueError, match="is not within the image 10x12"):
+            union_sse(z, labels, pairs, np.array([box]))
+    with pytest.raises(ValueError, match=r"must be \(P, 2\) and \(P, 4\)"):
+        union_sse(z, labels, pairs, np.array([[0, 10, 0]]))
+    assert union_sse(z, labels, pairs, np.array([[0, 10, 0, 12]])).tolist() == [0.0]

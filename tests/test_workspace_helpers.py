@@ -4,6 +4,7 @@ Constructed inputs with known answers; each fast helper is checked against
 the direct computation it stands for.
 """
 
+import importlib.util
 import warnings
 
 import numpy as np
@@ -22,6 +23,8 @@ from rangeseg_cli.cell.workspace import (
     support_hull,
 )
 
+requires_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
+                                    reason="numba is not installed")
 
 def windows(z):
     """(H, W, 9) 3x3 neighbourhoods of ``z`` padded with NaN."""
@@ -117,7 +120,7 @@ def test_hull_extent_of_level_and_nearly_level_edges_and_of_no_hull():
     assert hull_extent(None, shape).all()
 
 
-@pytest.mark.parametrize("backend", ["numpy", "numba"])
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
 def test_plane_shares_are_the_means_of_the_two_tests(backend):
     rng = np.random.default_rng(3)
     products = rng.normal(0.0, 3.0, (1000, 17))
@@ -129,7 +132,7 @@ def test_plane_shares_are_the_means_of_the_two_tests(backend):
     assert below.tobytes() == (dist < -2.0).mean(axis=0).tobytes()
 
 
-@pytest.mark.parametrize("backend", ["numpy", "numba"])
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=requires_numba)])
 def test_plane_shares_of_points_on_in_front_and_behind(backend):
     products = np.array([[0.0], [0.5], [-3.0], [3.0], [1.0], [-1.0], [-1.0000001]])
     on, below = plane_shares(products, np.array([0.0]), 1.0, backend=backend)

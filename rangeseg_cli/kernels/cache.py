@@ -13,9 +13,9 @@ Notes
 The first run: ``rangeseg run`` of a 128x128 image with the defaults, on two
 idle cores, cache empty (``benchmarks/first_run.py``, medians of 3). It took
 29.3 s, nearly all of it compiling 88 signatures of 79 kernels (and about 90
-of numba's own functions); it takes about 6 s now (16 s in one process
-without the deferred kernels' references; the machine's speed varies
-between days), by three means, chosen by measuring each:
+of numba's own functions); it takes about 6 s now (about 16 s in one
+process, without the helper; the machine's speed varies between days), by
+three means, chosen by measuring each:
 
 1. Less to compile: 30 kernels of one signature each (29.3 s to 14.9 s).
    A literal ``0`` or ``1`` passed to another kernel, or a read-only array,
@@ -134,6 +134,7 @@ LATER: tuple[tuple[str, str], ...] = (
 _HELPER = "RANGESEG_COMPILING_AHEAD"
 
 _helper: subprocess.Popen[bytes] | None = None
+_no_helper = False  # the helper could not be started: the kernels compile here
 _asked = False  # whether this process has started (or tried to start) the helper
 _asking = threading.Lock()
 
@@ -168,9 +169,11 @@ def ready(kernels: ModuleType, name: str) -> bool:
     True once this process has it compiled or loaded, or when the cache holds
     it (an index file ``compiled.<name>-*.nbi`` no older than the source);
     the callers take the numpy reference otherwise (the same results), and
-    the helper is started to compile it (once per process).
+    the helper is started to compile it (once per process). Where no helper
+    can compile it (``RANGESEG_COMPILE_AHEAD=0``, a frozen app, no process
+    to spare), always True: the kernel compiles in this process.
     """
-    if name in _ready:
+    if name in _ready or _no_helper or not _helper_allowed():
         return True
     found = bool(getattr(getattr(kernels, name), "overloads", None))
     if not found and name in _looked and time.monotonic() - _looked[name] < RECHECK_S:
@@ -278,7 +281,7 @@ def skip_helper() -> None:
 
 def _start_helper() -> None:
     """The helper process of :func:`compile_ahead` (kept, and ended at exit)."""
-    global _helper
+    global _helper, _no_helper
     code = ("from rangeseg_cli.kernels.backend import select_kernels\n"
             "from rangeseg_cli.kernels.cache import compile_ahead\n"
             f"compile_ahead(select_kernels('numba'), {os.getpid()})")
@@ -287,6 +290,7 @@ def _start_helper() -> None:
                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                    env={**os.environ, _HELPER: "1"})
     except OSError:  # no process to spare: the run compiles alone
+        _no_helper = True
         return
     atexit.register(_end_helper)
 

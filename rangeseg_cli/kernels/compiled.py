@@ -2309,6 +2309,27 @@ def link_codes(codes: np.ndarray, valid: np.ndarray
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def plane_counts(products: np.ndarray, offsets: np.ndarray, tol: float
+                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Per plane, the points with ``d <= tol`` and with ``d < -tol``, ``d = n . p + e``.
+
+    ``cell.workspace.plane_shares``' counts: each distance is the same sum
+    (``products[i, j] + offsets[j]``), so the same counts; point by point,
+    the planes in a vectorised loop.
+    """
+    planes = offsets.shape[0]
+    upto = np.zeros(planes, dtype=np.int64)
+    behind = np.zeros(planes, dtype=np.int64)
+    for i in range(products.shape[0]):
+        row = products[i]
+        for j in range(planes):
+            d = row[j] + offsets[j]
+            upto[j] += d <= tol
+            behind[j] += d < -tol
+    return upto, behind
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def ar_2d(z: np.ndarray, w: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """2-D AR of Sec. VII as ``edges.ar_2d`` computes it: bitwise the same values.
 
@@ -3301,28 +3322,3 @@ def neighbour_accepts(z: np.ndarray, labels: np.ndarray, coeffs: np.ndarray, lim
 
 
 compile_ahead_when_cold()
-
-
-# --------------------------------------------------------------------------- Sec. VII
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def plane_counts(products: np.ndarray, offsets: np.ndarray, tol: float
-                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Per plane, the points with ``d <= tol`` and with ``d < -tol``, ``d = n . p + e``.
-
-    ``cell.workspace.plane_shares``' counts: each distance is the same sum
-    (``products[i, j] + offsets[j]``), so the same counts; point by point,
-    the planes in a vectorised loop.
-    """
-    planes = offsets.shape[0]
-    upto = np.zeros(planes, dtype=np.int64)
-    behind = np.zeros(planes, dtype=np.int64)
-    for i in range(products.shape[0]):
-        row = products[i]
-        for j in range(planes):
-            d = row[j] + offsets[j]
-            upto[j] += d <= tol
-            behind[j] += d < -tol
-    return upto, behind
-

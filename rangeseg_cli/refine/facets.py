@@ -328,15 +328,29 @@ def beyond_planes(fitted: RegionFits, level: float) -> bool:
 
     The merge-back (Notes 5) only joins pieces, and the best plane of a
     union leaves at least the squared errors of the pieces' own best planes
-    together. So when the pieces' planes (``fitted``: order 1) leave more
-    than ``level^2`` per pixel of them all, whatever is merged, some piece's
-    plane fails the fit test at the end: the cut is known to be dropped
-    before the merge-back's work.
+    together. So when the pieces' planes leave more than ``level^2`` per
+    pixel of them all, whatever is merged, some piece's plane fails the fit
+    test at the end: the cut is known to be dropped before the merge-back's
+    work.
+
+    Parameters
+    ----------
+    fitted
+        ``region_fits(z, pieces, m, (1,))`` of the pieces 1..m.
+    level
+        RMS error of the fit test, depth units; at 0 nothing is known (False).
+
+    Returns
+    -------
+    bool
+        True when the pieces' planes leave more than ``level^2`` per pixel,
+        by :data:`BOUND_MARGIN` of it.
     """
     (_, mse), = fitted.fits
     counts = fitted.counts[1:].astype(np.float64)
     total = float(counts.sum())
-    return total > 0 and float(mse[1:] @ counts) > level * level * total * (1.0 + BOUND_MARGIN)
+    bound = level * level * total * (1.0 + BOUND_MARGIN)
+    return bound > 0 and float(mse[1:] @ counts) > bound
 
 
 def cut_into_planes(z: np.ndarray, mask: np.ndarray, *, level: float, s2: float,

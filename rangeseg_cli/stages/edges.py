@@ -261,8 +261,10 @@ def detect_edges(z: np.ndarray, config: Config, *, backend: Backend = "auto") ->
     backend
         ``"numpy"``: the reference functions of this module; ``"numba"``: the
         fused compiled kernels of :mod:`rangeseg_cli.kernels.compiled` (identical
-        maps); ``"auto"``: numba when installed and ``RANGESEG_PURE_NUMPY``
-        is not ``1``.
+        maps); ``"auto"``: the kernels once compiled
+        (:func:`~rangeseg_cli.kernels.backend.select_deferred`: a first run
+        after installing takes the reference while they compile), when numba
+        is installed and ``RANGESEG_PURE_NUMPY`` is not ``1``.
 
     Returns
     -------

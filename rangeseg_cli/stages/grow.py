@@ -517,19 +517,41 @@ def union_sse(z: np.ndarray, labels: np.ndarray, pairs: np.ndarray, boxes: np.nd
     -------
     numpy.ndarray
         float64 (P,).
+
+    Raises
+    ------
+    ValueError
+        When ``pairs`` or ``boxes`` is not (P, 2) and (P, 4), or a box is not
+        within the image.
     """
+    pairs = np.require(pairs, np.int64, ["C"])
+    boxes = np.require(boxes, np.int64, ["C"])
+    _check_boxes(labels.shape, pairs, boxes)
     kernels = select_deferred(backend, "union_runs")
     if kernels is None:
         return np.array([_union_sse(z, labels, i, j, box, backend) for (i, j), box
                          in zip(pairs.tolist(), boxes.tolist(), strict=True)], dtype=np.float64)
     zc = np.require(z, np.float64, ["C", "W"])
-    runs = kernels.union_runs(zc, np.require(labels, np.int32, ["C"]), pairs, boxes)
+    runs = kernels.union_runs(zc, np.require(labels, np.int32, ["C", "W"]), pairs, boxes)
     moments = RegionMoments(*kernels.run_moments(zc, runs, pairs.shape[0], 0, 0))
     mat, rhs = _normal_equations(moments)
     coef = _solve_cascade(mat, rhs, moments.counts, 2)[None]
     sse = kernels.run_sse(zc, runs, moments.cx, moments.cy, moments.scale, coef, 0, 0)[0]
     mse = sse / np.maximum(moments.counts, 1.0)
     return (mse * moments.counts.astype(np.int64))[1:]
+
+
+def _check_boxes(shape: tuple[int, ...], pairs: np.ndarray, boxes: np.ndarray) -> None:
+    """Validate the pairs and boxes of :func:`union_sse` against an image of ``shape``."""
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or boxes.shape != (pairs.shape[0], 4):
+        raise ValueError(f"`pairs` and `boxes` must be (P, 2) and (P, 4), got {pairs.shape} "
+                         f"and {boxes.shape}")
+    r0, r1, c0, c1 = boxes.T
+    bad = (r0 < 0) | (r1 < r0) | (r1 > shape[0]) | (c0 < 0) | (c1 < c0) | (c1 > shape[1])
+    if bad.any():
+        raise ValueError(f"box {boxes[np.argmax(bad)].tolist()} is not within the image "
+                         f"{shape[0]}x{shape[1]} (first row, stop row, first column, "
+                         "stop column)")
 
 
 def _union_sse(z: np.ndarray, labels: np.ndarray, i: int, j: int, box: list[int],
