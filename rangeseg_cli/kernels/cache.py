@@ -13,9 +13,10 @@ Notes
 The first run: ``rangeseg run`` of a 128x128 image with the defaults, on two
 idle cores, cache empty (``benchmarks/first_run.py``, medians of 3). It took
 29.3 s, nearly all of it compiling 88 signatures of 79 kernels (and about 90
-of numba's own functions); it takes about 6 s now (about 16 s in one
-process, without the helper; the machine's speed varies between days), by
-three means, chosen by measuring each:
+of numba's own functions); it takes about 6 s now (about 25 s in one
+process, without the helper, which then compiles every kernel it calls;
+the machine's speed varies between days), by three means, chosen by
+measuring each:
 
 1. Less to compile: 30 kernels of one signature each (29.3 s to 14.9 s).
    A literal ``0`` or ``1`` passed to another kernel, or a read-only array,
