@@ -46,6 +46,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 from scipy import ndimage, special
@@ -345,23 +346,39 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
     kernels = select_kernels(backend)
     if kernels is None:
         moments, pixels = _reference_moments(z, labels, n, origin)
-    else:
-        zc = np.require(z, np.float64, ["C", "W"])
-        runs = kernels.fitted_runs(zc, np.require(labels, np.int32, ["C", "W"]))
-        moments = RegionMoments(*kernels.run_moments(zc, runs, n, *origin))
-    mat, rhs = _normal_equations(moments)
-    coef = np.stack([_solve_cascade(mat, rhs, moments.counts, order) for order in orders])
-    if kernels is None:
+        coef = _solve_orders(moments, orders)
         sse = _reference_sse(pixels, coef, n)
         image = np.stack([_to_image_coefficients(c, moments.cx, moments.cy, moments.scale)
                           for c in coef])
     else:
-        sse = kernels.run_sse(zc, runs, moments.cx, moments.cy, moments.scale, coef, *origin)
+        zc = np.require(z, np.float64, ["C", "W"])
+        runs = kernels.fitted_runs(zc, np.require(labels, np.int32, ["C", "W"]))
+        moments, coef, sse = _run_fits(kernels, zc, runs, n, orders, origin)
         image = kernels.image_coefficients(coef, moments.cx, moments.cy, moments.scale)
     safe = np.maximum(moments.counts, 1.0)
     fits = [(a, e / safe) for a, e in zip(image, sse, strict=True)]
     return RegionFits(fits, moments.counts.astype(np.int64), moments.cy, moments.cx,
                       moments.rhs[:, 0] / safe, moments)
+
+
+def _solve_orders(moments: RegionMoments, orders: tuple[int, ...]) -> np.ndarray:
+    """Coefficients (F, n+1, 6), in the regions' frames, of each order's fits from ``moments``."""
+    mat, rhs = _normal_equations(moments)
+    return np.stack([_solve_cascade(mat, rhs, moments.counts, order) for order in orders])
+
+
+def _run_fits(kernels: ModuleType, zc: np.ndarray, runs: tuple[np.ndarray, ...], n: int,
+              orders: tuple[int, ...], origin: tuple[int, int]
+              ) -> tuple[RegionMoments, np.ndarray, np.ndarray]:
+    """The compiled sweeps of :func:`region_fits` over the runs of labels 1..n.
+
+    Returns the moments, the coefficients (F, n+1, 6) in the regions' frames
+    and the sums of squared errors (F, n+1).
+    """
+    moments = RegionMoments(*kernels.run_moments(zc, runs, n, *origin))
+    coef = _solve_orders(moments, orders)
+    sse = kernels.run_sse(zc, runs, moments.cx, moments.cy, moments.scale, coef, *origin)
+    return moments, coef, sse
 
 
 def union_moments(moments: RegionMoments, i: int, j: int
@@ -533,11 +550,8 @@ def union_sse(z: np.ndarray, labels: np.ndarray, pairs: np.ndarray, boxes: np.nd
                          in zip(pairs.tolist(), boxes.tolist(), strict=True)], dtype=np.float64)
     zc = np.require(z, np.float64, ["C", "W"])
     runs = kernels.union_runs(zc, np.require(labels, np.int32, ["C", "W"]), pairs, boxes)
-    moments = RegionMoments(*kernels.run_moments(zc, runs, pairs.shape[0], 0, 0))
-    mat, rhs = _normal_equations(moments)
-    coef = _solve_cascade(mat, rhs, moments.counts, 2)[None]
-    sse = kernels.run_sse(zc, runs, moments.cx, moments.cy, moments.scale, coef, 0, 0)[0]
-    mse = sse / np.maximum(moments.counts, 1.0)
+    moments, _, sse = _run_fits(kernels, zc, runs, pairs.shape[0], (2,), (0, 0))
+    mse = sse[0] / np.maximum(moments.counts, 1.0)
     return (mse * moments.counts.astype(np.int64))[1:]
 
 
