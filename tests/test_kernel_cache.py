@@ -355,6 +355,10 @@ def test_without_a_helper_a_deferred_kernel_compiles_in_the_run(monkeypatch):
     assert not kernel_cache.ready(kernels, name)  # a helper will compile it
     monkeypatch.setenv("RANGESEG_COMPILE_AHEAD", "0")
     assert kernel_cache.ready(kernels, name)  # no helper: the run compiles it
+    assert name in kernel_cache._ready  # remembered: later calls do not ask again
     monkeypatch.delenv("RANGESEG_COMPILE_AHEAD")
+    kernel_cache._ready.clear()
+    assert not kernel_cache.ready(kernels, name)
     monkeypatch.setattr(kernel_cache, "_no_helper", True)  # the helper could not start
+    monkeypatch.setattr(kernel_cache, "_looked", {})
     assert kernel_cache.ready(kernels, name)

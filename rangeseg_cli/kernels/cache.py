@@ -174,9 +174,10 @@ def ready(kernels: ModuleType, name: str) -> bool:
     can compile it (``RANGESEG_COMPILE_AHEAD=0``, a frozen app, no process
     to spare), always True: the kernel compiles in this process.
     """
-    if name in _ready or _no_helper or not _helper_allowed():
+    if name in _ready:
         return True
-    found = bool(getattr(getattr(kernels, name), "overloads", None))
+    found = (bool(getattr(getattr(kernels, name), "overloads", None))
+             or _no_helper or not _helper_allowed())  # no helper: it compiles here
     if not found and name in _looked and time.monotonic() - _looked[name] < RECHECK_S:
         return False
     _looked[name] = time.monotonic()
