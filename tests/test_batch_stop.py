@@ -35,6 +35,17 @@ def _wait_for(out, pattern, count, timeout=60.0):
     assert len(list(out.glob(pattern))) >= count, f"no {pattern} in {out}"
 
 
+def _slow_image(tmp_path, write_png):
+    """A large face and a long footprint at every 0.5 degree: a minute or more of search."""
+    z = np.full((384, 384), 20.0)
+    z[42:342, 42:342] = 120.0
+    z += np.random.default_rng(0).normal(0, 1.0, z.shape)
+    return write_png(tmp_path / "big.png", z.clip(0, 255).astype(np.uint8))
+
+
+SLOW = ["--set", "holdsite.size=[61,3]", "--set", "holdsite.rotation_step=0.5"]
+
+
 @pytest.mark.parametrize("jobs", ["1", "2"])
 def test_images_a_stopped_batch_never_started_read_as_not_started(folder, tmp_path, spawn,
                                                                   jobs):
@@ -61,13 +72,8 @@ def test_images_a_stopped_batch_never_started_read_as_not_started(folder, tmp_pa
 def test_a_stop_is_honoured_inside_one_long_image(tmp_path, spawn, write_png):
     # A long footprint at every 0.5 degree on a large face: the holdsite search takes
     # a minute or more; SIGTERM waited for it (the batch stopped between images only).
-    z = np.full((384, 384), 20.0)
-    z[42:342, 42:342] = 120.0
-    z += np.random.default_rng(0).normal(0, 1.0, z.shape)
-    image = write_png(tmp_path / "big.png", z.clip(0, 255).astype(np.uint8))
-    out = tmp_path / "out"
-    proc = spawn([*CLI, str(image), "-o", str(out), "-j", "1", "-q",
-                  "--set", "holdsite.size=[61,3]", "--set", "holdsite.rotation_step=0.5"],
+    image, out = _slow_image(tmp_path, write_png), tmp_path / "out"
+    proc = spawn([*CLI, str(image), "-o", str(out), "-j", "1", "-q", *SLOW],
                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     _wait_for(out, "*.labels.npy", 1, timeout=120)  # the holdsite search has begun
     time.sleep(0.5)
@@ -82,21 +88,26 @@ def test_a_stop_is_honoured_inside_one_long_image(tmp_path, spawn, write_png):
     assert not (out / "big.holdsite.json").exists()
 
 
-def test_a_second_run_into_the_same_folder_stops_at_once_naming_the_first(folder, tmp_path,
-                                                                          spawn):
-    # Both runs processed every image, writing over each other's files.
-    out = tmp_path / "out"
-    first = spawn([*CLI, str(folder), "-o", str(out), "-j", "1", "-q"],
-                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    _wait_for(out, "*.range.npy", 1)
-    res = subprocess.run([*CLI, str(folder), "-o", str(out), "-j", "1", "-q", "--resume"],
+def test_a_second_run_into_the_same_folder_stops_at_once_naming_the_first(tmp_path, spawn,
+                                                                          write_png):
+    # Both runs processed every image, writing over each other's files. The first run
+    # is held in a long holdsite search, so it cannot finish before the second starts.
+    image, out = _slow_image(tmp_path, write_png), tmp_path / "out"
+    first = spawn([*CLI, str(image), "-o", str(out), "-j", "1", "-q", *SLOW],
+                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    _wait_for(out, "*.labels.npy", 1, timeout=120)
+    res = subprocess.run([*CLI, str(image), "-o", str(out), "-j", "1", "-q", "--resume"],
                          capture_output=True, text=True, timeout=60)
+    assert first.poll() is None, "the first run ended before the second one asked"
     assert res.returncode == 2, res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "another batch is running into this folder" in lines[0]
     assert f"pid {first.pid} on {socket.gethostname()}, started " in lines[0]
-    assert first.wait(timeout=120) == 0
-    assert not (out / LOCK).exists()
+    assert (out / LOCK).exists()
+    first.send_signal(signal.SIGTERM)
+    _, err = first.communicate(timeout=60)
+    assert first.returncode == 143, err
+    assert not (out / LOCK).exists()  # released on the way out
 
 
 def test_a_lock_left_by_a_killed_run_is_taken_over(folder, tmp_path):
