@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +50,23 @@ def test_an_index_newer_than_the_source_is_warm(package):
 def test_an_index_older_than_the_source_is_cold(package):
     index(package / "__pycache__", age=-5.0)
     assert kernel_cache.cold_kernel_cache()
+
+
+def test_an_older_index_of_the_same_source_is_warm(package):
+    # numba 0.68 stamps an index with the source's SHA-256, not its time: a checkout
+    # or a reinstall that rewrites the same source leaves the cache valid. Read as
+    # cold, every run printed the compiling message and ran the numpy references.
+    source = package / "compiled.py"
+    path = index(package / "__pycache__", age=-5.0)
+    path.write_bytes(b"\x80\x05header" + hashlib.sha256(source.read_bytes()).digest() + b"tail")
+    stamp = source.stat().st_mtime - 5.0
+    os.utime(path, (stamp, stamp))
+    assert not kernel_cache.cold_kernel_cache()
+    assert kernel_cache.cached("edges_pass")
+    source.write_text("# kernels, edited\n")  # a new source: the same index is stale
+    os.utime(source, (stamp + 10.0, stamp + 10.0))
+    assert kernel_cache.cold_kernel_cache()
+    assert not kernel_cache.cached("edges_pass")
 
 
 def test_a_cache_under_numba_cache_dir_counts(package, tmp_path, monkeypatch):
@@ -362,3 +382,24 @@ def test_without_a_helper_a_deferred_kernel_compiles_in_the_run(monkeypatch):
     monkeypatch.setattr(kernel_cache, "_no_helper", True)  # the helper could not start
     monkeypatch.setattr(kernel_cache, "_looked", {})
     assert kernel_cache.ready(kernels, name)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="needs numba")
+def test_the_check_reads_a_real_numba_index_like_numba(tmp_path, monkeypatch):
+    # A real index of numba's own, its source rewritten with the same bytes later.
+    import numba
+
+    source = tmp_path / "compiled.py"
+    source.write_text("import numba\n\n\n@numba.njit(cache=True)\ndef twice(x):\n"
+                      "    return 2 * x\n")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    subprocess.run([sys.executable, "-c", "import compiled; compiled.twice(2)"], cwd=tmp_path,
+                   env=env, check=True)
+    monkeypatch.setattr(kernel_cache, "SOURCE", source)
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    assert kernel_cache.cached("twice")
+    stamp = source.stat().st_mtime + 60.0
+    source.write_bytes(source.read_bytes())
+    os.utime(source, (stamp, stamp))
+    hashed = tuple(int(p) for p in numba.__version__.split(".")[:2]) >= (0, 68)
+    assert kernel_cache.cached("twice") == hashed  # numba 0.68 on: still valid

@@ -52,13 +52,15 @@ numba's setting for the whole process; at 0 numba cannot cache);
 numba's ahead-of-time compiler (``numba.pycc``, pending deprecation in numba
 0.68, and a C compiler at install); a cache built at install (pip runs no
 step after installing a wheel, a build hook runs in a throw-away
-environment, and numba keys its cache on the source file's modification
-time and on the CPU).
+environment, and numba keys its cache on the source, by its hash from
+numba 0.68 and by its modification time before, and on the CPU).
 """
 
 from __future__ import annotations
 
 import atexit
+import functools
+import hashlib
 import importlib.util
 import os
 import subprocess
@@ -168,7 +170,7 @@ def ready(kernels: ModuleType, name: str) -> bool:
     """Whether kernel ``name`` of :data:`DEFERRED` can run without compiling in this process.
 
     True once this process has it compiled or loaded, or when the cache holds
-    it (an index file ``compiled.<name>-*.nbi`` no older than the source);
+    it (an index file ``compiled.<name>-*.nbi`` of the current source);
     the callers take the numpy reference otherwise (the same results), and
     the helper is started to compile it (once per process). Where no helper
     can compile it (``RANGESEG_COMPILE_AHEAD=0``, a frozen app, no process
@@ -190,30 +192,42 @@ def ready(kernels: ModuleType, name: str) -> bool:
 
 
 def cached(name: str) -> bool:
-    """Whether the cache holds kernel ``name``: an index file no older than the source."""
+    """Whether the cache holds kernel ``name``: an index file of the current source."""
     # where numba looks: NUMBA_CACHE_DIR when it is set
     return _fresh_index(_cache_dirs()[-1], f"compiled.{name}-*.nbi")
 
 
 def _fresh_index(folder: Path, pattern: str) -> bool:
-    """Whether cache directory ``folder`` holds an index file ``pattern`` no older than the source.
+    """Whether cache directory ``folder`` holds an index file ``pattern`` of the current source.
 
-    False when either cannot be read.
+    An index is of the current source when it holds the source's SHA-256 (the
+    stamp numba 0.68 and later write: a checkout or a reinstall that rewrites
+    the same source leaves it valid), or, for older numba, whose stamp is the
+    source's modification time, when it is no older than the source. False
+    when either cannot be read.
     """
     try:
         stamp = SOURCE.stat().st_mtime
+        digest = _source_digest(SOURCE, stamp)
         hits = folder.glob(pattern) if folder.name == "__pycache__" else folder.rglob(pattern)
-        return any(p.stat().st_mtime >= stamp for p in hits)
+        return any(p.stat().st_mtime >= stamp or digest in p.read_bytes() for p in hits)
     except OSError:
         return False
+
+
+@functools.lru_cache(maxsize=4)
+def _source_digest(path: Path, mtime: float) -> bytes:
+    """SHA-256 of the kernels' source (``mtime`` keys the memo: an edit hashes again)."""
+    return hashlib.sha256(path.read_bytes()).digest()
 
 
 def cold_kernel_cache() -> bool:
     """True when the kernels will be compiled, not loaded, by this process's first call.
 
     False without numba or with ``RANGESEG_PURE_NUMPY=1`` (nothing is compiled),
-    and when an index file of the kernels is newer than their source (numba
-    recompiles a kernel whose source changed since it was cached).
+    and when an index file of the kernels is of their current source
+    (:func:`cached`; numba recompiles a kernel whose source changed since it
+    was cached).
     """
     if os.environ.get("RANGESEG_PURE_NUMPY") == "1" or importlib.util.find_spec("numba") is None:
         return False
