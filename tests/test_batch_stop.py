@@ -49,9 +49,12 @@ SLOW = ["--set", "holdsite.size=[61,3]", "--set", "holdsite.rotation_step=0.5"]
 @pytest.mark.parametrize("jobs", ["1", "2"])
 def test_images_a_stopped_batch_never_started_read_as_not_started(folder, tmp_path, spawn,
                                                                   jobs):
-    # They stayed `running` in the manifest after Ctrl-C between images.
+    # They stayed `running` in the manifest after Ctrl-C between images. A long
+    # footprint turned every 2 degrees keeps each image at a tenth of a second or
+    # more, so the batch is still going when the stop comes.
     out, fresh = tmp_path / "out", tmp_path / "fresh"
-    cmd = [*CLI, str(folder), "-j", jobs, "-q"]
+    cmd = [*CLI, str(folder), "-j", jobs, "-q", "--set", "holdsite.size=[21,3]",
+           "--set", "holdsite.rotation_step=2"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                  text=True)
     _wait_for(out, "*.holdsite.json", 2)
