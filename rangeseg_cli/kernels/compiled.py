@@ -38,12 +38,12 @@ through views, and allocate nothing, so they are compiled without numba's
 reference counts (its ``_nrt`` target option): the atomic increments and
 decrements of their row views took about 8 % of the edge stage at 128x128.
 
-Region growing (Sec. V-4). :func:`region_moments` gathers, per label, the
+Region growing (Sec. V-4). :func:`run_moments` gathers, per label, the
 pixel count, the centre and scale of the conditioning frame and the 15
 moments ``sum u^a v^b`` (a + b <= 4) and 6 right-hand sides ``sum phi_i z`` of
 the quadric's normal equations in three sweeps over the image (centre, then
 spread, then moments), without any per-pixel temporaries;
-:func:`region_sse` sums the squared residuals of solved fits in one more
+:func:`run_sse` sums the squared residuals of solved fits in one more
 sweep; :func:`grow_pass` is one simultaneous growing pass (8-neighbourhood
 test and residual test fused).
 
@@ -524,26 +524,28 @@ def edge_maps_in_bands(z: np.ndarray, w_step: np.ndarray, step_threshold: float,
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def region_moments(z: np.ndarray, labels: np.ndarray, n: int, r0: int = 0, c0: int = 0
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                              np.ndarray]:  # pragma: no cover - compiled
+def run_moments(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                n: int, r0: int, c0: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                           np.ndarray]:  # pragma: no cover - compiled
     """Per-region frames and moment sums of the quadric fits (Sec. V-4), in three sweeps.
 
     The same float64 operations, in the same (raster) order, as the numpy
     reference ``rangeseg_cli.stages.grow._frames`` and ``_moment_sums``.
+    ``grow.region_fits`` makes the runs once for this and :func:`run_sse`.
 
     Parameters
     ----------
     z
-        float64 (H, W) heights; non-finite pixels are left out.
-    labels
-        int32 (H, W) labels 0..n; 0 is left out.
+        float64 (H, W) heights.
+    runs
+        The :func:`fitted_runs` of the labels 0..n (or :func:`union_runs`).
     n
         Largest label.
     r0, c0
-        Image row and column of ``z[0, 0]`` when ``z`` and ``labels`` are a
-        crop: frames and sums are those of the whole image (the same pixels
-        in the same order, so the same bits) when the crop holds every label.
+        Image row and column of ``z[0, 0]`` when ``z`` is a crop: frames and
+        sums are those of the whole image (the same pixels in the same order,
+        so the same bits) when the crop holds every label.
 
     Returns
     -------
@@ -554,18 +556,6 @@ def region_moments(z: np.ndarray, labels: np.ndarray, n: int, r0: int = 0, c0: i
         float64 (n+1, 5, 5): ``sum u^a v^b`` at [a, b] for a + b <= 4 (0 elsewhere).
     rhs
         float64 (n+1, 6): ``sum phi_i z`` for phi = (1, u, v, u^2, u v, v^2).
-    """
-    return run_moments(z, fitted_runs(z, labels), n, r0, c0)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def run_moments(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-                n: int, r0: int, c0: int
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                           np.ndarray]:  # pragma: no cover - compiled
-    """:func:`region_moments` from the :func:`fitted_runs` of the labels.
-
-    ``grow.region_fits`` makes the runs once for this and :func:`run_sse`.
     """
     counts, cx, cy = _region_centres(runs, n, r0, c0)
     safe = np.empty(n + 1)
@@ -594,7 +584,7 @@ def fitted_runs(z: np.ndarray, labels: np.ndarray
 
     (row, first column, stop column, label) of each; a run ends where the
     label changes or a height is not finite. The sweeps of
-    :func:`region_moments` and :func:`region_sse` visit the fitted pixels
+    :func:`run_moments` and :func:`run_sse` visit the fitted pixels
     run by run, in raster order, as the reference does pixel by pixel. Per
     row, the starts and ends are flagged in vectorised loops and found
     eight at a time; one sweep counts the runs, a second records them.
@@ -711,7 +701,7 @@ def _union_sweep(z: np.ndarray, labels: np.ndarray, pairs: np.ndarray, boxes: np
 def _region_centres(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], n: int,
                     r0: int, c0: int
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
-    """Sweep 1 of :func:`region_moments`: pixel count, centre column and row per label.
+    """Sweep 1 of :func:`run_moments`: pixel count, centre column and row per label.
 
     The sums are of integers, exact in any order (below 2^53), so they are
     kept as integers (a run's columns summed in closed form).
@@ -739,7 +729,7 @@ def _region_centres(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
 def _region_scale(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
                   cx: np.ndarray, cy: np.ndarray, safe: np.ndarray, r0: int, c0: int
                   ) -> np.ndarray:  # pragma: no cover - compiled
-    """Sweep 2 of :func:`region_moments`: RMS spread about the centre, at least 1.
+    """Sweep 2 of :func:`run_moments`: RMS spread about the centre, at least 1.
 
     A run is summed in registers, continuing the label's running sums in the
     same order as adding pixel by pixel.
@@ -767,7 +757,7 @@ def _region_scale(runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
 def _region_sums(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
                  cx: np.ndarray, cy: np.ndarray, scale: np.ndarray, r0: int, c0: int
                  ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Sweep 3 of :func:`region_moments`: the monomial sums and right-hand sides.
+    """Sweep 3 of :func:`run_moments`: the monomial sums and right-hand sides.
 
     Run by run, summed in registers (as in :func:`_region_scale`); v and its
     powers are constant along a row.
@@ -834,7 +824,7 @@ def image_coefficients(coef: np.ndarray, cx: np.ndarray, cy: np.ndarray, scale: 
                        ) -> np.ndarray:  # pragma: no cover - compiled
     """``grow._to_image_coefficients`` of F fits at once: the same operations, in one call.
 
-    ``coef`` float64 (F, n+1, 6) in the frames (u, v) of :func:`region_moments`;
+    ``coef`` float64 (F, n+1, 6) in the frames (u, v) of :func:`run_moments`;
     returns the (F, n+1, 6) coefficients in image coordinates (x = col, y = row).
     """
     out = np.empty_like(coef)
@@ -855,21 +845,19 @@ def image_coefficients(coef: np.ndarray, cx: np.ndarray, cy: np.ndarray, scale: 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-               scale: np.ndarray, coef: np.ndarray, r0: int = 0, c0: int = 0
-               ) -> np.ndarray:  # pragma: no cover
+def run_sse(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+            cx: np.ndarray, cy: np.ndarray, scale: np.ndarray, coef: np.ndarray, r0: int,
+            c0: int) -> np.ndarray:  # pragma: no cover - compiled
     """Sum of squared residuals per region of several fits, in one sweep (Sec. V-4, e_A).
 
     Parameters
     ----------
-    z, labels
-        As in :func:`region_moments`.
+    z, runs, r0, c0
+        As in :func:`run_moments`.
     cx, cy, scale
-        The frames of :func:`region_moments`.
+        The frames of :func:`run_moments`.
     coef
         float64 (F, n+1, 6): F fits in frame coordinates (u, v).
-    r0, c0
-        As in :func:`region_moments`.
 
     Returns
     -------
@@ -877,14 +865,6 @@ def region_sse(z: np.ndarray, labels: np.ndarray, cx: np.ndarray, cy: np.ndarray
         float64 (F, n+1): ``sum (z - sum_i c_i phi_i)^2``, the fit summed
         term by term in the order of phi, as the reference does.
     """
-    return run_sse(z, fitted_runs(z, labels), cx, cy, scale, coef, r0, c0)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def run_sse(z: np.ndarray, runs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-            cx: np.ndarray, cy: np.ndarray, scale: np.ndarray, coef: np.ndarray, r0: int,
-            c0: int) -> np.ndarray:  # pragma: no cover - compiled
-    """:func:`region_sse` from the :func:`fitted_runs` of the labels."""
     rows, first, stop, labs = runs
     nfit = coef.shape[0]
     out = np.zeros((nfit, coef.shape[1]))

@@ -137,7 +137,7 @@ def _moment_sums(u: np.ndarray, v: np.ndarray, zs: np.ndarray, lab: np.ndarray, 
     """The 15 monomial sums ``sum u^a v^b`` (a + b <= 4) and the 6 ``sum phi_i z`` per region.
 
     Each is summed per region once with ``np.bincount`` (in raster order, as
-    the compiled :func:`rangeseg_cli.kernels.compiled.region_moments` adds them).
+    the compiled :func:`rangeseg_cli.kernels.compiled.run_moments` adds them).
     """
     pu = [np.ones_like(u), u, u * u, u * u * u, (u * u) ** 2]
     pv = [np.ones_like(v), v, v * v, v * v * v, (v * v) ** 2]
@@ -152,7 +152,7 @@ def _moment_sums(u: np.ndarray, v: np.ndarray, zs: np.ndarray, lab: np.ndarray, 
 
 def _reference_moments(z: np.ndarray, labels: np.ndarray, n: int,
                        origin: tuple[int, int] = (0, 0)) -> tuple[RegionMoments, _Pixels]:
-    """The numpy reference of :func:`~rangeseg_cli.kernels.compiled.region_moments`; the pixels."""
+    """The numpy reference of :func:`~rangeseg_cli.kernels.compiled.run_moments`; the pixels."""
     rows_i, cols_i = np.nonzero((labels > 0) & np.isfinite(z))
     lab = labels[rows_i, cols_i].astype(np.intp)
     zs = np.asarray(z, dtype=np.float64)[rows_i, cols_i]
@@ -168,7 +168,7 @@ def _reference_sse(pixels: _Pixels, coef: np.ndarray, n: int) -> np.ndarray:
     """Sum of squared residuals per region of fits ``coef`` (F, n+1, 6) in frame coordinates.
 
     The fit is summed term by term in the order of phi, as
-    :func:`rangeseg_cli.kernels.compiled.region_sse` does.
+    :func:`rangeseg_cli.kernels.compiled.run_sse` does.
     """
     phi = _basis(pixels.u, pixels.v)
     out = np.zeros((coef.shape[0], n + 1))
@@ -321,8 +321,8 @@ def region_fits(z: np.ndarray, labels: np.ndarray, n: int, orders: tuple[int, ..
         Highest model order of each fit: 2 quadric, 1 plane, 0 constant.
     backend
         ``"numpy"``: ``np.bincount`` over the pixels (the reference);
-        ``"numba"``: :func:`rangeseg_cli.kernels.compiled.region_moments` and
-        ``region_sse``, which add the same terms in the same order (identical
+        ``"numba"``: :func:`rangeseg_cli.kernels.compiled.run_moments` and
+        ``run_sse``, which add the same terms in the same order (identical
         results); ``"auto"``: as :func:`rangeseg_cli.stages.edges.detect_edges`.
     origin
         Image (row, col) of ``z[0, 0]`` when ``z`` and ``labels`` are a crop

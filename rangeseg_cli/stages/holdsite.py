@@ -443,30 +443,6 @@ def segment_dilation(mask: np.ndarray, size: int, axis: int) -> np.ndarray:
     return np.moveaxis(ahead[..., :n], -1, axis)
 
 
-def border_regions(labels: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
-    """Labels within :data:`ADJACENCY_RADIUS` of the image border (or invalid border area).
-
-    Parameters
-    ----------
-    labels
-        int (H, W) labels, 0 = none.
-    valid
-        bool (H, W) valid pixels; when given, invalid pixels 8-connected to
-        an invalid pixel on the image's frame (e.g. the no-reading margin of
-        a depth camera) count as border too.
-
-    Returns
-    -------
-    set of int
-        The labels touching the border.
-    """
-    labels = np.asarray(labels)
-    framed = _framed(labels)
-    if valid is None:
-        return framed
-    return framed | _near_outer_invalid(labels, np.asarray(valid, dtype=bool))
-
-
 def _same_level(base: Surface, other: Surface, tol: float, steps: set[int], level: bool
                 ) -> bool:
     """``other`` continues ``base`` (on base's extended fit, or same mean height on a level base).
@@ -503,7 +479,7 @@ def find_background(surfaces: dict[int, Surface], border: set[int], rule: str, t
     surfaces
         Surfaces by id.
     border
-        Ids of the regions touching the border (:func:`border_regions`).
+        Ids of the regions touching the border (or the invalid margin around it).
     rule
         ``"lowest-border"``, ``"largest-border"`` or ``"none"``.
     tol

@@ -597,15 +597,6 @@ def to_raw(depth_mm: np.ndarray, valid: np.ndarray, unit: DepthUnit) -> np.ndarr
 # =========================================================================== scenes
 
 
-@dataclass(frozen=True)
-class Layout:
-    """A scene before rendering: the camera, the items, and the support alone (background)."""
-
-    camera: Camera
-    items: tuple[Item, ...]
-    empty: tuple[Item, ...]
-
-
 def support_plane(name: str, z: float = 0.0) -> Item:
     """An endless horizontal support (table) whose top is at height ``z`` (mm), not pickable."""
     plane = Convex(np.array([[0, 0, 1, z], [0, 0, -1, 1000.0 - z]]),
