@@ -403,3 +403,29 @@ def test_the_check_reads_a_real_numba_index_like_numba(tmp_path, monkeypatch):
     os.utime(source, (stamp, stamp))
     hashed = tuple(int(p) for p in numba.__version__.split(".")[:2]) >= (0, 68)
     assert kernel_cache.cached("twice") == hashed  # numba 0.68 on: still valid
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="needs numba")
+def test_a_read_only_package_is_looked_for_in_the_users_cache(tmp_path, monkeypatch):
+    # numba caches a package it cannot write in the user's cache folder; looking in
+    # __pycache__ alone read that cache as cold for good (the message on every run,
+    # the numpy references of the deferred kernels). Here numba cannot use
+    # __pycache__ because a file holds its name.
+    package, home = tmp_path / "pkg", tmp_path / "xdg"
+    package.mkdir()
+    (package / "__pycache__").write_text("not a folder")
+    source = package / "compiled.py"
+    source.write_text("import numba\n\n\n@numba.njit(cache=True)\ndef twice(x):\n"
+                      "    return 2 * x\n")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(home)
+    monkeypatch.setattr(kernel_cache, "SOURCE", source)
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(home))
+    monkeypatch.delenv("RANGESEG_PURE_NUMPY", raising=False)
+    assert kernel_cache.cold_kernel_cache()
+    subprocess.run([sys.executable, "-c", "import compiled; compiled.twice(2)"], cwd=package,
+                   env=env, check=True)
+    assert list(home.rglob("compiled.twice-*.nbi"))  # where numba put it
+    assert kernel_cache.cached("twice")
+    assert not kernel_cache.cold_kernel_cache()

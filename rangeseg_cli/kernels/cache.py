@@ -2,7 +2,8 @@
 
 numba compiles :mod:`rangeseg_cli.kernels.compiled` on first use and caches the
 machine code beside the package, in ``__pycache__`` (or under
-``NUMBA_CACHE_DIR``), one index file (``compiled.<function>-<line>.py311.nbi``)
+``NUMBA_CACHE_DIR``, or in the user's cache folder when the package is
+read-only), one index file (``compiled.<function>-<line>.py311.nbi``)
 per kernel; later processes load them in about half a second. The command
 line asks :func:`cold_kernel_cache` before a batch so that it can say why the
 first image takes long (:data:`MESSAGE`). The check only lists a folder: it
@@ -143,10 +144,37 @@ _asking = threading.Lock()
 
 
 def _cache_dirs() -> list[Path]:
-    dirs = [SOURCE.parent / "__pycache__"]
+    """Where numba caches the kernels, in its order of choice: the last is where it does.
+
+    ``NUMBA_CACHE_DIR`` when set; else ``__pycache__`` beside the source when
+    it can be written, else (a package installed read-only) numba's folder in
+    the user's cache.
+    """
+    in_tree = SOURCE.parent / "__pycache__"
+    dirs = [in_tree]
     if os.environ.get("NUMBA_CACHE_DIR"):
         dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]))
+    elif not _writable(in_tree):
+        dirs += _user_wide_dir()
     return dirs
+
+
+def _writable(folder: Path) -> bool:
+    """Whether numba can write ``folder`` (or make it in its writable parent)."""
+    if folder.exists():
+        return folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
+    return os.access(folder.parent, os.W_OK | os.X_OK)
+
+
+def _user_wide_dir() -> list[Path]:
+    """The user-wide cache folder numba takes for the kernels' source (none without numba)."""
+    try:
+        from numba.misc.appdirs import AppDirs
+    except ImportError:
+        return []
+    folder = os.path.dirname(os.path.abspath(SOURCE))
+    sub = f"{os.path.basename(folder)}_{hashlib.sha1(folder.encode()).hexdigest()}"
+    return [Path(AppDirs(appname="numba", appauthor=False).user_cache_dir) / sub]
 
 
 #: Kernels that only speed up a step whose numpy reference gives the same bits: a run
@@ -374,7 +402,7 @@ def _lock() -> Any:
         import fcntl
     except ImportError:
         return None
-    folder = Path(os.environ.get("NUMBA_CACHE_DIR") or SOURCE.parent / "__pycache__")
+    folder = _cache_dirs()[-1]
     try:
         folder.mkdir(parents=True, exist_ok=True)
         handle = open(folder / LOCK_FILE, "w")  # noqa: SIM115
