@@ -124,15 +124,6 @@ def test_filling_raises_correct_detections_on_narrow_noisy_faces(seed):
             > hoover_compare(truth, off).counts()["correct"])
 
 
-@pytest.mark.parametrize("scene", ["cube-holes", "part1"])
-def test_the_pipelines_labels_leave_nothing_to_fill(scene):
-    # The fill runs again after the merge and the recut: edge pixels that a merged or
-    # recut region's surface explains (the cube's hole walls at sigma 0) join it.
-    image = render_scene(scene, size=(128, 128), noise=0.0, seed=0).image
-    result = run_pipeline(image, load_config())
-    assert np.array_equal(fill_edges(result.heights, result.labels, GROW), result.labels)
-
-
 def test_paper_preset_leaves_the_edges():
     assert "fill" not in load_config(preset="paper").refine.passes
     assert "fill" in load_config().refine.passes
