@@ -68,3 +68,30 @@ def test_rerun_makes_the_missing_folders_and_refuses_a_store(runner, box_png, tm
         "Error: --rerun s3://bucket/x.rrd: a local file is needed (the Rerun SDK writes "
         "files, not objects of a store)"]
     assert not (tmp_path / "out2").exists()
+
+
+def test_rerun_refuses_a_name_that_is_no_recording_before_any_work(runner, box_png, tmp_path):
+    # `--rerun` wrote its log over the file it was given: the input image, the
+    # intrinsics, an output of the batch.
+    out = tmp_path / "out"
+    before = box_png.read_bytes()
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(out), "--rerun", str(box_png)])
+    assert res.exit_code == 2
+    assert res.output.strip().splitlines() == [
+        f"Error: --rerun {box_png}: name the log FILE.rrd, as the Rerun viewer opens it "
+        "(another name could be an input or output)"]
+    other = tmp_path / "notes.rrd"
+    other.write_text("my notes")
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(out), "--rerun", str(other)])
+    assert res.exit_code == 2
+    assert res.output.strip().splitlines() == [
+        f"Error: --rerun {other}: exists and is no Rerun recording; name a new file or "
+        "remove it"]
+    assert box_png.read_bytes() == before and other.read_text() == "my notes"
+    assert not out.exists()
+    log = tmp_path / "again.rrd"  # a recording is written over, as before
+    for _ in range(2):
+        res = runner.invoke(main, ["run", str(box_png), "-o", str(out), "-q", "--overwrite",
+                                   "--rerun", str(log)])
+        assert res.exit_code == 0, res.output
+    assert list(_steps(log)["/image"]) == [0]

@@ -220,3 +220,27 @@ def test_a_depth_run_warns_once_when_the_cup_size_cannot_apply(tmp_path, write_p
                                           str(tmp_path / "q"), "--preset", "mm-depth", "-q",
                                           *args])
         assert quiet.exit_code == 0 and "warning" not in quiet.stderr
+
+
+@pytest.mark.parametrize(("option", "name"), [("--background", "a.range.npy"),
+                                              ("--roi", "a.labels.png")])
+def test_a_workspace_file_an_output_would_replace_is_refused_before_any_work(
+        scene, write_png, option, name):
+    # The batch wrote a.range.npy and a.labels.png over the background and the ROI
+    # it had been given in OUT: both lost, and the next run failed on them.
+    out = scene / "out"
+    out.mkdir()
+    kept = out / name
+    if name.endswith(".npy"):
+        np.save(kept, table().astype(np.float64))
+    else:
+        write_png(kept, np.full((48, 48), 255, np.uint8))
+    before = kept.read_bytes()
+    code, output = invoke("run", str(scene / "in"), "-o", str(out), option, str(kept))
+    assert code == 2
+    assert output.strip().splitlines() == [
+        f"Error: {kept} is the [workspace] {option[2:]} file, and this run would overwrite "
+        f"it with an output of {scene / 'in' / 'a.png'}; choose another output folder or "
+        "move the file"]
+    assert kept.read_bytes() == before
+    assert sorted(p.name for p in out.iterdir()) == [name]

@@ -263,7 +263,8 @@ def _same_file(a: Location | None, b: Location) -> bool:
 
 
 def check_inputs_kept(jobs: list[Job], out: Location, stages: tuple[str, ...],
-                      skipped_files: Iterable[str] = ()) -> None:
+                      skipped_files: Iterable[str] = (),
+                      files: Iterable[tuple[str, str]] = ()) -> None:
     """Refuse a batch that would write over, or delete, one of its own input files.
 
     Parameters
@@ -273,18 +274,28 @@ def check_inputs_kept(jobs: list[Job], out: Location, stages: tuple[str, ...],
         ``stages[0]`` and the later stages (written, or removed as stale).
     skipped_files
         The files of the input folders that are not read as images.
+    files
+        Other files the batch reads, as (what, path): e.g. ``("[workspace]
+        background", "out/x.range.npy")`` (:func:`workspace_files`).
 
     Raises
     ------
     OutputError
         One line naming the input and the image whose output would replace it:
         an input image named as another's output (``x.range.npy`` beside
-        ``x.png`` in OUT), or a file of an input folder named like an output
-        (so not read as an image) that no earlier run into ``out`` wrote.
+        ``x.png`` in OUT), a file of ``files``, or a file of an input folder
+        named like an output (so not read as an image) that no earlier run
+        into ``out`` wrote.
     """
     touched = _touched_files(jobs, out, stages)
     if not touched:
         return
+    for what, name in files:
+        other = _first_hit(name, touched)
+        if other is not None:
+            raise OutputError(f"{name} is the {what} file, and this run would overwrite it "
+                              f"with an output of {other.source}; choose another output "
+                              "folder or move the file")
     for job in jobs:
         other = _first_hit(job.source, touched) if job.source else None
         if other is not None:
@@ -302,6 +313,13 @@ def check_inputs_kept(jobs: list[Job], out: Location, stages: tuple[str, ...],
                               "rangeseg, it is not read as an image), and this run would "
                               f"overwrite it with an output of {other.source}; choose "
                               "another output folder or rename it")
+
+
+def workspace_files(config: Config) -> list[tuple[str, str]]:
+    """The files ``[workspace] background`` and ``roi`` name, as (key, path); none for ``""``."""
+    ws = config.workspace
+    return [(f"[workspace] {key}", path)
+            for key, path in (("background", ws.background), ("roi", ws.roi)) if path]
 
 
 def _touched_files(jobs: list[Job], out: Location, stages: tuple[str, ...]
@@ -771,7 +789,7 @@ def run_batch(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
     if n_jobs is not None and not 1 <= n_jobs <= MAX_JOBS:
         raise ValueError(f"`n_jobs` = {n_jobs!r}: expected 1 to {MAX_JOBS}, or None")
     io.check_output_protocol(out)
-    check_inputs_kept(jobs, out, stages, skipped_files or [])
+    check_inputs_kept(jobs, out, stages, skipped_files or [], workspace_files(config))
     frames = shared_frames(config, stages, intrinsics)
     with (_executor(executor, scheduler, n_jobs) as execute,  # dask: connect before any work
           outlock.held(out, command)):  # then one batch at a time in OUT

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -275,11 +276,26 @@ def _check_rerun(path: str) -> None:
     if "://" in path:
         raise UsageProblem(f"--rerun {path}: a local file is needed (the Rerun SDK writes "
                            "files, not objects of a store)")
+    if not path.lower().endswith(".rrd"):  # an input or an output's name: it was replaced
+        raise UsageProblem(f"--rerun {path}: name the log FILE.rrd, as the Rerun viewer "
+                           "opens it (another name could be an input or output)")
+    if os.path.lexists(path) and not _is_recording(Path(path)):
+        raise UsageProblem(f"--rerun {path}: exists and is no Rerun recording; name a new "
+                           "file or remove it")
     try:
         require_rerun()
         check_writable(Path(path))
     except (ConfigError, OutputError) as exc:
         raise UsageProblem(str(exc)) from None
+
+
+def _is_recording(path: Path) -> bool:
+    """Whether ``path`` is a file that starts as a Rerun recording (``RRF``)."""
+    try:
+        with open(path, "rb") as handle:
+            return path.is_file() and handle.read(3) == b"RRF"
+    except OSError:
+        return False
 
 
 def _write_rerun(path: str, jobs: list[Any], out: Any, config: Any, summary: Any) -> None:
