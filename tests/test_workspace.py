@@ -406,6 +406,22 @@ def test_site_size_on_a_camera_scene_is_footprint_mm_at_its_depth():
     assert np.all(window == site.surface)
 
 
+@pytest.mark.parametrize(("tables", "said"), [
+    ({"input": {"metres_per_unit": 1.0}}, "spans 0.00667 px at the frame's median depth of 600 m"),
+    ({"holdsite": {"footprint_mm": [0.02, 0.02]}}, "spans 0.00667 px at the frame's median "
+                                                  "depth of 0.6 m"),
+])
+def test_a_cup_smaller_than_a_pixel_is_a_wrong_unit_and_no_site(tables, said):
+    # Millimetres read as metres: a 1x1 px site 600 m away, given without a word.
+    depth = plane_depth(0, (0, 0, 600))
+    depth[20:70, 20:80] = plane_depth(0, (0, 0, 560))[20:70, 20:80]
+    assert site_of(run_pipeline(noisy(depth, 0.5), cam_config())) is not None
+    result = run_pipeline(noisy(depth, 0.5), cam_config(**tables)).holdsite
+    assert result.holdsite is None and result.candidates == ()
+    assert result.reason.startswith("no site sought: holdsite.footprint_mm = ")
+    assert said in result.reason and "check --preset" in result.reason
+
+
 # --- 5. flatness -----------------------------------------------------------------------
 
 

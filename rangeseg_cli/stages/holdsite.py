@@ -863,6 +863,30 @@ def footprint_fallback(config: Config) -> str:
             f" the footprint is holdsite.size, {hold.size[0]}x{hold.size[1]} px")
 
 
+def sub_pixel_footprint(config: Config, depth: float) -> str:
+    """Why no site can be sought: ``footprint_mm`` spans less than a pixel ("" when not).
+
+    ``depth`` (depth units) is the frame's median. A cup smaller than one
+    pixel at the frame's depth is no camera over a bin: the depth unit
+    (``[input] metres_per_unit``) or the cup's size is wrong, and a site
+    found with the depth unit wrong would send the gripper metres or
+    kilometres away. So the holdsite is ``None`` with this reason.
+    """
+    camera = config.input
+    if not footprint_in_mm(config.holdsite, camera) or depth <= 0:
+        return ""
+    mm = depth * camera.metres_per_unit * 1000.0
+    short = min(config.holdsite.footprint_mm[0] * camera.fy,
+                config.holdsite.footprint_mm[1] * camera.fx) / mm
+    if short >= 1.0:
+        return ""
+    return (f"no site sought: holdsite.footprint_mm = {list(config.holdsite.footprint_mm)} "
+            f"spans {short:.3g} px at the frame's median depth of {mm / 1000.0:.3g} m "
+            f"([input] metres_per_unit = {camera.metres_per_unit:g}); a cup smaller than a "
+            "pixel means a wrong unit: check --preset, [input] metres_per_unit and "
+            "holdsite.footprint_mm")
+
+
 def _footprint_lacks(camera: InputConfig) -> list[str]:
     """What ``footprint_mm`` needs and ``camera`` lacks (none: it applies when set)."""
     return [what for what, missing in (
@@ -2201,6 +2225,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     # the median depth only sizes a footprint_mm (the median costs a pass over the image)
     depth = (-float(np.nanmedian(z)) if valid.any() else 0.0) if footprint_in_mm(
         config.holdsite, config.input) else 0.0
+    wrong_unit = sub_pixel_footprint(config, depth)
+    if wrong_unit:
+        return HoldsiteResult(None, wrong_unit, camera=config.input.has_intrinsics)
     area = math.prod(footprint_pixels(config.holdsite, config.input, depth))
     on_support = None
     if space.height is not None:
