@@ -243,6 +243,23 @@ def test_background_frame_leaves_only_the_new_box_pickable():
     assert without[8:17, 43:57].all()  # the fixture, without the background frame
 
 
+def test_a_frame_behind_its_background_says_so_in_the_reason():
+    # A background in mm beside a frame in 0.1 mm: "nothing stands on the support",
+    # and nothing said of why.
+    depth = plane_depth(0, (0, 0, 600))
+    depth[20:70, 20:80] = plane_depth(0, (0, 0, 560))[20:70, 20:80]
+    cfg = cam_config()
+    table = noisy(plane_depth(0, (0, 0, 600)), 0.5, seed=1)
+    right = run_pipeline(noisy(depth, 0.5), cfg, background=table)
+    assert site_of(right) is not None
+    assert "behind the background" not in right.holdsite.reason
+    for other in (table / 10.0, table - 100.0):  # another unit; the camera moved back
+        wrong = run_pipeline(noisy(depth, 0.5), cfg, background=other).holdsite
+        assert wrong.reason.endswith("; the frame lies behind the background frame at 100% "
+                                     "of the pixels both read: is the background of "
+                                     "another camera, pose or depth unit?")
+
+
 def test_background_holes_are_filled_from_their_neighbours_within_reach():
     bg = np.full((64, 64), 20.0)
     bg[10:18, 10:18] = np.nan  # a small hole: every pixel within reach of a reading

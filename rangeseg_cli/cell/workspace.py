@@ -117,6 +117,10 @@ class Workspace:
     extent
         bool (H, W): pixels inside the support's extent in the image (the
         convex hull of its large pieces), or ``None`` without a support.
+    behind
+        Share of the pixels both frames read that lie behind the background
+        frame by more than its tolerance (0 without one): most of them, and
+        the background is of another camera, pose or unit.
     """
 
     pickable: np.ndarray
@@ -124,6 +128,7 @@ class Workspace:
     support: Plane | None
     tolerance: float
     extent: np.ndarray | None = None
+    behind: float = 0.0
 
 
 def default_tolerance(z: np.ndarray, camera: InputConfig, noise: float) -> float:
@@ -527,14 +532,15 @@ def assess(z: np.ndarray, config: Config, noise: float, *,
         return Workspace(pickable, None, None, tol)
     smooth = _median3(z)
     # the empty scene shows the whole support: found there when given
-    ref, filled, ref_pts = smooth, None, None
+    ref, filled, ref_pts, behind = smooth, None, None, 0.0
     if background is not None:
         ref, filled, ref_pts = prepared_background(background, config.input)
         bg_tol = ws.background_tolerance or auto
         pickable &= ~matches_background(smooth, ref, bg_tol, filled=filled)
+        behind = behind_share(smooth, filled, bg_tol)
     plane = find_support(ref, config.input, tol) if ws.support else None
     if plane is None:
-        return Workspace(pickable, None, None, tol)
+        return Workspace(pickable, None, None, tol, behind=behind)
     pts = points(smooth, config.input)
     height = plane.distance(pts)
     with np.errstate(invalid="ignore"):
@@ -548,7 +554,18 @@ def assess(z: np.ndarray, config: Config, noise: float, *,
         pickable = over_support(pts, height, hull, plane, config.input, where=pickable)
     else:  # a height map's feet are its pixels, and its extent is not shrunk
         pickable &= extent
-    return Workspace(pickable, height, plane, tol, extent)
+    return Workspace(pickable, height, plane, tol, extent, behind)
+
+
+def behind_share(z: np.ndarray, background: np.ndarray, tol: float) -> float:
+    """Share of the pixels both frames read where ``z`` lies more than ``tol`` below ``background``.
+
+    Heights; 0 when no pixel is read by both.
+    """
+    known = np.isfinite(z) & np.isfinite(background)
+    if not known.any():
+        return 0.0
+    return float(np.count_nonzero(z[known] - background[known] < -tol)) / int(known.sum())
 
 
 def support_hull(on: np.ndarray) -> np.ndarray | None:

@@ -985,6 +985,18 @@ def floating_objects(objects: list[ObjectInfo]) -> set[int]:
     return {o.id for o in objects} - supported
 
 
+#: Share of a frame's pixels behind the background frame above which the reason says so.
+BEHIND_NOTE = 0.5
+
+
+def _background_note(space: Workspace) -> str:
+    """What the reason adds when most of the frame lies behind its background frame."""
+    if space.behind <= BEHIND_NOTE:
+        return ""
+    return (f"; the frame lies behind the background frame at {space.behind:.0%} of the "
+            "pixels both read: is the background of another camera, pose or depth unit?")
+
+
 def _nothing_to_pick(by_id: dict[int, Surface], objects: list[ObjectInfo],
                      space: Workspace) -> str:
     """The reason of an image with no candidate object."""
@@ -2275,7 +2287,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     objs, out = tuple(_named_as_labelled(objects, origin)), tuple(sorted(excluded))
     if not found:
         reason = (_failure(hold, missed, scene.flat_limit) if order
-                  else _nothing_to_pick(by_id, objects, space)) + _unit_note(config)
+                  else _nothing_to_pick(by_id, objects, space)) + _unit_note(config) \
+            + _background_note(space)
         return HoldsiteResult(None, reason, (), bg, objs, camera, out)
     # Step 5: the best window, then the runners-up
     sites = [dataclasses.replace(site, surface=origin.get(site.surface, site.surface))
@@ -2283,5 +2296,6 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     rank = {s.id: k for k, s in enumerate(order)}
     first = rank[found[0].surface.id]  # (carved pieces are named by their region below)
     before = [h for h in missed if rank[h.surface.id] < first]
-    reason = _success(sites[0], obj_by_id[sites[0].object], before, hold) + _unit_note(config)
+    reason = (_success(sites[0], obj_by_id[sites[0].object], before, hold)
+              + _unit_note(config) + _background_note(space))
     return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera, out)
