@@ -351,3 +351,20 @@ def test_run_batch_refuses_an_out_it_cannot_write_before_any_work(tmp_path):
         run_batch([], location("https://example.com/out"), load_config(), ("edges",))
     check_output_protocol(tmp_path)  # a local folder, and
     check_output_protocol("memory://out")  # a store that can be written, pass
+
+
+def test_a_damaged_intermediate_array_is_named_with_what_to_do(tmp_path):
+    # numpy's own text said "... use allow_pickle=", which no user of rangeseg can.
+    from rangeseg_cli.errors import OutputError
+
+    garbage, objects = tmp_path / "a.labels.npy", tmp_path / "b.labels.npy"
+    garbage.write_bytes(b"garbage")
+    np.save(objects, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    for path in (garbage, objects):
+        with pytest.raises(OutputError) as info:
+            io.read_npy(path)
+        message = str(info.value)
+        assert message.startswith(f"{path}: cannot read: damaged, or not an array rangeseg "
+                                  "wrote (")
+        assert message.endswith("); redo its stage (--overwrite)")
+        assert "allow_pickle" not in message

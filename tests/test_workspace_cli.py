@@ -124,6 +124,8 @@ def test_a_frame_of_another_size_fails_that_image_only(scene, write_png):
     ("--roi", np.zeros((48, 48, 3), np.uint8), "[workspace] roi: {path}: has 3 channels"),
     ("--roi", np.zeros((48, 48), np.float32), "[workspace] roi: {path}: pixel type float32 "
                                               "is not a mask"),
+    ("--roi", np.zeros((48, 48), np.uint8), "[workspace] roi: {path}: every pixel is 0, so "
+                                            "no site could be picked anywhere"),
     ("--background", np.zeros((48, 48), np.float32),
      "[workspace] background: {path}: no valid"),
 ])

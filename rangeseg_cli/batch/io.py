@@ -979,7 +979,9 @@ def read_npy(path: Location) -> np.ndarray:
     except FileNotFoundError:
         raise OutputError(f"{path}: missing; run the earlier stage first") from None
     except (OSError, ValueError) as exc:
-        raise OutputError(f"{path}: cannot read ({exc})") from None
+        why = "it holds Python objects" if "allow_pickle" in str(exc) else str(exc)
+        raise OutputError(f"{path}: cannot read: damaged, or not an array rangeseg wrote "
+                          f"({why}); redo its stage (--overwrite)") from None
 
 
 def write_png(path: Location, image: np.ndarray) -> None:

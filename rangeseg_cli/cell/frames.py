@@ -129,13 +129,18 @@ def roi_mask(raw: Any, *, name: str = "`roi`") -> np.ndarray:
     Raises
     ------
     InputError
-        For floating-point values, a colour image or another shape.
+        For floating-point values, a colour image or another shape, and a
+        mask without a non-zero pixel (nothing could ever be picked).
     """
     arr = check_array(raw, name=name)
     if arr.dtype.kind not in "biu":
         raise InputError(f"{name}: pixel type {arr.dtype} is not a mask; allowed: integer or "
                          "boolean values (non-zero = may be picked)")
-    return arr != 0
+    mask = arr != 0
+    if not mask.any():
+        raise InputError(f"{name}: every pixel is 0, so no site could be picked anywhere; "
+                         "non-zero marks where one may be")
+    return mask
 
 
 def check_frame_size(shape: tuple[int, ...], frames: SharedFrames, name: str) -> None:
