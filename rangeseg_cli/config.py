@@ -712,7 +712,12 @@ def build_config(values: dict[str, Any], source: str = "config") -> Config:
         On an unknown table or key, a wrong type or a value out of range.
     """
     config = Config(**_build_tables(values, source))
-    _check_consistency(config)
+    try:
+        _check_consistency(config)
+    except ConfigError as exc:  # a clash of keys: named with the file too
+        if source == "config" or str(exc).startswith(f"{source}: "):
+            raise
+        raise ConfigError(f"{source}: {exc}") from None
     return config
 
 
@@ -914,16 +919,19 @@ def load_config(
         if preset not in PRESETS:
             raise ConfigError(f"unknown preset {preset!r}; allowed: " + ", ".join(PRESETS))
         values = merge(values, PRESETS[preset])
-    source = "config"
+    filed = None
     if path is not None:
-        source = str(path)
         from_file = read_toml(Path(path))
-        _build_tables(from_file, source)  # a bad value is named with its file
-        values = merge(values, from_file)
-        source = "config"
+        _build_tables(from_file, str(path))  # a bad value is named with its file
+        values = filed = merge(values, from_file)
     if overrides:
         values = merge(values, overrides)
-    return build_config(values, source)
+    try:
+        return build_config(values)
+    except ConfigError:
+        if filed is not None:  # a clash of the file's own keys (min_height > max_height)
+            build_config(filed, str(path))  # raises it, named with the file
+        raise
 
 
 def parse_settings(items: Iterable[str]) -> dict[str, dict[str, Any]]:

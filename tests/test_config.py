@@ -276,6 +276,26 @@ def test_file_value_fixed_by_an_override_is_accepted(tmp_path):
     assert load_config(path, overrides={"roof": {"threshold_a": 8.0}}).roof.threshold_b == 7.0
 
 
+@pytest.mark.parametrize("table, entries, message", [
+    ("workspace", {"min_height": 10.0, "max_height": 5.0},
+     "[workspace] min_height = 10.0: must be below max_height (5.0)"),
+    ("workspace", {"roi_box": [10, 10, 5, 5]}, "[workspace] roi_box = [10, 10, 5, 5]: "),
+    ("input", {"intrinsics": [-616.0, 616.0, 311.0, 231.0]},
+     "[input] intrinsics = [-616.0, 616.0, 311.0, 231.0]: camera intrinsics need"),
+])
+def test_keys_of_a_file_that_clash_name_the_file_and_not_for_command_line_values(
+        tmp_path, table, entries, message):
+    path = tmp_path / "cell.toml"
+    path.write_text(f"[{table}]\n" + "".join(f"{k} = {v}\n" for k, v in entries.items()))
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value).startswith(f"{path}: {message}")
+    path.write_text("")
+    with pytest.raises(ConfigError) as info:
+        load_config(path, overrides={table: entries})
+    assert str(info.value).startswith(message)
+
+
 @pytest.mark.parametrize("table", ["step", "roof"])
 def test_gaussian_narrower_than_half_a_pixel_is_refused(table):
     # sigma 1e-300 gave NaN weights (a RuntimeWarning and no edges at all)
