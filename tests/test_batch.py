@@ -159,6 +159,39 @@ def test_resume_redoes_images_made_with_another_config(good_folder, tmp_path):
     assert json.loads(res.output)["done"] == 4
 
 
+@pytest.mark.parametrize("jobs", ["1", "2"])
+@pytest.mark.parametrize(("setting", "redone"), [
+    ("holdsite.max_tilt=30", ["holdsite"]),
+    ("grow.min_error=0.3", ["grow", "holdsite"]),
+])
+def test_resume_redoes_an_image_from_its_first_stage_out_of_date(good_folder, tmp_path, jobs,
+                                                                  setting, redone):
+    # A new holdsite setting redid edges, link and grow too (50 s on a 5 MP frame); the
+    # files of the stages before stay, and the results are those of a fresh run.
+    runner = CliRunner()
+    out, fresh = tmp_path / "o", tmp_path / "fresh"
+    run = ["run", str(good_folder), "-j", jobs, "-q"]
+    runner.invoke(main, [*run, "-o", str(out)])
+    stamps = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    res = runner.invoke(main, [*run, "-o", str(out), "--resume", "--json", "--set", setting])
+    summary = json.loads(res.output)
+    assert res.exit_code == 0 and summary["done"] == 4
+    assert sorted(summary["stage_seconds"]) == sorted(redone)
+    rewritten = {p.name.split(".", 1)[1] for p in out.iterdir()
+                 if p.name != "rangeseg-run.json" and p.stat().st_mtime_ns != stamps[p.name]}
+    kept = {"range.npy", "edges.npy", "components.npy"}
+    assert not rewritten & kept and "holdsite.json" in rewritten
+    assert ("labels.npy" in rewritten) == ("grow" in redone)
+    images = json.loads((out / "rangeseg-run.json").read_text())["images"]
+    assert all(e["stages"] == ["edges", "link", "grow", "holdsite"] and "noise_sigma" in e
+               and "input_stamp" in e for e in images.values())
+    again = runner.invoke(main, [*run, "-o", str(out), "--resume", "--json", "--set", setting])
+    assert json.loads(again.output)["resumed"] == 4
+    runner.invoke(main, [*run, "-o", str(fresh), "--set", setting])
+    assert {k: v for k, v in tree_bytes(out).items() if k != "rangeseg-run.json"} == \
+        {k: v for k, v in tree_bytes(fresh).items() if k != "rangeseg-run.json"}
+
+
 def test_resume_redoes_an_image_whose_input_was_replaced(good_folder, tmp_path, write_png):
     """A frame replaced under the same name (cron over a camera folder) is not kept as done."""
     runner = CliRunner()

@@ -58,6 +58,7 @@ from .jobs import (
     Job,
     Record,
     StopFlag,
+    job_stages,
     process_image,
     remove_failed_outputs,
     remove_stale_temporaries,
@@ -232,8 +233,10 @@ class _Batch:
 
     def failed(self, job: Job, error: str) -> Record:
         """A failed record for an image whose task gave none; its stale outputs are removed."""
-        record = Record(rel=job.rel, status="failed", source=job.source, error=error)
-        remove_failed_outputs(self.out, record, self.stages[0])
+        first = job_stages(job, self.stages)[0]
+        record = Record(rel=job.rel, status="failed", source=job.source, error=error,
+                        first_stage=first)
+        remove_failed_outputs(self.out, record, first)
         return record
 
     def lost(self, exc: BaseException) -> bool:

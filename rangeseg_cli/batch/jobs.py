@@ -58,10 +58,20 @@ STAGE_CLOUDS: dict[str, tuple[str, ...]] = {
 
 @dataclass(frozen=True)
 class Job:
-    """One image of a batch: its source file (for ``edges``) and relative stem."""
+    """One image of a batch: its source file (for ``edges``) and relative stem.
+
+    ``start``: the first of the batch's stages to run for it (``--resume``
+    redoes an image from its first stage out of date); None: the batch's first.
+    """
 
     rel: str
     source: str | None = None
+    start: str | None = None
+
+
+def job_stages(job: Job, stages: tuple[str, ...]) -> tuple[str, ...]:
+    """The stages of ``stages`` that ``job`` runs: from its ``start`` when that is one."""
+    return stages[stages.index(job.start):] if job.start in stages else stages
 
 
 @dataclass
@@ -77,6 +87,7 @@ class Record:
     noise_sigma: float | None = None
     clipped_pixels: int = 0
     input_stamp: str | None = None  # the input's version its results were made from
+    first_stage: str | None = None  # the first stage run (None: the batch's first)
 
     def to_dict(self) -> dict[str, Any]:
         """Manifest entry."""
@@ -103,8 +114,9 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
     Parameters
     ----------
     job
-        The image: ``source`` is read when ``stages`` starts at ``edges``;
-        otherwise the earlier stage's files in ``out`` are read.
+        The image: ``source`` is read when its stages start at ``edges``;
+        otherwise the earlier stage's files in ``out`` are read. It runs
+        ``stages`` from its ``start`` (:func:`job_stages`).
     out
         The output folder (a local path or a :class:`~rangeseg_cli.batch.io.URLPath`).
     config
@@ -122,7 +134,8 @@ def process_image(job: Job, out: Location, config: Config, stages: tuple[str, ..
         failed image's files of ``stages`` and the later stages are deleted
         (:func:`remove_failed_outputs`), whichever run wrote them.
     """
-    record = Record(rel=job.rel, status="done", source=job.source)
+    stages = job_stages(job, stages)
+    record = Record(rel=job.rel, status="done", source=job.source, first_stage=stages[0])
     base = out / job.rel
     try:
         frames = frames or SharedFrames()

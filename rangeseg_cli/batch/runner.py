@@ -66,6 +66,7 @@ from .jobs import (
     StopFlag,
     Terminated,
     expected_files,
+    job_stages,
     process_image,
     remove_failed_outputs,
     remove_stale_temporaries,
@@ -562,15 +563,15 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
     for job in jobs:
         entry = images.get(job.rel, {})
         made = _stage_configs(entry, whole, digests)
-        complete = (entry.get("status") == "done"
-                    and all(made.get(s) == digests[s] for s in stages)
-                    and _same_input(job, entry, stages[0])
-                    and all(exists(f"{job.rel}.{n}")
-                            for n in expected_files(job.rel, stages, config)))
-        if complete:
-            skipped.append(Record(rel=job.rel, status="skipped", source=job.source))
-        else:
+        current = [entry.get("status") == "done" and made.get(s) == digests[s]
+                   and all(exists(f"{job.rel}.{n}") for n in expected_files(job.rel, (s,), config))
+                   for s in stages]
+        if not _same_input(job, entry, stages[0]) or not current[0]:
             todo.append(job)
+        elif all(current):
+            skipped.append(Record(rel=job.rel, status="skipped", source=job.source))
+        else:  # its stages before the first out of date stay: redone from that one on
+            todo.append(replace(job, start=stages[current.index(False)]))
     return todo, skipped
 
 
@@ -672,14 +673,14 @@ class _Manifest:
             self.header = {}
         entry = record.to_dict()
         old = self.data["images"].get(record.rel, {})
-        first = STAGES.index(self.stages[0])
+        first = STAGES.index(record.first_stage or self.stages[0])
         # the stages before these stay current when the tables they read are unchanged;
         # these and the later ones are redone or lost
         made = _stage_configs(old, self.whole, self.digests)
         kept = {s: d for s, d in made.items()
                 if s in STAGES and STAGES.index(s) < first and self.digests.get(s) == d}
         if record.status == "done":
-            kept.update({s: self.digests[s] for s in self.stages})
+            kept.update({s: self.digests[s] for s in self.stages if STAGES.index(s) >= first})
         entry["stages"] = [s for s in STAGES if s in kept]
         entry["stage_configs"] = {s: kept[s] for s in entry["stages"]}
         entry["config"] = self.whole
@@ -698,8 +699,8 @@ class _Manifest:
         image (SIGKILL, power loss) leaves that image to be redone, never its
         files of the new settings under the entry of the old ones.
         """
-        first = STAGES.index(self.stages[0])
         for job in todo:
+            first = STAGES.index(job_stages(job, self.stages)[0])
             self.before[job.rel] = self.data["images"].get(job.rel)
             entry = dict(self.data["images"].get(job.rel, {}))
             entry["status"] = "running"
@@ -929,7 +930,7 @@ def _execute_pool(todo: list[Job], out: Location, config: Config, stages: tuple[
         rest = _pool_round(left, out, config, stages, frames, n_jobs, finish, stop)
         if len(rest) == len(left):  # a pool that broke before taking any image: no retry
             for job in rest:
-                finish(_lost(job, out, stages[0]))
+                finish(_lost(job, out, job_stages(job, stages)[0]))
             return
         left = rest
 
@@ -967,7 +968,8 @@ def _pool_round(jobs: list[Job], out: Location, config: Config, stages: tuple[st
                 _not_started(jobs[submitted:], finish)
                 stop.check()
             for fut, job in pending.items():
-                finish(fut.result() if _finished(fut) else _lost(job, out, stages[0]))
+                finish(fut.result() if _finished(fut) else
+                       _lost(job, out, job_stages(job, stages)[0]))
             return jobs[submitted:]
         except KeyboardInterrupt:
             stopping_now.set()
@@ -1020,7 +1022,7 @@ def _keep_finished(pending: dict[Future[Record], Job], finish: Callable[[Record]
 
 def _lost(job: Job, out: Location, first: str) -> Record:
     """The failed record of an image in flight when a worker died; its outputs removed."""
-    record = Record(rel=job.rel, status="failed", source=job.source, error=(
+    record = Record(rel=job.rel, status="failed", source=job.source, first_stage=first, error=(
         f"{job.source or job.rel}: its worker process died (killed, or out of memory?) while "
         "it was in progress; rerun with --resume, with fewer --jobs if memory is short"))
     remove_failed_outputs(out, record, first)
