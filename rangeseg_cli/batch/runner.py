@@ -629,14 +629,26 @@ def _refuse_stale(jobs: list[Job], images: dict[str, Any], first: str, config: C
         entry = images.get(job.rel)
         made = _stage_configs(entry, whole, digests) if isinstance(entry, dict) else {}
         if made.get(before) != wanted:
+            why = _why_stale(entry, made, before, tables)
             refused.append(Record(rel=job.rel, status="failed", error=(
-                f"{job.rel}: its `{before}` result is missing, failed, not recorded in the "
-                f"manifest, older than its earlier stages or made with other settings of "
-                f"{tables} than these; run {again} first, or give this command the "
-                "settings that made it")))
+                f"{job.rel}: its `{before}` result {why}; run {again} first" + (
+                    ", or give this command the settings that made it"
+                    if before in made else ""))))
         else:
             todo.append(job)
     return todo, refused
+
+
+def _why_stale(entry: Any, made: dict[str, str], before: str, tables: str) -> str:
+    """Why an image's ``before`` result cannot go on (:func:`_refuse_stale`)."""
+    if not isinstance(entry, dict):
+        return "is not recorded in the manifest (nothing tells what made its files)"
+    if before in made:
+        return f"was made with other settings of {tables} than these"
+    if entry.get("status") == "failed":
+        return "is missing: the image failed in the last run"
+    return ("is missing, or out of date since an earlier stage was redone (or the "
+            "manifest was written before per-stage settings)")
 
 
 class _Manifest:
