@@ -80,6 +80,8 @@ def test_the_sr300_matrix_file_gives_its_focal_lengths_and_principal_point():
     f"{FX} 0 {CX}\n0 {FY} {CY}\n0 0 1\n",
     f"{FX}, 0, {CX}\n0, {FY}, {CY}\n0, 0, 1\n",
     f"# K of the depth camera\n[[{FX} 0. {CX}]\n [0. {FY} {CY}]\n [0. 0. 1.]]\n",
+    json.dumps([[FX, 0, CX], [0, FY, CY], [0, 0, 1]]),  # was "a 1x9 matrix"
+    json.dumps([[FX, 0, CX], [0, FY, CY], [0, 0, 1]], indent=2),
 ])
 def test_a_matrix_as_text_is_read_whitespace_comma_or_numpy_printed(tmp_path, text):
     got = read_intrinsics(write(tmp_path, "k.dat", text))
@@ -121,6 +123,9 @@ def test_unknown_size_written_as_zero_or_minus_one_is_no_size(tmp_path):
     ("K: [1, 0, 1, 0, true, 1, 0, 0, 1]\n", "K holds True, not a number"),
     ("camera_matrix: {rows: 3, cols: 4, data: [1]}\n", "camera_matrix is 3x4"),
     ("just some words in a file\n", "not a camera intrinsics file"),
+    (f"width: 640\nheight: 480\nK: [{FX},0,{CX},0,{FY},{CY},0,0,1\n",  # no closing bracket
+     "has keys (width:) but reads as no YAML or JSON mapping (check its brackets"),
+    (json.dumps([[FX, 0, CX, 0], [0, FY, CY, 0], [0, 0, 1, 0]]), "a 3x4 matrix"),
 ])
 def test_bad_files_are_one_line_naming_the_file(tmp_path, text, message):
     path = write(tmp_path, "bad.txt", text)

@@ -121,6 +121,9 @@ def _parse(text: str, source: str) -> Intrinsics:
     """The intrinsics in ``text``: a table of numbers, else a JSON or YAML mapping."""
     if not text.strip():
         raise _Bad(f"empty file; {ALLOWED}")
+    nested = _json_rows(text)
+    if nested is not None:  # [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]: a matrix as JSON
+        return _from_matrix_rows(nested, source)
     rows = _number_rows(text)
     if rows == []:
         raise _Bad(f"holds only comments; {ALLOWED}")
@@ -128,9 +131,26 @@ def _parse(text: str, source: str) -> Intrinsics:
         return _from_matrix_rows(rows, source)
     mapping = _mapping(text)
     if mapping is None:
+        key = re.search(r"^\s*([A-Za-z_]\w*)\s*:", text, re.MULTILINE)
+        if key:  # a mapping that YAML cannot read: not a table with a typo
+            raise _Bad(f"has keys ({key.group(1)}:) but reads as no YAML or JSON mapping "
+                       f"(check its brackets and indentation); {ALLOWED}")
         _first_non_number(text)  # a table with a typo: name it
         raise _Bad(f"not a camera intrinsics file; {ALLOWED}")
     return _from_mapping(mapping, source)
+
+
+def _json_rows(text: str) -> list[list[float]] | None:
+    """``text`` as a JSON list of rows of numbers (booleans are none), else None."""
+    try:
+        data = json.loads(text)
+    except ValueError:
+        return None
+    if (isinstance(data, list) and data and all(isinstance(r, list) and r for r in data)
+            and all(isinstance(v, int | float) and not isinstance(v, bool)
+                    for r in data for v in r)):
+        return [[float(v) for v in r] for r in data]
+    return None
 
 
 def _lines(text: str) -> list[str]:
