@@ -120,3 +120,57 @@ def test_the_paper_preset_joins_nothing():
     # the old key [split] join_occluded is refused naming refine.passes: tests/test_config.py
     assert "join_occluded" not in load_config(preset="paper").refine.passes
     assert "join_occluded" in CONFIG.refine.passes
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_screen_in_row_blocks_is_the_whole_matrix_screen(seed, monkeypatch):
+    # The (n, n) screen took gigabytes on a 5 MP frame of thousands of regions; in
+    # blocks of rows it keeps the same pairs in the same order.
+    from rangeseg_cli.refine import occlusion
+    from rangeseg_cli.stages.grow import evaluate_quadric
+
+    rng = np.random.default_rng(seed)
+    n = 37
+    coeffs = rng.normal(0, 1, (n, 6)) * [50, 0.5, 0.5, 0.002, 0.002, 0.002]
+    coeffs[::3] = coeffs[0]  # some surfaces shared: pairs to keep
+    rows, cols = rng.uniform(0, 200, n), rng.uniform(0, 300, n)
+    at = evaluate_quadric(coeffs[:, None, :], rows[None, :], cols[None, :])
+    off = np.abs(at - np.diag(at)[None, :])
+    want = np.nonzero(np.triu(np.minimum(off, off.T) <= 5.0, 1))
+    monkeypatch.setattr(occlusion, "SCREEN_ROWS", 5)
+    got = occlusion.screened_pairs(coeffs, rows, cols, 5.0)
+    assert want[0].size > 0
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_a_groups_border_found_in_its_own_box_is_the_one_in_any_larger_box():
+    # Each pair's test found both borders again in the pair's box (a binary erosion
+    # of up to the whole frame per pair: 108 of 158 s on a 5 MP frame).
+    from rangeseg_cli.refine import occlusion
+    from rangeseg_cli.refine.graph import region_graph
+
+    rng = np.random.default_rng(3)
+    labels = ndimage_label_blobs(rng)
+    n = int(labels.max())
+    graph = region_graph(np.zeros(labels.shape), labels, n)
+    cache: dict = {}
+    for a in range(1, n + 1):
+        got = occlusion.group_border(graph, a, cache)
+        for box in ((slice(0, 60), slice(0, 80)), occlusion.join_box(graph.boxes[a],
+                                                                     graph.boxes[n + 1 - a])):
+            start = np.array([box[0].start, box[1].start])
+            np.testing.assert_array_equal(got - start,
+                                          occlusion._border(labels[box] == a))
+    keep = graph.join(1, 2, 0.0)  # a group that grew is found again, not taken from the cache
+    whole = occlusion._border(graph.labels == keep)
+    np.testing.assert_array_equal(occlusion.group_border(graph, keep, cache), whole)
+
+
+def ndimage_label_blobs(rng: np.random.Generator) -> np.ndarray:
+    """Labels of random blobs on a 60 x 80 grid (some touching the frame)."""
+    from scipy import ndimage
+
+    noise = ndimage.gaussian_filter(rng.normal(size=(60, 80)), 3)
+    labels, _ = ndimage.label(noise > 0.05)
+    return labels.astype(np.int32)

@@ -121,10 +121,8 @@ def _candidate_pairs(graph: RegionGraph, fits: RegionFits, coeffs: np.ndarray,
     ids = ids[ids > 0]
     if ids.size < 2:
         return []
-    rows, cols = fits.centroid_row[ids], fits.centroid_col[ids]
-    at = evaluate_quadric(coeffs[ids][:, None, :], rows[None, :], cols[None, :])
-    off = np.abs(at - np.diag(at)[None, :])  # i's surface at j's centroid against j's own
-    first, second = np.nonzero(np.triu(np.minimum(off, off.T) <= SCREEN * level, 1))
+    first, second = screened_pairs(coeffs[ids], fits.centroid_row[ids],
+                                   fits.centroid_col[ids], SCREEN * level)
     if first.size == 0:
         return []
     touching = set(adjacent_pairs(graph.labels, 1))
@@ -133,21 +131,74 @@ def _candidate_pairs(graph: RegionGraph, fits: RegionFits, coeffs: np.ndarray,
     return sorted(t for t in scored if t[0] <= level * level)
 
 
+#: Rows of the screen of :func:`screened_pairs` at once: its (ids, ids) matrices took
+#: gigabytes on a 5 MP frame of thousands of regions.
+SCREEN_ROWS = 512
+
+
+def screened_pairs(coeffs: np.ndarray, rows: np.ndarray, cols: np.ndarray, limit: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i < j, row-major) where one surface predicts the other's centroid height.
+
+    Surface i at centroid j against surface j's own height there, and j at
+    i against i's own, within ``limit`` for either (Notes 1): (n, 6)
+    coefficients, (n,) centroids. :data:`SCREEN_ROWS` rows of the (n, n)
+    comparison at a time.
+    """
+    n = rows.shape[0]
+    own = evaluate_quadric(coeffs, rows, cols)  # each surface at its own centroid
+    firsts, seconds = [np.zeros(0, np.intp)], [np.zeros(0, np.intp)]
+    for lo in range(0, n, SCREEN_ROWS):
+        hi = min(lo + SCREEN_ROWS, n)
+        ahead = np.abs(evaluate_quadric(coeffs[lo:hi, None, :], rows[None, :], cols[None, :])
+                       - own[None, :])
+        back = np.abs(evaluate_quadric(coeffs[None, :, :], rows[lo:hi, None],
+                                       cols[lo:hi, None]) - own[lo:hi, None])
+        ok = (np.minimum(ahead, back) <= limit) & (np.arange(n) > np.arange(lo, hi)[:, None])
+        first, second = np.nonzero(ok)
+        firsts.append(first + lo)
+        seconds.append(second)
+    return np.concatenate(firsts), np.concatenate(seconds)
+
+
 def _border(mask: np.ndarray) -> np.ndarray:
     """(k, 2) row, col of the pixels of ``mask`` with a 4-neighbour outside it."""
     inner = ndimage.binary_erosion(mask, border_value=0)
     return np.argwhere(mask & ~inner)
 
 
-def _occluded(z: np.ndarray, groups: np.ndarray, a: int, b: int, coeffs: np.ndarray,
-              box: tuple[slice, slice], s: float) -> bool:
+def group_border(graph: RegionGraph, a: int, cache: dict[int, tuple[float, np.ndarray]]
+                 ) -> np.ndarray:
+    """(k, 2) image row, col of group a's border pixels (:func:`_border`), in raster order.
+
+    Taken in the group's own box: a pixel of the group on that box's edge has
+    its outer neighbour outside the group, so the set and its order are those
+    found in any box that holds the group. ``cache`` keeps each group's, keyed
+    by its pixel count (a join grows it: found again).
+    """
+    count = float(graph.counts[a])
+    hit = cache.get(a)
+    if hit is None or hit[0] != count:
+        box = graph.boxes[a]
+        hit = (count, _border(graph.labels[box] == a) + (box[0].start, box[1].start))
+        cache[a] = hit
+    return hit[1]
+
+
+def _occluded(z: np.ndarray, groups: np.ndarray, borders: tuple[np.ndarray, np.ndarray],
+              ab: tuple[int, int], coeffs: np.ndarray, box: tuple[slice, slice], s: float
+              ) -> bool:
     """Whether the shortest segment from patch a to patch b runs under something (Notes 3).
 
-    ``box`` holds both patches; ``coeffs`` is their union's surface in image
-    coordinates. The closest pair of their border pixels ends the segment.
+    ``box`` holds both patches (``ab``); ``borders`` are their border pixels
+    in image coordinates (:func:`group_border`); ``coeffs`` is their union's
+    surface in image coordinates. The closest pair of their border pixels
+    ends the segment.
     """
+    a, b = ab
     sub, zs = groups[box], z[box]
-    pa, pb = _border(sub == a), _border(sub == b)
+    start = np.array([box[0].start, box[1].start])
+    pa, pb = borders[0] - start, borders[1] - start
     dist, near = cKDTree(pa).query(pb)
     k = int(np.argmin(dist))
     p, q = pb[k], pa[int(near[k])]
@@ -171,6 +222,7 @@ def _join(z: np.ndarray, graph: RegionGraph, pairs: list[tuple[float, int, int]]
     """
     level = config.split.fit_factor * s
     evidence = config.split.crease_evidence * s * s
+    cache: dict[int, tuple[float, np.ndarray]] = {}  # each group's border (group_border)
 
     def one_surface(g: RegionGraph, a: int, b: int, union: float) -> bool:  # Notes 2
         if union > union_bound(g, a, b, level, config):
@@ -184,7 +236,10 @@ def _join(z: np.ndarray, graph: RegionGraph, pairs: list[tuple[float, int, int]]
         coeffs, mse = g.union_fit(a, b, 1 if flat[i] and flat[j] else 2)
         union = math.sqrt(max(mse, 0.0))
         box = join_box(g.boxes[a], g.boxes[b])
-        if not one_surface(g, a, b, union) or not _occluded(z, g.labels, a, b, coeffs, box, s):
+        if not one_surface(g, a, b, union):
+            return None
+        borders = (group_border(g, a, cache), group_border(g, b, cache))
+        if not _occluded(z, g.labels, borders, (a, b), coeffs, box, s):
             return None
         return union * union
 
