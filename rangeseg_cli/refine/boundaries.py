@@ -75,9 +75,6 @@ CREASE_REACH = 3
 #: Fraction of those pixels on which a region's surface must be the visible one.
 CREASE_AGREEMENT = 0.8
 
-#: Pair tables up to this size are counted densely (``bincount``), larger ones by sorting.
-_DENSE_PAIRS = 1 << 22
-
 #: The crease rule decides where two surfaces differ by less than this many ``s``.
 CREASE_CLOSE = 3.0
 
@@ -101,17 +98,36 @@ def _neighbour_labels(labels: np.ndarray, rows: np.ndarray, cols: np.ndarray) ->
     return np.pad(labels, 1).ravel()[flat[:, None] + steps]
 
 
-def _pair_counts(keys: np.ndarray, lower: np.ndarray, votes: np.ndarray, size: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per pair key (0..size-1): the sums of ``lower`` and of ``votes``."""
-    if size <= _DENSE_PAIRS:
-        return (np.bincount(keys, weights=lower, minlength=size),
-                np.bincount(keys, weights=votes, minlength=size))
-    pairs, where = np.unique(keys, return_inverse=True)  # many regions: sort, not a table
-    low, total = np.zeros(size), np.zeros(size)
-    low[pairs] = np.bincount(where, weights=lower, minlength=pairs.size)
-    total[pairs] = np.bincount(where, weights=votes, minlength=pairs.size)
-    return low, total
+def pair_sums(keys: np.ndarray, lower: np.ndarray, votes: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pair keys present (sorted) and, per key, the sums of ``lower`` and ``votes``.
+
+    Summed in input order per key (as ``np.bincount`` over a table of every
+    key): sparse, since a frame of thousands of regions has millions of keys
+    and few pairs.
+    """
+    pairs, where = np.unique(keys, return_inverse=True)
+    return (pairs, np.bincount(where, weights=lower, minlength=pairs.size),
+            np.bincount(where, weights=votes, minlength=pairs.size))
+
+
+def crease_table(pairs: np.ndarray, lower: np.ndarray, total: np.ndarray, n: int,
+                 agreement: float) -> np.ndarray:
+    """int8 (n+1, n+1) kinds of :func:`crease_kinds` from the sums of :func:`pair_sums`.
+
+    A pair is told when both of its keys (i, j) and (j, i) got votes.
+    """
+    kinds = np.zeros((n + 1, n + 1), dtype=np.int8)
+    first, second = np.divmod(pairs, n + 1)
+    back = np.searchsorted(pairs, second * (n + 1) + first)
+    back = np.minimum(back, max(pairs.size - 1, 0))
+    frac = lower / np.maximum(total, 1)
+    seen = (total > 0) & (pairs[back] == second * (n + 1) + first) & (total[back] > 0)
+    convex = seen & (frac >= agreement) & (frac[back] >= agreement)
+    concave = seen & (frac <= 1 - agreement) & (frac[back] <= 1 - agreement)
+    kinds[first[convex], second[convex]] = -1
+    kinds[first[concave], second[concave]] = 1
+    return kinds
 
 
 def _crease_votes(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np.ndarray,
@@ -201,14 +217,7 @@ def crease_kinds(labels: np.ndarray, coeffs: np.ndarray, *, reach: int = CREASE_
     else:
         keys, below, votes = _compiled_votes(kernels, padded, rows, cols, own, mine, coeffs,
                                              reach)
-    lower, total = _pair_counts(keys, below, votes, (n + 1) ** 2)
-    frac = (lower / np.maximum(total, 1)).reshape(n + 1, n + 1)
-    seen = total.reshape(n + 1, n + 1) > 0
-    seen &= seen.T
-    kinds = np.zeros((n + 1, n + 1), dtype=np.int8)
-    kinds[seen & (frac >= agreement) & (frac.T >= agreement)] = -1
-    kinds[seen & (frac <= 1 - agreement) & (frac.T <= 1 - agreement)] = 1
-    return kinds
+    return crease_table(*pair_sums(keys, below, votes), n, agreement)
 
 
 def _visible(kinds: np.ndarray, own: np.ndarray, near: np.ndarray, rows: np.ndarray,
