@@ -571,7 +571,10 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
         elif all(current):
             skipped.append(Record(rel=job.rel, status="skipped", source=job.source))
         else:  # its stages before the first out of date stay: redone from that one on
-            todo.append(replace(job, start=stages[current.index(False)]))
+            start = stages[current.index(False)]
+            if start == "link" and "edges" in stages:  # link wrote over edges.npy: from edges
+                start = "edges"
+            todo.append(replace(job, start=start))
     return todo, skipped
 
 
