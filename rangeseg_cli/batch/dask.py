@@ -123,7 +123,8 @@ def task_key(job: Job, out: Location, config: Config, stages: tuple[str, ...],
              frames: SharedFrames | None = None) -> str:
     """Dask key of one image's task: the same work always gets the same key."""
     shared = "" if frames is None else f"{frames.digest}:{frames.size}"
-    what = json.dumps([job.rel, job.source, str(out), list(stages), config.digest(), shared])
+    what = json.dumps([job.rel, job.source, str(out), list(job_stages(job, stages)),
+                       config.digest(), shared])
     return "rangeseg-" + hashlib.sha256(what.encode()).hexdigest()[:32]
 
 
@@ -268,8 +269,8 @@ def _run_tasks(client: Client, todo: list[Job], out: Location, config: Config,
                stages: tuple[str, ...], frames: SharedFrames,
                finish: Callable[[Record], None], limit: int | None) -> None:
     out = io.absolute(out)
-    sent = [Job(rel=j.rel, source=None if j.source is None else io.absolute_name(j.source))
-            for j in todo]
+    sent = [Job(rel=j.rel, source=None if j.source is None else io.absolute_name(j.source),
+                start=j.start) for j in todo]
     _check_workers(client, [str(out)] + [j.source for j in sent[:1] if j.source])
     # the workspace arrays go to the workers once, not with every task
     shared = client.scatter(frames, broadcast=True) if frames.digest and todo else frames

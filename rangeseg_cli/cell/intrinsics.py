@@ -144,12 +144,16 @@ def _json_rows(text: str) -> list[list[float]] | None:
     """``text`` as a JSON list of rows of numbers (booleans are none), else None."""
     try:
         data = json.loads(text)
-    except ValueError:
+    except ValueError:  # also an integer of more than 4300 digits
         return None
     if (isinstance(data, list) and data and all(isinstance(r, list) and r for r in data)
             and all(isinstance(v, int | float) and not isinstance(v, bool)
                     for r in data for v in r)):
-        return [[float(v) for v in r] for r in data]
+        try:
+            return [[float(v) for v in r] for r in data]
+        except OverflowError:  # an integer beyond float64: no camera matrix
+            raise _Bad("a value of the matrix is too large to be a number of a camera "
+                       "matrix") from None
     return None
 
 

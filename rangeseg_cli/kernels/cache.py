@@ -263,7 +263,7 @@ def cold_kernel_cache() -> bool:
         SOURCE.stat()
     except OSError:
         return False
-    return not any(_fresh_index(folder, "compiled.*.nbi") for folder in _cache_dirs())
+    return not _fresh_index(_cache_dirs()[-1], "compiled.*.nbi")  # where numba looks
 
 
 def compile_ahead_when_cold() -> None:
