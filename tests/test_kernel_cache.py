@@ -198,7 +198,7 @@ def test_a_deferred_kernel_runs_once_compiled_or_cached(tmp_path, monkeypatch):
     monkeypatch.setattr(kernel_cache, "_ready", set())
     monkeypatch.setattr(kernel_cache, "_looked", {})
     monkeypatch.setattr(kernel_cache, "RECHECK_S", 0.0)
-    monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+    monkeypatch.setattr(kernel_cache, "_cache_dir", lambda: tmp_path)
     monkeypatch.setattr(kernel_cache, "_start_helper", lambda: None)
 
     class Dispatcher:  # nothing compiled in this process
@@ -222,7 +222,7 @@ def test_a_kernel_not_ready_is_looked_for_at_most_once_per_recheck_interval(tmp_
     monkeypatch.setattr(kernel_cache, "_start_helper", lambda: None)
     monkeypatch.setattr(kernel_cache, "_ready", set())
     monkeypatch.setattr(kernel_cache, "_looked", {})
-    monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+    monkeypatch.setattr(kernel_cache, "_cache_dir", lambda: tmp_path)
 
     class Dispatcher:
         overloads: dict = {}
@@ -260,7 +260,7 @@ def test_a_run_missing_a_deferred_kernel_starts_the_helper_once(tmp_path, monkey
     monkeypatch.setattr(kernel_cache, "_ready", set())
     monkeypatch.setattr(kernel_cache, "_looked", {})
     monkeypatch.setattr(kernel_cache, "RECHECK_S", 0.0)
-    monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+    monkeypatch.setattr(kernel_cache, "_cache_dir", lambda: tmp_path)
     monkeypatch.delenv("RANGESEG_COMPILE_AHEAD", raising=False)
     monkeypatch.delenv("RANGESEG_COMPILING_AHEAD", raising=False)
 
@@ -275,7 +275,7 @@ def test_a_run_missing_a_deferred_kernel_starts_the_helper_once(tmp_path, monkey
 
 def test_the_helper_compiles_what_the_first_run_waits_for_last_first_then_the_rest(
         tmp_path, monkeypatch):
-    monkeypatch.setattr(kernel_cache, "_cache_dirs", lambda: [tmp_path])
+    monkeypatch.setattr(kernel_cache, "_cache_dir", lambda: tmp_path)
     order = [name for name, _ in kernel_cache.ahead_order()]
     first_run = [name for name, _ in kernel_cache.FIRST_RUN]
     waits = [name for name in first_run if name not in kernel_cache.DEFERRED]

@@ -143,20 +143,19 @@ _asked = False  # whether this process has started (or tried to start) the helpe
 _asking = threading.Lock()
 
 
-def _cache_dirs() -> list[Path]:
-    """Where numba caches the kernels, in its order of choice: the last is where it does.
+def _cache_dir() -> Path:
+    """The folder numba caches the kernels in, chosen as numba does.
 
     ``NUMBA_CACHE_DIR`` when set; else ``__pycache__`` beside the source when
     it can be written, else (a package installed read-only) numba's folder in
     the user's cache.
     """
     in_tree = SOURCE.parent / "__pycache__"
-    dirs = [in_tree]
     if os.environ.get("NUMBA_CACHE_DIR"):
-        dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]))
-    elif not _writable(in_tree):
-        dirs += _user_wide_dir()
-    return dirs
+        return Path(os.environ["NUMBA_CACHE_DIR"])
+    if _writable(in_tree):
+        return in_tree
+    return _user_wide_dir() or in_tree
 
 
 def _writable(folder: Path) -> bool:
@@ -166,15 +165,15 @@ def _writable(folder: Path) -> bool:
     return os.access(folder.parent, os.W_OK | os.X_OK)
 
 
-def _user_wide_dir() -> list[Path]:
+def _user_wide_dir() -> Path | None:
     """The user-wide cache folder numba takes for the kernels' source (none without numba)."""
     try:
         from numba.misc.appdirs import AppDirs
     except ImportError:
-        return []
+        return None
     folder = os.path.dirname(os.path.abspath(SOURCE))
     sub = f"{os.path.basename(folder)}_{hashlib.sha1(folder.encode()).hexdigest()}"
-    return [Path(AppDirs(appname="numba", appauthor=False).user_cache_dir) / sub]
+    return Path(AppDirs(appname="numba", appauthor=False).user_cache_dir) / sub
 
 
 #: Kernels that only speed up a step whose numpy reference gives the same bits: a run
@@ -222,7 +221,7 @@ def ready(kernels: ModuleType, name: str) -> bool:
 def cached(name: str) -> bool:
     """Whether the cache holds kernel ``name``: an index file of the current source."""
     # where numba looks: NUMBA_CACHE_DIR when it is set
-    return _fresh_index(_cache_dirs()[-1], f"compiled.{name}-*.nbi")
+    return _fresh_index(_cache_dir(), f"compiled.{name}-*.nbi")
 
 
 def _fresh_index(folder: Path, pattern: str) -> bool:
@@ -263,7 +262,7 @@ def cold_kernel_cache() -> bool:
         SOURCE.stat()
     except OSError:
         return False
-    return not _fresh_index(_cache_dirs()[-1], "compiled.*.nbi")  # where numba looks
+    return not _fresh_index(_cache_dir(), "compiled.*.nbi")  # where numba looks
 
 
 def compile_ahead_when_cold() -> None:
@@ -402,7 +401,7 @@ def _lock() -> Any:
         import fcntl
     except ImportError:
         return None
-    folder = _cache_dirs()[-1]
+    folder = _cache_dir()
     try:
         folder.mkdir(parents=True, exist_ok=True)
         handle = open(folder / LOCK_FILE, "w")  # noqa: SIM115
