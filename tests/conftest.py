@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -20,6 +22,27 @@ def tree_bytes(folder: Path) -> dict[str, bytes]:
     """Every file below ``folder`` except the manifest (it holds timings)."""
     return {p.relative_to(folder).as_posix(): p.read_bytes()
             for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "rangeseg-run.json"}
+
+
+def done_in_manifest(out: Path) -> int:
+    """Images the batch writing ``out`` has recorded as done (0 before its manifest)."""
+    try:
+        images = json.loads((out / "rangeseg-run.json").read_text())["images"]
+    except (OSError, ValueError, KeyError):
+        return 0
+    return sum(v.get("status") == "done" for v in images.values())
+
+
+def wait_for_done(out: Path, count: int = 1, timeout: float = 120.0) -> None:
+    """Until the batch has recorded ``count`` images as done in its manifest.
+
+    Files on disk are not enough: a worker writes them before its result
+    reaches the batch, and a stop in between leaves them unrecorded.
+    """
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and done_in_manifest(out) < count:
+        time.sleep(0.02)
+    assert done_in_manifest(out) >= count, f"no image done in {out}"
 
 
 def step_image(height: float = 40.0, size: int = 32, col: int = 16) -> np.ndarray:

@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from conftest import box_scene, tree_bytes
+from conftest import box_scene, tree_bytes, wait_for_done
 from rangeseg_cli import run_pipeline
 from rangeseg_cli.cli.main import main
 from rangeseg_cli.errors import InputError
@@ -132,13 +132,11 @@ def test_resume_after_sigkill_completes_with_identical_bytes(tmp_path, write_png
     subprocess.run([*cmd, "-o", str(ref)], check=True, capture_output=True)
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 3:
-        time.sleep(0.02)
+    wait_for_done(out)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     done_before = len(list(out.glob("*.holdsite.json")))
-    assert 3 <= done_before < 24, "the run was not killed part-way"
+    assert 1 <= done_before < 24, "the run was not killed part-way"
     res = subprocess.run([*cmd, "-o", str(out), "--resume", "--json"], capture_output=True,
                          text=True)
     assert res.returncode == 0, res.stderr
@@ -295,16 +293,14 @@ def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path
     cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", jobs, "-q"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 2:
-        time.sleep(0.02)
+    wait_for_done(out)
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == code, err
     assert said in err and "--resume" in err and "Traceback" not in err
     manifest = json.loads((out / "rangeseg-run.json").read_text())
     done = [k for k, v in manifest["images"].items() if v["status"] == "done"]
-    assert 2 <= len(done) < 30
+    assert 1 <= len(done) < 30
     # the count said is the count recorded (with -j 2 an image was finished twice)
     assert f"{said} {len(done)} images done and kept" in err
     assert all((out / f"{k}.holdsite.json").exists() for k in done)
@@ -444,9 +440,7 @@ def test_sigterm_to_the_whole_group_stops_as_sigterm_to_the_batch(tmp_path, writ
     cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", "2", "-q"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and len(list(out.glob("*.holdsite.json"))) < 2:
-        time.sleep(0.02)
+    wait_for_done(out)
     os.killpg(proc.pid, signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err

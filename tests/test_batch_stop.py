@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import box_scene, tree_bytes
+from conftest import box_scene, tree_bytes, wait_for_done
 from rangeseg_cli.batch.outlock import LOCK
 
 CLI = [sys.executable, "-m", "rangeseg_cli.cli.main", "run"]
@@ -57,13 +57,13 @@ def test_images_a_stopped_batch_never_started_read_as_not_started(folder, tmp_pa
            "--set", "holdsite.rotation_step=2"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                  text=True)
-    _wait_for(out, "*.holdsite.json", 2)
+    wait_for_done(out)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     images = json.loads((out / "rangeseg-run.json").read_text())["images"]
     status = [v["status"] for v in images.values()]
-    assert status.count("done") >= 2
+    assert status.count("done") >= 1
     assert status.count("running") <= int(jobs)  # the ones in progress at the stop, at most
     assert len(images) < 16  # the others: no entry, as before the batch
     res = subprocess.run([*cmd, "-o", str(out), "--resume"], capture_output=True, text=True)

@@ -20,7 +20,7 @@ from click.testing import CliRunner
 from distributed import Client, LocalCluster
 from distributed.diagnostics.plugin import SchedulerPlugin
 
-from conftest import box_scene, tree_bytes
+from conftest import box_scene, tree_bytes, wait_for_done
 from rangeseg_cli import load_config
 from rangeseg_cli.batch import dask as dask_executor
 from rangeseg_cli.batch.dask import ClusterError, execute_on_dask
@@ -286,25 +286,6 @@ def start_cli(spawn, folder: Path, out: Path, address: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def done_in_manifest(out: Path) -> int:
-    try:
-        images = manifest(out)["images"]
-    except (OSError, ValueError, KeyError):  # not written yet
-        return 0
-    return sum(v.get("status") == "done" for v in images.values())
-
-
-def wait_for_results(out: Path, count: int) -> None:
-    """Until the client has recorded ``count`` images as done.
-
-    Files on disk are not enough: a worker writes them before its result
-    reaches the client, and only what reached the client is in the manifest.
-    """
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and done_in_manifest(out) < count:
-        time.sleep(0.02)
-
-
 def executing(dask_worker) -> int:
     return dask_worker.state.executing_count  # cancelled tasks still running included
 
@@ -347,7 +328,7 @@ def test_ctrl_c_on_dask_exits_130_keeps_what_finished_and_resumes(cluster, clien
     folder, reference = many
     out = tmp_path / "out"
     proc = start_cli(spawn, folder, out, cluster.scheduler_address)
-    wait_for_results(out, 1)
+    wait_for_done(out)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
@@ -376,7 +357,7 @@ def test_losing_the_scheduler_mid_batch_is_one_line_naming_it(cluster, many, tmp
     try:
         address = doomed.stdout.readline().strip()
         proc = start_cli(spawn, folder, out, address)
-        wait_for_results(out, 1)
+        wait_for_done(out)
     finally:
         doomed.kill()
     _, err = proc.communicate(timeout=60)
