@@ -246,3 +246,47 @@ def test_a_workspace_file_an_output_would_replace_is_refused_before_any_work(
         "move the file"]
     assert kept.read_bytes() == before
     assert sorted(p.name for p in out.iterdir()) == [name]
+
+
+def tote_depth(holes: float = 0.1) -> np.ndarray:
+    """A 16-bit depth frame in 0.1 mm: a floor with a box 100 mm closer, ``holes`` zeros."""
+    depth = np.full((64, 80), 7000, np.uint16)
+    depth[20:40, 20:50] = 6000
+    if holes:
+        depth.ravel()[:: round(1 / holes)] = 0
+    return depth
+
+
+@pytest.mark.parametrize("image, overrides, hinted", [
+    (tote_depth(), {}, True),
+    (tote_depth(holes=0.0), {}, False),  # a 16-bit height map of a raised table: no holes
+    (np.where(tote_depth() > 0, 7001 - tote_depth(), 0).astype(np.uint16), {},
+     False),  # a height map of the tote: its floor at 1, the box 1000 above it
+    ((tote_depth() // 40).astype(np.uint8), {}, False),  # 8 bits: the paper's heights
+    (tote_depth(), {"input": {"larger_is_closer": False}}, False),
+    (tote_depth(), {"input": {"invalid": 0.0}}, False),
+    (tote_depth(), {"input": {"metres_per_unit": 0.001}}, False)])
+def test_a_depth_map_read_as_heights_is_named(image, overrides, hinted):
+    from rangeseg_cli.stages.rangeimage import depth_map_hint
+
+    hint = depth_map_hint(image, load_config(overrides=overrides).input)
+    assert bool(hint) is hinted
+    if hinted:
+        assert "10% zeros" in hint and "median 7000" in hint and "--preset" in hint
+
+
+def test_a_run_on_a_depth_map_without_a_preset_warns_once(tmp_path, write_png):
+    for name in ("a.png", "b.png"):
+        write_png(tmp_path / name, tote_depth())
+    inputs = [str(tmp_path / "a.png"), str(tmp_path / "b.png")]
+
+    def warnings(*args: str) -> list[str]:
+        res = CliRunner().invoke(main, ["run", *inputs, "-o", str(tmp_path / "out"),
+                                        "--overwrite", "-j", "1", *args])
+        assert res.exit_code == 0, res.output
+        return [line for line in res.stderr.splitlines() if "looks like a depth map" in line]
+
+    said = warnings()
+    assert len(said) == 1 and said[0].startswith(f"warning: {inputs[0]} looks like")
+    assert warnings("-q") == []
+    assert warnings("--preset", "tenth-mm-depth") == []

@@ -243,6 +243,7 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
         _check_rerun(opts["rerun"])
     _say_if_compiling(opts)
     _warn_footprint(config, stages, opts)
+    _warn_depth_map(jobs, config, stages, opts)
     reporter = BatchReporter(quiet=opts["quiet"] > 0, verbose=opts["verbose"])
     # Dask: --jobs caps the images in flight; without it the cluster sets the parallelism.
     n_jobs = opts["jobs"] if opts["executor"] == "dask" else opts["jobs"] or default_jobs()
@@ -327,6 +328,24 @@ def _warn_footprint(config: Any, stages: tuple[str, ...], opts: dict[str, Any]) 
     why = footprint_fallback(config) if "holdsite" in stages else ""
     if why and not opts["quiet"]:
         click.echo(f"warning: {why}", err=True)
+
+
+def _warn_depth_map(jobs: Any, config: Any, stages: tuple[str, ...], opts: dict[str, Any]
+                    ) -> None:
+    """On stderr, unless -q: the first local input looks like a depth map read as heights."""
+    from ..batch.io import read_image
+    from ..errors import RangesegError
+    from ..stages.rangeimage import depth_map_hint
+
+    first = next((j.source for j in jobs if j.source and "://" not in str(j.source)), None)
+    if opts["quiet"] or "edges" not in stages or first is None:
+        return
+    try:
+        why = depth_map_hint(read_image(first), config.input)
+    except RangesegError:  # the batch reports an unreadable image itself
+        return
+    if why:
+        click.echo(f"warning: {first} {why}", err=True)
 
 
 def _set_threads(threads: int | None) -> None:

@@ -139,6 +139,60 @@ def clipped_value(dtype: np.dtype, cfg: InputConfig) -> int | None:
     return int(np.iinfo(dtype).max)
 
 
+#: :func:`depth_map_hint`: a depth map's nearest readings are at least this share of its
+#: median (a camera over a bin sees no surface near 0); a height map's floor is near 0.
+DEPTH_NEAR_SHARE = 0.4
+
+#: :func:`depth_map_hint`: the least share of zeros, a depth camera's "no reading".
+DEPTH_LEAST_HOLES = 0.005
+
+#: :func:`depth_map_hint`: the least median reading of a depth map (beyond 8-bit heights).
+DEPTH_LEAST_MEDIAN = 256
+
+
+def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
+    """Why ``raw`` looks like a camera's depth map read as heights, or ``""``.
+
+    A depth map (depth along the optical axis, closer = smaller) read with
+    ``[input]`` as it is for height maps (``larger_is_closer``, 0 a height,
+    no camera) puts the holdsite on the farthest surface: the tote's floor or
+    rim. An integer image of more than 8 bits with :data:`DEPTH_LEAST_HOLES`
+    of its pixels 0 (a depth camera's "no reading"), whose other readings
+    have a median of :data:`DEPTH_LEAST_MEDIAN` or more and a 5th percentile
+    of :data:`DEPTH_NEAR_SHARE` of it or more (no floor near 0), reads as one.
+
+    Parameters
+    ----------
+    raw
+        The image as read (before :func:`to_heights`).
+    cfg
+        ``[input]``; a configuration for depth (``larger_is_closer`` off),
+        with a no-data value (``invalid``) or with a camera
+        (``metres_per_unit``, intrinsics) gives ``""``.
+
+    Returns
+    -------
+    str
+        ``""``, or what the readings are and what to pass instead.
+    """
+    raw = np.asarray(raw)
+    if (not cfg.larger_is_closer or cfg.metres_per_unit > 0 or cfg.has_intrinsics
+            or not math.isnan(cfg.invalid) or raw.dtype.kind not in "ui"
+            or raw.dtype.itemsize < 2):
+        return ""
+    readings = raw[raw > 0]
+    holes = raw.size - readings.size
+    if holes < DEPTH_LEAST_HOLES * raw.size or readings.size < max(100, raw.size // 10):
+        return ""
+    near, median = np.percentile(readings, [5, 50])
+    if median < DEPTH_LEAST_MEDIAN or near < DEPTH_NEAR_SHARE * median:
+        return ""
+    return (f"looks like a depth map ({raw.dtype.itemsize * 8}-bit, {holes / raw.size:.0%} "
+            f"zeros; 95 % of its readings above {near:.0f}, median {median:.0f}) read as "
+            "heights (larger = closer), so the holdsite goes to the farthest surface; pass "
+            "--preset mm-depth or tenth-mm-depth (depth in mm or 0.1 mm) with --intrinsics")
+
+
 #: Raw pixel types :func:`to_heights` converts with the compiled kernel.
 _COMPILED_TYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.uint32, np.int8,
                                                np.int16, np.int32, np.int64, np.float32,
