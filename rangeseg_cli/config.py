@@ -23,6 +23,8 @@ import functools
 import hashlib
 import json
 import math
+import os
+import stat
 import tomllib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -969,8 +971,29 @@ def parse_settings(items: Iterable[str]) -> dict[str, dict[str, Any]]:
     return out
 
 
+#: Kinds of file that are not regular files, as messages name them.
+SPECIAL_FILES = {stat.S_IFIFO: "a named pipe (FIFO)", stat.S_IFSOCK: "a socket",
+                 stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device"}
+
+
+def special_file(path: str | Path) -> str | None:
+    """What ``path`` is when it is a FIFO, a socket or a device (:data:`SPECIAL_FILES`).
+
+    ``None`` for a regular file, a folder or a path that cannot be read.
+    Reading a FIFO can wait forever: every reader refuses these unopened.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    return SPECIAL_FILES.get(stat.S_IFMT(mode))
+
+
 def read_toml(path: Path) -> dict[str, Any]:
     """Read a TOML file, turning every failure into a one-line :class:`ConfigError`."""
+    kind = special_file(path)
+    if kind is not None:
+        raise ConfigError(f"{path}: {kind}, not a config file; name a TOML file")
     try:
         with open(path, "rb") as fh:
             data = fh.read()

@@ -131,6 +131,23 @@ def test_a_fifo_named_png_is_named_a_fifo_and_never_opened(runner, tmp_path, box
     assert "pipe.png: a named pipe (FIFO), not a file or folder" in res.output
 
 
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="no named pipes")
+@pytest.mark.parametrize("option, what", [("--config", "not a config file; name a TOML file"),
+                                          ("--intrinsics", "not an intrinsics file; allowed:")])
+def test_a_fifo_given_as_a_setting_file_is_refused_unopened(runner, tmp_path, box_png, option,
+                                                            what):
+    # reading --config or --intrinsics from a named pipe waited for a writer forever
+    import os
+
+    os.mkfifo(tmp_path / "pipe")
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out"),
+                               option, str(tmp_path / "pipe")])
+    no_traceback(res)
+    assert res.exit_code == 2
+    assert f"{tmp_path / 'pipe'}: a named pipe (FIFO), {what}" in res.output
+    assert not (tmp_path / "out").exists()
+
+
 # --------------------------------------------------------------------------- names like outputs (3)
 
 

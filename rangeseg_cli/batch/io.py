@@ -36,6 +36,7 @@ from urllib.parse import unquote, unquote_to_bytes, urlsplit
 
 import numpy as np
 
+from ..config import SPECIAL_FILES
 from ..errors import InputError, OutputError, RangesegError, StorageError
 from ..stages.rangeimage import check_array
 
@@ -399,10 +400,6 @@ _SIGNATURES = ((b"\x89PNG\r\n\x1a\n", "PNG"), (b"II*\x00", "TIFF"), (b"MM\x00*",
 _FORMAT_OF = {".png": "PNG", ".pgm": "PGM/PNM", ".pnm": "PGM/PNM", ".tif": "TIFF",
               ".tiff": "TIFF", ".npy": "NPY"}
 _SUFFIX_OF = {"PNG": ".png", "PGM/PNM": ".pgm", "TIFF": ".tif", "NPY": ".npy"}
-#: Kinds of file that are not regular files, as messages name them.
-_SPECIAL_FILES = {stat.S_IFIFO: "a named pipe (FIFO)", stat.S_IFSOCK: "a socket",
-                  stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device"}
-
 
 def content_format(head: bytes) -> str | None:
     """The format whose signature ``head`` (a file's first bytes) starts with, if known.
@@ -428,7 +425,7 @@ def _check_regular(path: Path) -> None:
         Naming the file and what it is.
     """
     info = path.stat()
-    kind = _SPECIAL_FILES.get(stat.S_IFMT(info.st_mode))
+    kind = SPECIAL_FILES.get(stat.S_IFMT(info.st_mode))
     if kind is not None:
         raise InputError(f"{path}: {kind}, not a regular file; rangeseg reads image files: "
                          f"{READS}")
@@ -727,7 +724,7 @@ def _missing_input(root: Location) -> InputError:
         return InputError(f"{root}: a symbolic link to {os.readlink(root)}, which does not "
                           "exist; name a file or folder")
     if isinstance(root, Path) and root.exists():
-        kind = _SPECIAL_FILES.get(stat.S_IFMT(root.stat().st_mode), "not a regular file")
+        kind = SPECIAL_FILES.get(stat.S_IFMT(root.stat().st_mode), "not a regular file")
         return InputError(f"{root}: {kind}, not a file or folder; rangeseg reads image "
                           f"files: {READS}")
     return InputError(f"{root}: no such file or folder")
