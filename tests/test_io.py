@@ -251,3 +251,24 @@ def test_the_manifest_counts_the_clipped_pixels(tmp_path, write_png):
     assert "clipped_pixels" not in images["plain"]
     labels = np.load(tmp_path / "out" / "clipped.labels.npy")
     assert (labels[10:14, 10:15] == 0).all()
+
+
+def test_a_png_beyond_the_readers_pixel_limit_is_named_too_big_not_damaged(tmp_path, write_png,
+                                                                           monkeypatch):
+    # Pillow refuses images of over 179 MP as "decompression bombs"; its message was
+    # passed on as "a damaged or truncated PNG file", which the file is not
+    from PIL import Image
+
+    from rangeseg_cli.batch.io import read_image
+    from rangeseg_cli.errors import InputError
+
+    path = tmp_path / "big.png"
+    write_png(path, np.zeros((40, 50), np.uint8))
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 500)  # 2,000 pixels: over twice it
+    with pytest.raises(InputError) as caught:
+        read_image(path)
+    message = str(caught.value)
+    assert "damaged" not in message
+    assert (f"{path}: not a readable image (2,000 pixels, beyond the 1,000 the PNG reader "
+            "takes in one image;") in message
+    assert message.endswith("crop or downsample it, or save it as NPY or TIFF)")

@@ -466,6 +466,12 @@ def _why_unreadable(reason: str, kind: str | None, suffix: str) -> str:
         return f"no NPY header: not a file numpy.save wrote; rangeseg reads {READS}"
     if kind is None:
         return f"its content is no image format rangeseg reads: {READS}"
+    if "decompression bomb" in reason:  # Pillow's limit on the pixels of one image
+        size = re.search(r"\((\d+) pixels\) exceeds limit of (\d+)", reason)
+        said = (f"{int(size[1]):,} pixels, beyond the {int(size[2]):,}"
+                if size else "more pixels than")
+        return (f"{said} the {kind} reader takes in one image; crop or downsample it, or "
+                "save it as NPY or TIFF")
     return f"a damaged or truncated {kind} file: {reason}"
 
 
