@@ -361,28 +361,28 @@ def test_step_gaps_given_with_the_surfaces_are_those_the_search_computes(backend
 
 
 def test_a_plateau_clipped_at_255_is_not_gripped_a_measured_surface_is():
-    # Pile seed 9 stacks a cylinder above 255 depth units: the 8-bit image holds a flat
-    # plateau at 255 there, the highest and flattest "surface" in view. Clipped values
-    # are invalid ([input] clipped_invalid), so the holdsite goes to a surface the image
-    # measures, and the check against the ground truth (0 where clipped) passes.
-    from dataclasses import replace
-
-    from rangeseg_cli.synth.evaluate import check_holdsite
-    from rangeseg_cli.synth.scenes import render_scene
-
-    scene = render_scene("pile", noise=1.0, seed=9)
-    assert scene.info["saturated"] > 0
-    config = load_config()
-    sites = {}
+    # An 8-bit height map: a box top at 120 the image measures, and a taller box whose top
+    # at 300 lies beyond 8 bits: the image holds a flat plateau at 255 there, the highest
+    # and flattest "surface" in view. Clipped values are invalid ([input] clipped_invalid),
+    # so the holdsite goes to the measured top; without the rule, to the plateau.
+    z = table((64, 96))
+    z[12:52, 8:40] = 120.0
+    z[14:50, 54:88] = 300.0
+    image = np.clip(np.rint(noisy(z, 1.0)), 0, 255).astype(np.uint8)
+    plateau = image == 255
+    assert plateau[14:50, 54:88].all() and plateau.sum() == 36 * 34  # only the tall box
+    found = {}
     for clipped in (True, False):
-        cfg = replace(config, input=replace(config.input, clipped_invalid=clipped))
-        sites[clipped] = run_pipeline(scene.image, cfg).holdsite.to_dict()["holdsite"]
-    r0, c0 = sites[True]["row"], sites[True]["col"]
-    assert (scene.image[r0 - 3:r0 + 4, c0 - 3:c0 + 4] < 255).all()
-    assert check_holdsite(sites[True], scene.gt, scene.info)["ok"]
-    r1, c1 = sites[False]["row"], sites[False]["col"]
-    assert scene.image[r1, c1] == 255  # without the rule: on the plateau
-    assert not check_holdsite(sites[False], scene.gt, scene.info)["ok"]
+        config = load_config(overrides={"input": {"clipped_invalid": clipped}})
+        result = run_pipeline(image, config).holdsite
+        found[clipped] = (result.holdsite, *result.candidates)
+    measured = found[True]
+    assert measured[0] is not None and len(measured) >= 2
+    assert all(12 <= s.row < 52 and 8 <= s.col < 40 for s in measured)  # on the box top
+    assert not any(plateau[window(s)].any() for s in measured)
+    assert measured[0].elevation == pytest.approx(120.0, abs=0.5)
+    site = found[False][0]  # without the rule: on the plateau, at its clipped height
+    assert plateau[window(site)].all() and site.elevation == pytest.approx(255.0)
 
 
 def test_clipped_invalid_is_a_boolean_key():
@@ -427,25 +427,43 @@ def run_with_pose(z, pose, monkeypatch):
         return run(z)
 
 
-def _true_pose_errors(scene, site):
-    """Elevation error and normal angle (degrees) of a site against the noise-free heights."""
-    h, r, c = scene.heights, site.row, site.col
-    true_normal = np.array([-(h[r, c + 1] - h[r, c - 1]) / 2, -(h[r + 1, c] - h[r - 1, c]) / 2, 1])
-    cosine = float(np.dot(site.normal, true_normal) / np.linalg.norm(true_normal))
-    return abs(site.elevation - h[r, c]), math.degrees(math.acos(min(1.0, cosine)))
+def _pose_errors(site, height, normal):
+    """Elevation error and normal angle (degrees) of a site against the true height and
+    the true unit normal (-dz/dx, -dz/dy, 1) / norm there."""
+    cosine = float(np.dot(site.normal, normal))
+    return abs(site.elevation - height), math.degrees(math.acos(min(1.0, cosine)))
+
+
+def sphere_on_table(radius=26.0, units_per_pixel=2.0, shape=(96, 96), floor=20.0):
+    """A sphere resting on a table in the middle of the image, heights in depth units
+    (``units_per_pixel`` of them per pixel of lateral size), and its true pose
+    ``(height, unit normal)`` at a pixel."""
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    y, x = rows - (shape[0] - 1) / 2, cols - (shape[1] - 1) / 2
+    centre = floor + units_per_pixel * radius  # the sphere's centre, in depth units
+    up = np.sqrt(np.maximum(radius ** 2 - x ** 2 - y ** 2, 0.0))  # above the centre, px
+    z = table(shape, floor)
+    on = x ** 2 + y ** 2 < radius ** 2
+    z[on] = centre + units_per_pixel * up[on]
+
+    def truth(row, col):  # dz/dx = -upp x / up: the normal is along (upp x, upp y, up)
+        normal = np.array([units_per_pixel * x[row, col], units_per_pixel * y[row, col],
+                           up[row, col]])
+        return z[row, col], normal / np.linalg.norm(normal)
+    return z, truth
 
 
 @pytest.mark.parametrize("noise", [0.0, 1.0])
 def test_sites_on_a_sphere_take_the_pose_of_the_sphere_under_the_gripper(noise, monkeypatch):
-    from rangeseg_cli.synth.scenes import render_scene
-
-    scene = render_scene("sphere", noise=noise, seed=0)
+    z, truth = sphere_on_table()  # radius 26 px, 52 depth units, on a table at 20
+    z = noisy(z, noise) if noise else z
     errors = {}
     for pose in ("local", "surface"):
-        result = run_with_pose(scene.image, pose, monkeypatch)
+        result = run_with_pose(z, pose, monkeypatch)
         sites = (result.holdsite.holdsite, *result.holdsite.candidates)
         assert len(sites) >= 4 and all(s.surface_type == "curved" for s in sites)
-        errors[pose] = np.array([_true_pose_errors(scene, s) for s in sites])
+        assert all(math.hypot(s.row - 47.5, s.col - 47.5) < 26 for s in sites)
+        errors[pose] = np.array([_pose_errors(s, *truth(s.row, s.col)) for s in sites])
     # one quadric of the whole sphere misses its top by ~3.5 units and tilts the sites
     # away from it by ~11 degrees; the local quadric follows the sphere
     assert errors["surface"][0, 0] > 2.0 and errors["surface"][:, 1].max() > 8.0
@@ -536,26 +554,77 @@ def test_max_tilt_is_tested_only_with_the_lateral_scale_of_the_image():
         load_config(overrides={"holdsite": {"units_per_pixel": 2.0}})
 
 
-@pytest.mark.parametrize("scene_name", ["part1", "cup", "nut"])
-def test_max_tilt_keeps_every_site_within_the_limit(scene_name):
-    from rangeseg_cli.synth.scenes import render_scene
+def roof_beside_a_box():
+    """Two planar faces meeting at a ridge, falling 3 units per pixel (56.3 degrees at 2
+    units per pixel), higher than a level box top at 90."""
+    cols = np.mgrid[0:80, 0:96][1].astype(float)
+    z = table((80, 96))
+    z[10:70, 8:49] = 200.0 - 3.0 * np.abs(cols[10:70, 8:49] - 28)
+    z[20:60, 60:90] = 90.0
+    return z
 
-    image = render_scene(scene_name, noise=1.0, seed=0).image
-    free = run(image, max_tilt=90.0, units_per_pixel=2.0)
-    limited = run(image, max_tilt=45.0, units_per_pixel=2.0)
+
+def steep_ramp_beside_a_gentle_one():
+    """A ramp rising 3 units per pixel across the columns (56.3 degrees) up to 145, higher
+    than a ramp rising 1 unit per pixel down the rows (26.6 degrees: tilted, within 45)."""
+    rows, cols = np.mgrid[0:80, 0:96].astype(float)
+    z = table((80, 96))
+    z[10:70, 8:44] = 40.0 + 3.0 * (cols[10:70, 8:44] - 8)
+    z[20:60, 60:90] = 60.0 + 1.0 * (rows[20:60, 60:90] - 20)
+    return z
+
+
+def leaning_cylinder_beside_a_box(alpha=55.0, radius=14.0):
+    """A cylinder whose axis rises ``alpha`` degrees along the columns (curved; every
+    normal at least ``alpha`` off the vertical), higher than a level box top at 90: the
+    cylinder ``w^2 + y^2 = R^2`` with ``w = z cos(alpha) - x sin(alpha)``, at 2 units/px."""
+    rows, cols = np.mgrid[0:80, 0:96].astype(float)
+    a = math.radians(alpha)
+    x, y, r = 2.0 * (cols - 8), 2.0 * (rows - 40), 2.0 * radius  # depth units
+    z = table((80, 96))
+    on = (np.abs(y) < r) & (cols >= 8) & (cols < 44)
+    z[on] = 20.0 + x[on] * math.tan(a) + np.sqrt(r ** 2 - y[on] ** 2) / math.cos(a)
+    z[20:60, 60:90] = 90.0
+    return z
+
+
+@pytest.mark.parametrize("scene", [roof_beside_a_box, steep_ramp_beside_a_gentle_one,
+                                   leaning_cylinder_beside_a_box])
+def test_max_tilt_keeps_every_site_within_the_limit(scene):
+    z = noisy(scene(), 1.0)
+    free = run(z, max_tilt=90.0, units_per_pixel=2.0)
+    limited = run(z, max_tilt=45.0, units_per_pixel=2.0)
     assert max(_tilt(s) for s in _sites(free.holdsite)) > 50  # the paper's rule takes steep faces
+    assert free.holdsite.holdsite.col < 49  # the highest object first: the steep one
     assert _sites(limited.holdsite)
     assert all(_tilt(s) <= 45.0 + 1e-9 for s in _sites(limited.holdsite))
+    # every site within the limit is on the level top or the gentle ramp
+    assert all(20 <= s.row < 60 and 60 <= s.col < 90 for s in _sites(limited.holdsite))
     assert "tilt <= 45 degrees" in limited.holdsite.reason
-    if scene_name == "cup":  # the steep sites were on curved surfaces: local poses tested
-        assert all(s.surface_type == "curved" for s in _sites(free.holdsite) if _tilt(s) > 45)
+    if scene is leaning_cylinder_beside_a_box:  # the steep sites are curved: local poses tested
+        steep = [s for s in _sites(free.holdsite) if _tilt(s) > 45]
+        assert steep and all(s.surface_type == "curved" for s in steep)
 
 
-def test_max_tilt_with_no_level_window_says_so():
-    from rangeseg_cli.synth.scenes import render_scene
+def wedge():
+    """A ramp rising 3 units per pixel (56.3 degrees at 2 units/px), then a step down."""
+    cols = np.mgrid[0:64, 0:64][1].astype(float)
+    z = table()
+    z[12:52, 12:52] = 30.0 + 3.0 * (cols[12:52, 12:52] - 12)
+    return z
 
-    found = run(render_scene("wedge", noise=0.0, seed=0).image, max_tilt=45.0,
-                units_per_pixel=2.0).holdsite
+
+def roof():
+    """Two faces meeting at a ridge, falling 3 units per pixel on either side."""
+    cols = np.mgrid[0:64, 0:64][1].astype(float)
+    z = table()
+    z[12:52, 8:56] = 160.0 - 3.0 * np.abs(cols[12:52, 8:56] - 31.5)
+    return z
+
+
+@pytest.mark.parametrize("scene", [wedge, roof])
+def test_max_tilt_with_no_level_window_says_so(scene):
+    found = run(noisy(scene(), 0.5), max_tilt=45.0, units_per_pixel=2.0).holdsite
     assert found.holdsite is None and not found.candidates
     assert re.search(r"tilt <= 45 degrees; \d+ window\(s\) passed the AR test, least tilt 56",
                      found.reason)
@@ -590,17 +659,37 @@ def test_tilts_of_a_camera_agree_with_the_reported_approach():
                                                                                    abs=1e-9)
 
 
+def lying_cylinder(radius=16.0, yaw=25.0, length=70.0, shape=(96, 96), floor=20.0):
+    """A cylinder lying on a table, its axis ``yaw`` degrees from the columns, heights at
+    2 depth units per pixel, and its true pose ``(height, unit normal)`` at a pixel."""
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    y, x = rows - (shape[0] - 1) / 2, cols - (shape[1] - 1) / 2
+    t = math.radians(yaw)
+    along = x * math.cos(t) - y * math.sin(t)
+    across = x * math.sin(t) + y * math.cos(t)
+    up = np.sqrt(np.maximum(radius ** 2 - across ** 2, 0.0))  # above the axis, px
+    z = table(shape, floor)
+    on = (np.abs(across) < radius) & (np.abs(along) <= length / 2)
+    z[on] = floor + 2.0 * (radius + up[on])
+
+    def truth(row, col):  # dz/d(across) = -2 across / up
+        slope = -2.0 * across[row, col] / up[row, col]
+        normal = np.array([-slope * math.sin(t), -slope * math.cos(t), 1.0])
+        return floor + 2.0 * (radius + up[row, col]), normal / np.linalg.norm(normal)
+    return z, truth
+
+
 def test_a_small_footprint_still_takes_its_local_pose_from_enough_pixels():
-    # a 3x3 footprint's own 7x7 square held a quadric of 49 noisy pixels: 16-24 degrees off
+    # a 3x3 footprint's own 7x7 square held a quadric of 49 noisy pixels: 10-20 degrees off
     from rangeseg_cli.stages.holdsite import LOCAL_MIN_REACH, local_reach
-    from rangeseg_cli.synth.scenes import render_scene
 
     assert local_reach((3, 3)) == LOCAL_MIN_REACH == local_reach((7, 1))
     assert local_reach((21, 7)) == 21
+    z, truth = lying_cylinder()
     for seed in (1, 3):
-        scene = render_scene("cylinder", noise=2.0, seed=seed)
-        found = run(scene.image, size=[3, 3]).holdsite
-        errors = [e for s in _sites(found) if (e := _true_pose_errors(scene, s))]
+        found = run(noisy(z, 2.0, seed), size=[3, 3]).holdsite
+        assert all(s.surface_type == "curved" for s in _sites(found))
+        errors = [_pose_errors(s, *truth(s.row, s.col)) for s in _sites(found)]
         assert len(errors) >= 4 and max(angle for _, angle in errors) < 6.0
 
 
