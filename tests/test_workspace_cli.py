@@ -257,6 +257,11 @@ def tote_depth(holes: float = 0.1) -> np.ndarray:
     return depth
 
 
+def metres(depth: np.ndarray) -> np.ndarray:
+    """The 0.1 mm frame as float32 metres, NaN where it has no reading."""
+    return np.where(depth > 0, depth / 10000.0, np.nan).astype(np.float32)
+
+
 @pytest.mark.parametrize("image, overrides, hinted", [
     (tote_depth(), {}, True),
     (tote_depth(holes=0.0), {}, False),  # a 16-bit height map of a raised table: no holes
@@ -265,14 +270,21 @@ def tote_depth(holes: float = 0.1) -> np.ndarray:
     ((tote_depth() // 40).astype(np.uint8), {}, False),  # 8 bits: the paper's heights
     (tote_depth(), {"input": {"larger_is_closer": False}}, False),
     (tote_depth(), {"input": {"invalid": 0.0}}, False),
-    (tote_depth(), {"input": {"metres_per_unit": 0.001}}, False)])
+    (tote_depth(), {"input": {"metres_per_unit": 0.001}}, False),
+    (metres(tote_depth()), {}, True),  # float32 metres, NaN where no reading
+    (metres(tote_depth(holes=0.0)), {}, False),
+    (metres(tote_depth()) * 100, {}, False)])  # float heights of 60-70 units: no depth scale
 def test_a_depth_map_read_as_heights_is_named(image, overrides, hinted):
     from rangeseg_cli.stages.rangeimage import depth_map_hint
 
     hint = depth_map_hint(image, load_config(overrides=overrides).input)
     assert bool(hint) is hinted
-    if hinted:
-        assert "10% zeros" in hint and "median 7000" in hint and "--preset" in hint
+    if hinted and image.dtype == np.uint16:
+        assert "16-bit, 10% holes" in hint and "median 7000" in hint
+        assert "--preset mm-depth or tenth-mm-depth" in hint
+    elif hinted:
+        assert "32-bit, 10% holes" in hint and "median 0.7" in hint
+        assert "--preset metre-depth (depth in metres)" in hint
 
 
 def test_a_run_on_a_depth_map_without_a_preset_warns_once(tmp_path, write_png):

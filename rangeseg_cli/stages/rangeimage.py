@@ -143,11 +143,16 @@ def clipped_value(dtype: np.dtype, cfg: InputConfig) -> int | None:
 #: median (a camera over a bin sees no surface near 0); a height map's floor is near 0.
 DEPTH_NEAR_SHARE = 0.4
 
-#: :func:`depth_map_hint`: the least share of zeros, a depth camera's "no reading".
+#: :func:`depth_map_hint`: the least share of holes (0, or NaN in floating point), a depth
+#: camera's "no reading".
 DEPTH_LEAST_HOLES = 0.005
 
-#: :func:`depth_map_hint`: the least median reading of a depth map (beyond 8-bit heights).
+#: :func:`depth_map_hint`: the least median reading of a depth map in mm or 0.1 mm (beyond
+#: 8-bit heights).
 DEPTH_LEAST_MEDIAN = 256
+
+#: :func:`depth_map_hint`: medians of a floating-point depth map in metres (0.1 to 10 m).
+DEPTH_METRES = (0.1, 10.0)
 
 
 def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
@@ -156,10 +161,12 @@ def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
     A depth map (depth along the optical axis, closer = smaller) read with
     ``[input]`` as it is for height maps (``larger_is_closer``, 0 a height,
     no camera) puts the holdsite on the farthest surface: the tote's floor or
-    rim. An integer image of more than 8 bits with :data:`DEPTH_LEAST_HOLES`
-    of its pixels 0 (a depth camera's "no reading"), whose other readings
-    have a median of :data:`DEPTH_LEAST_MEDIAN` or more and a 5th percentile
-    of :data:`DEPTH_NEAR_SHARE` of it or more (no floor near 0), reads as one.
+    rim. An image of 16 bits or more with :data:`DEPTH_LEAST_HOLES` of its
+    pixels holes (0, or NaN in floating point: a depth camera's "no
+    reading"), whose other readings have a 5th percentile of
+    :data:`DEPTH_NEAR_SHARE` of their median or more (no floor near 0) and a
+    median of :data:`DEPTH_LEAST_MEDIAN` or more (mm, 0.1 mm) or, in
+    floating point, within :data:`DEPTH_METRES` (metres), reads as one.
 
     Parameters
     ----------
@@ -177,20 +184,24 @@ def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
     """
     raw = np.asarray(raw)
     if (not cfg.larger_is_closer or cfg.metres_per_unit > 0 or cfg.has_intrinsics
-            or not math.isnan(cfg.invalid) or raw.dtype.kind not in "ui"
+            or not math.isnan(cfg.invalid) or raw.dtype.kind not in "uif"
             or raw.dtype.itemsize < 2):
         return ""
-    readings = raw[raw > 0]
+    with np.errstate(invalid="ignore"):
+        readings = raw[np.isfinite(raw) & (raw > 0)]
     holes = raw.size - readings.size
     if holes < DEPTH_LEAST_HOLES * raw.size or readings.size < max(100, raw.size // 10):
         return ""
-    near, median = np.percentile(readings, [5, 50])
-    if median < DEPTH_LEAST_MEDIAN or near < DEPTH_NEAR_SHARE * median:
+    near, median = (float(v) for v in np.percentile(readings, [5, 50]))
+    metres = raw.dtype.kind == "f" and DEPTH_METRES[0] <= median <= DEPTH_METRES[1]
+    if near < DEPTH_NEAR_SHARE * median or not (metres or median >= DEPTH_LEAST_MEDIAN):
         return ""
+    presets = ("metre-depth (depth in metres)" if metres
+               else "mm-depth or tenth-mm-depth (depth in mm or 0.1 mm)")
     return (f"looks like a depth map ({raw.dtype.itemsize * 8}-bit, {holes / raw.size:.0%} "
-            f"zeros; 95 % of its readings above {near:.0f}, median {median:.0f}) read as "
+            f"holes; 95 % of its readings above {near:.4g}, median {median:.4g}) read as "
             "heights (larger = closer), so the holdsite goes to the farthest surface; pass "
-            "--preset mm-depth or tenth-mm-depth (depth in mm or 0.1 mm) with --intrinsics")
+            f"--preset {presets} with --intrinsics")
 
 
 #: Raw pixel types :func:`to_heights` converts with the compiled kernel.
