@@ -122,7 +122,8 @@ def test_rgb_too_small_empty_and_corrupt_files_are_named_errors(tmp_path, write_
     with pytest.raises(InputError, match=r"rgb.png: has 3 channels"):
         io.read_image(rgb)
     small = write_png(tmp_path / "small.png", np.zeros((8, 30), np.uint8))
-    with pytest.raises(InputError, match=r"small.png: size 8x30 is too small; at least 16x16"):
+    with pytest.raises(InputError, match=r"small.png: size 30x8 pixels \(width x height\) is too small; "
+                                         r"at least 16x16"):
         io.read_image(small)
     (tmp_path / "empty.png").write_bytes(b"")
     with pytest.raises(InputError, match=r"empty.png: empty file"):

@@ -103,15 +103,15 @@ def test_stage_commands_read_the_recorded_files_and_give_the_bytes_of_run(scene,
 
 
 def test_a_frame_of_another_size_fails_that_image_only(scene, write_png):
-    write_png(scene / "in" / "big.png", box_scene(64).astype(np.uint8))
+    write_png(scene / "in" / "big.png", box_scene(64)[:, :40].astype(np.uint8))  # 40 wide
     out = scene / "out"
     code, output = invoke("run", str(scene / "in"), "-o", str(out),
                           "--background", str(scene / "bg.png"))
     assert code == 1
     lines = [line for line in output.splitlines() if "big.png" in line]
     assert len(lines) == 1
-    assert (f"size 64x64 differs from [workspace] background {scene / 'bg.png'} (48x48)"
-            in lines[0])
+    assert (f"size 40x64 pixels (width x height) differs from [workspace] background "
+            f"{scene / 'bg.png'} (48x48)" in lines[0])
     assert (out / "a.holdsite.json").exists() and (out / "b.holdsite.json").exists()
     assert not (out / "big.holdsite.json").exists()
     images = json.loads((out / "rangeseg-run.json").read_text())["images"]
@@ -186,9 +186,9 @@ def test_run_pipeline_reads_the_configured_files_or_takes_arrays(scene):
     roi[:, 24:] = True
     given = run_pipeline(two_boxes(), roi=roi).holdsite.to_dict()["holdsite"]
     assert from_file == given and from_file["col"] >= 28
-    with pytest.raises(InputError, match=r"image: size 48x48 differs from `background` "
-                                         r"\(32x32\)"):
-        run_pipeline(two_boxes(), background=table(32))
+    with pytest.raises(InputError, match=r"image: size 48x48 pixels \(width x height\) "
+                                         r"differs from `background` \(40x32\)"):
+        run_pipeline(two_boxes(), background=np.pad(table(32), ((0, 0), (0, 8)), mode="edge"))
     missing = load_config(overrides={"workspace": {"background": str(scene / "no.png")}})
     with pytest.raises(ConfigError, match=r"\[workspace\] background: .*no.png: file not"):
         run_pipeline(two_boxes(), missing)

@@ -169,6 +169,6 @@ def check_frame_size(shape: tuple[int, ...], frames: SharedFrames, name: str) ->
     for arr, what in ((frames.background, frames.background_name),
                       (frames.roi, frames.roi_name)):
         if arr is not None and arr.shape[:2] != (rows, cols):
-            raise InputError(f"{name}: size {rows}x{cols} differs from {what} "
-                             f"({arr.shape[0]}x{arr.shape[1]}); it must be a frame of the "
-                             "same camera and size")
+            raise InputError(f"{name}: size {cols}x{rows} pixels (width x height) differs "
+                             f"from {what} ({arr.shape[1]}x{arr.shape[0]}); it must be a "
+                             "frame of the same camera and size")

@@ -60,8 +60,8 @@ def check_array(raw: Any, *, name: str = "image") -> np.ndarray:
         raise InputError(f"{name}: shape {arr.shape} is not a 2-D range image; allowed: "
                          "(H, W) or (H, W, 1)")
     if min(arr.shape) < MIN_SIZE:
-        raise InputError(f"{name}: size {arr.shape[0]}x{arr.shape[1]} is too small; at least "
-                         f"{MIN_SIZE}x{MIN_SIZE} is needed")
+        raise InputError(f"{name}: size {arr.shape[1]}x{arr.shape[0]} pixels (width x "
+                         f"height) is too small; at least {MIN_SIZE}x{MIN_SIZE} is needed")
     return arr
 
 
