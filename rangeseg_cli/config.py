@@ -977,10 +977,18 @@ SPECIAL_FILES = {stat.S_IFIFO: "a named pipe (FIFO)", stat.S_IFSOCK: "a socket",
 
 
 def special_file(path: str | Path) -> str | None:
-    """What ``path`` is when it is a FIFO, a socket or a device (:data:`SPECIAL_FILES`).
+    """What ``path`` is when it is a FIFO, a socket or a device.
 
-    ``None`` for a regular file, a folder or a path that cannot be read.
-    Reading a FIFO can wait forever: every reader refuses these unopened.
+    Parameters
+    ----------
+    path
+        A local path; links are followed.
+
+    Returns
+    -------
+    str or None
+        Its kind as :data:`SPECIAL_FILES` names it; ``None`` for a regular
+        file, a folder or a path that cannot be read.
     """
     try:
         mode = os.stat(path).st_mode
@@ -989,14 +997,50 @@ def special_file(path: str | Path) -> str | None:
     return SPECIAL_FILES.get(stat.S_IFMT(mode))
 
 
+def read_setting_file(path: str | Path, what: str) -> bytes:
+    """The bytes of a settings file (``--config``, ``--intrinsics``), never waiting forever.
+
+    A pipe with a writer (``<(...)``, ``/dev/stdin``) is read to its end,
+    and ``/dev/null`` reads as empty. A named pipe nobody writes to, a
+    socket or another device is refused: opening a FIFO waits for a writer,
+    so it is opened without waiting, and one that gives nothing is refused.
+
+    Parameters
+    ----------
+    path
+        A local path.
+    what
+        What the file should be, for messages (``"a config file; name a TOML file"``).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file and what it is.
+    OSError
+        From reading (missing, a folder, no permission): the caller names it.
+    """
+    kind = special_file(path)
+    if kind is None or os.path.realpath(path) == os.devnull:
+        with open(path, "rb") as fh:
+            return fh.read()
+    if kind != SPECIAL_FILES[stat.S_IFIFO]:
+        raise ConfigError(f"{path}: {kind}, not {what}")
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # returns at once, writer or not
+    try:
+        os.set_blocking(fd, True)  # a writer's data is waited for; none gives the end
+        with os.fdopen(os.dup(fd), "rb") as fh:
+            data = fh.read()
+    finally:
+        os.close(fd)
+    if not data:
+        raise ConfigError(f"{path}: a named pipe (FIFO) nothing was written to, not {what}")
+    return data
+
+
 def read_toml(path: Path) -> dict[str, Any]:
     """Read a TOML file, turning every failure into a one-line :class:`ConfigError`."""
-    kind = special_file(path)
-    if kind is not None:
-        raise ConfigError(f"{path}: {kind}, not a config file; name a TOML file")
     try:
-        with open(path, "rb") as fh:
-            data = fh.read()
+        data = read_setting_file(path, "a config file; name a TOML file")
         # a UTF-8 byte order mark (Windows editors write one) is not TOML's, but harmless
         return tomllib.loads(data.removeprefix(b"\xef\xbb\xbf").decode("utf-8"))
     except FileNotFoundError:

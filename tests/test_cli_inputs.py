@@ -131,21 +131,60 @@ def test_a_fifo_named_png_is_named_a_fifo_and_never_opened(runner, tmp_path, box
     assert "pipe.png: a named pipe (FIFO), not a file or folder" in res.output
 
 
+def _unblock_later(fifo) -> None:
+    """Open ``fifo`` for writing in 10 s and close it: a reader that waits is freed then."""
+    import threading
+    import time
+
+    def late() -> None:
+        time.sleep(10)
+        with open(fifo, "wb"):
+            pass
+
+    threading.Thread(target=late, daemon=True).start()
+
+
 @pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="no named pipes")
-@pytest.mark.parametrize("option, what", [("--config", "not a config file; name a TOML file"),
-                                          ("--intrinsics", "not an intrinsics file; allowed:")])
-def test_a_fifo_given_as_a_setting_file_is_refused_unopened(runner, tmp_path, box_png, option,
-                                                            what):
+@pytest.mark.parametrize("option, what", [
+    ("--config", "nothing was written to, not a config file; name a TOML file"),
+    ("--intrinsics", "nothing was written to, not an intrinsics file; allowed:")])
+def test_a_named_pipe_nobody_writes_to_is_refused_without_waiting(runner, tmp_path, box_png,
+                                                                  option, what):
     # reading --config or --intrinsics from a named pipe waited for a writer forever
     import os
 
     os.mkfifo(tmp_path / "pipe")
+    _unblock_later(tmp_path / "pipe")  # a reader that waits gets an empty file at 10 s
     res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out"),
                                option, str(tmp_path / "pipe")])
     no_traceback(res)
     assert res.exit_code == 2
-    assert f"{tmp_path / 'pipe'}: a named pipe (FIFO), {what}" in res.output
+    assert f"{tmp_path / 'pipe'}: a named pipe (FIFO) {what}" in res.output
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "pipe"), reason="no pipes")
+def test_settings_from_a_pipe_with_a_writer_are_read(runner, tmp_path, box_png):
+    # --config <(...) and --config /dev/stdin: a pipe the shell writes to
+    import os
+
+    read, write = os.pipe()
+    os.write(write, b"[holdsite]\nrotation_step = 5\n")
+    os.close(write)
+    try:
+        res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out"), "-q",
+                                   "--config", f"/dev/fd/{read}"])
+    finally:
+        os.close(read)
+    assert res.exit_code == 0, res.output
+    manifest = json.loads((tmp_path / "out" / "rangeseg-run.json").read_text())
+    assert manifest["config"]["holdsite"]["rotation_step"] == 5.0
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "null"), "-q",
+                               "--config", os.devnull])  # empty: every default
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "zero"),
+                               "--config", "/dev/zero"])  # never ends: refused
+    assert res.exit_code == 2 and "/dev/zero: a character device, not a config" in res.output
 
 
 # --------------------------------------------------------------------------- names like outputs (3)

@@ -24,7 +24,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from ..config import MAX_PIXELS, special_file
+from ..config import MAX_PIXELS, read_setting_file
 from ..errors import ConfigError, RangesegError
 
 #: What an intrinsics file may be, for messages.
@@ -100,11 +100,10 @@ class _Bad(ValueError):
 def _read_text(path: str) -> str:
     from ..batch import io
 
-    kind = special_file(path)
-    if kind is not None:
-        raise ConfigError(f"{path}: {kind}, not an intrinsics file; {ALLOWED}")
     try:
-        data = io.location(path).read_bytes()
+        where = io.location(path)
+        data = (where.read_bytes() if isinstance(where, io.URLPath)
+                else read_setting_file(where, f"an intrinsics file; {ALLOWED}"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: intrinsics file not found") from None
     except IsADirectoryError:
