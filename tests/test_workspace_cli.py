@@ -273,15 +273,20 @@ def metres(depth: np.ndarray) -> np.ndarray:
     (tote_depth(), {"input": {"metres_per_unit": 0.001}}, False),
     (metres(tote_depth()), {}, True),  # float32 metres, NaN where no reading
     (metres(tote_depth(holes=0.0)), {}, False),
-    (metres(tote_depth()) * 100, {}, False)])  # float heights of 60-70 units: no depth scale
+    (metres(tote_depth()) * 100, {}, False),  # float heights of 60-70 units: no depth scale
+    (tote_depth().astype(np.int16) - 20, {}, False),  # signed heights, below 0 somewhere
+    (tote_depth(), {"input": {"units_per_pixel": 2.0}}, False),  # a height map, said so
+    (tote_depth(), {"input": {"scale": 0.1}}, False),
+    (np.kron(tote_depth(), np.ones((16, 16), np.uint16)), {}, True)])  # 1.3 MP: at a stride
 def test_a_depth_map_read_as_heights_is_named(image, overrides, hinted):
     from rangeseg_cli.stages.rangeimage import depth_map_hint
 
     hint = depth_map_hint(image, load_config(overrides=overrides).input)
     assert bool(hint) is hinted
     if hinted and image.dtype == np.uint16:
-        assert "16-bit, 10% holes" in hint and "median 7000" in hint
+        assert "16-bit, " in hint and "% holes" in hint and "median 7000" in hint
         assert "--preset mm-depth or tenth-mm-depth" in hint
+        assert "for a height map set an [input] key (e.g. units_per_pixel)" in hint
     elif hinted:
         assert "32-bit, 10% holes" in hint and "median 0.7" in hint
         assert "--preset metre-depth (depth in metres)" in hint
@@ -292,13 +297,19 @@ def test_a_run_on_a_depth_map_without_a_preset_warns_once(tmp_path, write_png):
         write_png(tmp_path / name, tote_depth())
     inputs = [str(tmp_path / "a.png"), str(tmp_path / "b.png")]
 
-    def warnings(*args: str) -> list[str]:
+    def warnings(*args: str, code: int = 0) -> list[str]:
         res = CliRunner().invoke(main, ["run", *inputs, "-o", str(tmp_path / "out"),
                                         "--overwrite", "-j", "1", *args])
-        assert res.exit_code == 0, res.output
-        return [line for line in res.stderr.splitlines() if "looks like a depth map" in line]
+        assert res.exit_code == code, res.output
+        return [line for line in res.stderr.splitlines() if "may be a depth map" in line]
 
     said = warnings()
-    assert len(said) == 1 and said[0].startswith(f"warning: {inputs[0]} looks like")
+    assert len(said) == 1 and said[0].startswith(f"warning: {inputs[0]} may be a depth map")
     assert warnings("-q") == []
     assert warnings("--preset", "tenth-mm-depth") == []
+    assert warnings("--set", "input.units_per_pixel=1") == []
+    (tmp_path / "a.png").write_bytes(b"not an image")  # the next input is looked at
+    said = warnings(code=1)  # a.png fails
+    assert len(said) == 1 and said[0].startswith(f"warning: {inputs[1]} may be a depth map")
+    res = CliRunner().invoke(main, ["edges", inputs[1], "-o", str(tmp_path / "e")])
+    assert res.exit_code == 0 and "depth map" not in res.stderr  # no holdsite: no word

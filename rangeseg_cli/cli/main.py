@@ -330,22 +330,32 @@ def _warn_footprint(config: Any, stages: tuple[str, ...], opts: dict[str, Any]) 
         click.echo(f"warning: {why}", err=True)
 
 
+#: Local inputs :func:`_warn_depth_map` tries until one reads.
+HINT_TRIES = 3
+
+
 def _warn_depth_map(jobs: Any, config: Any, stages: tuple[str, ...], opts: dict[str, Any]
                     ) -> None:
-    """On stderr, unless -q: the first local input looks like a depth map read as heights."""
+    """On stderr, unless -q: the first readable local input may be a depth map read as heights.
+
+    Only when the batch reads inputs and picks holdsites (``run``); the
+    first of :data:`HINT_TRIES` local inputs that reads is looked at.
+    """
     from ..batch.io import read_image
     from ..errors import RangesegError
     from ..stages.rangeimage import depth_map_hint
 
-    first = next((j.source for j in jobs if j.source and "://" not in str(j.source)), None)
-    if opts["quiet"] or "edges" not in stages or first is None:
+    if opts["quiet"] or "edges" not in stages or "holdsite" not in stages:
         return
-    try:
-        why = depth_map_hint(read_image(first), config.input)
-    except RangesegError:  # the batch reports an unreadable image itself
+    local = [j.source for j in jobs if j.source and "://" not in str(j.source)]
+    for source in local[:HINT_TRIES]:
+        try:
+            why = depth_map_hint(read_image(source), config.input)
+        except (RangesegError, MemoryError, OSError):  # the batch reports the image itself
+            continue
+        if why:
+            click.echo(f"warning: {source} {why}", err=True)
         return
-    if why:
-        click.echo(f"warning: {first} {why}", err=True)
 
 
 def _set_threads(threads: int | None) -> None:

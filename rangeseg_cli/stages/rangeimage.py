@@ -9,6 +9,7 @@ inside a smoothing mask, a fit or a holdsite, and labelled 0.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -155,27 +156,33 @@ DEPTH_LEAST_MEDIAN = 256
 DEPTH_METRES = (0.1, 10.0)
 
 
+#: :func:`depth_map_hint` reads every k-th row and column of a larger image, k the least
+#: that leaves at most this many pixels.
+DEPTH_HINT_PIXELS = 1_000_000
+
+
 def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
-    """Why ``raw`` looks like a camera's depth map read as heights, or ``""``.
+    """Why ``raw`` may be a camera's depth map read as heights, or ``""``.
 
     A depth map (depth along the optical axis, closer = smaller) read with
-    ``[input]`` as it is for height maps (``larger_is_closer``, 0 a height,
-    no camera) puts the holdsite on the farthest surface: the tote's floor or
-    rim. An image of 16 bits or more with :data:`DEPTH_LEAST_HOLES` of its
-    pixels holes (0, or NaN in floating point: a depth camera's "no
-    reading"), whose other readings have a 5th percentile of
-    :data:`DEPTH_NEAR_SHARE` of their median or more (no floor near 0) and a
-    median of :data:`DEPTH_LEAST_MEDIAN` or more (mm, 0.1 mm) or, in
-    floating point, within :data:`DEPTH_METRES` (metres), reads as one.
+    ``[input]`` at its defaults, as a height map, puts the holdsite on the
+    farthest surface: the tote's floor or rim. An image of 16 bits or more
+    with :data:`DEPTH_LEAST_HOLES` of its pixels holes (0, or NaN in
+    floating point: a depth camera's "no reading"), none negative, whose
+    other readings have a 5th percentile of :data:`DEPTH_NEAR_SHARE` of
+    their median or more (no floor near 0) and a median of
+    :data:`DEPTH_LEAST_MEDIAN` or more (mm, 0.1 mm) or, in floating point,
+    within :data:`DEPTH_METRES` (metres), reads as one. A height map with
+    its floor at 0 reads as one too: setting any ``[input]`` key (e.g.
+    ``units_per_pixel``) says what the image is.
 
     Parameters
     ----------
     raw
-        The image as read (before :func:`to_heights`).
+        The image as read (before :func:`to_heights`); one of more than
+        :data:`DEPTH_HINT_PIXELS` pixels is read at a stride.
     cfg
-        ``[input]``; a configuration for depth (``larger_is_closer`` off),
-        with a no-data value (``invalid``) or with a camera
-        (``metres_per_unit``, intrinsics) gives ``""``.
+        ``[input]``; anything but its defaults gives ``""``.
 
     Returns
     -------
@@ -183,14 +190,17 @@ def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
         ``""``, or what the readings are and what to pass instead.
     """
     raw = np.asarray(raw)
-    if (not cfg.larger_is_closer or cfg.metres_per_unit > 0 or cfg.has_intrinsics
-            or not math.isnan(cfg.invalid) or raw.dtype.kind not in "uif"
-            or raw.dtype.itemsize < 2):
+    if (not _at_defaults(cfg) or raw.ndim != 2 or raw.dtype.kind not in "uif"
+            or raw.dtype.itemsize < 2 or raw.size == 0):
         return ""
+    step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
+    seen = raw[::step, ::step]
     with np.errstate(invalid="ignore"):
-        readings = raw[np.isfinite(raw) & (raw > 0)]
-    holes = raw.size - readings.size
-    if holes < DEPTH_LEAST_HOLES * raw.size or readings.size < max(100, raw.size // 10):
+        if np.any(seen < 0) or np.isinf(seen).any():
+            return ""  # signed heights
+        readings = seen[seen > 0]
+    holes = seen.size - readings.size
+    if holes < DEPTH_LEAST_HOLES * seen.size or readings.size < max(100, seen.size // 10):
         return ""
     near, median = (float(v) for v in np.percentile(readings, [5, 50]))
     metres = raw.dtype.kind == "f" and DEPTH_METRES[0] <= median <= DEPTH_METRES[1]
@@ -198,10 +208,22 @@ def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
         return ""
     presets = ("metre-depth (depth in metres)" if metres
                else "mm-depth or tenth-mm-depth (depth in mm or 0.1 mm)")
-    return (f"looks like a depth map ({raw.dtype.itemsize * 8}-bit, {holes / raw.size:.0%} "
+    return (f"may be a depth map ({raw.dtype.itemsize * 8}-bit, {holes / seen.size:.0%} "
             f"holes; 95 % of its readings above {near:.4g}, median {median:.4g}) read as "
-            "heights (larger = closer), so the holdsite goes to the farthest surface; pass "
-            f"--preset {presets} with --intrinsics")
+            "heights (larger = closer): the holdsite would go to the farthest surface. "
+            f"For depth pass --preset {presets} with --intrinsics; for a height map set "
+            "an [input] key (e.g. units_per_pixel) to say so")
+
+
+def _at_defaults(cfg: InputConfig) -> bool:
+    """Whether every key of ``cfg`` has its default value (NaN equal to NaN)."""
+    default = InputConfig()
+    for f in dataclasses.fields(cfg):
+        a, b = getattr(cfg, f.name), getattr(default, f.name)
+        if a != b and not (isinstance(a, float) and isinstance(b, float)
+                           and math.isnan(a) and math.isnan(b)):
+            return False
+    return True
 
 
 #: Raw pixel types :func:`to_heights` converts with the compiled kernel.
