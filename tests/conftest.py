@@ -33,14 +33,21 @@ def done_in_manifest(out: Path) -> int:
     return sum(v.get("status") == "done" for v in images.values())
 
 
-def wait_for_done(out: Path, count: int = 1, timeout: float = 120.0) -> None:
-    """Until the batch has recorded ``count`` images as done in its manifest.
+def wait_for_done(out: Path, proc: subprocess.Popen | None = None, count: int = 1,
+                  timeout: float = 120.0) -> None:
+    """Until the batch writing ``out`` (``proc``) has recorded ``count`` images as done.
 
     Files on disk are not enough: a worker writes them before its result
-    reaches the batch, and a stop in between leaves them unrecorded.
+    reaches the batch, and a stop in between leaves them unrecorded. The
+    batch writes its manifest on its first result (``_Manifest.add``), then
+    at most every 2 s. A batch that ends first fails here with its stderr.
     """
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and done_in_manifest(out) < count:
+        if proc is not None and proc.poll() is not None:
+            err = proc.stderr.read() if proc.stderr else ""
+            pytest.fail(f"the batch ended (exit {proc.returncode}) before {count} image(s) "
+                        f"were recorded: {err}")
         time.sleep(0.02)
     assert done_in_manifest(out) >= count, f"no image done in {out}"
 

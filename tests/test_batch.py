@@ -132,7 +132,7 @@ def test_resume_after_sigkill_completes_with_identical_bytes(tmp_path, write_png
     subprocess.run([*cmd, "-o", str(ref)], check=True, capture_output=True)
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    wait_for_done(out)
+    wait_for_done(out, proc)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     done_before = len(list(out.glob("*.holdsite.json")))
@@ -293,7 +293,7 @@ def test_ctrl_c_stops_cleanly_keeps_what_is_done_and_says_how_to_resume(tmp_path
     cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", jobs, "-q"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
-    wait_for_done(out)
+    wait_for_done(out, proc)
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == code, err
@@ -440,7 +440,7 @@ def test_sigterm_to_the_whole_group_stops_as_sigterm_to_the_batch(tmp_path, writ
     cmd = [sys.executable, "-m", "rangeseg_cli.cli.main", "run", str(folder), "-j", "2", "-q"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
-    wait_for_done(out)
+    wait_for_done(out, proc)
     os.killpg(proc.pid, signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err

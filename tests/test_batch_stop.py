@@ -57,7 +57,7 @@ def test_images_a_stopped_batch_never_started_read_as_not_started(folder, tmp_pa
            "--set", "holdsite.rotation_step=2"]
     proc = spawn([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                  text=True)
-    wait_for_done(out)
+    wait_for_done(out, proc)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err

@@ -328,7 +328,7 @@ def test_ctrl_c_on_dask_exits_130_keeps_what_finished_and_resumes(cluster, clien
     folder, reference = many
     out = tmp_path / "out"
     proc = start_cli(spawn, folder, out, cluster.scheduler_address)
-    wait_for_done(out)
+    wait_for_done(out, proc)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
@@ -357,7 +357,7 @@ def test_losing_the_scheduler_mid_batch_is_one_line_naming_it(cluster, many, tmp
     try:
         address = doomed.stdout.readline().strip()
         proc = start_cli(spawn, folder, out, address)
-        wait_for_done(out)
+        wait_for_done(out, proc)
     finally:
         doomed.kill()
     _, err = proc.communicate(timeout=60)
