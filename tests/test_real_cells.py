@@ -1,8 +1,9 @@
 """Real tote frames (sample_data/arc, Intel RealSense SR300 and a second camera; issue 32).
 
 Run as a user of a bin-picking cell would: the unit preset, the camera's
-intrinsics file and a frame of the empty tote, nothing hand-tuned. No ground
-truth comes with these frames; what is checked needs none:
+intrinsics file and a frame of the empty tote (and once without it), nothing
+hand-tuned. No ground truth comes with these frames; what is checked needs
+none (the empty frame judges the site even when the run did not see it):
 
 - an *item*: the site's window is nearer the camera than the empty tote by
   more than 10 mm at most of its pixels (the empty frame has no item there);
@@ -42,18 +43,20 @@ def _window(site: dict) -> tuple[slice, slice]:
     return slice(r - rows // 2, r + rows // 2 + 1), slice(c - cols // 2, c + cols // 2 + 1)
 
 
-@pytest.fixture(scope="module", params=CAMERAS)
-def with_background(request):
-    camera = request.param
+@pytest.fixture(scope="module", params=[(c, given) for c in CAMERAS for given in (True, False)],
+                ids=lambda p: f"{p[0]}-{'with' if p[1] else 'without'}-background")
+def picked(request):
+    """A frame's holdsite, run with its empty tote as background and without it."""
+    camera, given = request.param
     raw = io.read_image(ARC / f"{camera}-scene.depth.png")
     empty = io.read_image(ARC / "empty" / f"{camera}-background.depth.png")
     config = _config(camera)
-    result = run_pipeline(raw, config, background=empty)
+    result = run_pipeline(raw, config, background=empty if given else None)
     return raw, empty, config, result.holdsite.to_dict()
 
 
-def test_the_site_lies_on_an_item_that_the_empty_tote_does_not_have(with_background):
-    raw, empty, _, doc = with_background
+def test_the_site_lies_on_an_item_that_the_empty_tote_does_not_have(picked):
+    raw, empty, _, doc = picked
     site = doc["holdsite"]
     assert site is not None, doc["reason"]
     window = _window(site)
@@ -63,8 +66,8 @@ def test_the_site_lies_on_an_item_that_the_empty_tote_does_not_have(with_backgro
     assert np.mean(nearer[np.isfinite(tote)]) > 0.8
 
 
-def test_the_site_lies_over_the_tote_floor(with_background):
-    raw, empty, config, doc = with_background
+def test_the_site_lies_over_the_tote_floor(picked):
+    raw, empty, config, doc = picked
     site = doc["holdsite"]
     z = -_depth_mm(empty)
     floor = find_support(z, config.input, 10.0)
@@ -76,8 +79,8 @@ def test_the_site_lies_over_the_tote_floor(with_background):
     assert np.median(np.abs(floor.distance(pts))) < 10.0  # the empty tote's floor is there
 
 
-def test_the_approach_is_within_45_degrees_of_the_camera_axis(with_background):
-    *_, doc = with_background
+def test_the_approach_is_within_45_degrees_of_the_camera_axis(picked):
+    *_, doc = picked
     approach = doc["holdsite"]["approach_camera"]
     assert math.degrees(math.acos(approach[2])) <= 45.0
     assert doc["holdsite"]["flat_rms"] < 2.0  # mm: flat enough for a cup to seal

@@ -12,6 +12,7 @@ import pytest
 from rangeseg_cli import load_config, run_pipeline
 from rangeseg_cli.cell.workspace import (
     BACKGROUND_REACH,
+    HIDDEN_SUPPORT,
     MAX_BELOW,
     assess,
     find_support,
@@ -614,3 +615,52 @@ def test_workspace_arrays_of_another_shape_are_one_input_error():
 def test_an_roi_box_that_encloses_nothing_is_refused():
     with pytest.raises(ConfigError, match=r"\[workspace\] roi_box = \[5, 10, 5, 30\]: expected"):
         load_config(overrides={"workspace": {"roi_box": [5, 10, 5, 30]}})
+
+
+def full_tote_boxes(gap=12.0):
+    """A 4x4 grid of boxes of different heights covering the view but for ``gap`` mm aisles."""
+    xs, ys = np.linspace(-260.0, 260.0, 5), np.linspace(-200.0, 200.0, 5)
+    heights = np.random.default_rng(3).permutation(np.linspace(40.0, 160.0, 16))
+    return tuple((xs[i] + gap / 2, xs[i + 1] - gap / 2, ys[j] + gap / 2, ys[j + 1] - gap / 2,
+                  heights[4 * i + j]) for i in range(4) for j in range(4))
+
+
+def in_view_tops(boxes, shape=SHAPE):
+    """Heights of the boxes (of :func:`render`, tilt 0) whose top lies wholly inside the view."""
+    out = []
+    for box in boxes:
+        rows, cols = np.nonzero(np.abs(600.0 - render(0.0, (box,), shape=shape) - box[4]) < 0.5)
+        if rows.size and rows.min() > 0 and cols.min() > 0 and rows.max() < shape[0] - 1 \
+                and cols.max() < shape[1] - 1:
+            out.append(box[4])
+    return out
+
+
+def test_a_hidden_floor_is_no_support_and_the_highest_box_in_view_is_picked():
+    # Boxes cover the floor but for narrow aisles: the dominant plane of the image holds
+    # too few pixels to be the floor, so it is not used (it would be a guess), the reason
+    # says so and asks for a background frame, and the site is on the highest box top
+    # wholly in view. With the empty scene given, or the floor in view, the support is used.
+    cfg = cam_config()
+    boxes = full_tote_boxes()
+    full = noisy(render(0.0, boxes), 0.5)
+    space = run_assess(-full, cfg, noise=0.5)
+    assert space.support is None and space.height is None
+    assert space.hidden is not None and space.hidden.inliers < HIDDEN_SUPPORT
+    result = run_pipeline(full, cfg).holdsite
+    assert result.reason.endswith(
+        f"; without a background frame the image's dominant plane holds only "
+        f"{space.hidden.inliers:.0%} of the valid pixels (the floor mostly hidden or unread), "
+        "too few to take it for the support, so no support test applies; give a frame of "
+        "the empty scene (--background)")
+    site = result.holdsite
+    assert site is not None
+    assert 600.0 - render(0.0, boxes)[site.row, site.col] == pytest.approx(
+        max(in_view_tops(boxes)), abs=1.0)
+    empty = noisy(render(0.0), 0.5, seed=1)
+    given = run_assess(-full, cfg, noise=0.5, background=-empty)
+    assert given.support is not None and given.hidden is None
+    assert "--background" not in run_pipeline(full, cfg, background=empty).holdsite.reason
+    one_box = noisy(render(0.0, ((-40.0, 40.0, -30.0, 30.0, 60.0),)), 0.5)
+    assert run_assess(-one_box, cfg, noise=0.5).support.inliers >= HIDDEN_SUPPORT
+    assert "--background" not in run_pipeline(one_box, cfg).holdsite.reason

@@ -23,7 +23,10 @@ Notes
    :data:`MAX_SUPPORT_TILT` degrees (a tote wall does not). The plane with
    the most points within the tolerance wins, refitted to them by least
    squares (twice). ``height`` is the signed distance from it, towards the
-   camera (or up).
+   camera (or up). Without a background frame, a plane holding under
+   :data:`HIDDEN_SUPPORT` of the points is no support (a full tote hides its
+   floor): the workspace is then the valid pixels of the region of interest,
+   and the holdsite's reason asks for a background frame.
 2. Tolerance: ``support_tolerance``, or by default ``max(4 sigma, 1 unit)``
    with ``sigma`` the image's noise (:func:`~rangeseg_cli.stages.noise.estimate_noise`),
    and with metric camera depth at least :data:`DEPTH_FRACTION` of the
@@ -78,6 +81,14 @@ BACKGROUND_REACH = 10
 #: Millimetres the support's extent is shrunk by (:func:`hull_inset`).
 INSET_MM = 12.0
 
+#: Without a background frame, a plane found on the image that holds a smaller share of
+#: the points is not taken for the support (module Notes, 1): the floor is mostly hidden
+#: (a full tote) or unread, and the plane a guess. The SR300 frame of ``sample_data/arc``
+#: reads 12 % (a plane 5 degrees and 14 mm off its empty tote's floor, which took one
+#: item and a wall together out of the workspace); its empty tote 44 %, the ARC bin
+#: frame 46 %, the synthetic camera cells 59-92 %.
+HIDDEN_SUPPORT = 0.25
+
 #: Pieces of the support of at least this fraction of the largest one make its extent.
 HULL_PIECE = 0.1
 
@@ -121,6 +132,10 @@ class Workspace:
         Share of the pixels both frames read that lie behind the background
         frame by more than its tolerance (0 without one): most of them, and
         the background is of another camera, pose or unit.
+    hidden
+        Without a background frame, the plane found on the image when it
+        holds under :data:`HIDDEN_SUPPORT` of the points and so is not used
+        as the support (``support`` is ``None``); else ``None``.
     """
 
     pickable: np.ndarray
@@ -129,6 +144,7 @@ class Workspace:
     tolerance: float
     extent: np.ndarray | None = None
     behind: float = 0.0
+    hidden: Plane | None = None
 
 
 def default_tolerance(z: np.ndarray, camera: InputConfig, noise: float) -> float:
@@ -539,6 +555,8 @@ def assess(z: np.ndarray, config: Config, noise: float, *,
         pickable &= ~matches_background(smooth, ref, bg_tol, filled=filled)
         behind = behind_share(smooth, filled, bg_tol)
     plane = find_support(ref, config.input, tol) if ws.support else None
+    if plane is not None and background is None and plane.inliers < HIDDEN_SUPPORT:
+        return Workspace(pickable, None, None, tol, behind=behind, hidden=plane)
     if plane is None:
         return Workspace(pickable, None, None, tol, behind=behind)
     pts = points(smooth, config.input)

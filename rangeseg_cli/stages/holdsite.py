@@ -997,6 +997,16 @@ def _background_note(space: Workspace) -> str:
             "pixels both read: is the background of another camera, pose or depth unit?")
 
 
+def _hidden_support_note(space: Workspace) -> str:
+    """What the reason adds when, without a background frame, the floor was mostly hidden."""
+    if space.hidden is None:
+        return ""
+    return (f"; without a background frame the image's dominant plane holds only "
+            f"{space.hidden.inliers:.0%} of the valid pixels (the floor mostly hidden or "
+            "unread), too few to take it for the support, so no support test applies; "
+            "give a frame of the empty scene (--background)")
+
+
 def _nothing_to_pick(by_id: dict[int, Surface], objects: list[ObjectInfo],
                      space: Workspace) -> str:
     """The reason of an image with no candidate object."""
@@ -2288,7 +2298,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     if not found:
         reason = (_failure(hold, missed, scene.flat_limit) if order
                   else _nothing_to_pick(by_id, objects, space)) + _unit_note(config) \
-            + _background_note(space)
+            + _background_note(space) + _hidden_support_note(space)
         return HoldsiteResult(None, reason, (), bg, objs, camera, out)
     # Step 5: the best window, then the runners-up
     sites = [dataclasses.replace(site, surface=origin.get(site.surface, site.surface))
@@ -2297,5 +2307,6 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     first = rank[found[0].surface.id]  # (carved pieces are named by their region below)
     before = [h for h in missed if rank[h.surface.id] < first]
     reason = (_success(sites[0], obj_by_id[sites[0].object], before, hold)
-              + _unit_note(config) + _background_note(space))
+              + _unit_note(config) + _background_note(space)
+              + _hidden_support_note(space))
     return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera, out)
