@@ -313,3 +313,27 @@ def test_a_run_on_a_depth_map_without_a_preset_warns_once(tmp_path, write_png):
     assert len(said) == 1 and said[0].startswith(f"warning: {inputs[1]} may be a depth map")
     res = CliRunner().invoke(main, ["edges", inputs[1], "-o", str(tmp_path / "e")])
     assert res.exit_code == 0 and "depth map" not in res.stderr  # no holdsite: no word
+
+
+def test_the_background_and_roi_files_in_an_input_folder_are_no_frames(scene):
+    # Kept beside the frames, the empty scene and the mask are not run as frames of their
+    # own (they are counted with the files not read); named themselves, they are.
+    folder = scene / "in"
+    (scene / "bg.png").rename(folder / "bg.png")
+    (scene / "roi.png").rename(folder / "roi.png")
+    out = scene / "out"
+    code, output = invoke("run", str(folder), "-o", str(out),
+                          "--background", str(folder / "bg.png"), "--roi", str(folder / "roi.png"))
+    assert code == 0, output
+    assert sorted(p.name for p in out.glob("*.holdsite.json")) == ["a.holdsite.json",
+                                                                   "b.holdsite.json"]
+    manifest = json.loads((out / "rangeseg-run.json").read_text())
+    assert sorted(manifest["images"]) == ["a", "b"]
+    assert manifest["summary"]["not_images"] == 2
+    code, output = invoke("run", str(folder / "bg.png"), "-o", str(scene / "named"),
+                          "--background", str(folder / "bg.png"))
+    assert code == 0, output
+    assert (scene / "named" / "bg.holdsite.json").exists()
+    code, output = invoke("run", str(folder), "-o", str(scene / "plain"))
+    assert code == 0, output
+    assert len(list((scene / "plain").glob("*.holdsite.json"))) == 4  # without them: frames

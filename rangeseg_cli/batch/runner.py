@@ -141,11 +141,15 @@ def stage_range(first: str, last: str) -> tuple[str, ...]:
 
 
 def jobs_from_inputs(inputs: Iterable[str | Path], out: Location,
-                     names: io.NameFilter | None = None) -> tuple[list[Job], list[str]]:
+                     names: io.NameFilter | None = None, *, not_frames: Iterable[str] = ()
+                     ) -> tuple[list[Job], list[str]]:
     """Jobs for the images among ``inputs`` (files and folders, recursive; paths or URLs).
 
     ``names``: which files of the folders to read (``--include``, ``--exclude``);
-    the files it leaves out are listed with the non-images.
+    the files it leaves out are listed with the non-images. ``not_frames``:
+    files that are no frames to pick from (the ``[workspace]`` background frame
+    and ROI mask, :func:`workspace_files`): found in a folder, they are listed
+    with the non-images too; named themselves, they are read.
 
     Raises
     ------
@@ -157,6 +161,7 @@ def jobs_from_inputs(inputs: Iterable[str | Path], out: Location,
     """
     inputs = list(inputs)
     images, skipped = io.find_images(inputs, exclude=out, written=WrittenHere(), names=names)
+    images, skipped = _frames_only(inputs, images, skipped, not_frames)
     named: set[object] | None = None  # the files named themselves, asked only on a repeat
     seen: dict[str, Location] = {}
     files: set[object] = set()
@@ -247,6 +252,18 @@ class WrittenHere:
             except OutputError as exc:
                 raise InputError(str(exc)) from None
         return self.images[key]
+
+
+def _frames_only(inputs: list[str | Path], images: list[tuple[Location, PurePath]],
+                 skipped: list[Location], not_frames: Iterable[str]
+                 ) -> tuple[list[tuple[Location, PurePath]], list[Location]]:
+    """``images`` without the ``not_frames`` found in folders, which join ``skipped``."""
+    others = {_identity(io.location(name)) for name in not_frames}
+    if not others:
+        return images, skipped
+    others -= {_identity(loc) for loc in map(io.location, inputs) if loc.is_file()}
+    kept = [(path, rel) for path, rel in images if _identity(path) not in others]
+    return kept, skipped + [path for path, _ in images if _identity(path) in others]
 
 
 def _identity(path: Location) -> object:

@@ -422,15 +422,16 @@ def _location(name: str) -> Any:
         raise UsageProblem(str(exc)) from None
 
 
-def _input_jobs(inputs: tuple[str, ...], out: Any, opts: dict[str, Any]
+def _input_jobs(inputs: tuple[str, ...], out: Any, opts: dict[str, Any], config: Any
                 ) -> tuple[list[Any], list[str]]:
     from ..batch.io import NameFilter
-    from ..batch.runner import jobs_from_inputs
+    from ..batch.runner import jobs_from_inputs, workspace_files
     from ..errors import InputError, StorageError
 
     names = NameFilter(include=opts["include"], exclude=opts["exclude"])
     try:
-        jobs, skipped = jobs_from_inputs(inputs, out, names)
+        jobs, skipped = jobs_from_inputs(
+            inputs, out, names, not_frames=[path for _, path in workspace_files(config)])
     except (InputError, StorageError) as exc:
         raise UsageProblem(str(exc)) from None
     if not jobs:
@@ -533,7 +534,7 @@ def _input_command(name: str, last: str, help_text: str) -> None:
         config = _load_config(opts["config_path"], opts["preset"], opts["settings"],
                               shorthands=shorthands)
         out_path = _location(out)
-        jobs, skipped = _input_jobs(inputs, out_path, opts)
+        jobs, skipped = _input_jobs(inputs, out_path, opts, config)
         from ..batch.runner import stage_range
 
         _run(ctx, jobs, out_path, config, stage_range("edges", last), opts, skipped)
