@@ -5,8 +5,9 @@ intrinsics file and a frame of the empty tote (and once without it), nothing
 hand-tuned. No ground truth comes with these frames; what is checked needs
 none (the empty frame judges the site even when the run did not see it):
 
-- an *item*: the site's window is nearer the camera than the empty tote by
-  more than 10 mm at most of its pixels (the empty frame has no item there);
+- an *item*: the site's window, and each runner-up's, is nearer the camera
+  than the empty tote by more than 10 mm at most of its pixels (the empty
+  frame has no item there);
 - *inside the tote*: the empty frame shows the tote's floor under the site
   (the floor is the empty frame's dominant plane: within 10 mm of it);
 - the approach is within 45 degrees of the camera's axis;
@@ -64,6 +65,16 @@ def test_the_site_lies_on_an_item_that_the_empty_tote_does_not_have(picked):
     assert np.isfinite(scene).all()  # a valid reading under every cup pixel
     nearer = tote - scene > 10.0
     assert np.mean(nearer[np.isfinite(tote)]) > 0.8
+
+
+def test_every_runner_up_lies_on_an_item_too(picked):
+    # A robot tries the runners-up when the first pick fails: none on a tote wall.
+    raw, empty, _, doc = picked
+    for site in doc["candidates"]:
+        window = _window(site)
+        scene, tote = _depth_mm(raw[window]), _depth_mm(empty[window])
+        nearer = tote - scene > 10.0
+        assert np.mean(nearer[np.isfinite(tote)]) > 0.8, site
 
 
 def test_the_site_lies_over_the_tote_floor(picked):

@@ -651,12 +651,17 @@ def test_a_hidden_floor_is_no_support_and_the_highest_box_in_view_is_picked():
     assert result.reason.endswith(
         f"; without a background frame the image's dominant plane holds only "
         f"{space.hidden.inliers:.0%} of the valid pixels (the floor mostly hidden or unread), "
-        "too few to take it for the support, so no support test applies; give a frame of "
-        "the empty scene (--background)")
+        "too few to take it for the support, so no support test applies and objects "
+        "touching the image border are picked only when none in view can be; give a frame "
+        "of the empty scene (--background)")
     site = result.holdsite
     assert site is not None
-    assert 600.0 - render(0.0, boxes)[site.row, site.col] == pytest.approx(
-        max(in_view_tops(boxes)), abs=1.0)
+    tops = in_view_tops(boxes)
+    assert 600.0 - render(0.0, boxes)[site.row, site.col] == pytest.approx(max(tops), abs=1.0)
+    assert result.candidates  # the runners-up too lie on boxes wholly in view
+    for other in result.candidates:
+        height = 600.0 - render(0.0, boxes)[other.row, other.col]
+        assert min(abs(height - top) for top in tops) < 1.0
     empty = noisy(render(0.0), 0.5, seed=1)
     given = run_assess(-full, cfg, noise=0.5, background=-empty)
     assert given.support is not None and given.hidden is None

@@ -1003,7 +1003,8 @@ def _hidden_support_note(space: Workspace) -> str:
         return ""
     return (f"; without a background frame the image's dominant plane holds only "
             f"{space.hidden.inliers:.0%} of the valid pixels (the floor mostly hidden or "
-            "unread), too few to take it for the support, so no support test applies; "
+            "unread), too few to take it for the support, so no support test applies and "
+            "objects touching the image border are picked only when none in view can be; "
             "give a frame of the empty scene (--background)")
 
 
@@ -2078,6 +2079,18 @@ def site_flat_rms(z: np.ndarray, row: int, col: int, fp: np.ndarray) -> float:
     return float(np.sqrt(np.mean((centred - a @ coef) ** 2)))
 
 
+def _in_view_if_any(found: list[_Hits], object_of: dict[int, int],
+                    objects: dict[int, ObjectInfo]) -> list[_Hits]:
+    """The hits on objects wholly in view when there are any, else all (no support known).
+
+    Without a support (:attr:`~rangeseg_cli.cell.workspace.Workspace.hidden`)
+    nothing tells a tote's wall or rim from an item cut by the image border:
+    the site and its runners-up then stay on objects wholly in view.
+    """
+    inside = [h for h in found if not objects[object_of[h.surface.id]].touches_border]
+    return inside or found
+
+
 def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hits], list[_Hits]]:
     """Search surfaces in order until ``wanted`` have accepted windows; (found, missed)."""
     found: list[_Hits] = []
@@ -2293,6 +2306,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     scene = _Scene(labels, valid & space.pickable, z, hold, _angles(hold), backend,
                    config.input, flat_limit(hold, config.input, noise))
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
+    if space.hidden is not None:  # no support: the border is the one cue to a wall or a rim
+        found = _in_view_if_any(found, object_of, obj_by_id)
     bg, camera = tuple(sorted(background_ids)), config.input.has_intrinsics
     objs, out = tuple(_named_as_labelled(objects, origin)), tuple(sorted(excluded))
     if not found:
