@@ -1022,18 +1022,30 @@ def read_setting_file(path: str | Path, what: str) -> bytes:
     kind = special_file(path)
     if kind is None or os.path.realpath(path) == os.devnull:
         with open(path, "rb") as fh:
-            return fh.read()
+            return _at_most(fh.read(SETTING_BYTES + 1), path, what)
     if kind != SPECIAL_FILES[stat.S_IFIFO]:
         raise ConfigError(f"{path}: {kind}, not {what}")
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # returns at once, writer or not
     try:
         os.set_blocking(fd, True)  # a writer's data is waited for; none gives the end
         with os.fdopen(os.dup(fd), "rb") as fh:
-            data = fh.read()
+            data = _at_most(fh.read(SETTING_BYTES + 1), path, what)
     finally:
         os.close(fd)
     if not data:
         raise ConfigError(f"{path}: a named pipe (FIFO) nothing was written to, not {what}")
+    return data
+
+
+#: Most bytes a settings file may hold (the defaults' TOML is about 3 KB): a pipe that
+#: never ends (``--config <(yes)``) or a wrong, huge file is refused, not read to the end.
+SETTING_BYTES = 1 << 20
+
+
+def _at_most(data: bytes, path: str | Path, what: str) -> bytes:
+    """``data`` (read up to one byte past :data:`SETTING_BYTES`) unless it is longer."""
+    if len(data) > SETTING_BYTES:
+        raise ConfigError(f"{path}: more than {SETTING_BYTES // (1 << 20)} MiB, not {what}")
     return data
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from conftest import box_scene
 from rangeseg_cli.cli.main import main
+from rangeseg_cli.config import SETTING_BYTES
 
 
 def no_traceback(res) -> None:
@@ -185,6 +186,50 @@ def test_settings_from_a_pipe_with_a_writer_are_read(runner, tmp_path, box_png):
     res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "zero"),
                                "--config", "/dev/zero"])  # never ends: refused
     assert res.exit_code == 2 and "/dev/zero: a character device, not a config" in res.output
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "pipe"), reason="no pipes")
+@pytest.mark.parametrize("option, what", [("--config", "a config file; name a TOML file"),
+                                          ("--intrinsics", "an intrinsics file; allowed:")])
+def test_a_settings_file_or_pipe_beyond_a_mib_is_refused_not_read_to_its_end(
+        runner, tmp_path, box_png, option, what):
+    # --config <(yes) read until memory ran out; a huge file was read whole
+    import os
+    import threading
+
+    big = tmp_path / "big.toml"
+    big.write_bytes(b"#" * (SETTING_BYTES + 1))
+    res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out"), option,
+                               str(big)])
+    no_traceback(res)
+    assert res.exit_code == 2
+    assert f"{big}: more than 1 MiB, not {what}" in res.output
+    read, write = os.pipe()  # --config <(yes): a pipe whose writer never stops
+
+    written = [0]
+
+    def endless() -> None:  # stops at 16 MiB, so a reader without a limit fails, not hangs
+        try:
+            for _ in range(2048):
+                written[0] += os.write(write, b"y\n" * 4096)
+        except OSError:  # the read end closed: as `yes`, stop
+            pass
+        finally:
+            os.close(write)
+
+    writer = threading.Thread(target=endless, daemon=True)
+    writer.start()
+    try:
+        res = runner.invoke(main, ["run", str(box_png), "-o", str(tmp_path / "out"), option,
+                                   f"/dev/fd/{read}"])
+    finally:
+        os.close(read)
+    writer.join(timeout=10)
+    assert written[0] < 4 * SETTING_BYTES  # the reader stopped at the limit
+    no_traceback(res)
+    assert res.exit_code == 2
+    assert f"/dev/fd/{read}: more than 1 MiB, not {what}" in res.output
+    assert not (tmp_path / "out").exists()
 
 
 # --------------------------------------------------------------------------- names like outputs (3)
