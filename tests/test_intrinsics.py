@@ -102,6 +102,19 @@ def test_open3d_json_is_column_major(tmp_path):
     assert (got.width, got.height) == (1280, 720)
 
 
+@pytest.mark.parametrize("name, text, size", [
+    # pyrealsense2's stream intrinsics (rs2_intrinsics) as a user dumps them
+    ("realsense.json", json.dumps({"width": 640, "height": 480, "ppx": CX, "ppy": CY, "fx": FX,
+                                   "fy": FY, "model": "distortion.inverse_brown_conrady",
+                                   "coeffs": [0.1, -0.2, 0.0, 0.0, 0.05]}), (640, 480)),
+    ("camera.yaml", f"fx: {FX}\nfy: {FY}\ncx: {CX}\ncy: {CY}\n", None)])
+def test_a_mapping_of_fx_fy_and_the_principal_point_realsense_names_too(tmp_path, name, text,
+                                                                          size):
+    got = read_intrinsics(write(tmp_path, name, text))
+    assert (got.fx, got.fy, got.cx, got.cy) == (FX, FY, CX, CY)
+    assert (got.width, got.height) == (size or (None, None))
+
+
 def test_unknown_size_written_as_zero_or_minus_one_is_no_size(tmp_path):
     got = read_intrinsics(write(tmp_path, "o.json", json.dumps(OPEN3D | {"width": -1,
                                                                        "height": -1})))
@@ -119,6 +132,9 @@ def test_unknown_size_written_as_zero_or_minus_one_is_no_size(tmp_path):
     (f"{FX} 3 {CX}\n0 {FY} {CY}\n0 0 1\n", "skew 3"),
     (f"{FX} 0 nan\n0 {FY} {CY}\n0 0 1\n", "not a finite number"),
     ("image_width: 640\ncamera_name: x\n", "holds no camera matrix"),
+    (f"fx: {FX}\nfy: {FY}\nppx: {CX}\n", "has fx or fy but no cy or ppy"),
+    (f"fx: {FX}\nfy: {FY}\ncx: {CX}\ncy: [1, 2]\n", "cy holds [1, 2], not a number"),
+    (f'{{"fx": 0, "fy": {FY}, "cx": {CX}, "cy": {CY}}}', "focal lengths must be > 0"),
     ('{"width": 640, "intrinsic_matrix": [1, 2, 3]}', "intrinsic_matrix must be a list of 9"),
     ("K: [1, 0, 1, 0, true, 1, 0, 0, 1]\n", "K holds True, not a number"),
     ("camera_matrix: {rows: 3, cols: 4, data: [1]}\n", "camera_matrix is 3x4"),

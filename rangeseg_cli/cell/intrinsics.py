@@ -9,7 +9,11 @@
   ``image_height``) or ``rostopic echo``'s form (``K: [...]``, or ROS 2's
   ``k:``, with ``width``, ``height``), the matrix row-major;
 - an Open3D ``PinholeCameraIntrinsic`` as JSON (``width``, ``height``,
-  ``intrinsic_matrix``: 9 numbers, column-major).
+  ``intrinsic_matrix``: 9 numbers, column-major);
+- a JSON or YAML mapping of ``fx``, ``fy`` and ``cx``, ``cy`` -- or
+  librealsense's ``ppx``, ``ppy`` (``rs2_intrinsics``, as pyrealsense2 gives
+  a stream's intrinsics) -- with ``width``, ``height`` when known; its
+  distortion (``model``, ``coeffs``) is not used, as the other formats'.
 
 The format is told by the content, not the name. Every problem is a one-line
 :class:`~rangeseg_cli.errors.ConfigError` naming the file (exit code 2 on
@@ -29,8 +33,8 @@ from ..errors import ConfigError, RangesegError
 
 #: What an intrinsics file may be, for messages.
 ALLOWED = ("allowed: a 3x3 camera matrix as text (whitespace or comma separated), a ROS "
-           "CameraInfo YAML (camera_matrix or K) or an Open3D PinholeCameraIntrinsic JSON "
-           "(intrinsic_matrix)")
+           "CameraInfo YAML (camera_matrix or K), an Open3D PinholeCameraIntrinsic JSON "
+           "(intrinsic_matrix) or a JSON/YAML mapping of fx, fy, cx (or ppx), cy (or ppy)")
 #: Largest skew (K[0, 1]) taken for none, relative to fx; and the tolerance of the 0 0 1 row.
 SKEW_TOLERANCE = 1e-6
 ROW_TOLERANCE = 1e-9
@@ -237,10 +241,24 @@ def _from_mapping(data: dict[str, Any], source: str) -> Intrinsics:
     elif "K" in data or "k" in data:
         key = "K" if "K" in data else "k"
         values, size = _numbers(data[key], key, 9), _size(data, "width", "height")
+    elif "fx" in data or "fy" in data:
+        values, size = _focal_matrix(data), _size(data, "width", "height")
     else:
         raise _Bad("holds no camera matrix (camera_matrix, K or k of a ROS CameraInfo, "
-                   f"intrinsic_matrix of Open3D); {ALLOWED}")
+                   f"intrinsic_matrix of Open3D, or fx and fy); {ALLOWED}")
     return _from_matrix([values[0:3], values[3:6], values[6:9]], source, size)
+
+
+def _focal_matrix(data: dict[str, Any]) -> list[float]:
+    """The row-major matrix of ``fx``, ``fy``, ``cx``/``ppx``, ``cy``/``ppy`` (librealsense)."""
+    names = (("fx",), ("fy",), ("cx", "ppx"), ("cy", "ppy"))
+    missing = [" or ".join(pair) for pair in names if not any(k in data for k in pair)]
+    if missing:
+        raise _Bad(f"has fx or fy but no {', '.join(missing)} (fx, fy: focal lengths; cx, "
+                   "cy: the principal point; pixels)")
+    keys = [next(k for k in pair if k in data) for pair in names]
+    fx, fy, cx, cy = (_numbers([data[k]], k, 1)[0] for k in keys)
+    return [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]
 
 
 def _ros_matrix(entry: Any) -> list[float]:
