@@ -188,11 +188,31 @@ def test_ground_truth_ids_match_the_surface_and_object_lists(name):
                for o in objects.values())
     kinds = {o["kind"] for o in objects.values()}
     assert ("gripper" in kinds) == (name == "cam-gripper")
-    assert ("tote" in kinds) >= (name in ("cam-tote", "cam-empty-tote"))
+    assert ("tote" in kinds) >= (name in ("cam-tote", "cam-empty-tote", "cam-full-tote"))
     has_items = any(o["pickable"] for o in objects.values())
     assert has_items == (name != "cam-empty-tote")
     assert info["camera"]["preset"] == "tenth-mm-depth"
     assert scene.image.dtype == np.uint16 and np.all(scene.gt[scene.image == 0] == 0)
+
+
+def test_a_full_tote_hides_its_floor_more_than_a_tote_and_stays_out_of_the_camera():
+    # Heaped up to 250 mm below the camera: every frame has readings (a heap grown into
+    # the camera left none), and the items hide more of the floor than in cam-tote.
+    hidden = {}
+    for name in ("cam-tote", "cam-full-tote"):
+        shares = []
+        for seed in range(3):
+            scene = render_camera_scene(name, size=SMALL, seed=seed, camera="ideal")
+            floor = [o["id"] for o in scene.info["objects"] if o["name"] == "tote floor"]
+            on_floor = np.isin(scene.gt, [s["id"] for s in scene.info["surfaces"]
+                                          if s["object"] in floor])
+            shares.append(on_floor.mean())
+            assert np.isfinite(scene.depth).any() and (scene.image > 0).any()
+            if name == "cam-full-tote":
+                top = float(np.nanmin(scene.depth))
+                assert top >= 150.0  # nothing within the sensor's 150 mm minimum range
+        hidden[name] = float(np.mean(shares))
+    assert hidden["cam-full-tote"] < 0.5 * hidden["cam-tote"]
 
 
 def test_background_frame_holds_no_items_and_no_gripper():

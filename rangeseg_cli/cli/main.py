@@ -664,7 +664,7 @@ DEPTH_UNIT_NAMES = ("0.1mm", "1mm", "m")
 @click.option("--scenes", callback=_parse_scenes, metavar="A,B",
               help="Scenes to render (default: all range-image scenes; the paper's test "
                    "objects are part1, cup, part2, cube-holes; depth-camera scenes: "
-                   "cam-pile, cam-tote, cam-gripper, cam-empty-tote).")
+                   "cam-pile, cam-tote, cam-gripper, cam-empty-tote, cam-full-tote).")
 @click.option("--noise", default="0,1,2", show_default=True, callback=_parse_noise,
               metavar="S1,S2", help="Gaussian noise levels in depth units; one image each "
                                     "(range-image scenes).")

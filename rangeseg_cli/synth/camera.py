@@ -646,9 +646,13 @@ ITEM_KINDS = ("box", "lying cylinder", "standing cylinder", "ball", "bottle", "f
 
 
 def _drop_items(shapes: list[tuple[str, tuple[Convex, ...]]], spots: np.ndarray,
-                rng: np.random.Generator, area: tuple[float, float, float, float]
-                ) -> list[Item]:
-    """Pose the items at ``spots`` and lower each onto what lies below (Notes, 3)."""
+                rng: np.random.Generator, area: tuple[float, float, float, float],
+                ceiling: float = math.inf) -> list[Item]:
+    """Pose the items at ``spots`` and lower each onto what lies below (Notes, 3).
+
+    An item whose top would come to rest above ``ceiling`` (mm) is left out:
+    a packed tote is filled to its rim, not stacked towards the camera.
+    """
     x0, x1, y0, y1 = area
     xs, ys = np.meshgrid(np.arange(x0, x1, 2.0), np.arange(y0, y1, 2.0))
     grid = Grid(xs.shape, 1.0, xs.ravel(), ys.ravel())
@@ -665,6 +669,8 @@ def _drop_items(shapes: list[tuple[str, tuple[Convex, ...]]], spots: np.ndarray,
         hi = np.max([sp.hi for sp in spans], axis=0)
         hit = np.isfinite(lo)
         dz = float(np.max(envelope[sel][hit] - lo[hit])) if hit.any() else 0.0
+        if hit.any() and float(np.max(hi[hit])) + dz > ceiling:
+            continue
         envelope[sel[hit]] = np.maximum(envelope[sel[hit]], hi[hit] + dz)
         kind = name.rsplit(" ", 1)[0]
         out.append(Item(name, tuple(s.moved(pose(z=dz)) for s in placed), True, kind))
@@ -704,19 +710,20 @@ def _view_box(camera: Camera, z: float = 0.0) -> tuple[float, float, float, floa
 
 
 def _pile_items(camera: Camera, rng: np.random.Generator, count: int,
-                bounds: tuple[float, float, float, float]) -> list[Item]:
+                bounds: tuple[float, float, float, float], ceiling: float = math.inf
+                ) -> list[Item]:
     shapes = [_random_item(rng, i) for i in range(1, count + 1)]
     spots = _spots(camera, rng, count, bounds)
     x0, x1, y0, y1 = bounds
-    return _drop_items(shapes, spots, rng, (x0 - 150, x1 + 150, y0 - 150, y1 + 150))
+    return _drop_items(shapes, spots, rng, (x0 - 150, x1 + 150, y0 - 150, y1 + 150), ceiling)
 
 
 def _tote(rng: np.random.Generator, inner: tuple[float, float, float, float]
-          ) -> tuple[Item, Item]:
+          ) -> tuple[Item, Item, float]:
     """The tote's floor and its walls, flaring outward by a draft angle, with a rim on top.
 
     ``inner`` is the floor inside the walls (x0, x1, y0, y1); the floor is 10 mm
-    thick and stands on the table.
+    thick and stands on the table. The third value is the walls' height, mm.
     """
     x0, x1, y0, y1 = inner
     height, t, draft = rng.uniform(140, 260), 6.0, rng.uniform(3, 12)
@@ -742,7 +749,7 @@ def _tote(rng: np.random.Generator, inner: tuple[float, float, float, float]
             box(olx, rim_w, rim_t, "tote rim").moved(pose(cx, oy1 + rim_w / 2 - 2, height))]
     floor = box(x1 - x0 + 2 * t, y1 - y0 + 2 * t, 10.0, "tote floor").moved(pose(cx, cy, -10.0))
     return Item("tote floor", (floor,), False, "support"), Item(
-        "tote", tuple(walls + rims), False, "tote")
+        "tote", tuple(walls + rims), False, "tote"), height
 
 
 def _camera(model: CameraModel, shape: tuple[int, int], rng: np.random.Generator,
@@ -761,17 +768,23 @@ def _table_scene(model: CameraModel, shape: tuple[int, int], rng: np.random.Gene
 
 
 def _tote_scene(model: CameraModel, shape: tuple[int, int], rng: np.random.Generator,
-                count: int) -> tuple[Camera, list[Item], list[Item]]:
+                count: int, packed: bool = False) -> tuple[Camera, list[Item], list[Item]]:
+    """A tote with ``count`` items; ``packed``: heaped up to 250 mm below the camera.
+
+    Many items hide the floor (the support is then no plane of the image);
+    none comes within the sensor's range limit of the camera.
+    """
     cam = _camera(model, shape, rng, (600, 900))
     x0, x1, y0, y1 = _view_box(cam)
     wx, wy = x1 - x0, y1 - y0
     inset = rng.uniform(-0.04, 0.14, 4)
     inner = (x0 + inset[0] * wx, x1 - inset[1] * wx, y0 + inset[2] * wy, y1 - inset[3] * wy)
-    floor, tote = _tote(rng, inner)
+    floor, tote, height = _tote(rng, inner)
     table = support_plane("table", -10.0)
     margin = 40.0
     bounds = (inner[0] + margin, inner[1] - margin, inner[2] + margin, inner[3] - margin)
-    items = _pile_items(cam, rng, count, bounds) if count else []
+    ceiling = float(cam.t[2]) - 250.0 if packed else math.inf
+    items = _pile_items(cam, rng, count, bounds, ceiling) if count else []
     return cam, [floor, tote, table, *items], [floor, tote, table]
 
 
@@ -834,6 +847,8 @@ CAMERA_SCENES: dict[str, CameraSceneSpec] = {s.name: s for s in (
                     "in from an image border", _with_gripper),
     CameraSceneSpec("cam-empty-tote", "an empty tote: nothing to pick",
                     lambda m, s, r: _tote_scene(m, s, r, 0)),
+    CameraSceneSpec("cam-full-tote", "a tote heaped full: items hide most of its floor",
+                    lambda m, s, r: _tote_scene(m, s, r, int(r.integers(30, 46)), packed=True)),
 )}
 
 
