@@ -204,3 +204,15 @@ def test_intrinsics_on_a_height_map_is_the_config_error_of_fx(tmp_path):
 def test_help_says_intrinsics_come_before_set():
     res = CliRunner().invoke(main, ["run", "--help"])
     assert "--intrinsics" in res.output and "before --set" in res.output
+
+
+@pytest.mark.parametrize("name", ["camera_info.yaml", "intrinsic.json",
+                                  "realsense_intrinsics.json"])
+def test_the_documented_example_files_are_the_sr300s_intrinsics(name):
+    # README and docs/sensors.md point users at these: each format reads as the same camera
+    from pathlib import Path
+
+    got = read_intrinsics(str(Path(__file__).resolve().parent.parent / "docs" / "examples"
+                              / name))
+    assert (got.fx, got.fy, got.cx, got.cy) == pytest.approx((FX, FY, CX, CY))
+    assert (got.width, got.height) == (640, 480)
