@@ -1028,7 +1028,7 @@ def read_setting_file(path: str | Path, what: str) -> bytes:
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # returns at once, writer or not
     try:
         os.set_blocking(fd, True)  # a writer's data is waited for; none gives the end
-        with os.fdopen(os.dup(fd), "rb") as fh:
+        with open(fd, "rb", closefd=False) as fh:  # fd is closed below, whatever fails
             data = _at_most(fh.read(SETTING_BYTES + 1), path, what)
     finally:
         os.close(fd)

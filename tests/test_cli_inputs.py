@@ -188,6 +188,29 @@ def test_settings_from_a_pipe_with_a_writer_are_read(runner, tmp_path, box_png):
     assert res.exit_code == 2 and "/dev/zero: a character device, not a config" in res.output
 
 
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo")
+                    or not __import__("os").path.isdir("/dev/fd"), reason="no named pipes")
+def test_reading_a_settings_pipe_leaves_no_descriptor_open(tmp_path, monkeypatch):
+    # a FIFO that became a folder between its stat and its open leaked a descriptor
+    import os
+
+    from rangeseg_cli import config
+    from rangeseg_cli.errors import ConfigError
+
+    os.mkfifo(tmp_path / "pipe")
+    _unblock_later(tmp_path / "pipe")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    before = len(os.listdir("/dev/fd"))
+    with pytest.raises(ConfigError, match="nothing was written to"):
+        config.read_toml(tmp_path / "pipe")
+    monkeypatch.setattr(config, "special_file", lambda path: "a named pipe (FIFO)")
+    with pytest.raises(ConfigError) as err:
+        config.read_toml(folder)
+    assert str(err.value) == f"{folder}: cannot read config file (Is a directory)"
+    assert len(os.listdir("/dev/fd")) == before
+
+
 @pytest.mark.skipif(not hasattr(__import__("os"), "pipe"), reason="no pipes")
 @pytest.mark.parametrize("option, what", [("--config", "a config file; name a TOML file"),
                                           ("--intrinsics", "an intrinsics file; allowed:")])
