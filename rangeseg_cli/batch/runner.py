@@ -262,8 +262,14 @@ def _frames_only(inputs: list[str | Path], images: list[tuple[Location, PurePath
     if not others:
         return images, skipped
     others -= {_identity(loc) for loc in map(io.location, inputs) if loc.is_file()}
-    kept = [(path, rel) for path, rel in images if _identity(path) not in others]
-    return kept, skipped + [path for path, _ in images if _identity(path) in others]
+    kept: list[tuple[Location, PurePath]] = []
+    left = list(skipped)
+    for path, rel in images:
+        if _identity(path) in others:
+            left.append(path)
+        else:
+            kept.append((path, rel))
+    return kept, left
 
 
 def _identity(path: Location) -> object:

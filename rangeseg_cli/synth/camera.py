@@ -651,7 +651,7 @@ def _drop_items(shapes: list[tuple[str, tuple[Convex, ...]]], spots: np.ndarray,
     """Pose the items at ``spots`` and lower each onto what lies below (Notes, 3).
 
     An item whose top would come to rest above ``ceiling`` (mm) is left out:
-    a packed tote is filled to its rim, not stacked towards the camera.
+    a heaped tote's items stay out of the camera's range limit.
     """
     x0, x1, y0, y1 = area
     xs, ys = np.meshgrid(np.arange(x0, x1, 2.0), np.arange(y0, y1, 2.0))
@@ -719,11 +719,11 @@ def _pile_items(camera: Camera, rng: np.random.Generator, count: int,
 
 
 def _tote(rng: np.random.Generator, inner: tuple[float, float, float, float]
-          ) -> tuple[Item, Item, float]:
+          ) -> tuple[Item, Item]:
     """The tote's floor and its walls, flaring outward by a draft angle, with a rim on top.
 
     ``inner`` is the floor inside the walls (x0, x1, y0, y1); the floor is 10 mm
-    thick and stands on the table. The third value is the walls' height, mm.
+    thick and stands on the table.
     """
     x0, x1, y0, y1 = inner
     height, t, draft = rng.uniform(140, 260), 6.0, rng.uniform(3, 12)
@@ -749,7 +749,7 @@ def _tote(rng: np.random.Generator, inner: tuple[float, float, float, float]
             box(olx, rim_w, rim_t, "tote rim").moved(pose(cx, oy1 + rim_w / 2 - 2, height))]
     floor = box(x1 - x0 + 2 * t, y1 - y0 + 2 * t, 10.0, "tote floor").moved(pose(cx, cy, -10.0))
     return Item("tote floor", (floor,), False, "support"), Item(
-        "tote", tuple(walls + rims), False, "tote"), height
+        "tote", tuple(walls + rims), False, "tote")
 
 
 def _camera(model: CameraModel, shape: tuple[int, int], rng: np.random.Generator,
@@ -779,7 +779,7 @@ def _tote_scene(model: CameraModel, shape: tuple[int, int], rng: np.random.Gener
     wx, wy = x1 - x0, y1 - y0
     inset = rng.uniform(-0.04, 0.14, 4)
     inner = (x0 + inset[0] * wx, x1 - inset[1] * wx, y0 + inset[2] * wy, y1 - inset[3] * wy)
-    floor, tote, height = _tote(rng, inner)
+    floor, tote = _tote(rng, inner)
     table = support_plane("table", -10.0)
     margin = 40.0
     bounds = (inner[0] + margin, inner[1] - margin, inner[2] + margin, inner[3] - margin)
