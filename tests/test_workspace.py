@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from rangeseg_cli import load_config, run_pipeline
 from rangeseg_cli.cell.workspace import (
@@ -669,3 +670,32 @@ def test_a_hidden_floor_is_no_support_and_the_highest_box_in_view_is_picked():
     one_box = noisy(render(0.0, ((-40.0, 40.0, -30.0, 30.0, 60.0),)), 0.5)
     assert run_assess(-one_box, cfg, noise=0.5).support.inliers >= HIDDEN_SUPPORT
     assert "--background" not in run_pipeline(one_box, cfg).holdsite.reason
+
+
+def dome(shape, centre, radius, base, top):
+    """Heights of a spherical-looking cap from ``base`` at its rim to ``top``; -inf outside."""
+    v, u = np.indices(shape, dtype=np.float64)
+    r2 = ((v - centre[0]) ** 2 + (u - centre[1]) ** 2) / radius ** 2
+    return np.where(r2 < 1, base + (top - base) * np.sqrt(np.clip(1 - r2, 0, 1)), -np.inf)
+
+
+@pytest.mark.parametrize("shadow", [0, 4])
+def test_a_shadow_around_an_item_on_another_makes_no_box_at_the_border_a_structure(shadow):
+    # An item resting on another is parted from it by the camera's shadow (no reading):
+    # what it rests on is still seen within reach, so it does not hover, it counts for
+    # the pile's height, and a box at the border as high as the pile stays an item.
+    shape = (96, 128)
+    z = np.maximum(np.full(shape, 20.0), dome(shape, (50, 50), 32, 20, 150))
+    upper = dome(shape, (50, 50), 12, 140, 200)
+    on_top = upper > z
+    z = np.maximum(z, upper)
+    z[30:70, 110:] = 220.0  # a box cut by the border, a little above the pile
+    if shadow:
+        z[ndimage.binary_dilation(on_top, iterations=shadow) & ~on_top] = np.nan
+    result = run_pipeline(noisy(z), load_config())
+    objects = {o.id: o for o in result.holdsite.objects}
+    of = {s: o for o in objects.values() for s in o.surfaces}
+    box, item = of[label_at(result, 50, 120)], of[label_at(result, 50, 50)]
+    assert box.touches_border and not box.structure
+    assert item.id != of[label_at(result, 50, 25)].id  # the two domes are two objects
+    assert not item.structure

@@ -668,7 +668,8 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     (:func:`_hovering`) when the lowest of its pixels (5th percentile of
     heights above the support) lies well above whatever is under it: the
     highest top of the lower objects it touches (``touching``: pairs of
-    object ids), else the support; the robot's arm and fingers, a tote's
+    object ids) or comes within :data:`STAND_REACH` px of across a camera's
+    shadow (:func:`_near_pairs`), else the support; the robot's arm and fingers, a tote's
     rim. An item rests on the support or on another item and shows its
     sides down to it; a tote's wall rises from the floor. The pile is the
     objects away from the border that do not hover and hold a footprint
@@ -696,7 +697,8 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     with np.errstate(invalid="ignore"):
         standing = _touching(owner, np.abs(height) <= space.tolerance)
     spans = {o.id: _height_span(*_in_box(height, owner, boxes, o.id)) for o in objects}
-    hover = _hovering(spans, touching or set(), space.tolerance)
+    near = (touching or set()) | _near_pairs(owner, boxes)
+    hover = _hovering(spans, near, space.tolerance)
     zone = border_zone(valid, space.extent)
     bordering = _present(owner[zone])
     # the widest disc counts for the pile (away from the border, not hovering) and standing
@@ -742,6 +744,26 @@ def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, in
                 under[one] = max(under[one], spans[other][1])
     return {i for i, (low, top) in spans.items() if np.isfinite(top) and top > 2 * tol
             and low - under[i] > max(HOVER_SHARE * (top - under[i]), HOVER_TOLERANCES * tol)}
+
+
+def _near_pairs(owner: np.ndarray, boxes: list[Any]) -> set[tuple[int, int]]:
+    """Pairs of objects within :data:`STAND_REACH` px of each other, across any gap.
+
+    A depth camera's shadows and the edges between items part an item from
+    the one it rests on; what is seen that near is what it may rest on.
+    Each object's mask is dilated in its box grown by the reach.
+    """
+    h, w = owner.shape
+    pairs = set()
+    for i, box in enumerate(boxes, start=1):
+        if box is None:
+            continue
+        grown = (slice(max(box[0].start - STAND_REACH, 0), min(box[0].stop + STAND_REACH, h)),
+                 slice(max(box[1].start - STAND_REACH, 0), min(box[1].stop + STAND_REACH, w)))
+        crop = owner[grown]
+        seen = _present(crop[square_dilation(crop == i, 2 * STAND_REACH + 1)])
+        pairs |= {(i, j) for j in seen if j != i}
+    return pairs
 
 
 def _in_box(values: np.ndarray, owner: np.ndarray, boxes: list[Any], oid: int
