@@ -699,3 +699,18 @@ def test_a_shadow_around_an_item_on_another_makes_no_box_at_the_border_a_structu
     assert box.touches_border and not box.structure
     assert item.id != of[label_at(result, 50, 25)].id  # the two domes are two objects
     assert not item.structure
+
+
+def test_items_over_small_glimpses_of_a_heaped_floor_lie_in_the_workspace():
+    # The floor shows in full on the left only; on the right, heaped boxes hide it but for
+    # two gaps of a twelfth of that piece each. The gaps belong to the floor's extent, so
+    # the highest box, out there, may be picked; a box outside the tote still may not
+    # (test_a_box_outside_the_tote_is_never_the_site).
+    z = np.full((96, 128), 20.0)
+    z[:, 40:] = 60.0 + 10.0 * (np.arange(88)[None, :] // 22)  # four box tops, 60 to 90
+    z[10:28, 100:118] = 20.0
+    z[66:84, 100:118] = 20.0
+    z[38:58, 92:120] = 140.0  # the highest box, beyond the floor seen in full
+    result = run_pipeline(noisy(z), load_config())
+    site = site_of(result)
+    assert site is not None and 38 <= site.row < 58 and 92 <= site.col < 120
