@@ -682,8 +682,9 @@ def dome(shape, centre, radius, base, top):
 @pytest.mark.parametrize("shadow", [0, 4])
 def test_a_shadow_around_an_item_on_another_makes_no_box_at_the_border_a_structure(shadow):
     # An item resting on another is parted from it by the camera's shadow (no reading):
-    # what it rests on is still seen within reach, so it does not hover, it counts for
-    # the pile's height, and a box at the border as high as the pile stays an item.
+    # what it rests on is still seen within reach, so the item counts for the pile's
+    # height, and a box at the border a little above the pile stays an item, as it does
+    # without the shadow (shadow=0, the control).
     shape = (96, 128)
     z = np.maximum(np.full(shape, 20.0), dome(shape, (50, 50), 32, 20, 150))
     upper = dome(shape, (50, 50), 12, 140, 200)

@@ -659,18 +659,17 @@ def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarr
 
 def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.ndarray,
                     lift: np.ndarray, space: Workspace, half_width: float,
-                    walls_known: bool = False,
-                    touching: set[tuple[int, int]] | None = None) -> list[ObjectInfo]:
+                    walls_known: bool = False) -> list[ObjectInfo]:
     """Structures at the border, never picked (module Notes, step 0).
 
     The border is the image frame and the invalid pixels joined to it outside
     the support's extent (:func:`border_zone`). An object *hovers*
     (:func:`_hovering`) when the lowest of its pixels (5th percentile of
     heights above the support) lies well above whatever is under it: the
-    highest top of the lower objects it touches (``touching``: pairs of
-    object ids) or comes within :data:`STAND_REACH` px of across a camera's
-    shadow (:func:`_near_pairs`), else the support; the robot's arm and fingers, a tote's
-    rim. An item rests on the support or on another item and shows its
+    highest top of the lower objects it comes within :data:`STAND_REACH` px
+    of across any gap (:func:`_near_pairs`: an item rests on one the
+    camera's shadow parts it from), else the support; the robot's arm and
+    fingers, a tote's rim. An item rests on the support or on another item and shows its
     sides down to it; a tote's wall rises from the floor. The pile is the
     objects away from the border that do not hover and hold a footprint
     (their widest inscribed disc reaches ``half_width`` px). With a pile, an
@@ -697,8 +696,7 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     with np.errstate(invalid="ignore"):
         standing = _touching(owner, np.abs(height) <= space.tolerance)
     spans = {o.id: _height_span(*_in_box(height, owner, boxes, o.id)) for o in objects}
-    near = (touching or set()) | _near_pairs(owner, boxes)
-    hover = _hovering(spans, near, space.tolerance)
+    hover = _hovering(spans, _near_pairs(owner, boxes), space.tolerance)
     zone = border_zone(valid, space.extent)
     bordering = _present(owner[zone])
     # the widest disc counts for the pile (away from the border, not hovering) and standing
@@ -734,7 +732,7 @@ def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, in
     """Objects whose lowest pixels lie well above the tops of the lower objects they touch.
 
     ``spans``: (low, top) of each object; ``touching``: pairs of objects
-    whose regions are neighbours. What is under an object is the highest
+    near each other (:func:`_near_pairs`), both ways. What is under an object is the highest
     top among the touching objects lower than it, else the support (0).
     """
     under = dict.fromkeys(spans, 0.0)
@@ -751,7 +749,8 @@ def _near_pairs(owner: np.ndarray, boxes: list[Any]) -> set[tuple[int, int]]:
 
     A depth camera's shadows and the edges between items part an item from
     the one it rests on; what is seen that near is what it may rest on.
-    Each object's mask is dilated in its box grown by the reach.
+    Each object's mask is dilated by a square of side ``2 STAND_REACH + 1``
+    in its box grown by the reach: the cost follows the boxes' areas.
     """
     h, w = owner.shape
     pairs = set()
@@ -2312,10 +2311,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     lift = region_lift(labels, space, z, n, ids=object_of)  # step 3 orders only these
     if config.workspace.border_structures:
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
-        touching = {(object_of[i], object_of[j]) for i, j in gaps
-                    if i in object_of and j in object_of and object_of[i] != object_of[j]}
         objects = mark_structures(objects, labels, valid, lift, space, half,
-                                  walls_known=background is not None, touching=touching)
+                                  walls_known=background is not None)
     obj_by_id = {o.id: o for o in objects}
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
     floating = floating_objects(objects) if space.support is not None else set()
