@@ -669,8 +669,8 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     highest top of the lower objects it comes within :data:`STAND_REACH` px
     of across any gap (:func:`_near_pairs`: an item rests on one the
     camera's shadow parts it from), else the support; the robot's arm and
-    fingers, a tote's rim. An item rests on the support or on another item and shows its
-    sides down to it; a tote's wall rises from the floor. The pile is the
+    fingers, a tote's rim. An item rests on the support or on another item
+    and shows its sides down to it; a tote's wall rises from the floor. The pile is the
     objects away from the border that do not hover and hold a footprint
     (their widest inscribed disc reaches ``half_width`` px). With a pile, an
     object touching the border is a structure when its top rises above
@@ -732,8 +732,9 @@ def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, in
     """Objects whose lowest pixels lie well above the tops of the lower objects they touch.
 
     ``spans``: (low, top) of each object; ``touching``: pairs of objects
-    near each other (:func:`_near_pairs`), both ways. What is under an object is the highest
-    top among the touching objects lower than it, else the support (0).
+    near each other (:func:`_near_pairs`), both ways. What is under an
+    object is the highest top among the touching objects lower than it,
+    else the support (0).
     """
     under = dict.fromkeys(spans, 0.0)
     for a, b in touching:
@@ -749,20 +750,22 @@ def _near_pairs(owner: np.ndarray, boxes: list[Any]) -> set[tuple[int, int]]:
 
     A depth camera's shadows and the edges between items part an item from
     the one it rests on; what is seen that near is what it may rest on.
-    Each object's mask is dilated by a square of side ``2 STAND_REACH + 1``
-    in its box grown by the reach: the cost follows the boxes' areas.
+    Each object's :func:`_touching` is taken in its box grown by the reach:
+    the cost follows the boxes' areas.
     """
-    h, w = owner.shape
     pairs = set()
     for i, box in enumerate(boxes, start=1):
-        if box is None:
-            continue
-        grown = (slice(max(box[0].start - STAND_REACH, 0), min(box[0].stop + STAND_REACH, h)),
-                 slice(max(box[1].start - STAND_REACH, 0), min(box[1].stop + STAND_REACH, w)))
-        crop = owner[grown]
-        seen = _present(crop[square_dilation(crop == i, 2 * STAND_REACH + 1)])
-        pairs |= {(i, j) for j in seen if j != i}
+        if box is not None:
+            crop = owner[_grown(box, STAND_REACH, owner.shape)]
+            pairs |= {(i, j) for j in _touching(crop, crop == i) if j != i}
     return pairs
+
+
+def _grown(box: tuple[slice, slice], reach: int, shape: tuple[int, ...]
+           ) -> tuple[slice, slice]:
+    """A 2-D box of :func:`scipy.ndimage.find_objects` grown by ``reach`` px within ``shape``."""
+    return (slice(max(box[0].start - reach, 0), min(box[0].stop + reach, shape[0])),
+            slice(max(box[1].start - reach, 0), min(box[1].stop + reach, shape[1])))
 
 
 def _in_box(values: np.ndarray, owner: np.ndarray, boxes: list[Any], oid: int
@@ -799,16 +802,13 @@ def widest_discs(owner: np.ndarray, ids: list[int], boxes: list[Any] | None = No
     if not ids:
         return {}
     boxes = ndimage.find_objects(owner) if boxes is None else boxes
-    h, w = owner.shape
     out = {}
     for i in ids:
         box = boxes[i - 1] if i <= len(boxes) else None
         if box is None:
             out[i] = 0.0
             continue
-        grown = (slice(max(box[0].start - 1, 0), min(box[0].stop + 1, h)),
-                 slice(max(box[1].start - 1, 0), min(box[1].stop + 1, w)))
-        crop = owner[grown]
+        crop = owner[_grown(box, 1, owner.shape)]
         mine = crop == i
         edt = ndimage.distance_transform_edt(mine & same_neighbours(crop))
         out[i] = float(edt[mine].max())
