@@ -43,7 +43,12 @@ from rangeseg_cli.batch.io import read_image, read_json
 from rangeseg_cli.config import load_config, parse_settings
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth.camera import CAMERA_SCENES, camera_stem, write_camera_scenes
-from rangeseg_cli.synth.evaluate import DEFAULT_MAX_TILT, check_object_holdsite, footprint_at_depth
+from rangeseg_cli.synth.evaluate import (
+    DEFAULT_MAX_TILT,
+    check_object_holdsite,
+    footprint_at_depth,
+    pickable_objects,
+)
 
 RESULTS = Path(__file__).parent / "results"
 PRESET = "tenth-mm-depth"
@@ -90,11 +95,26 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str]
               if any(config.holdsite.footprint_mm) else None)
     check = check_object_holdsite(doc["holdsite"], gt, info, max_tilt=max_tilt,
                                   size=tuple(config.holdsite.size), footprint=window)
+    site = doc["holdsite"]
     return {"scene": name, "seed": seed, "ok": check["ok"], "reason": check["reason"],
             "object": check["object"], "tilt": check["tilt"], "seconds": seconds,
+            "depth_mm": None if site is None else _round(depth_mm[site["row"], site["col"]]),
+            "top_mm": _round(np.nanmin(np.where(_pickable(gt, info), depth_mm, np.nan),
+                                       initial=np.inf)),
             "holdsite": None if doc["holdsite"] is None else
             {k: doc["holdsite"][k] for k in ("row", "col", "size", "angle")},
             "pipeline_reason": doc.get("reason", "")}
+
+
+def _pickable(gt: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+    """Bool mask of the GT pixels of pickable objects."""
+    keep = pickable_objects(info)
+    surfaces = [s["id"] for s in info["surfaces"] if s["object"] in keep]
+    return np.isin(gt, surfaces)
+
+
+def _round(value: float) -> float | None:
+    return round(float(value), 1) if np.isfinite(value) else None
 
 
 def summarise(frames: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:

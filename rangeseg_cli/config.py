@@ -359,7 +359,8 @@ class WorkspaceConfig:
     border_structures: bool = _opt(True, "a structure that touches the image border (or its "
                                    "invalid margin) and rises far above the pile (the robot's "
                                    "fingers, a tote wall) is not picked while anything else "
-                                   "may be")
+                                   "may be; objects part at concave creases (a box leaning on "
+                                   "a wall is not the wall)")
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,10 @@ import pytest
 from scipy import ndimage
 
 from rangeseg_cli.cell.workspace import Workspace
+from rangeseg_cli.models import Neighbor, Surface
 from rangeseg_cli.stages.holdsite import (
+    HIDING_WIDTH,
+    find_objects,
     footprint,
     middle_value,
     outer_invalid,
@@ -164,6 +167,46 @@ def test_outer_invalid_is_the_invalid_areas_joined_to_the_frame():
     got = outer_invalid(valid)
     assert got is not None
     assert sorted(zip(*np.nonzero(got), strict=True)) == [(0, 0), (1, 1), (7, 9)]
+
+
+def test_outer_invalid_of_a_width_leaves_out_the_cracks_that_join_the_frame():
+    valid = np.ones((20, 24), dtype=bool)
+    valid[:, :4] = False  # a margin of no reading along the left of the frame
+    valid[10, 4:15] = False  # a 1-px crack from it into the view
+    valid[14:16, 16:] = False  # a 2-px crack from the right frame
+    valid[5:9, 10:14] = False  # a hole inside
+    assert outer_invalid(valid).sum() == 20 * 4 + 11 + 2 * 8  # width 1: all joined areas
+    got = outer_invalid(valid, HIDING_WIDTH)
+    assert got is not None
+    want = np.zeros_like(valid)
+    want[:, :4] = True
+    assert np.array_equal(got, want)
+    valid[:, :4] = True  # only cracks reach the frame
+    assert outer_invalid(valid, HIDING_WIDTH) is None
+
+
+def _surface(sid, col, *neighbors):
+    return Surface(id=sid, pixels=100, bbox=(0, col, 9, col + 9), centroid=(4.5, col + 4.5),
+                   mean_height=50.0, coefficients=(50.0, 0, 0, 0, 0, 0), rms_error=0.1,
+                   type="planar", shape="flat",
+                   neighbors=tuple(Neighbor(id=i, edge=e) for i, e in neighbors))
+
+
+@pytest.mark.parametrize("concave_parts", [False, True])
+def test_a_concave_crease_parts_two_objects_beyond_the_paper(concave_parts):
+    # A box's top (1) meets its side (2) at a convex crease and a tote wall (3), which
+    # rises to the frame, at a concave one: an item leaning on the wall is not the wall.
+    surfaces = {1: _surface(1, 10, (2, "roof-convex"), (3, "roof-concave")),
+                2: _surface(2, 0, (1, "roof-convex")),
+                3: _surface(3, 20, (1, "roof-concave"))}
+    gaps = {(1, 2): 0.5, (1, 3): -0.5}
+    object_of, objects = find_objects(surfaces, set(), gaps, 6.0, {3},
+                                      concave_parts=concave_parts)
+    assert object_of[1] == object_of[2]
+    box = next(o for o in objects if o.id == object_of[1])
+    assert (object_of[3] != object_of[1]) == concave_parts
+    assert box.touches_border != concave_parts  # the paper: one object, at the border
+    assert not box.covered
 
 
 def test_local_poses_of_sites_in_shared_and_separate_columns_are_the_direct_fits():

@@ -11,6 +11,9 @@ none (the empty frame judges the site even when the run did not see it):
 - *inside the tote*: the empty frame shows the tote's floor under the site
   (the floor is the empty frame's dominant plane: within 10 mm of it);
 - the approach is within 45 degrees of the camera's axis;
+- *the top of the pile*: no flat cup-sized window on an item over the tote's
+  floor stands more than 20 mm higher above that floor than the site
+  (Sec. VII: the top-most object is picked);
 - the empty-tote frames alone have nothing to pick.
 """
 
@@ -19,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from rangeseg_cli import load_config, run_pipeline
 from rangeseg_cli.batch import io
@@ -95,6 +99,48 @@ def test_the_approach_is_within_45_degrees_of_the_camera_axis(picked):
     approach = doc["holdsite"]["approach_camera"]
     assert math.degrees(math.acos(approach[2])) <= 45.0
     assert doc["holdsite"]["flat_rms"] < 2.0  # mm: flat enough for a cup to seal
+
+
+def _heights_above(floor, depth_mm: np.ndarray, config) -> np.ndarray:
+    """Height (mm) of each pixel above the plane ``floor`` (NaN where no reading)."""
+    rows, cols = np.indices(depth_mm.shape, dtype=np.float64)
+    z = -np.nan_to_num(depth_mm, nan=1.0)
+    height = np.abs(floor.distance(points(z.ravel(), config.input, rows.ravel(), cols.ravel())))
+    return np.where(np.isfinite(depth_mm), height.reshape(depth_mm.shape), np.nan)
+
+
+def _plane_rms(a: np.ndarray, n: int) -> np.ndarray:
+    """RMS residual of the least-squares plane of ``a`` over each n x n window (no NaN)."""
+    v, u = np.indices(a.shape, dtype=np.float64)
+    a = a - np.mean(a)
+
+    def mean(x):
+        return ndimage.uniform_filter(x, n, mode="nearest")
+
+    var = mean(a * a) - mean(a) ** 2
+    for w in (u, v):  # the square window's x and y are uncorrelated
+        var -= (mean(w * a) - mean(w) * mean(a)) ** 2 / (mean(w * w) - mean(w) ** 2)
+    return np.sqrt(np.maximum(var, 0.0))
+
+
+def test_the_site_is_near_the_top_of_the_pile(picked):
+    # Every window of the site's size that lies on items (nearer than the empty tote by
+    # 10 mm), over the empty tote's floor, and is flat (plane RMS < 1.5 mm) is one a cup
+    # could take; the highest of them above the floor is at most 20 mm above the site.
+    raw, empty, config, doc = picked
+    site = doc["holdsite"]
+    scene, tote = _depth_mm(raw), _depth_mm(empty)
+    floor = find_support(-tote, config.input, 10.0)
+    n = site["size"][0]
+    square = np.ones((n, n), dtype=bool)
+    item = ndimage.binary_erosion(np.nan_to_num(tote - scene) > 10.0, square)
+    on_floor = ndimage.binary_erosion(np.nan_to_num(_heights_above(floor, tote, config),
+                                                    nan=99.0) < 10.0, square)
+    height = _heights_above(floor, scene, config)
+    flat = _plane_rms(np.nan_to_num(height), n) < 1.5
+    tops = ndimage.uniform_filter(np.nan_to_num(height), n)[item & on_floor & flat]
+    assert tops.size
+    assert tops.max() - np.median(height[_window(site)]) <= 20.0
 
 
 @pytest.mark.parametrize("camera", CAMERAS)

@@ -715,3 +715,27 @@ def test_items_over_small_glimpses_of_a_heaped_floor_lie_in_the_workspace():
     result = run_pipeline(noisy(z), load_config())
     site = site_of(result)
     assert site is not None and 38 <= site.row < 58 and 92 <= site.col < 120
+
+
+@pytest.mark.parametrize("structures", [True, False])
+def test_a_box_against_a_tote_wall_is_an_object_of_its_own(structures):
+    # A full tote (the floor hidden) with a wall rising beyond the right of the view and
+    # the highest box leaning on it: the box's top meets the wall's face at a concave
+    # crease, no step. Beyond the paper the crease parts them, so the box is an object
+    # wholly in view; with the paper's objects (border_structures off) it is one object
+    # with the wall, at the border.
+    boxes = [b for b in full_tote_boxes(gap=6.0) if b[1] < 0]
+    boxes += [(3.0, 57.0, -200.0, -63.0, 60.0), (3.0, 57.0, -60.0, 60.0, 100.0),
+              (3.0, 57.0, 63.0, 200.0, 80.0), (60.0, 117.0, -200.0, -63.0, 70.0),
+              (60.0, 117.0, 63.0, 200.0, 90.0)]
+    wall, leaning = (120.0, 400.0, -400.0, 400.0, 250.0), (60.0, 120.0, -60.0, 60.0, 180.0)
+    z = render(0.0, (*boxes, wall, leaning))
+    cfg = cam_config(workspace={"border_structures": structures})
+    result = run_pipeline(noisy(z, 0.5), cfg)
+    of = {s: o for o in result.holdsite.objects for s in o.surfaces}
+    box = of[label_at(result, 60, 122)]  # the leaning box's top
+    assert 600.0 - z[60, 122] == pytest.approx(180.0)
+    face = result.labels[60, 138]  # the wall's face, seen above the box
+    assert 180.0 < 600.0 - z[60, 138] < 250.0
+    assert (of.get(face) is box) != structures
+    assert box.touches_border != structures

@@ -29,15 +29,23 @@ Step 2, objects: non-background regions joined by a non-step boundary
 (roof or smooth, from ``Surface.neighbors`` where listed, else the median
 height gap of the fits <= ``step.threshold``) form one object. A step edge
 is an occlusion boundary: there one object lies on or in front of another.
+Beyond the paper (``workspace.border_structures``), a concave crease parts
+objects too: where an item leans on a wall or lies on another item their
+surfaces meet in a valley, while an item's own faces meet in ridges (the
+local convexity of Stein et al., "Object partitioning using local
+convexity", CVPR 2014).
 An object is *covered* when, across a step edge to another object, the other
 side is higher (median gap of the fits at the boundary midpoints): the
 top-most object of a pile is uncovered (Sec. VII, "the top-most object in
 the pile is usually selected").
 
 Step 3, order: surfaces of objects wholly in view first (an object within
-:data:`ADJACENCY_RADIUS` of the image frame is a bin wall or a part cut off
-by the frame, whose centre of area is unknown); then those of uncovered
-objects before covered ones; within each group highest mean height first
+:data:`ADJACENCY_RADIUS` of the image frame, or of invalid pixels joined to
+it, is a bin wall or a part cut off by the frame, whose centre of area is
+unknown; beyond the paper only invalid areas :data:`HIDING_WIDTH` px wide
+count, not the cracks of no reading along edges that join them); then those
+of uncovered objects before covered ones; within each group highest mean
+height first
 (Sec. VII: "comparing the range value of the segmented surfaces").
 
 Step 4, candidates in a surface: window centres where the footprint
@@ -392,24 +400,41 @@ def _framed(labels: np.ndarray) -> set[int]:
         labels[:k], labels[-k:], labels[:, :k], labels[:, -k:])]))
 
 
-def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray) -> set[int]:
-    """Labels within :data:`ADJACENCY_RADIUS` of invalid areas 8-connected to the frame."""
-    zone = outer_invalid(valid)
+def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray, width: int = 1) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of the invalid areas of :func:`outer_invalid`."""
+    zone = outer_invalid(valid, width)
     if zone is None:
         return set()
     return _present(labels[square_dilation(zone, 2 * ADJACENCY_RADIUS + 1)])
 
 
-def outer_invalid(valid: np.ndarray) -> np.ndarray | None:
-    """Bool (H, W): invalid pixels 8-connected to an invalid pixel of the frame; ``None``: none."""
+#: The narrowest invalid area (px) that may hide part of an object: a depth camera's
+#: dropout along an edge, one or two pixels wide, hides nothing.
+HIDING_WIDTH = 3
+
+
+def outer_invalid(valid: np.ndarray, width: int = 1) -> np.ndarray | None:
+    """Bool (H, W): invalid pixels 8-connected to an invalid pixel of the frame; ``None``: none.
+
+    With an odd ``width`` > 1, only invalid areas at least that wide count
+    (a morphological opening by a ``width`` square, outside the frame counting
+    as invalid): the areas joined to the frame through channels as wide, not
+    the cracks that run between them.
+    """
     if valid.all():
         return None
-    blobs, count = ndimage.label(~valid, structure=np.ones((3, 3)))
-    frame = np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])
+    lost = ~valid
+    square = np.ones((width, width), dtype=bool)
+    if width > 1:
+        lost = ndimage.binary_erosion(lost, square, border_value=1)
+    blobs, count = ndimage.label(lost, structure=np.ones((3, 3)))
     reaching = np.zeros(count + 1, dtype=bool)
-    reaching[frame] = True
+    reaching[np.concatenate([blobs[0], blobs[-1], blobs[:, 0], blobs[:, -1]])] = True
     reaching[0] = False
-    return reaching[blobs] if reaching.any() else None
+    if not reaching.any():
+        return None
+    zone = reaching[blobs]
+    return ndimage.binary_dilation(zone, square) & ~valid if width > 1 else zone
 
 
 def square_dilation(mask: np.ndarray, size: int) -> np.ndarray:
@@ -538,8 +563,8 @@ def _union_find_groups(ids: list[int], joins: list[tuple[int, int]]) -> dict[int
 
 
 def find_objects(surfaces: dict[int, Surface], background: set[int],
-                 gaps: dict[tuple[int, int], float], tol: float, framed: set[int]
-                 ) -> tuple[dict[int, int], list[ObjectInfo]]:
+                 gaps: dict[tuple[int, int], float], tol: float, framed: set[int], *,
+                 concave_parts: bool = False) -> tuple[dict[int, int], list[ObjectInfo]]:
     """Step 2: objects (groups joined by non-step edges) and which are covered.
 
     Parameters
@@ -554,6 +579,9 @@ def find_objects(surfaces: dict[int, Surface], background: set[int],
         ``step.threshold``: larger gaps are steps (when ``neighbors`` is silent).
     framed
         Ids of the regions touching the image frame.
+    concave_parts
+        Also part regions at a ``"roof-concave"`` edge (beyond the paper:
+        objects are joined by smooth and convex edges only).
 
     Returns
     -------
@@ -563,7 +591,8 @@ def find_objects(surfaces: dict[int, Surface], background: set[int],
     ids = sorted(i for i in surfaces if i not in background)
     kinds = _edge_kinds(surfaces)
     pairs = [(p, g) for p, g in gaps.items() if p[0] in ids and p[1] in ids]
-    joins = [p for p, g in pairs if not _is_step(p, g, kinds, tol)]
+    joins = [p for p, g in pairs if not _is_step(p, g, kinds, tol)
+             and not (concave_parts and kinds.get(p) == "roof-concave")]
     group = _union_find_groups(ids, joins)
     numbering = {g: k + 1 for k, g in enumerate(sorted(set(group.values())))}
     object_of = {i: numbering[group[i]] for i in ids}
@@ -2307,9 +2336,14 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     # Step 2: objects, and which are covered by another
     if gaps is None:
         gaps = _known_gaps(labels, coeffs, backend)  # known labels
-    object_of, objects = find_objects(by_id, left_out, gaps, tol, border)
+    # beyond the paper: objects part at concave creases, and a crack of no reading that
+    # joins the frame puts no object at the border
+    beyond = config.workspace.border_structures
+    in_frame = framed | _near_outer_invalid(labels, valid, HIDING_WIDTH) if beyond else border
+    object_of, objects = find_objects(by_id, left_out, gaps, tol, in_frame,
+                                      concave_parts=beyond)
     lift = region_lift(labels, space, z, n, ids=object_of)  # step 3 orders only these
-    if config.workspace.border_structures:
+    if beyond:
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
         objects = mark_structures(objects, labels, valid, lift, space, half,
                                   walls_known=background is not None)
