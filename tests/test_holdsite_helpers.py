@@ -14,6 +14,7 @@ from rangeseg_cli.cell.workspace import Workspace
 from rangeseg_cli.models import Neighbor, Surface
 from rangeseg_cli.stages.holdsite import (
     HIDING_WIDTH,
+    fft_correlate,
     find_objects,
     footprint,
     middle_value,
@@ -229,3 +230,29 @@ def test_local_poses_of_sites_in_shared_and_separate_columns_are_the_direct_fits
     np.testing.assert_allclose(height, z[rows, cols], atol=1e-9)
     np.testing.assert_allclose(gx, 0.3 + 0.01 * rows, atol=1e-9)
     np.testing.assert_allclose(gy, -0.2 + 0.01 * cols, atol=1e-9)
+
+
+@pytest.mark.parametrize("shape, kernel", [((40, 57), (9, 11)), ((30, 20), (25, 25)),
+                                           ((7, 9), (13, 5))])
+def test_fft_correlate_is_the_correlation_with_zeros_outside(shape, kernel):
+    rng = np.random.default_rng(1)
+    a, k = rng.normal(size=shape), rng.normal(size=kernel)
+    want = ndimage.correlate(a, k, mode="constant", cval=0.0)
+    assert np.allclose(fft_correlate(a, k), want, rtol=0, atol=1e-10)
+
+
+def test_a_camera_run_with_a_large_footprint_does_not_import_scipy_signal():
+    # scipy.signal costs about 0.5 s to import: a one-frame run must not pay it.
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from rangeseg_cli import load_config, run_pipeline\n"
+        "z = np.full((120, 160), 600.0); z[30:90, 40:120] = 520.0\n"
+        "over = {'input': {'intrinsics': [200.0, 200.0, 79.5, 59.5]},\n"
+        "        'holdsite': {'footprint_mm': [40.0, 20.0]}}\n"
+        "site = run_pipeline(z, load_config(preset='mm-depth', overrides=over)).holdsite\n"
+        "assert site.holdsite is not None and site.holdsite.size[0] * site.holdsite.size[1] > 64\n"
+        "assert 'scipy.signal' not in sys.modules\n")
+    subprocess.run([sys.executable, "-c", code], check=True)

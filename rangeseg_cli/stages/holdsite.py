@@ -1121,9 +1121,7 @@ def window_mean(a: np.ndarray, fp: np.ndarray) -> np.ndarray:
     if fp.all():
         return ndimage.uniform_filter(a, size=fp.shape, mode="constant", cval=0.0)
     if fp.sum() > FFT_FOOTPRINT_PIXELS:
-        from scipy.signal import fftconvolve
-
-        return fftconvolve(a, fp[::-1, ::-1].astype(np.float64), mode="same") / fp.sum()
+        return fft_correlate(a, fp.astype(np.float64)) / fp.sum()
     kr, kc = fp.shape[0] // 2, fp.shape[1] // 2
     padded = np.pad(a, ((kr, kr), (kc, kc)))
     h, w = a.shape
@@ -1249,10 +1247,27 @@ def clearance_map(mask: np.ndarray) -> np.ndarray:
 def _window_sums(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """``sum_k kernel[k] a[p + k - centre]`` at each pixel p (zeros outside the image)."""
     if kernel.size > FFT_FOOTPRINT_PIXELS:
-        from scipy.signal import fftconvolve
-
-        return fftconvolve(a, kernel[::-1, ::-1], mode="same")
+        return fft_correlate(a, kernel)
     return ndimage.correlate(a, kernel, mode="constant", cval=0.0)
+
+
+def fft_correlate(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """:func:`scipy.ndimage.correlate` of ``a`` with ``kernel`` (odd sides, zeros outside) by FFT.
+
+    The values of ``scipy.signal.fftconvolve(a, kernel[::-1, ::-1], mode="same")``
+    (real FFTs of the padded full size, a fast length per axis), from
+    :mod:`scipy.fft` alone: importing :mod:`scipy.signal` costs about 0.5 s, once
+    per process, which a run of one camera frame would otherwise spend here
+    (:mod:`scipy.fft`, about 30 ms, is imported here too: only runs that need it).
+    """
+    from scipy import fft as sp_fft
+
+    full = [n + k - 1 for n, k in zip(a.shape, kernel.shape, strict=True)]
+    fast = [sp_fft.next_fast_len(n, True) for n in full]
+    spectrum = sp_fft.rfft2(a, fast) * sp_fft.rfft2(kernel[::-1, ::-1], fast)
+    out = sp_fft.irfft2(spectrum, fast)
+    r0, c0 = kernel.shape[0] // 2, kernel.shape[1] // 2
+    return np.ascontiguousarray(out[r0: r0 + a.shape[0], c0: c0 + a.shape[1]])
 
 
 def window_flat_rms(z: np.ndarray, fp: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
