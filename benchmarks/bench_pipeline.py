@@ -464,6 +464,35 @@ def bench_batch(count: int, runs: int) -> dict[str, Any]:
     return result
 
 
+def bench_one_frame(runs: int) -> dict[str, Any]:
+    """Wall time of ``rangeseg run`` on the SR300 frame alone, as a cell would call it.
+
+    ``rangeseg run suction-scene.depth.png --preset tenth-mm-depth
+    --intrinsics suction-camera-intrinsics.txt -o OUT -q`` from process start
+    to exit (median of ``runs``, compiled kernels already cached): the
+    latency of one pick when the command is run per frame. ``overhead_s`` is
+    that less the median of ``run_pipeline`` on the same frame with the same
+    settings in this process, measured in the same minutes: start-up,
+    imports, reading and writing.
+    """
+    from rangeseg_cli.batch.io import read_image
+
+    arc = ROOT / "sample_data" / "arc"
+    options = ("--preset", "tenth-mm-depth", "--intrinsics",
+               str(arc / "suction-camera-intrinsics.txt"))
+    config = load_config(preset="tenth-mm-depth", overrides={"input": {
+        "intrinsics": list(load_config(REAL_CONFIG).input.intrinsics)}})
+    image = read_image(str(REAL_FRAME))
+    walls, inside = [], []
+    with tempfile.TemporaryDirectory(prefix="rangeseg-bench-") as tmp:
+        for _ in range(runs):
+            walls.append(_wall(REAL_FRAME, Path(tmp) / "out", options))
+            inside.append(_timed(lambda: run_pipeline(image, config)))
+    wall, pipeline = float(np.median(walls)), float(np.median(inside))
+    return {"runs": runs, "wall_s": wall, "run_pipeline_s": pipeline,
+            "overhead_s": wall - pipeline}
+
+
 # --------------------------------------------------------------------------- report
 
 
@@ -544,6 +573,14 @@ def markdown(report: dict[str, Any]) -> str:
               f"cold cache (compile) {c['cold_cache']['first_call_s']:.2f} s, warm cache "
               f"(load) {c['warm_cache']['first_call_s']:.2f} s, after "
               f"{c['warm_cache']['import_s']:.2f} s of imports."]
+    one = report.get("one_frame")
+    if one:
+        lines += ["", "One frame, `rangeseg run suction-scene.depth.png --preset "
+                  "tenth-mm-depth --intrinsics suction-camera-intrinsics.txt -o OUT -q` "
+                  f"(the SR300 frame alone, kernels cached), median of {one['runs']}: "
+                  f"{one['wall_s']:.2f} s from start to exit, of which `run_pipeline` "
+                  f"{one['run_pipeline_s']:.2f} s (in this process, same minutes) and "
+                  f"start-up, imports and I/O {one['overhead_s']:.2f} s."]
     b = report["batch"]
     if b:
         lines += ["", f"Batch, `rangeseg run DIR -o OUT OPTIONS -q`, {b['images']} PNGs of "
@@ -621,7 +658,8 @@ def main(argv: list[str] | None = None) -> int:
                                        "run_pipeline_norecut", "run_pipeline_1thread",
                                        "run_pipeline")},
         "real_frame": bench_real_frame(repeats),
-        "compile": bench_compile(), "batch": {},
+        "compile": bench_compile(), "one_frame": bench_one_frame(3 if args.quick else 5),
+        "batch": {},
     }
     if not args.no_batch:
         count = args.batch_images or (50 if args.quick else 200)
