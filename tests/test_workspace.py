@@ -25,6 +25,7 @@ from rangeseg_cli.cell.workspace import (
 from rangeseg_cli.config import ConfigError, HoldsiteConfig, InputConfig, WorkspaceConfig
 from rangeseg_cli.stages.holdsite import (
     effective_holdsite,
+    enough_clearance,
     flat_limit,
     footprint,
     footprint_pixels,
@@ -739,3 +740,18 @@ def test_a_box_against_a_tote_wall_is_an_object_of_its_own(structures):
     assert 180.0 < 600.0 - z[60, 138] < 250.0
     assert (of.get(face) is box) != structures
     assert box.touches_border != structures
+
+
+def test_on_a_curved_top_the_most_level_wide_window_is_the_site():
+    # A parabolic top, level at one end and turning to 50 degrees at the other: the widest
+    # window lies where it is tilted; beyond the paper (a tilt limit) the site is the most
+    # level window among those with enough clearance, where a cup faces the sensor.
+    z = np.full((96, 128), 20.0)
+    v, u = np.indices(z.shape, dtype=np.float64)
+    inside = (v >= 20) & (v < 76) & (u >= 14) & (u < 114)
+    z[inside] = (60.0 + 0.0072 * (u - 24.0) ** 2)[inside]
+    cfg = load_config(overrides={"input": {"units_per_pixel": 1.0}})
+    site = site_of(run_pipeline(noisy(z), cfg))
+    assert site.clearance >= enough_clearance(cfg.holdsite.size)
+    assert math.degrees(math.acos(site.normal[2])) < 5.0
+    assert abs(site.col - 24) <= 3

@@ -69,8 +69,13 @@ Step 5, choice: the largest clearance (Euclidean distance transform of the
 surface mask: distance in pixels from the window centre to the nearest pixel
 that is not on the surface -- its border, a hole, an edge, an invalid pixel
 or outside the image), compared in whole pixels; then the nearest to the
-object's centre of area; then row, col. A rotated footprint takes, at that
-centre, the accepted angle whose footprint stays farthest from the
+object's centre of area; then row, col. Beyond the paper, with a tilt limit
+(``holdsite.max_tilt`` < 90), on a curved surface whose widest window has
+room to spare (clearance :func:`enough_clearance`: the footprint's half
+diagonal + 2 px), the most level of the windows with that much (whole
+degrees; ties in the order above) is chosen: where such a surface turns
+away from the camera a cup seals worse. A rotated footprint takes, at
+that centre, the accepted angle whose footprint stays farthest from the
 surface's border (the distance transform's minimum over the footprint),
 then the lowest AR std, then the smallest angle.
 
@@ -1843,11 +1848,54 @@ def _has_level(scene: _Scene, hits: _Hits) -> bool:
 
 
 def _first(scene: _Scene, hits: _Hits, centre: tuple[float, float]) -> int:
-    """The best window of ``hits`` (:func:`_best`) that is level enough (Step 4b)."""
+    """The best window of ``hits`` (:func:`_best`) that is level enough (Step 4b).
+
+    On a curved surface with a tilt limit (``hits.tilt_state`` kept) whose
+    widest window has room to spare, the most level of the windows whose
+    clearance reaches :func:`enough_clearance` (:func:`_most_level`).
+    """
     if hits.tilt_state is None:
         return _best(hits, centre)
     order = _rank(hits, centre)
-    return int(order[_first_level(scene, hits, order)])
+    level = _most_level(scene, hits, order)
+    return level if level >= 0 else int(order[_first_level(scene, hits, order)])
+
+
+def enough_clearance(size: tuple[int, int]) -> float:
+    """Clearance (px) beyond which a wider one is no better: the footprint's half diagonal + 2.
+
+    A window this far from its surface's border keeps a cup on the surface
+    whatever its rotation and a boundary off by two pixels (Step 5).
+    """
+    return math.hypot(size[0] - 1, size[1] - 1) / 2 + 2
+
+
+def _most_level(scene: _Scene, hits: _Hits, order: np.ndarray) -> int:
+    """Among ``order``'s windows with enough clearance, the least tilted one; else -1.
+
+    Beyond the paper: on a curved surface the widest window may lie where the
+    surface turns away from the camera (a bag's flank); a suction cup seals
+    and the arm reaches more easily where it faces the camera. Tilts in
+    whole degrees, then ``order``.
+    """
+    whole = np.floor(hits.clearance[order] + 1e-9)
+    enough = math.floor(enough_clearance(scene.cfg.size))
+    if whole[0] < enough:  # no room to spare: the widest window, as the paper
+        return -1
+    wide = order[whole >= enough]
+    poses = site_poses(scene, hits.surface, hits.rows[wide], hits.cols[wide])
+    tilt = tilts(scene.camera, scene.camera.units_per_pixel, hits.rows[wide], hits.cols[wide],
+                 *poses)
+    ok = tilt <= scene.cfg.max_tilt + TILT_TOLERANCE
+    if not ok.any():
+        return -1
+    best = np.flatnonzero(ok)[np.argmin(np.round(tilt[ok]))]
+    k = int(wide[best])
+    height, gx, gy = poses
+    hits.poses[k] = (float(height[best]), float(gx[best]), float(gy[best]))
+    if hits.tilt_state is not None:
+        hits.tilt_state[k] = 1
+    return k
 
 
 def score(clearance: float, distance: float, size: tuple[int, int], area: float) -> float:
@@ -2176,12 +2224,13 @@ def _choose(scene: _Scene, found: list[_Hits], objects: dict[int, ObjectInfo],
     wanted = 1 + config.holdsite.max_candidates
     ranked = [(hits, objects[object_of[hits.surface.id]]) for hits in found]
     picks = [(h, o, _first(h.scene, h, o.centroid)) for h, o in ranked]
-    for hits, obj in ranked:
+    for (hits, obj), (_, _, first) in zip(ranked, list(picks), strict=True):
         if len(picks) >= wanted:
             break
         gap = math.hypot(*hits.scene.cfg.size)
-        extra = _spread(hits, _rank(hits, obj.centroid), wanted - len(picks) + 1, gap,
-                        hits.scene)[1:]
+        order = _rank(hits, obj.centroid)
+        order = np.concatenate([[first], order[order != first]])  # the surface's site first
+        extra = _spread(hits, order, wanted - len(picks) + 1, gap, hits.scene)[1:]
         picks += [(hits, obj, k) for k in extra]
     return [_site_of(h.scene, h, k, o, config) for h, o, k in picks[:wanted]]
 
