@@ -113,6 +113,12 @@ def _pickable(gt: np.ndarray, info: dict[str, Any]) -> np.ndarray:
     return np.isin(gt, surfaces)
 
 
+def _median(values: list[Any]) -> float | None:
+    """Median of the numbers given (None among them left out), to 0.1; None when none."""
+    kept = [float(v) for v in values if v is not None]
+    return round(float(np.median(kept)), 1) if kept else None
+
+
 def _round(value: float) -> float | None:
     return round(float(value), 1) if np.isfinite(value) else None
 
@@ -124,7 +130,11 @@ def summarise(frames: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
         these = [f for f in frames if name in (f["scene"], "all")]
         usable = sum(f["ok"] for f in these)
         kinds[name] = {"usable": usable, "total": len(these),
-                       "percent": round(100.0 * usable / len(these), 1) if these else None}
+                       "percent": round(100.0 * usable / len(these), 1) if these else None,
+                       "tilt_median": _median([f["tilt"] for f in these if f["ok"]]),
+                       "below_top_median": _median([
+                           f["depth_mm"] - f["top_mm"] for f in these
+                           if f.get("depth_mm") is not None and f.get("top_mm") is not None])}
     failures = Counter(_reason_kind(f["reason"]) for f in frames if not f["ok"])
     return {"kinds": kinds, "failures": dict(failures.most_common())}
 
@@ -132,6 +142,10 @@ def summarise(frames: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
 def _reason_kind(reason: str) -> str:
     """A failure's reason without its numbers, to count alike failures together."""
     return "".join("#" if ch.isdigit() else ch for ch in reason).split("[")[0].strip()
+
+
+def _cell(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
 
 
 def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
@@ -142,9 +156,13 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"{meta['background']}; settings: {' '.join(meta['settings']) or 'none'}; "
              f"tilt limit {meta['max_tilt']:g} degrees; {meta['seconds']:.0f} s on "
              f"{meta['jobs']} processes.", "",
-             "| scene | usable | frames | % |", "|---|---|---|---|"]
+             "Tilt: median angle (degrees) of the usable sites' true normal to the optical "
+             "axis. Below top: median depth (mm) of the site's centre behind the nearest "
+             "pixel of any pickable object (0 = the top of the pile).", "",
+             "| scene | usable | frames | % | tilt | below top |", "|---|---|---|---|---|---|"]
     for name, k in summary["kinds"].items():
-        lines.append(f"| {name} | {k['usable']} | {k['total']} | {k['percent']} |")
+        lines.append(f"| {name} | {k['usable']} | {k['total']} | {k['percent']} | "
+                     f"{_cell(k.get('tilt_median'))} | {_cell(k.get('below_top_median'))} |")
     if summary["failures"]:
         lines += ["", "| failure | frames |", "|---|---|"]
         lines += [f"| {r} | {n} |" for r, n in summary["failures"].items()]
