@@ -415,9 +415,9 @@ BATCH_RUNS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("jobs1_threads1", ("--jobs", "1", "--threads", "1")))
 
 
-def _wall(folder: Path, out: Path, options: tuple[str, ...]) -> float:
-    """Wall time of one ``rangeseg run folder -o out OPTIONS -q``."""
-    cmd = [*_cli(), "run", str(folder), "-o", str(out), *options, "-q"]
+def _wall(path: Path, out: Path, options: tuple[str, ...]) -> float:
+    """Wall time of one ``rangeseg run PATH -o out OPTIONS -q`` (a folder or one image)."""
+    cmd = [*_cli(), "run", str(path), "-o", str(out), *options, "-q"]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True)
     wall = time.perf_counter() - t0

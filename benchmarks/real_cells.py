@@ -158,7 +158,7 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"{meta['jobs']} processes.", "",
              "Tilt: median angle (degrees) of the usable sites' true normal to the optical "
              "axis. Below top: median depth (mm) of the site's centre behind the nearest "
-             "pixel of any pickable object (0 = the top of the pile).", "",
+             "pixel of any pickable object (0 = the top of the pile), over all sites.", "",
              "| scene | usable | frames | % | tilt | below top |", "|---|---|---|---|---|---|"]
     for name, k in summary["kinds"].items():
         lines.append(f"| {name} | {k['usable']} | {k['total']} | {k['percent']} | "

@@ -360,7 +360,8 @@ class WorkspaceConfig:
                                    "invalid margin) and rises far above the pile (the robot's "
                                    "fingers, a tote wall) is not picked while anything else "
                                    "may be; objects part at concave creases (a box leaning on "
-                                   "a wall is not the wall)")
+                                   "a wall is not the wall), and a crack of no reading under 3 "
+                                   "px wide puts no object at the border of the search order")
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,8 @@ Beyond the paper (``workspace.border_structures``), a concave crease parts
 objects too: where an item leans on a wall or lies on another item their
 surfaces meet in a valley, while an item's own faces meet in ridges (the
 local convexity of Stein et al., "Object partitioning using local
-convexity", CVPR 2014).
+convexity", CVPR 2014). An item with a concave crease of its own (an
+L-bracket, an open box) is then two objects.
 An object is *covered* when, across a step edge to another object, the other
 side is higher (median gap of the fits at the boundary midpoints): the
 top-most object of a pile is uncovered (Sec. VII, "the top-most object in
@@ -257,7 +258,8 @@ class ObjectInfo:
     touches_border
         Whether a surface lies within :data:`ADJACENCY_RADIUS` of the image
         frame or of an invalid area reaching it (a bin wall, or a part cut
-        off by the frame).
+        off by the frame); beyond the paper, of an invalid area at least
+        :data:`HIDING_WIDTH` px wide (:func:`outer_invalid`).
     structure
         Whether it is a structure at the border, never picked (the robot's
         fingers, a tote wall: :func:`mark_structures`).
@@ -570,7 +572,7 @@ def _union_find_groups(ids: list[int], joins: list[tuple[int, int]]) -> dict[int
 def find_objects(surfaces: dict[int, Surface], background: set[int],
                  gaps: dict[tuple[int, int], float], tol: float, framed: set[int], *,
                  concave_parts: bool = False) -> tuple[dict[int, int], list[ObjectInfo]]:
-    """Step 2: objects (groups joined by non-step edges) and which are covered.
+    """Step 2: objects (groups joined by non-step, and non-concave, edges) and which are covered.
 
     Parameters
     ----------
@@ -583,7 +585,8 @@ def find_objects(surfaces: dict[int, Surface], background: set[int],
     tol
         ``step.threshold``: larger gaps are steps (when ``neighbors`` is silent).
     framed
-        Ids of the regions touching the image frame.
+        Ids of the regions at the border: touching the image frame or near an
+        invalid area joined to it (``ObjectInfo.touches_border``).
     concave_parts
         Also part regions at a ``"roof-concave"`` edge (beyond the paper:
         objects are joined by smooth and convex edges only).
@@ -1271,7 +1274,7 @@ def fft_correlate(a: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     fast = [sp_fft.next_fast_len(n, True) for n in full]
     spectrum = sp_fft.rfft2(a, fast) * sp_fft.rfft2(kernel[::-1, ::-1], fast)
     out = sp_fft.irfft2(spectrum, fast)
-    r0, c0 = kernel.shape[0] // 2, kernel.shape[1] // 2
+    r0, c0 = (kernel.shape[0] - 1) // 2, (kernel.shape[1] - 1) // 2  # fftconvolve's "same"
     return np.ascontiguousarray(out[r0: r0 + a.shape[0], c0: c0 + a.shape[1]])
 
 
