@@ -97,6 +97,12 @@ def _speed(bench: dict[str, Any]) -> list[str]:
     lines += ["", f"First `run_pipeline` in a fresh interpreter: {cold:.0f} s "
               f"with a cold numba cache (compiling), {c['warm_cache']['first_call_s']:.2f} s with "
               f"a warm one (loading), after {c['warm_cache']['import_s']:.2f} s of imports."]
+    one = bench.get("one_frame")
+    if one:
+        lines += ["", f"One SR300 frame through the command (`rangeseg run` of the frame "
+                  f"with `--preset tenth-mm-depth` and its intrinsics, start to exit): "
+                  f"{one['wall_s']:.2f} s, of which {one['run_pipeline_s']:.2f} s in "
+                  f"`run_pipeline` and {one['overhead_s']:.2f} s start-up, imports and I/O."]
     b = bench["batch"]
     lines += ["", f"Batch, `rangeseg run` on {b['images']} PNGs of {b['size'][0]}×{b['size'][1]} "
               f"with every output: {b['jobs1']['images_per_s']:.1f} images/s with `--jobs 1`, "
