@@ -1886,19 +1886,19 @@ def _most_level(scene: _Scene, hits: _Hits, order: np.ndarray) -> int:
     if whole[0] < enough:  # no room to spare: the widest window, as the paper
         return -1
     wide = order[whole >= enough]
-    poses = site_poses(scene, hits.surface, hits.rows[wide], hits.cols[wide])
-    tilt = tilts(scene.camera, scene.camera.units_per_pixel, hits.rows[wide], hits.cols[wide],
-                 *poses)
-    ok = tilt <= scene.cfg.max_tilt + TILT_TOLERANCE
-    if not ok.any():
+    state = hits.tilt_state
+    assert state is not None  # callers take the windows as they are without a limit
+    unknown = wide[state[wide] < 0]
+    if unknown.size:
+        _judge_tilts(scene, hits, unknown)  # keeps their poses and states
+    level = wide[state[wide] == 1]
+    if not level.size:
         return -1
-    best = np.flatnonzero(ok)[np.argmin(np.round(tilt[ok]))]
-    k = int(wide[best])
-    height, gx, gy = poses
-    hits.poses[k] = (float(height[best]), float(gx[best]), float(gy[best]))
-    if hits.tilt_state is not None:
-        hits.tilt_state[k] = 1
-    return k
+    height, gx, gy = (np.array(v) for v in zip(*(hits.poses[k] for k in level.tolist()),
+                                                strict=True))
+    tilt = tilts(scene.camera, scene.camera.units_per_pixel, hits.rows[level],
+                 hits.cols[level], height, gx, gy)
+    return int(level[np.argmin(np.round(tilt))])
 
 
 def score(clearance: float, distance: float, size: tuple[int, int], area: float) -> float:
