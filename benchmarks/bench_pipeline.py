@@ -476,12 +476,12 @@ def bench_one_frame(runs: int) -> dict[str, Any]:
     imports, reading and writing.
     """
     from rangeseg_cli.batch.io import read_image
+    from rangeseg_cli.cell.intrinsics import read_intrinsics
 
-    arc = ROOT / "sample_data" / "arc"
-    options = ("--preset", "tenth-mm-depth", "--intrinsics",
-               str(arc / "suction-camera-intrinsics.txt"))
-    config = load_config(preset="tenth-mm-depth", overrides={"input": {
-        "intrinsics": list(load_config(REAL_CONFIG).input.intrinsics)}})
+    intrinsics = ROOT / "sample_data" / "arc" / "suction-camera-intrinsics.txt"
+    options = ("--preset", "tenth-mm-depth", "--intrinsics", str(intrinsics))
+    config = load_config(preset="tenth-mm-depth",
+                         overrides=read_intrinsics(intrinsics).settings())
     image = read_image(str(REAL_FRAME))
     walls, inside = [], []
     with tempfile.TemporaryDirectory(prefix="rangeseg-bench-") as tmp:
