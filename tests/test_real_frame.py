@@ -81,3 +81,19 @@ def test_real_frame_labels_are_the_same_with_forked_processes_and_one_thread(res
     alone = run_pipeline(raw, config)
     np.testing.assert_array_equal(forked.labels, alone.labels)
     assert forked.holdsite.to_dict() == alone.holdsite.to_dict()
+
+
+def test_the_arc_bin_height_map_needs_its_units_and_then_gives_an_item():
+    # The ARC bin's orthographic height map (0.1 mm above the floor, 0 = floor). Read in
+    # raw units the paper's thresholds (6 units = 0.6 mm) make every bump an edge: the
+    # hint says so and there is nothing to pick; in mm the site is on an item's top.
+    from rangeseg_cli.stages.rangeimage import fine_units_hint
+
+    raw = io.read_image(ARC / "bin-heightmap.depth.png")
+    assert "16-bit heights spanning 0..700" in fine_units_hint(raw, load_config().input)
+    assert run_pipeline(raw, load_config()).holdsite.holdsite is None
+    site = run_pipeline(raw, load_config(overrides={"input": {"scale": 0.1}})).holdsite.holdsite
+    assert site is not None
+    (r, c), (h, w) = (site.row, site.col), site.size
+    window = raw[r - h // 2:r + h // 2 + 1, c - w // 2:c + w // 2 + 1]
+    assert window.shape == (h, w) and window.min() >= 100  # 10 mm or more above the floor

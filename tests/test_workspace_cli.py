@@ -337,3 +337,52 @@ def test_the_background_and_roi_files_in_an_input_folder_are_no_frames(scene):
     code, output = invoke("run", str(folder), "-o", str(scene / "plain"))
     assert code == 0, output
     assert len(list((scene / "plain").glob("*.holdsite.json"))) == 4  # without them: frames
+
+
+def table_heights(relief: int, dtype: type = np.uint16) -> np.ndarray:
+    """A height map: a floor at 0 and a wedge rising to ``relief`` units above it.
+
+    Most pixels 0 as a depth camera's holes, but its readings reach down
+    near the floor: no depth map (:func:`depth_map_hint`).
+    """
+    heights = np.zeros((64, 80), dtype)
+    heights[20:40, 20:50] = np.linspace(relief / 10, relief, 30).round().astype(dtype)
+    return heights
+
+
+@pytest.mark.parametrize("image, overrides, hinted", [
+    (table_heights(700), {}, True),  # 0.1 mm: a 70 mm box
+    (table_heights(255), {}, False),  # within an 8-bit image's range
+    (table_heights(700).astype(np.int32) - 300, {}, True),  # signed: the span counts
+    (table_heights(200, np.uint8), {}, False),  # the paper's 8 bits
+    (table_heights(700).astype(np.float32), {}, False),  # floating point: units unknown
+    (np.where(table_heights(700) > 300, 65535, 100).astype(np.uint16), {},
+     False),  # the wedge's top is the clipped top value: no reading
+    (table_heights(700), {"input": {"scale": 0.1}}, False),
+    (table_heights(700), {"input": {"units_per_pixel": 20.0}}, False),
+    (np.kron(table_heights(700), np.ones((16, 16), np.uint16)), {}, True)])  # at a stride
+def test_heights_in_units_finer_than_the_thresholds_are_named(image, overrides, hinted):
+    from rangeseg_cli.stages.rangeimage import fine_units_hint
+
+    hint = fine_units_hint(image, load_config(overrides=overrides).input)
+    assert bool(hint) is hinted
+    if hinted:
+        low = int(image.min())
+        assert f"heights spanning {low}..{low + 700}, more than the 0..255" in hint
+        assert "--set input.scale=0.1 for 0.1 mm" in hint
+
+
+def test_a_run_on_a_fine_height_map_warns_once_and_a_scale_silences_it(tmp_path, write_png):
+    path = write_png(tmp_path / "a.png", table_heights(700))
+
+    def warnings(*args: str) -> list[str]:
+        res = CliRunner().invoke(main, ["run", str(path), "-o", str(tmp_path / "out"),
+                                        "--overwrite", *args])
+        assert res.exit_code == 0, res.output
+        return [line for line in res.stderr.splitlines() if line.startswith("warning:")]
+
+    said = warnings()
+    assert len(said) == 1 and said[0].startswith(f"warning: {path} has 16-bit heights")
+    assert "depth map" not in said[0]
+    assert warnings("--set", "input.scale=0.1") == []
+    assert warnings("-q") == []

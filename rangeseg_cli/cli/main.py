@@ -243,7 +243,7 @@ def _run(ctx: click.Context, jobs: Any, out: Any, config: Any, stages: tuple[str
         _check_rerun(opts["rerun"])
     _say_if_compiling(opts)
     _warn_footprint(config, stages, opts)
-    _warn_depth_map(jobs, config, stages, opts)
+    _warn_units(jobs, config, stages, opts)
     reporter = BatchReporter(quiet=opts["quiet"] > 0, verbose=opts["verbose"])
     # Dask: --jobs caps the images in flight; without it the cluster sets the parallelism.
     n_jobs = opts["jobs"] if opts["executor"] == "dask" else opts["jobs"] or default_jobs()
@@ -330,27 +330,30 @@ def _warn_footprint(config: Any, stages: tuple[str, ...], opts: dict[str, Any]) 
         click.echo(f"warning: {why}", err=True)
 
 
-#: Local inputs :func:`_warn_depth_map` tries until one reads.
+#: Local inputs :func:`_warn_units` tries until one reads.
 HINT_TRIES = 3
 
 
-def _warn_depth_map(jobs: Any, config: Any, stages: tuple[str, ...], opts: dict[str, Any]
+def _warn_units(jobs: Any, config: Any, stages: tuple[str, ...], opts: dict[str, Any]
                     ) -> None:
-    """On stderr, unless -q: the first readable local input may be a depth map read as heights.
+    """On stderr, unless -q: the first readable local input's units may be misread.
 
+    A depth map read as heights, or heights in units too fine for the
+    thresholds (:func:`~rangeseg_cli.stages.rangeimage.fine_units_hint`).
     Only when the batch reads inputs and picks holdsites (``run``); the
     first of :data:`HINT_TRIES` local inputs that reads is looked at.
     """
     from ..batch.io import read_image
     from ..errors import RangesegError
-    from ..stages.rangeimage import depth_map_hint
+    from ..stages.rangeimage import depth_map_hint, fine_units_hint
 
     if opts["quiet"] or "edges" not in stages or "holdsite" not in stages:
         return
     local = [j.source for j in jobs if j.source and "://" not in str(j.source)]
     for source in local[:HINT_TRIES]:
         try:
-            why = depth_map_hint(read_image(source), config.input)
+            raw = read_image(source)
+            why = depth_map_hint(raw, config.input) or fine_units_hint(raw, config.input)
         except (RangesegError, MemoryError, OSError):  # the batch reports the image itself
             continue
         if why:

@@ -215,6 +215,57 @@ def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
             "an [input] key (e.g. units_per_pixel) to say so")
 
 
+#: :func:`fine_units_hint`: the top of an 8-bit image, whose heights the paper's
+#: thresholds (6 / 6 / 4 depth units, Sec. VI) are set for.
+EIGHT_BIT_TOP = 255
+
+
+def fine_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
+    """Why integer ``raw`` may hold heights in units too fine for the thresholds, or ``""``.
+
+    The paper's images are 8-bit (Sec. VI), and its thresholds (a jump of 6
+    depth units is a step edge) are set for their 0..255. A 16-bit height
+    map in 0.1 mm (the ARC bin's ``bin-heightmap.depth.png``) read in raw
+    units with ``[input]`` at its defaults turns every bump of a surface
+    into an edge, and the holdsite finds nothing to pick. An integer image
+    of 16 bits or more whose readings (all but the clipped top value,
+    :func:`clipped_value`) span more than :data:`EIGHT_BIT_TOP` reads as
+    one; setting any ``[input]`` key (``scale`` to convert them, or
+    ``units_per_pixel``) says what the image is.
+
+    Parameters
+    ----------
+    raw
+        The image as read (before :func:`to_heights`); one of more than
+        :data:`DEPTH_HINT_PIXELS` pixels is read at a stride.
+    cfg
+        ``[input]``; anything but its defaults gives ``""``.
+
+    Returns
+    -------
+    str
+        ``""``, or the span of the readings and what to set.
+    """
+    raw = np.asarray(raw)
+    if (not _at_defaults(cfg) or raw.ndim != 2 or raw.dtype.kind not in "ui"
+            or raw.dtype.itemsize < 2 or raw.size == 0):
+        return ""
+    step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
+    seen = raw[::step, ::step]
+    top = clipped_value(raw.dtype, cfg)
+    readings = seen[seen != top] if top is not None else seen
+    if readings.size == 0:
+        return ""
+    low, high = int(readings.min()), int(readings.max())
+    if high - low <= EIGHT_BIT_TOP:
+        return ""
+    return (f"has {raw.dtype.itemsize * 8}-bit heights spanning {low}..{high}, more than the "
+            f"0..{EIGHT_BIT_TOP} of the 8-bit images the paper's thresholds are set for (a "
+            "jump of 6 units is an edge): in units much finer than 1 mm every bump is an "
+            "edge. Set input.scale to the unit in mm (e.g. --set input.scale=0.1 for 0.1 mm); "
+            "if the units are right, set an [input] key (e.g. units_per_pixel) to say so")
+
+
 def _at_defaults(cfg: InputConfig) -> bool:
     """Whether every key of ``cfg`` has its default value (NaN equal to NaN)."""
     default = InputConfig()
