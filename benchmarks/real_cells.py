@@ -20,6 +20,10 @@ Usage::
     .venv/bin/python benchmarks/real_cells.py                    # seeds 100-119
     .venv/bin/python benchmarks/real_cells.py --background
     .venv/bin/python benchmarks/real_cells.py --seeds 100-104 --set holdsite.size=[21,21]
+    .venv/bin/python benchmarks/real_cells.py --seeds 300-324 --dropouts 0.02
+
+``--dropouts F`` sets a seeded share F of each frame's pixels to no reading
+(speckle) before the run; the site is scored against the true scene.
 """
 
 from __future__ import annotations
@@ -71,10 +75,19 @@ def frame_settings(info: dict[str, Any], extra: list[str]) -> list[str]:
     return [f"input.intrinsics=[{values}]"] + extra
 
 
-def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str]
+def speckle(raw: np.ndarray, fraction: float, seed: int) -> np.ndarray:
+    """``raw`` with a seeded ``fraction`` of its pixels set to 0 (no reading), as speckle."""
+    if fraction <= 0:
+        return raw
+    out = raw.copy()
+    out[np.random.default_rng([seed, 99]).random(raw.shape) < fraction] = 0
+    return out
+
+
+def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str, float]
               ) -> dict[str, Any]:
     """Render, run and score one frame (in a worker process)."""
-    name, seed, size, extra, background, max_tilt, tmp = job
+    name, seed, size, extra, background, max_tilt, tmp, dropouts = job
     folder = Path(tmp) / camera_stem(name, seed)
     write_camera_scenes(folder, [name], [seed], size=size)
     stem = folder / camera_stem(name, seed)
@@ -85,10 +98,10 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str]
     if background and "background" in inspect.signature(run_pipeline).parameters:
         kwargs["background"] = read_image(stem.with_name(stem.name + ".gt.background.png"))
     start = time.perf_counter()
-    result = run_pipeline(read_image(stem.with_name(stem.name + ".png")), config, **kwargs)
+    raw = read_image(stem.with_name(stem.name + ".png"))
+    result = run_pipeline(speckle(raw, dropouts, seed), config, **kwargs)
     seconds = time.perf_counter() - start
     doc = result.holdsite.to_dict()
-    raw = read_image(stem.with_name(stem.name + ".png"))
     depth_mm = np.where(raw > 0, raw * 1000.0 * float(info["camera"]["metres_per_raw"]),
                         np.nan)
     window = (footprint_at_depth(config.holdsite.footprint_mm, info["camera"], depth_mm)
@@ -154,7 +167,8 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"rangeseg {meta['version']}; seeds {meta['seeds']}; {meta['size'][1]}x"
              f"{meta['size'][0]}; --preset {PRESET} + intrinsics; background: "
              f"{meta['background']}; settings: {' '.join(meta['settings']) or 'none'}; "
-             f"tilt limit {meta['max_tilt']:g} degrees; {meta['seconds']:.0f} s on "
+             f"tilt limit {meta['max_tilt']:g} degrees; dropouts "
+             f"{meta.get('dropouts', 0.0):g}; {meta['seconds']:.0f} s on "
              f"{meta['jobs']} processes.", "",
              "Tilt: median angle (degrees) of the usable sites' true normal to the optical "
              "axis. Below top: median depth (mm) of the site's centre behind the nearest "
@@ -182,6 +196,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="pass each frame's empty-support frame as the background")
     parser.add_argument("--max-tilt", type=float, default=DEFAULT_MAX_TILT,
                         help="tilt limit of a usable approach, degrees (default 45)")
+    parser.add_argument("--dropouts", type=float, default=0.0,
+                        help="share of each frame's pixels set to no reading at random, as "
+                             "a camera's speckle on shiny spots (default 0)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS / "real_cells",
                         help="results stem (default benchmarks/results/real_cells)")
@@ -197,13 +214,13 @@ def main(argv: list[str] | None = None) -> int:
     load_config(preset=PRESET, overrides=parse_settings(args.settings))  # fail early
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="real_cells-") as tmp:
-        jobs = [(n, s, size, args.settings, args.background, args.max_tilt, tmp)
-                for n in names for s in seeds]
+        jobs = [(n, s, size, args.settings, args.background, args.max_tilt, tmp,
+                 args.dropouts) for n in names for s in seeds]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             frames = list(pool.map(one_frame, jobs))
     meta = {"version": __version__, "seeds": args.seeds, "size": list(size),
             "settings": args.settings, "background": args.background,
-            "max_tilt": args.max_tilt, "jobs": args.jobs,
+            "max_tilt": args.max_tilt, "dropouts": args.dropouts, "jobs": args.jobs,
             "seconds": time.perf_counter() - start}
     summary = summarise(frames, names)
     page = markdown(summary, meta)

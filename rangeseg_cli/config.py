@@ -81,6 +81,9 @@ class InputConfig:
                                   "(2 for rangeseg synth at 128x128): the lateral scale "
                                   "without camera intrinsics; 0 = unknown", min=0.0,
                                   max=MAX_DEPTH)
+    fill_holes: int = _opt(4, "fill each hole of no reading of at most this many pixels "
+                           "(8-connected: a camera's speckle) with the median of the readings "
+                           "around it, as a suction cup spans it; 0 = off", min=0, max=8)
     auto_thresholds: bool = _opt(True, "scale the step and roof thresholds from the paper's "
                                  "3 depth units per pixel to the image's lateral scale (fx, fy "
                                  "or units_per_pixel) and raise them above its noise sigma 2 "
@@ -507,7 +510,7 @@ CUP_MM = [20.0, 20.0]
 #: Named presets: overrides applied before the TOML file and the command line.
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the paper's algorithm alone: no refinement after growing, no workspace rules
-    "paper": {"input": {"auto_thresholds": False},
+    "paper": {"input": {"auto_thresholds": False, "fill_holes": 0},
               "grow": {"planar_noise_test": False},
               "holdsite": {"max_tilt": 90.0, "max_flat_rms": MAX_DEPTH},
               "workspace": {"support": False, "border_structures": False},

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from conftest import box_scene, tree_bytes, wait_for_done
-from rangeseg_cli import run_pipeline
+from rangeseg_cli import load_config, run_pipeline
 from rangeseg_cli.cli.main import main
 from rangeseg_cli.errors import InputError
 
@@ -272,12 +272,15 @@ def test_random_nan_patterns_never_leak_into_labels(seed, frac):
     z = box_scene(32, noise=1.0, seed=seed)
     z[rng.random(z.shape) < frac] = np.nan
     z[rng.random(z.shape) < 0.01] = np.inf
-    try:
-        result = run_pipeline(z)
-    except InputError:
-        return
-    bad = ~np.isfinite(z)
-    assert not result.labels[bad].any() and not result.edges[bad].any()
+    for fill in (0, 4):  # [input] fill_holes: holes as given, or the small ones filled
+        try:
+            result = run_pipeline(z, load_config(overrides={"input": {"fill_holes": fill}}))
+        except InputError:
+            return
+        bad = ~np.isfinite(result.heights)
+        assert not result.labels[bad].any() and not result.edges[bad].any()
+        kept = ~np.isfinite(z)
+        assert (bad == kept).all() if fill == 0 else not (bad & ~kept).any()
 
 
 @pytest.mark.parametrize(("jobs", "signum", "code", "said"), [
@@ -458,7 +461,6 @@ def _die_at_start(*args, **kwargs):
 def test_workers_that_die_before_any_image_fail_the_batch_instead_of_looping(
         tmp_path, write_png, monkeypatch):
     from rangeseg_cli.batch import runner as batch
-    from rangeseg_cli.config import load_config
 
     folder = tmp_path / "in"
     folder.mkdir()

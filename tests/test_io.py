@@ -1,5 +1,6 @@
 import json
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -144,7 +145,7 @@ def test_rgb_too_small_empty_and_corrupt_files_are_named_errors(tmp_path, write_
 def test_to_heights_depth_units_and_invalid_values():
     raw = np.full((16, 16), 5000, np.uint16)
     raw[0, 0] = 0
-    cfg = load_config(preset="tenth-mm-depth").input
+    cfg = replace(load_config(preset="tenth-mm-depth").input, fill_holes=0)  # kept a hole
     z = to_heights(raw, cfg)
     assert np.isnan(z[0, 0])
     assert z[1, 1] == pytest.approx(-500.0)  # 500 mm away -> height -500 mm
@@ -154,7 +155,7 @@ def test_to_heights_depth_units_and_invalid_values():
 def test_nan_and_inf_are_invalid_and_all_invalid_is_an_error():
     raw = np.ones((16, 16))
     raw[0, 0], raw[0, 1] = np.nan, np.inf
-    z = to_heights(raw, InputConfig())
+    z = to_heights(raw, InputConfig(fill_holes=0))
     assert np.isnan(z[0, :2]).all() and np.isfinite(z[1:]).all()
     with pytest.raises(InputError, match="no valid pixel"):
         to_heights(np.full((16, 16), np.nan), InputConfig())
