@@ -20,6 +20,7 @@ Usage::
     .venv/bin/python benchmarks/quality.py --seeds 9,10,11 --noises 0,1,2,3
     .venv/bin/python benchmarks/quality.py --gt-parts   # each patch of a GT surface judged alone
     .venv/bin/python benchmarks/quality.py --json out/quality.json --labels out/labels.npz
+    .venv/bin/python benchmarks/quality.py --seeds 0,1,2 --tuning rounds=1  # what a step is worth
 
 ``--labels`` saves every label image (key ``<scene>-n<noise>-s<seed>``) so two
 trees can be checked for identical output (``--compare A.npz B.npz``).
@@ -28,6 +29,7 @@ trees can be checked for identical output (``--compare A.npz B.npz``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections import defaultdict
@@ -36,7 +38,15 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from rangeseg_cli.config import load_config, parse_settings
+from rangeseg_cli import config as config_module
+from rangeseg_cli.config import (
+    REFINE_FIELDS,
+    TUNING,
+    SplitConfig,
+    load_config,
+    parse_settings,
+    refine_settings,
+)
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth.evaluate import (
@@ -217,6 +227,33 @@ def _print_widths(rows: dict[float, dict[str, Any]]) -> None:
         print(f"| {c} | {gt} | {cells} |")
 
 
+def tuning_item(text: str) -> tuple[str, Any]:
+    """``--tuning FIELD=VALUE``: a field of :class:`~rangeseg_cli.config.SplitConfig`."""
+    name, eq, value = text.partition("=")
+    fields = {f.name: f for f in dataclasses.fields(SplitConfig)
+              if f.name not in REFINE_FIELDS.values()}  # those are [refine] keys: --set
+    if not eq or name not in fields:
+        raise argparse.ArgumentTypeError(f"{text!r}: FIELD=VALUE with FIELD one of "
+                                         + ", ".join(fields))
+    default = getattr(TUNING, name)
+    if isinstance(default, bool):
+        if value.lower() not in ("true", "false"):
+            raise argparse.ArgumentTypeError(f"{text!r}: {name} is true or false")
+        return name, value.lower() == "true"
+    try:
+        return name, type(default)(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: {name} is a "
+                                         f"{type(default).__name__}") from None
+
+
+def use_tuning(changes: dict[str, Any]) -> None:
+    """Set the refinement's constants (``rangeseg_cli.config.TUNING``) for this process."""
+    if changes:
+        config_module.TUNING = dataclasses.replace(config_module.TUNING, **changes)
+        refine_settings.cache_clear()
+
+
 def compare(a: str, b: str) -> int:
     """Print how many label images differ between two ``--labels`` files."""
     la, lb = np.load(a), np.load(b)
@@ -233,6 +270,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--preset", default=None)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", type=set_item)
+    p.add_argument("--tuning", action="append", default=[], metavar="FIELD=VALUE",
+                   type=tuning_item, help="a constant of the refinement "
+                   "(rangeseg_cli.config.TUNING, e.g. rounds=1 or trim_pieces=false): what "
+                   "one of its steps is worth")
     p.add_argument("--scenes", default=list(SCENES), type=scene_list,
                    help="comma-separated scene names")
     p.add_argument("--seeds", default=SEEDS, type=seed_list)
@@ -252,8 +293,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare:
         return compare(*args.compare)
     try:
+        use_tuning(dict(args.tuning))
         config = load_config(preset=args.preset, overrides=parse_settings(args.set))
-    except ConfigError as exc:
+    except (ConfigError, TypeError, ValueError) as exc:
         p.error(str(exc))  # one line and exit code 2, as for a bad option
     rows, labels, missed = measure(config, args.scenes, args.seeds, args.misses, args.size,
                                    args.gt_parts, args.noises)

@@ -102,3 +102,23 @@ def test_best_overlap_is_the_smaller_share_of_the_nearest_region() -> None:
     pred[:] = 0  # unlabelled pixels are no region
     assert quality.best_overlap(gt, pred, 1) == 0.0
     assert quality.best_overlap(gt, pred, 7) == 0.0  # no such GT region
+
+
+def test_tuning_sets_a_constant_of_the_refinement_for_the_run(monkeypatch) -> None:
+    import argparse
+
+    from rangeseg_cli import config as config_module
+    from rangeseg_cli.config import load_config
+
+    monkeypatch.setattr(config_module, "TUNING", config_module.TUNING)
+    assert quality.tuning_item("rounds=1") == ("rounds", 1)
+    assert quality.tuning_item("trim_pieces=False") == ("trim_pieces", False)
+    for bad in ("rounds=x", "trim_pieces=maybe", "nope=1", "fit_factor=2", "rounds"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            quality.tuning_item(bad)  # fit_factor is a [refine] key: --set
+    before = load_config().split
+    quality.use_tuning({"rounds": 1, "trim_pieces": False})
+    after = load_config().split
+    assert (after.rounds, after.trim_pieces) == (1, False)
+    assert (before.rounds, before.trim_pieces) == (2, True)
+    assert after.fit_factor == before.fit_factor
