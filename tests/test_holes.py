@@ -131,3 +131,24 @@ def test_a_hole_at_a_depth_jump_stays_a_hole():
     plane = tilted_plane()
     assert out[10, 10] == pytest.approx(plane[10, 10])
     assert out[20, 40] == pytest.approx(plane[20, 40] + 30.0)
+
+
+def test_holes_in_whole_millimetres_are_filled_too():
+    # A camera in whole mm over a gentle slope: most neighbouring readings are equal, the
+    # median step is 0, and the bound on a hole's neighbours is the heights' quantum (1)
+    plane = 100.0 + 0.12 * np.arange(50)[None, :] + 0.05 * np.arange(40)[:, None]
+    z = np.round(plane)
+    z[5:35:6, 5:45:6] = np.nan  # single holes, 6 apart
+    holes = np.isnan(z)
+    out = fill_small_holes(z.copy(), 4)
+    assert np.isfinite(out[holes]).all()
+    assert np.abs(out[holes] - plane[holes]).max() <= 1.0
+
+
+def test_a_depth_hint_is_not_silenced_by_the_fill():
+    from rangeseg_cli.stages.rangeimage import depth_map_hint
+
+    depth = np.full((64, 80), 7000, np.uint16)
+    depth[20:40, 20:50] = 6000
+    depth.ravel()[::10] = 0
+    assert depth_map_hint(depth, load_config(overrides={"input": {"fill_holes": 0}}).input)

@@ -360,6 +360,8 @@ def table_heights(relief: int, dtype: type = np.uint16) -> np.ndarray:
      False),  # the wedge's top is the clipped top value: no reading
     (table_heights(700), {"input": {"scale": 0.1}}, False),
     (table_heights(700), {"input": {"units_per_pixel": 20.0}}, False),
+    (table_heights(700), {"input": {"fill_holes": 0}}, True),  # no key of the units
+    (table_heights(500) + 6000, {}, False),  # readings far from 0: no height map's floor
     (np.kron(table_heights(700), np.ones((16, 16), np.uint16)), {}, True)])  # at a stride
 def test_heights_in_units_finer_than_the_thresholds_are_named(image, overrides, hinted):
     from rangeseg_cli.stages.rangeimage import fine_units_hint

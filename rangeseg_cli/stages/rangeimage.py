@@ -4,7 +4,9 @@ Heights grow towards the sensor, as in the paper's ERIM images. Depth images
 (closer = smaller) are negated; a configured no-data value, the top of an
 integer type's range (a clipped value, :func:`clipped_value`), NaN and
 infinities become NaN, which every later stage treats as "invalid": never
-inside a smoothing mask, a fit or a holdsite, and labelled 0.
+inside a smoothing mask, a fit or a holdsite, and labelled 0; small holes of
+them are filled from the readings around them first (``[input] fill_holes``,
+:func:`fill_small_holes`).
 """
 
 from __future__ import annotations
@@ -77,8 +79,8 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
         Array-like (H, W) or (H, W, 1) of raw sensor values; the masked pixels
         of a ``numpy.ma.MaskedArray`` are invalid.
     cfg
-        ``[input]``: ``scale``, ``larger_is_closer``, the ``invalid`` value and
-        ``clipped_invalid`` (:func:`clipped_value`).
+        ``[input]``: ``scale``, ``larger_is_closer``, the ``invalid`` value,
+        ``clipped_invalid`` (:func:`clipped_value`) and ``fill_holes``.
     name
         Named in error messages.
     backend
@@ -92,7 +94,9 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
     -------
     numpy.ndarray
         float64 (H, W): ``raw * scale``, negated when smaller values are
-        closer; NaN at invalid pixels. A new array: the input is not modified.
+        closer; NaN at invalid pixels but in the small holes
+        :func:`fill_small_holes` fills (``cfg.fill_holes``). A new array: the
+        input is not modified.
 
     Raises
     ------
@@ -141,12 +145,13 @@ def fill_small_holes(z: np.ndarray, max_pixels: int) -> np.ndarray:
     20 mm cup's size is left on the SR300 frame of ``sample_data/arc``,
     though the cup spans every hole. Each 8-connected set of NaN pixels of
     ``max_pixels`` or fewer (at most 8: each pixel then touches a reading,
-    but in a frame's corner) takes, pixel by pixel, the median of the
+    but at the frame's border) takes, pixel by pixel, the median of the
     readings among its 8 neighbours, when they span at most
-    :data:`HOLE_SPREAD` times the image's median step between neighbouring
-    readings; a pixel beside a depth jump stays NaN (it is part of the edge,
-    and no height between the two surfaces is made up), as do larger holes
-    (shadows, the frame's margin).
+    :data:`HOLE_SPREAD` times the image's step between neighbouring readings
+    (:func:`neighbour_step`); a pixel beside a depth jump stays NaN (it is
+    part of the edge, and no height between the two surfaces is made up), as
+    do larger holes (shadows, the frame's margin) and a pixel with no reading
+    beside it.
 
     Parameters
     ----------
@@ -163,42 +168,62 @@ def fill_small_holes(z: np.ndarray, max_pixels: int) -> np.ndarray:
     holes = np.isnan(z)
     if max_pixels <= 0 or not holes.any():
         return z
-    parts, count = ndimage.label(holes, structure=np.ones((3, 3), bool))
-    small = np.bincount(parts.ravel(), minlength=count + 1) <= max_pixels
-    small[0] = False
-    rows, cols = np.nonzero(small[parts])
+    parts, _ = ndimage.label(holes, structure=np.ones((3, 3), bool))
+    rows, cols = np.nonzero(holes)  # the hole pixels alone from here on
+    part = parts[rows, cols]
+    small = np.bincount(part)[part] <= max_pixels
+    rows, cols = rows[small], cols[small]
     if rows.size == 0:
         return z
-    padded = np.pad(z, 1, constant_values=np.nan)
-    around = padded[rows[:, None] + 1 + _NEIGHBOURS[:, 0], cols[:, None] + 1 + _NEIGHBOURS[:, 1]]
-    read = np.isfinite(around).any(axis=1)  # not so in a frame's corner: it stays NaN
-    rows, cols, around = rows[read], cols[read], around[read]
-    spread = np.nanmax(around, axis=1) - np.nanmin(around, axis=1)
-    calm = spread <= HOLE_SPREAD * _neighbour_step(z)  # not at a depth jump
-    z[rows[calm], cols[calm]] = np.nanmedian(around[calm], axis=1)
+    around = _neighbour_readings(z, rows, cols)
+    ordered = np.sort(around, axis=1)  # NaN last
+    count = np.count_nonzero(np.isfinite(around), axis=1)
+    read = count > 0  # a pixel with no reading beside it stays NaN
+    rows, cols, ordered, count = rows[read], cols[read], ordered[read], count[read]
+    at = np.arange(rows.size)
+    spread = ordered[at, count - 1] - ordered[:, 0]
+    calm = spread <= HOLE_SPREAD * neighbour_step(z)  # not at a depth jump
+    median = (ordered[at, (count - 1) // 2] + ordered[at, count // 2]) / 2.0
+    z[rows[calm], cols[calm]] = median[calm]
     return z
 
 
+def _neighbour_readings(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(N, 8) heights of the 8 neighbours of pixels (rows, cols); NaN off the frame."""
+    r = rows[:, None] + _NEIGHBOURS[:, 0]
+    c = cols[:, None] + _NEIGHBOURS[:, 1]
+    inside = (r >= 0) & (r < z.shape[0]) & (c >= 0) & (c < z.shape[1])
+    values = z[np.clip(r, 0, z.shape[0] - 1), np.clip(c, 0, z.shape[1] - 1)]
+    return np.where(inside, values, np.nan)
+
+
 #: :func:`fill_small_holes` fills a pixel whose neighbours' readings span at most this
-#: many times the image's median step between 4-neighbours (else it lies at a depth jump).
+#: many times :func:`neighbour_step` (else it lies at a depth jump).
 HOLE_SPREAD = 8.0
 
 
-#: :func:`_neighbour_step` reads every k-th row and column, k the least that leaves about
+#: :func:`neighbour_step` reads every k-th row and column, k the least that leaves about
 #: this many differences of each.
 STEP_SAMPLE = 32768
 
 
-def _neighbour_step(z: np.ndarray) -> float:
-    """Median absolute difference of horizontally and vertically adjacent readings.
+def neighbour_step(z: np.ndarray) -> float:
+    """The image's step between adjacent readings: their median absolute difference.
 
-    Of those in every k-th row and column (:data:`STEP_SAMPLE`).
+    Of the horizontal and vertical neighbours in every k-th row and column
+    (:data:`STEP_SAMPLE`); at least the smallest non-zero difference, the
+    heights' quantum (a flat frame of whole millimetres has a median step of
+    0, and a fill bounded by it would fill nothing but holes in flat patches).
+    0 when no two readings are adjacent.
     """
     k = max(1, z.size // STEP_SAMPLE)
     steps = np.concatenate([np.abs(np.diff(z[::k], axis=1)).ravel(),
                             np.abs(np.diff(z[:, ::k], axis=0)).ravel()])
     steps = steps[np.isfinite(steps)]
-    return float(np.median(steps)) if steps.size else 0.0
+    if not steps.size:
+        return 0.0
+    moved = steps[steps > 0]
+    return max(float(np.median(steps)), float(moved.min()) if moved.size else 0.0)
 
 
 def clipped_value(dtype: np.dtype, cfg: InputConfig) -> int | None:
@@ -304,8 +329,9 @@ def fine_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
     units with ``[input]`` at its defaults turns every bump of a surface
     into an edge, and the holdsite finds nothing to pick. An integer image
     of 16 bits or more whose readings (all but the clipped top value,
-    :func:`clipped_value`) span more than :data:`EIGHT_BIT_TOP` reads as
-    one; setting any ``[input]`` key (``scale`` to convert them, or
+    :func:`clipped_value`) reach down to :data:`EIGHT_BIT_TOP` or below (a
+    height map's floor) and span more than it reads as one; setting an
+    ``[input]`` key of the units (``scale`` to convert them, or
     ``units_per_pixel``) says what the image is.
 
     Parameters
@@ -332,7 +358,7 @@ def fine_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
     if readings.size == 0:
         return ""
     low, high = int(readings.min()), int(readings.max())
-    if high - low <= EIGHT_BIT_TOP:
+    if high - low <= EIGHT_BIT_TOP or low > EIGHT_BIT_TOP:  # no floor near 0: no height map
         return ""
     return (f"has {raw.dtype.itemsize * 8}-bit heights spanning {low}..{high}, more than the "
             f"0..{EIGHT_BIT_TOP} of the 8-bit images the paper's thresholds are set for (a "
@@ -341,10 +367,16 @@ def fine_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
             "if the units are right, set an [input] key (e.g. units_per_pixel) to say so")
 
 
+#: ``[input]`` keys that say nothing of the units: setting them silences no hint.
+_NOT_UNITS = ("fill_holes",)
+
+
 def _at_defaults(cfg: InputConfig) -> bool:
-    """Whether every key of ``cfg`` has its default value (NaN equal to NaN)."""
+    """Whether every units key of ``cfg`` has its default value (NaN equal to NaN)."""
     default = InputConfig()
     for f in dataclasses.fields(cfg):
+        if f.name in _NOT_UNITS:
+            continue
         a, b = getattr(cfg, f.name), getattr(default, f.name)
         if a != b and not (isinstance(a, float) and isinstance(b, float)
                            and math.isnan(a) and math.isnan(b)):
