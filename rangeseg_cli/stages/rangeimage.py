@@ -131,10 +131,6 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
     return fill_small_holes(z, cfg.fill_holes)
 
 
-#: The 8 neighbours of a pixel, (row, col) offsets.
-_NEIGHBOURS = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
-
-
 def fill_small_holes(z: np.ndarray, max_pixels: int) -> np.ndarray:
     """``z`` with each hole of at most ``max_pixels`` pixels filled from around it (in place).
 
@@ -190,8 +186,9 @@ def fill_small_holes(z: np.ndarray, max_pixels: int) -> np.ndarray:
 
 def _neighbour_readings(z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(N, 8) heights of the 8 neighbours of pixels (rows, cols); NaN off the frame."""
-    r = rows[:, None] + _NEIGHBOURS[:, 0]
-    c = cols[:, None] + _NEIGHBOURS[:, 1]
+    offsets = np.array(chessboard_offsets(1))
+    r = rows[:, None] + offsets[:, 0]
+    c = cols[:, None] + offsets[:, 1]
     inside = (r >= 0) & (r < z.shape[0]) & (c >= 0) & (c < z.shape[1])
     values = z[np.clip(r, 0, z.shape[0] - 1), np.clip(c, 0, z.shape[1] - 1)]
     return np.where(inside, values, np.nan)
@@ -290,11 +287,9 @@ def depth_map_hint(raw: np.ndarray, cfg: InputConfig) -> str:
         ``""``, or what the readings are and what to pass instead.
     """
     raw = np.asarray(raw)
-    if (not _at_defaults(cfg) or raw.ndim != 2 or raw.dtype.kind not in "uif"
-            or raw.dtype.itemsize < 2 or raw.size == 0):
+    seen = _hint_sample(raw, cfg, "uif")
+    if seen is None:
         return ""
-    step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
-    seen = raw[::step, ::step]
     with np.errstate(invalid="ignore"):
         if np.any(seen < 0) or np.isinf(seen).any():
             return ""  # signed heights
@@ -348,11 +343,9 @@ def fine_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
         ``""``, or the span of the readings and what to set.
     """
     raw = np.asarray(raw)
-    if (not _at_defaults(cfg) or raw.ndim != 2 or raw.dtype.kind not in "ui"
-            or raw.dtype.itemsize < 2 or raw.size == 0):
+    seen = _hint_sample(raw, cfg, "ui")
+    if seen is None:
         return ""
-    step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
-    seen = raw[::step, ::step]
     top = clipped_value(raw.dtype, cfg)
     readings = seen[seen != top] if top is not None else seen
     if readings.size == 0:
@@ -365,6 +358,20 @@ def fine_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
             "jump of 6 units is an edge): in units much finer than 1 mm every bump is an "
             "edge. Set input.scale to the unit in mm (e.g. --set input.scale=0.1 for 0.1 mm); "
             "if the units are right, set an [input] key (e.g. units_per_pixel) to say so")
+
+
+def _hint_sample(raw: np.ndarray, cfg: InputConfig, kinds: str) -> np.ndarray | None:
+    """The pixels a units hint reads, or None when it has nothing to say.
+
+    None unless ``cfg``'s units keys are at their defaults and ``raw`` is a
+    2-D image of 16 bits or more of a numpy kind in ``kinds``; every k-th row
+    and column, k the least that leaves :data:`DEPTH_HINT_PIXELS` or fewer.
+    """
+    if (not _at_defaults(cfg) or raw.ndim != 2 or raw.dtype.kind not in kinds
+            or raw.dtype.itemsize < 2 or raw.size == 0):
+        return None
+    step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
+    return raw[::step, ::step]
 
 
 #: ``[input]`` keys that say nothing of the units: setting them silences no hint.
