@@ -152,3 +152,18 @@ def test_a_depth_hint_is_not_silenced_by_the_fill():
     depth[20:40, 20:50] = 6000
     depth.ravel()[::10] = 0
     assert depth_map_hint(depth, load_config(overrides={"input": {"fill_holes": 0}}).input)
+
+
+@pytest.mark.parametrize("value", ["9", "-1", "2.5", "true"])
+def test_a_bad_fill_holes_is_one_line_naming_the_key(value, tmp_path):
+    from click.testing import CliRunner
+
+    from rangeseg_cli.cli.main import main
+
+    res = CliRunner().invoke(main, ["run", str(ARC / "bin-heightmap.depth.png"), "-o",
+                                    str(tmp_path / "out"), "--set", f"input.fill_holes={value}"])
+    assert res.exit_code == 2
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: [input] fill_holes = ")
+    assert "expected an integer >= 0 <= 8" in lines[0] and "Traceback" not in res.output
+    assert not (tmp_path / "out").exists()
