@@ -21,9 +21,12 @@ Usage::
     .venv/bin/python benchmarks/real_cells.py --background
     .venv/bin/python benchmarks/real_cells.py --seeds 100-104 --set holdsite.size=[21,21]
     .venv/bin/python benchmarks/real_cells.py --seeds 300-324 --dropouts 0.02
+    .venv/bin/python benchmarks/real_cells.py --seeds 300-324 --noise 2
 
 ``--dropouts F`` sets a seeded share F of each frame's pixels to no reading
-(speckle) before the run; the site is scored against the true scene.
+(speckle) before the run; ``--noise MM`` adds seeded Gaussian depth noise of
+sigma MM millimetres to every reading (a noisier camera, or one farther
+away); the site is scored against the true scene.
 """
 
 from __future__ import annotations
@@ -84,10 +87,22 @@ def speckle(raw: np.ndarray, fraction: float, seed: int) -> np.ndarray:
     return out
 
 
-def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str, float]
-              ) -> dict[str, Any]:
+def depth_noise(raw: np.ndarray, sigma_mm: float, metres_per_raw: float, seed: int
+                ) -> np.ndarray:
+    """``raw`` with seeded Gaussian noise of ``sigma_mm`` on its readings (0 stays 0)."""
+    if sigma_mm <= 0:
+        return raw
+    step = sigma_mm / (1000.0 * metres_per_raw)  # in raw units
+    noisy = raw + np.random.default_rng([seed, 98]).normal(0.0, step, raw.shape)
+    top = np.iinfo(raw.dtype).max if raw.dtype.kind in "ui" else np.inf
+    out = np.clip(np.round(noisy), 1, top).astype(raw.dtype)
+    return np.where(raw > 0, out, raw)
+
+
+def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str, float,
+                         float]) -> dict[str, Any]:
     """Render, run and score one frame (in a worker process)."""
-    name, seed, size, extra, background, max_tilt, tmp, dropouts = job
+    name, seed, size, extra, background, max_tilt, tmp, dropouts, noise = job
     folder = Path(tmp) / camera_stem(name, seed)
     write_camera_scenes(folder, [name], [seed], size=size)
     stem = folder / camera_stem(name, seed)
@@ -99,7 +114,9 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str,
         kwargs["background"] = read_image(stem.with_name(stem.name + ".gt.background.png"))
     start = time.perf_counter()
     raw = read_image(stem.with_name(stem.name + ".png"))
-    result = run_pipeline(speckle(raw, dropouts, seed), config, **kwargs)
+    metres = float(info["camera"]["metres_per_raw"])
+    result = run_pipeline(speckle(depth_noise(raw, noise, metres, seed), dropouts, seed),
+                          config, **kwargs)
     seconds = time.perf_counter() - start
     doc = result.holdsite.to_dict()
     depth_mm = np.where(raw > 0, raw * 1000.0 * float(info["camera"]["metres_per_raw"]),
@@ -168,7 +185,8 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"{meta['size'][0]}; --preset {PRESET} + intrinsics; background: "
              f"{meta['background']}; settings: {' '.join(meta['settings']) or 'none'}; "
              f"tilt limit {meta['max_tilt']:g} degrees; dropouts "
-             f"{meta.get('dropouts', 0.0):g}; {meta['seconds']:.0f} s on "
+             f"{meta.get('dropouts', 0.0):g}; depth noise {meta.get('noise_mm', 0.0):g} mm; "
+             f"{meta['seconds']:.0f} s on "
              f"{meta['jobs']} processes.", "",
              "Tilt: median angle (degrees) of the usable sites' true normal to the optical "
              "axis. Below top: median depth (mm) of the site's centre behind the nearest "
@@ -199,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dropouts", type=float, default=0.0,
                         help="share of each frame's pixels set to no reading at random, as "
                              "a camera's speckle on shiny spots (default 0)")
+    parser.add_argument("--noise", type=float, default=0.0, metavar="MM",
+                        help="sigma of Gaussian depth noise added to each reading, mm "
+                             "(default 0)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS / "real_cells",
                         help="results stem (default benchmarks/results/real_cells)")
@@ -215,12 +236,13 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="real_cells-") as tmp:
         jobs = [(n, s, size, args.settings, args.background, args.max_tilt, tmp,
-                 args.dropouts) for n in names for s in seeds]
+                 args.dropouts, args.noise) for n in names for s in seeds]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             frames = list(pool.map(one_frame, jobs))
     meta = {"version": __version__, "seeds": args.seeds, "size": list(size),
             "settings": args.settings, "background": args.background,
-            "max_tilt": args.max_tilt, "dropouts": args.dropouts, "jobs": args.jobs,
+            "max_tilt": args.max_tilt, "dropouts": args.dropouts, "noise_mm": args.noise,
+            "jobs": args.jobs,
             "seconds": time.perf_counter() - start}
     summary = summarise(frames, names)
     page = markdown(summary, meta)

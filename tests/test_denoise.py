@@ -1,0 +1,141 @@
+"""Heights noisier than the thresholds can follow are median-filtered first.
+
+Beyond the paper's noise range (twice its noisiest images, at the paper's
+scale) raised thresholds alone leave no flat cup-sized window and no edge
+between touching items. Constructed cases with a known answer, then the
+real SR300 frame of sample_data/arc with a noisier camera's noise added.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rangeseg_cli import load_config, run_pipeline
+from rangeseg_cli.batch import io
+from rangeseg_cli.cell.intrinsics import read_intrinsics
+from rangeseg_cli.stages import noise as noise_module
+from rangeseg_cli.stages.noise import (
+    DENOISE_FROM,
+    MAX_MEDIAN,
+    PAPER_NOISE,
+    estimate_noise,
+    median_heights,
+    median_size,
+    reduce_noise,
+)
+from rangeseg_cli.stages.rangeimage import to_heights
+
+ARC = Path(__file__).resolve().parent.parent / "sample_data" / "arc"
+
+
+def step_scene(sigma: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Two tilted planes 30 units apart at column 40, and the same with noise sigma."""
+    rows, cols = np.mgrid[0:60, 0:80].astype(np.float64)
+    clean = 0.2 * cols + 0.1 * rows + np.where(cols >= 40, 30.0, 0.0)
+    return clean, clean + np.random.default_rng(seed).normal(0.0, sigma, clean.shape)
+
+
+def box_on_table(sigma: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A 49x49 px box top 90 units above a table, with noise sigma; and its mask."""
+    rows, cols = np.mgrid[0:160, 0:160].astype(np.float64)
+    z = 0.05 * cols
+    box = (abs(rows - 80) < 25) & (abs(cols - 80) < 25)
+    z[box] = 90.0 + 0.1 * rows[box]
+    return z + np.random.default_rng(seed).normal(0.0, sigma, z.shape), box
+
+
+def test_median_size_is_off_within_the_papers_range_and_grows_with_the_noise():
+    # at the paper's scale (3 units per pixel, or unknown)
+    assert median_size(3.0, DENOISE_FROM) == 1
+    assert median_size(0.0, DENOISE_FROM) == 1
+    assert median_size(3.0, 0.0) == 1
+    for noise in (DENOISE_FROM + 0.01, 6.0, 10.0, 14.0):
+        n = median_size(3.0, noise)
+        assert n % 2 == 1 and 3 <= n <= MAX_MEDIAN
+        # the smallest odd window whose median leaves at most the paper's noise
+        assert math.sqrt(math.pi / 2) * noise / n <= PAPER_NOISE
+        assert n == 3 or math.sqrt(math.pi / 2) * noise / (n - 2) > PAPER_NOISE
+    assert median_size(3.0, 1000.0) == MAX_MEDIAN
+    # the same noise on a finer lateral scale is more noise per pixel: 2 mm at 1.05 mm
+    # per pixel (a RealSense SR300 at 0.65 m) is 5.7 units at the paper's scale
+    assert median_size(1.05, 2.0) == median_size(3.0, 2.0 * 3.0 / 1.05) == 3
+    assert median_size(1.05, 1.0) == 1
+
+
+def test_the_median_keeps_a_depth_jump_where_it_is_and_removes_most_noise():
+    clean, noisy = step_scene(8.0)
+    out = median_heights(noisy, 5)
+    # the jump stays between columns 39 and 40, as sharp as it was: no ramp across it
+    away = np.r_[0:39, 41:80]
+    assert np.abs(out - clean)[:, away].max() < 12.0
+    assert np.abs(out[:, 39] - clean[:, 39]).mean() < 8.0
+    assert np.abs(out[:, 40] - clean[:, 40]).mean() < 8.0
+    inner = np.s_[3:-3, 3:-3]
+    assert np.std((out - clean)[inner]) < 0.45 * 8.0
+    assert estimate_noise(out) < 0.45 * estimate_noise(noisy)
+
+
+def test_the_median_reads_only_readings_and_keeps_no_reading_as_it_is():
+    clean, noisy = step_scene(8.0)
+    noisy[10:20, 10:20] = np.nan  # a shadow
+    noisy[30, 60] = np.nan
+    kept = noisy.copy()
+    out = median_heights(noisy, 5)
+    np.testing.assert_array_equal(np.isnan(out), np.isnan(kept))
+    np.testing.assert_array_equal(noisy, kept)  # the input is not modified
+    # beside the shadow the windows hold readings of the plane alone
+    ring = np.s_[8:22, 22:24]
+    assert np.abs(out[ring] - clean[ring]).max() < 10.0
+
+
+def test_reduce_noise_follows_auto_thresholds_and_the_noise():
+    base = load_config(overrides={"input": {"units_per_pixel": 3.0}}).input
+    _, quiet = step_scene(1.0)
+    assert reduce_noise(quiet, base) is quiet  # within the paper's range
+    _, loud = step_scene(8.0)
+    out = reduce_noise(loud, base)
+    assert out is not loud and estimate_noise(out) < 0.5 * estimate_noise(loud)
+    off = load_config(overrides={"input": {"units_per_pixel": 3.0,
+                                           "auto_thresholds": False}}).input
+    assert reduce_noise(loud, off) is loud
+    # the paper's preset gives the heights as converted
+    paper = load_config(preset="paper").input
+    np.testing.assert_array_equal(to_heights(loud, paper), loud)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_box_under_heavy_noise_gets_its_site_on_its_top(seed, monkeypatch):
+    image, box = box_on_table(8.0, seed)
+    config = load_config(overrides={"input": {"units_per_pixel": 3.0}})
+    site = run_pipeline(image, config).holdsite.holdsite
+    assert site is not None and box[site.row, site.col]
+    # the raised thresholds alone leave no window flat enough
+    monkeypatch.setattr(noise_module, "DENOISE_FROM", math.inf)
+    assert run_pipeline(image, config).holdsite.holdsite is None
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_sr300_frame_with_a_noisier_cameras_noise_keeps_sites_on_items(seed):
+    # 2 mm of depth noise (a RealSense D4xx at about 1.5 m) on the SR300 frame's readings
+    k = read_intrinsics(ARC / "suction-camera-intrinsics.txt")
+    config = load_config(preset="tenth-mm-depth", overrides=k.settings())
+    raw = io.read_image(ARC / "suction-scene.depth.png").astype(np.float64)
+    empty = io.read_image(ARC / "empty" / "suction-background.depth.png")
+    noisy = raw + np.random.default_rng(seed).normal(0.0, 20.0, raw.shape)
+    image = np.where(raw > 0, np.clip(np.round(noisy), 1, 65535), 0).astype(np.uint16)
+    assert to_heights(image, config.input) is not None
+    doc = run_pipeline(image, config, background=empty).holdsite.to_dict()
+    sites = [doc["holdsite"], *doc["candidates"]]
+    assert sites[0] is not None, doc["reason"]
+    assert len(sites) >= 4
+    for site in sites:  # each window is nearer than the empty tote by > 10 mm: an item
+        half_r, half_c = site["size"][0] // 2, site["size"][1] // 2
+        window = np.s_[site["row"] - half_r:site["row"] + half_r + 1,
+                       site["col"] - half_c:site["col"] + half_c + 1]
+        tote = np.where(empty[window] > 0, empty[window] * 0.1, np.nan)
+        nearer = tote - raw[window] * 0.1 > 10.0
+        assert np.mean(nearer[np.isfinite(tote) & (raw[window] > 0)]) > 0.8
