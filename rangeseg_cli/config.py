@@ -86,8 +86,10 @@ class InputConfig:
                            "around it, as a suction cup spans it; 0 = off", min=0, max=8)
     auto_thresholds: bool = _opt(True, "scale the step and roof thresholds from the paper's "
                                  "3 depth units per pixel to the image's lateral scale (fx, fy "
-                                 "or units_per_pixel) and raise them above its noise sigma 2 "
-                                 "(false = the thresholds as given, in depth units)")
+                                 "or units_per_pixel) and raise them above its noise sigma 2; "
+                                 "beyond twice that noise, median-filter the heights first "
+                                 "(false = the thresholds as given, in depth units, and no "
+                                 "filter)")
 
     @property
     def fx(self) -> float:

@@ -34,7 +34,7 @@ from .kernels.parallel import blas_one_thread, row_bands
 from .models import Surface
 from .refine import passes as refinement
 from .stages.edges import EdgeMaps, detect_edges
-from .stages.noise import estimate_noise
+from .stages.noise import estimate_noise, reduce_noise
 from .stages.rangeimage import check_array, check_stage_arrays, require_shape_of_z, to_heights
 
 #: Stage names in order.
@@ -48,7 +48,10 @@ class PipelineResult:
     Attributes
     ----------
     heights
-        float64 (H, W) heights, NaN where invalid.
+        float64 (H, W) heights the stages read, NaN where invalid: the image
+        converted (:func:`~rangeseg_cli.stages.rangeimage.to_heights`) and,
+        when noisier than the thresholds follow, median-filtered
+        (:func:`~rangeseg_cli.stages.noise.reduce_noise`).
     edge_maps
         Step and roof edges (Sec. V-1, V-2).
     edges
@@ -203,7 +206,8 @@ def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
 
     bg_heights = roi_bool = None
     if background is not None:
-        bg_heights = to_heights(background, config.input, name="`background`")
+        bg_heights, _ = reduce_noise(to_heights(background, config.input, name="`background`"),
+                                     config.input)
         require_shape_of_z(z, background=bg_heights)
     if roi is not None:
         roi_bool = roi_mask(roi)
@@ -327,6 +331,7 @@ def _run(image: Any, config: Config, stages: int, name: str, frames: SharedFrame
     z = to_heights(image, config.input, name=name)
     check_frame_size(z.shape, frames, name)
     noise = estimate_noise(z) if uses_noise(config) else None  # else when asked for
+    z, noise = reduce_noise(z, config.input, noise)  # beyond the paper's noise range
     maps = stage_edges(z, config, noise=noise)
     timings["edges"] = time.perf_counter() - t0
     result = PipelineResult(heights=z, edge_maps=maps, edges=maps.codes, timings=timings,

@@ -95,16 +95,17 @@ def test_the_median_reads_only_readings_and_keeps_no_reading_as_it_is():
 def test_reduce_noise_follows_auto_thresholds_and_the_noise():
     base = load_config(overrides={"input": {"units_per_pixel": 3.0}}).input
     _, quiet = step_scene(1.0)
-    assert reduce_noise(quiet, base) is quiet  # within the paper's range
+    z, noise = reduce_noise(quiet, base)
+    assert z is quiet and noise == estimate_noise(quiet)  # within the paper's range
     _, loud = step_scene(8.0)
-    out = reduce_noise(loud, base)
-    assert out is not loud and estimate_noise(out) < 0.5 * estimate_noise(loud)
+    z, noise = reduce_noise(loud, base)
+    assert z is not loud and noise == estimate_noise(z) < 0.5 * estimate_noise(loud)
     off = load_config(overrides={"input": {"units_per_pixel": 3.0,
                                            "auto_thresholds": False}}).input
-    assert reduce_noise(loud, off) is loud
-    # the paper's preset gives the heights as converted
-    paper = load_config(preset="paper").input
-    np.testing.assert_array_equal(to_heights(loud, paper), loud)
+    assert reduce_noise(loud, off) == (loud, None)
+    # the paper's preset segments the heights as converted
+    paper = load_config(preset="paper")
+    np.testing.assert_array_equal(run_pipeline(loud, paper, stages=1).heights, loud)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -127,7 +128,8 @@ def test_the_sr300_frame_with_a_noisier_cameras_noise_keeps_sites_on_items(seed)
     empty = io.read_image(ARC / "empty" / "suction-background.depth.png")
     noisy = raw + np.random.default_rng(seed).normal(0.0, 20.0, raw.shape)
     image = np.where(raw > 0, np.clip(np.round(noisy), 1, 65535), 0).astype(np.uint16)
-    assert to_heights(image, config.input) is not None
+    z, _ = reduce_noise(to_heights(image, config.input), config.input)
+    assert estimate_noise(z) < 0.5 * estimate_noise(to_heights(image, config.input))
     doc = run_pipeline(image, config, background=empty).holdsite.to_dict()
     sites = [doc["holdsite"], *doc["candidates"]]
     assert sites[0] is not None, doc["reason"]
@@ -139,3 +141,25 @@ def test_the_sr300_frame_with_a_noisier_cameras_noise_keeps_sites_on_items(seed)
         tote = np.where(empty[window] > 0, empty[window] * 0.1, np.nan)
         nearer = tote - raw[window] * 0.1 > 10.0
         assert np.mean(nearer[np.isfinite(tote) & (raw[window] > 0)]) > 0.8
+
+
+def test_the_command_line_segments_and_keeps_the_filtered_heights(tmp_path):
+    from click.testing import CliRunner
+
+    from rangeseg_cli.cli.main import main
+
+    image, box = box_on_table(8.0, 0)
+    np.save(tmp_path / "box.npy", image)
+    kept = image.copy()
+    res = CliRunner().invoke(main, ["run", str(tmp_path / "box.npy"), "-o", str(tmp_path / "out"),
+                                    "--set", "input.units_per_pixel=3"])
+    assert res.exit_code == 0, res.output
+    config = load_config(overrides={"input": {"units_per_pixel": 3.0}})
+    expected = run_pipeline(image, config)
+    np.testing.assert_array_equal(np.load(tmp_path / "out" / "box.range.npy"),
+                                  expected.heights)
+    np.testing.assert_array_equal(np.load(tmp_path / "out" / "box.labels.npy"),
+                                  expected.labels)
+    doc = io.read_json(tmp_path / "out" / "box.holdsite.json")
+    assert box[doc["holdsite"]["row"], doc["holdsite"]["col"]]
+    np.testing.assert_array_equal(np.load(tmp_path / "box.npy"), kept)  # input unchanged

@@ -72,7 +72,8 @@ Notes
    median-filtered (the readings alone; a median keeps depth jumps) over
    the smallest odd window of side n that brings the noise to
    :data:`PAPER_NOISE` (a median of n x n readings keeps ``sqrt(pi / 2) / n``
-   of Gaussian noise), before anything else reads them.
+   of Gaussian noise), before anything else reads them: the frame, and the
+   empty tote's frame given as background.
 """
 
 from __future__ import annotations
@@ -340,7 +341,8 @@ def median_heights(z: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-def reduce_noise(z: np.ndarray, camera: InputConfig) -> np.ndarray:
+def reduce_noise(z: np.ndarray, camera: InputConfig, noise: float | None = None
+                 ) -> tuple[np.ndarray, float | None]:
     """Heights ``z`` median-filtered when their noise is beyond the thresholds' reach.
 
     Beyond Al-Hujazi & Sood (1990), whose images stop at sigma_o = 2
@@ -351,17 +353,26 @@ def reduce_noise(z: np.ndarray, camera: InputConfig) -> np.ndarray:
     Parameters
     ----------
     z
-        float64 (H, W) heights in depth units, NaN where invalid.
+        float64 (H, W) heights in depth units, NaN where invalid
+        (:func:`~rangeseg_cli.stages.rangeimage.to_heights`).
     camera
         ``[input]``: ``auto_thresholds`` and the lateral scale's intrinsics
         or ``units_per_pixel``.
+    noise
+        :func:`estimate_noise` of ``z`` when the caller has it.
 
     Returns
     -------
-    numpy.ndarray
-        ``z``, or a new filtered array.
+    tuple
+        The heights (``z``, or a new filtered array) and their noise
+        estimate (``noise`` as given when ``z`` is returned: None stays None
+        without ``auto_thresholds``).
     """
     if not camera.auto_thresholds:
-        return z
-    size = median_size(lateral_scale(z, camera), estimate_noise(z))
-    return z if size == 1 else median_heights(z, size)
+        return z, noise
+    noise = estimate_noise(z) if noise is None else noise
+    size = median_size(lateral_scale(z, camera), noise)
+    if size == 1:
+        return z, noise
+    out = median_heights(z, size)
+    return out, estimate_noise(out)

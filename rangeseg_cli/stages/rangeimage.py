@@ -21,7 +21,6 @@ from scipy import ndimage
 from ..config import MAX_DEPTH, InputConfig
 from ..errors import InputError
 from ..kernels.backend import Backend, select_kernels
-from .noise import reduce_noise
 
 MIN_SIZE = 16
 #: Largest |height| accepted, in depth units: far beyond any sensor, and small
@@ -81,8 +80,7 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
         of a ``numpy.ma.MaskedArray`` are invalid.
     cfg
         ``[input]``: ``scale``, ``larger_is_closer``, the ``invalid`` value,
-        ``clipped_invalid`` (:func:`clipped_value`), ``fill_holes`` and, for
-        the lateral scale and the noise, ``auto_thresholds`` and the intrinsics.
+        ``clipped_invalid`` (:func:`clipped_value`) and ``fill_holes``.
     name
         Named in error messages.
     backend
@@ -97,10 +95,8 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
     numpy.ndarray
         float64 (H, W): ``raw * scale``, negated when smaller values are
         closer; NaN at invalid pixels but in the small holes
-        :func:`fill_small_holes` fills (``cfg.fill_holes``); median-filtered
-        when noisier than the thresholds follow
-        (:func:`~rangeseg_cli.stages.noise.reduce_noise`, ``cfg.auto_thresholds``).
-        A new array: the input is not modified.
+        :func:`fill_small_holes` fills (``cfg.fill_holes``). A new array: the
+        input is not modified.
 
     Raises
     ------
@@ -117,7 +113,7 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
                                          float(cfg.invalid), not math.isnan(cfg.invalid),
                                          float(clipped or 0), clipped is not None)
         _check_heights(valid == 0, peak, cfg, name)
-        return reduce_noise(fill_small_holes(z, cfg.fill_holes), cfg)
+        return fill_small_holes(z, cfg.fill_holes)
     z = arr.astype(np.float64)
     invalid = ~np.isfinite(z)
     if masked is not None:  # a masked array's masked pixels are invalid
@@ -132,7 +128,7 @@ def to_heights(raw: Any, cfg: InputConfig, *, name: str = "image", backend: Back
     z[invalid] = np.nan
     none_valid = bool(invalid.all())
     _check_heights(none_valid, 0.0 if none_valid else float(np.nanmax(np.abs(z))), cfg, name)
-    return reduce_noise(fill_small_holes(z, cfg.fill_holes), cfg)
+    return fill_small_holes(z, cfg.fill_holes)
 
 
 def fill_small_holes(z: np.ndarray, max_pixels: int) -> np.ndarray:
