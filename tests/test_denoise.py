@@ -114,9 +114,18 @@ def test_a_box_under_heavy_noise_gets_its_site_on_its_top(seed, monkeypatch):
     config = load_config(overrides={"input": {"units_per_pixel": 3.0}})
     site = run_pipeline(image, config).holdsite.holdsite
     assert site is not None and box[site.row, site.col]
-    # the raised thresholds alone leave no window flat enough
+    filtered = run_pipeline(image, config)
+    # unfiltered, the raised thresholds and the paper's AR bound leave no window flat
+    from rangeseg_cli.stages import holdsite
+
     monkeypatch.setattr(noise_module, "DENOISE_FROM", math.inf)
+    monkeypatch.setattr(holdsite, "FLAT_AR_NOISE", 0.0)
     assert run_pipeline(image, config).holdsite.holdsite is None
+    # with the AR bound that follows the noise there is a site, far rougher than filtered
+    monkeypatch.setattr(holdsite, "FLAT_AR_NOISE", 2.0)
+    rough = run_pipeline(image, config).holdsite.holdsite
+    assert rough is not None and box[rough.row, rough.col]
+    assert rough.flat_rms > 3.0 * filtered.holdsite.holdsite.flat_rms
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -163,3 +172,49 @@ def test_the_command_line_segments_and_keeps_the_filtered_heights(tmp_path):
     doc = io.read_json(tmp_path / "out" / "box.holdsite.json")
     assert box[doc["holdsite"]["row"], doc["holdsite"]["col"]]
     np.testing.assert_array_equal(np.load(tmp_path / "box.npy"), kept)  # input unchanged
+
+
+def test_the_ar_of_noise_alone_has_the_std_ar_noise_std_says():
+    from rangeseg_cli.stages.edges import ar_2d
+    from rangeseg_cli.stages.holdsite import ar_noise_std
+
+    z = np.random.default_rng(5).normal(0.0, 3.0, (300, 300))
+    measured = float(np.nanstd(ar_2d(z)[4:-4, 4:-4])) / 3.0
+    assert measured == pytest.approx(ar_noise_std(), rel=0.03)
+    # the paper's bound of 1 is about what its noisiest images (sigma 2) give alone
+    assert 0.9 < 2.0 * ar_noise_std() < 1.2
+
+
+def test_the_ar_bound_rises_with_the_noise_beyond_the_papers_range_only():
+    from rangeseg_cli.stages.holdsite import FLAT_AR_NOISE, ar_noise_std, ar_std_limit
+
+    config = load_config()
+    hold, camera = config.holdsite, config.input
+    assert ar_std_limit(hold, camera, PAPER_NOISE, 3.0) == hold.max_ar_std
+    assert ar_std_limit(hold, camera, 2.26, 0.0) == hold.max_ar_std  # the 8-bit scenes at 2
+    loud = ar_std_limit(hold, camera, 4.0, 3.0)
+    assert loud == pytest.approx(FLAT_AR_NOISE * ar_noise_std() * 4.0, abs=1e-3)
+    assert loud > 1.0
+    # 1 mm at 1.05 mm per pixel is 2.9 at the paper's scale: beyond it, but the bound
+    # stays the configured one until the noise's AR needs more
+    assert ar_std_limit(hold, camera, 0.9, 1.05) == hold.max_ar_std
+    off = load_config(overrides={"input": {"auto_thresholds": False}})
+    assert ar_std_limit(off.holdsite, off.input, 4.0, 3.0) == hold.max_ar_std
+    strict = load_config(overrides={"holdsite": {"max_ar_std": 5.0}}).holdsite
+    assert ar_std_limit(strict, camera, 4.0, 3.0) == 5.0  # never below the configured bound
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_box_between_the_papers_noise_and_the_median_gets_a_site(seed, monkeypatch):
+    from rangeseg_cli.stages import holdsite
+
+    # sigma 3.5 at the paper's scale: beyond its images, short of the median filter
+    image, box = box_on_table(3.5, seed)
+    config = load_config(overrides={"input": {"units_per_pixel": 3.0}})
+    assert median_size(3.0, estimate_noise(image)) == 1
+    result = run_pipeline(image, config).holdsite
+    assert result.holdsite is not None and box[result.holdsite.row, result.holdsite.col]
+    # the paper's bound alone: the noise's own AR (0.525 x 3.5) is not flat
+    monkeypatch.setattr(holdsite, "FLAT_AR_NOISE", 0.0)
+    result = run_pipeline(image, config).holdsite
+    assert result.holdsite is None and "AR std <= 1" in result.reason

@@ -55,6 +55,11 @@ Step 4, candidates in a surface: window centres where the footprint
 the standard deviation of the 2-D AR (:func:`~rangeseg_cli.stages.edges.ar_2d`)
 over the footprint is <= ``holdsite.max_ar_std`` (window means of AR and
 AR^2). The first surface in the order with a candidate holds the site.
+The paper's bound, 1, is about what noise of its noisiest images (sigma_o
+= 2) gives alone (0.525 sigma: :func:`ar_noise_std`); beyond the paper's
+noise range (with ``[input] auto_thresholds``, as the thresholds) it rises
+to :data:`FLAT_AR_NOISE` times the AR that the image's noise gives
+(:func:`ar_std_limit`), or no window of a noisier camera is flat.
 
 Step 4b, tilt (beyond the paper; ``holdsite.max_tilt`` < 90): a candidate
 also needs the normal that a site there would report (Step 6) within
@@ -141,9 +146,9 @@ from ..config import MAX_DEPTH, Config, HoldsiteConfig, InputConfig, check_confi
 from ..errors import InputError
 from ..kernels.backend import Backend, select_kernels
 from ..models import Surface
-from .edges import ar_2d
+from .edges import ar_2d, gaussian_taps
 from .grow import RCOND, evaluate_quadric, valid_labels
-from .noise import estimate_noise
+from .noise import PAPER_NOISE, estimate_noise, lateral_scale, paper_scale_noise
 from .rangeimage import check_stage_arrays, require_shape_of_z
 from .surfaces import (
     NEIGHBOUR_REACH,
@@ -1395,6 +1400,40 @@ def sums_at(a: np.ndarray, kernel: np.ndarray, at: np.ndarray,
     return out
 
 
+#: Beyond the paper's noise range a window is flat when the standard deviation of its
+#: AR is at most this many times that of the image's noise alone (Step 4).
+FLAT_AR_NOISE = 2.0
+
+
+@functools.cache
+def ar_noise_std() -> float:
+    """Standard deviation of the 2-D AR (Step 4) of Gaussian noise of sigma 1 alone.
+
+    ``sqrt(gain (1 - 2 / pi))``: AR is ``|(G - delta) * z|``, of which noise
+    keeps the power ``gain`` (the "sum" of Sec. IV-B for the 5x5 Gaussian
+    of sigma 1, 0.758), and ``|X|`` of a normal X has the variance
+    ``(1 - 2 / pi) var(X)``: 0.525.
+    """
+    g = np.outer(gaussian_taps(1.0, 5), gaussian_taps(1.0, 5))
+    g[2, 2] -= 1.0
+    return math.sqrt(float(np.sum(g * g)) * (1.0 - 2.0 / math.pi))
+
+
+def ar_std_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float,
+                 units_per_pixel: float) -> float:
+    """The bound on a window's AR standard deviation (Step 4).
+
+    ``max_ar_std``; beyond the paper's noise range (``noise`` over
+    :data:`~rangeseg_cli.stages.noise.PAPER_NOISE` at the paper's scale,
+    :func:`~rangeseg_cli.stages.noise.paper_scale_noise`) with ``[input]
+    auto_thresholds``, at least :data:`FLAT_AR_NOISE` times
+    :func:`ar_noise_std` times ``noise`` (to 3 decimals).
+    """
+    if not camera.auto_thresholds or paper_scale_noise(units_per_pixel, noise) <= PAPER_NOISE:
+        return cfg.max_ar_std
+    return max(cfg.max_ar_std, round(FLAT_AR_NOISE * ar_noise_std() * noise, 3))
+
+
 def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:
     """``max_flat_rms``, or its default: 2 x noise + 1 unit (+ 1 mm with metric depth).
 
@@ -2423,6 +2462,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         object_of[s.id] in floating, *_preference(obj_by_id[object_of[s.id]], s, lift)))
     # Step 4: acceptable windows, surface by surface
     hold = effective_holdsite(config)
+    hold = dataclasses.replace(hold, max_ar_std=ar_std_limit(
+        hold, config.input, noise, lateral_scale(z, config.input)))
     scene = _Scene(labels, valid & space.pickable, z, hold, _angles(hold), backend,
                    config.input, flat_limit(hold, config.input, noise))
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)

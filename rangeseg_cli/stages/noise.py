@@ -223,6 +223,21 @@ def lateral_scale(z: np.ndarray, camera: InputConfig) -> float:
     return float(np.median(depth)) / math.sqrt(camera.fx * camera.fy)
 
 
+def paper_scale_noise(units_per_pixel: float, noise: float) -> float:
+    """``noise`` at the paper's scale (module notes, 4): over ``units_per_pixel / 3``.
+
+    Parameters
+    ----------
+    units_per_pixel
+        Lateral scale, depth units per pixel (:func:`lateral_scale`; 0 = unknown:
+        the paper's scale).
+    noise
+        Estimated noise sigma (:func:`estimate_noise`), depth units.
+    """
+    s = units_per_pixel / PAPER_UNITS_PER_PIXEL if units_per_pixel > 0 else 1.0
+    return max(noise, 0.0) / s
+
+
 def threshold_factor(units_per_pixel: float, noise: float) -> float:
     """What the thresholds of the paper's units are multiplied by (module notes, 4).
 
@@ -243,7 +258,7 @@ def threshold_factor(units_per_pixel: float, noise: float) -> float:
         a noise above the paper's at that scale.
     """
     s = units_per_pixel / PAPER_UNITS_PER_PIXEL if units_per_pixel > 0 else 1.0
-    excess = max(noise, 0.0) / s - PAPER_NOISE
+    excess = paper_scale_noise(units_per_pixel, noise) - PAPER_NOISE
     return s * max(1.0, 1.0 + NOISE_SLOPE * excess)
 
 
@@ -316,8 +331,7 @@ def median_size(units_per_pixel: float, noise: float) -> int:
         smallest odd n >= 3 with ``sqrt(pi / 2) * noise / n`` at most
         :data:`PAPER_NOISE` there, at most :data:`MAX_MEDIAN`.
     """
-    s = units_per_pixel / PAPER_UNITS_PER_PIXEL if units_per_pixel > 0 else 1.0
-    paper = max(noise, 0.0) / s
+    paper = paper_scale_noise(units_per_pixel, noise)
     if paper <= DENOISE_FROM:
         return 1
     n = max(3, math.ceil(math.sqrt(math.pi / 2.0) * paper / PAPER_NOISE))
