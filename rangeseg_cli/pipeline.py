@@ -105,6 +105,10 @@ def uses_noise(config: Config) -> bool:
 def stage_edges(z: np.ndarray, config: Config, *, noise: float | None = None) -> EdgeMaps:
     """Steps 1 and 2 (Sec. V-1, V-2) on heights ``z``.
 
+    ``z`` as :func:`run_pipeline` reads it: :func:`~rangeseg_cli.stages.rangeimage.to_heights`,
+    then :func:`~rangeseg_cli.stages.noise.reduce_noise` (a median filter of a
+    frame noisier than the thresholds follow; the same ``z`` otherwise).
+
     With ``[input] auto_thresholds`` the thresholds follow the lateral scale
     and the noise of ``z`` (:func:`~rangeseg_cli.stages.noise.sensor_config`):
     ``noise`` when the caller has estimated it, computed here otherwise.
@@ -206,8 +210,7 @@ def stage_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
 
     bg_heights = roi_bool = None
     if background is not None:
-        bg_heights, _ = reduce_noise(to_heights(background, config.input, name="`background`"),
-                                     config.input)
+        bg_heights = to_heights(background, config.input, name="`background`")
         require_shape_of_z(z, background=bg_heights)
     if roi is not None:
         roi_bool = roi_mask(roi)
