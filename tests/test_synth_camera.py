@@ -292,3 +292,17 @@ def test_cli_refuses_bad_camera_options_with_usage_errors(tmp_path):
 
 def test_cli_choices_are_the_library_names():
     assert CAMERA_NAMES == tuple(CAMERAS) and DEPTH_UNIT_NAMES == tuple(DEPTH_UNITS)
+
+
+def test_a_tilted_mount_turns_the_optical_axis_by_its_angle():
+    from rangeseg_cli.synth.camera import render_camera_scene
+
+    straight = render_camera_scene("cam-tote", size=(48, 64), seed=3)
+    again = render_camera_scene("cam-tote", size=(48, 64), seed=3, tilt=0.0)
+    assert straight.image.tobytes() == again.image.tobytes()
+    tilted = render_camera_scene("cam-tote", size=(48, 64), seed=3, tilt=30.0)
+    axes = [np.asarray(s.info["camera"]["rotation"])[:, 2] for s in (straight, tilted)]
+    angle = np.degrees(np.arccos(np.clip(axes[0] @ axes[1], -1.0, 1.0)))
+    assert angle == pytest.approx(30.0, abs=1e-6)
+    with pytest.raises(ValueError, match="`tilt`"):
+        render_camera_scene("cam-tote", size=(48, 64), seed=3, tilt=75.0)

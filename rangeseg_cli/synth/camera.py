@@ -143,11 +143,17 @@ class SensorModel:
 
 @dataclass(frozen=True)
 class CameraModel:
-    """Intrinsics at :data:`MODEL_SIZE` and the sensor's defects."""
+    """Intrinsics at :data:`MODEL_SIZE`, the sensor's defects and a tilt of the mount.
+
+    ``tilt``: degrees the camera is turned about its x axis (its rows look
+    along the table) on top of each scene's few random degrees; 0 looks
+    straight down.
+    """
 
     name: str
     intrinsics: tuple[float, float, float, float]
     sensor: SensorModel
+    tilt: float = 0.0
 
 
 #: Named cameras of ``rangeseg synth --camera``.
@@ -755,7 +761,8 @@ def _tote(rng: np.random.Generator, inner: tuple[float, float, float, float]
 def _camera(model: CameraModel, shape: tuple[int, int], rng: np.random.Generator,
             heights: tuple[float, float]) -> Camera:
     tilt = rng.uniform(-12, 12, 2)
-    return camera_for(model, shape, height=rng.uniform(*heights), tilt=(tilt[0], tilt[1]))
+    return camera_for(model, shape, height=rng.uniform(*heights),
+                      tilt=(tilt[0] + model.tilt, tilt[1]))
 
 
 def _table_scene(model: CameraModel, shape: tuple[int, int], rng: np.random.Generator
@@ -945,7 +952,7 @@ def check_camera_options(name: str, shape: Sequence[int], camera: str, depth_uni
 
 def render_camera_scene(name: str, *, size: Sequence[int] = MODEL_SIZE, seed: int = 0,
                         camera: str = "sr300", depth_unit: str = "0.1mm",
-                        sensor: SensorModel | None = None) -> CameraScene:
+                        sensor: SensorModel | None = None, tilt: float = 0.0) -> CameraScene:
     """Render a named scene of :data:`CAMERA_SCENES` as a depth camera's frame.
 
     Parameters
@@ -963,6 +970,9 @@ def render_camera_scene(name: str, *, size: Sequence[int] = MODEL_SIZE, seed: in
         A key of :data:`DEPTH_UNITS`: ``"0.1mm"``, ``"1mm"`` (uint16) or ``"m"`` (float32).
     sensor
         Replaces the camera's :class:`SensorModel`.
+    tilt
+        Degrees the camera's mount is tilted from straight down (about the
+        camera's x axis), -60 to 60; the layout follows the view.
 
     Returns
     -------
@@ -975,7 +985,9 @@ def render_camera_scene(name: str, *, size: Sequence[int] = MODEL_SIZE, seed: in
         For an unknown scene, camera or unit, or a size or seed out of range.
     """
     shape = check_camera_options(name, size, camera, depth_unit, seed)
-    model = CAMERAS[camera]
+    if not (isinstance(tilt, int | float) and -60.0 <= tilt <= 60.0):
+        raise ValueError(f"`tilt` {tilt!r} must be a number of degrees from -60 to 60")
+    model = replace(CAMERAS[camera], tilt=float(tilt))
     model = replace(model, sensor=sensor) if sensor is not None else model
     kind = list(CAMERA_SCENES).index(name)
     cam, items, empty = CAMERA_SCENES[name].build(model, shape, np.random.default_rng(
@@ -1033,14 +1045,15 @@ def camera_stem(name: str, seed: int) -> str:
 
 def write_camera_scenes(out_dir: str | Path, names: Iterable[str], seeds: Iterable[int], *,
                         size: Sequence[int] = MODEL_SIZE, camera: str = "sr300",
-                        depth_unit: str = "0.1mm") -> list[Path]:
+                        depth_unit: str = "0.1mm", tilt: float = 0.0) -> list[Path]:
     """Render camera scenes for each seed and write them with their ground truth.
 
     Per scene and seed, with ``<stem>`` = :func:`camera_stem`, writes
     ``OUT/<stem>.png`` (uint16; ``.npy`` float32 metres for ``depth_unit =
     "m"``), ``<stem>.gt.npy`` (int32 labels), ``<stem>.gt.json``,
     ``<stem>.intrinsics.txt`` and ``<stem>.gt.background.png`` (or ``.npy``):
-    the empty support for ``[workspace] background``. ``rangeseg run OUT``
+    the empty support for ``[workspace] background``. ``tilt``: as
+    :func:`render_camera_scene`. ``rangeseg run OUT``
     reads only the frames: names holding ``.gt.`` are skipped as ground
     truth, and ``.txt`` is no image.
 
@@ -1067,7 +1080,7 @@ def write_camera_scenes(out_dir: str | Path, names: Iterable[str], seeds: Iterab
     for name in dict.fromkeys(names):
         for seed in dict.fromkeys(seeds):
             scene = render_camera_scene(name, size=size, seed=seed, camera=camera,
-                                        depth_unit=depth_unit)
+                                        depth_unit=depth_unit, tilt=tilt)
             stem = camera_stem(name, seed)
             paths = [out / f"{stem}{suffix}", out / f"{stem}.gt.background{suffix}",
                      out / f"{stem}.gt.npy", out / f"{stem}.gt.json",
