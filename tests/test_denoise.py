@@ -157,25 +157,44 @@ def test_the_sr300_frame_with_a_noisier_cameras_noise_keeps_sites_on_items(seed)
         assert np.mean(nearer[np.isfinite(tote) & (raw[window] > 0)]) > 0.8
 
 
-def test_the_command_line_segments_and_keeps_the_filtered_heights(tmp_path):
+def test_the_command_line_segments_and_keeps_the_filtered_heights(tmp_path, monkeypatch):
     from click.testing import CliRunner
 
     from rangeseg_cli.cli.main import main
+    from rangeseg_cli.stages import holdsite
+
+    seen: list[float | None] = []
+    search = holdsite.find_holdsite
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("noise"))
+        return search(*args, **kwargs)
 
     image, box = box_on_table(8.0, 0)
     np.save(tmp_path / "box.npy", image)
     kept = image.copy()
-    res = CliRunner().invoke(main, ["run", str(tmp_path / "box.npy"), "-o", str(tmp_path / "out"),
-                                    "--set", "input.units_per_pixel=3"])
-    assert res.exit_code == 0, res.output
     config = load_config(overrides={"input": {"units_per_pixel": 3.0}})
     expected = run_pipeline(image, config)
+    monkeypatch.setattr(holdsite, "find_holdsite", spy)
+    run = ["run", str(tmp_path / "box.npy"), "-o", str(tmp_path / "out"),
+           "--set", "input.units_per_pixel=3"]
+    res = CliRunner().invoke(main, run)
+    assert res.exit_code == 0, res.output
     np.testing.assert_array_equal(np.load(tmp_path / "out" / "box.range.npy"),
                                   expected.heights)
     np.testing.assert_array_equal(np.load(tmp_path / "out" / "box.labels.npy"),
                                   expected.labels)
     doc = io.read_json(tmp_path / "out" / "box.holdsite.json")
     assert box[doc["holdsite"]["row"], doc["holdsite"]["col"]]
+    assert doc["reason"] == expected.holdsite.reason
+    manifest = io.read_json(tmp_path / "out" / "rangeseg-run.json")
+    assert manifest["images"]["box"]["noise_sigma"] == pytest.approx(expected.noise_sigma)
+    # the holdsite reads the noise the filter left (not an estimate of the filtered
+    # heights, a third of it), also when a resume starts at the holdsite stage
+    res = CliRunner().invoke(main, [*run, "--resume", "--set", "holdsite.max_candidates=2"])
+    assert res.exit_code == 0, res.output
+    assert seen == [pytest.approx(expected.noise_sigma)] * 2
+    assert estimate_noise(expected.heights) < 0.5 * expected.noise_sigma
     np.testing.assert_array_equal(np.load(tmp_path / "box.npy"), kept)  # input unchanged
 
 

@@ -270,7 +270,7 @@ def _run_tasks(client: Client, todo: list[Job], out: Location, config: Config,
                finish: Callable[[Record], None], limit: int | None) -> None:
     out = io.absolute(out)
     sent = [Job(rel=j.rel, source=None if j.source is None else io.absolute_name(j.source),
-                start=j.start) for j in todo]
+                start=j.start, noise=j.noise) for j in todo]
     _check_workers(client, [str(out)] + [j.source for j in sent[:1] if j.source])
     # the workspace arrays go to the workers once, not with every task
     shared = client.scatter(frames, broadcast=True) if frames.digest and todo else frames

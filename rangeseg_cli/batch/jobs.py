@@ -62,11 +62,15 @@ class Job:
 
     ``start``: the first of the batch's stages to run for it (``--resume``
     redoes an image from its first stage out of date); None: the batch's first.
+    ``noise``: the noise of its heights as the manifest recorded it
+    (``noise_sigma``), for stages that start after ``edges``: the noise a
+    median filter left cannot be read back from ``range.npy``.
     """
 
     rel: str
     source: str | None = None
     start: str | None = None
+    noise: float | None = None
 
 
 def job_stages(job: Job, stages: tuple[str, ...]) -> tuple[str, ...]:
@@ -209,6 +213,8 @@ def _initial_state(job: Job, out: Location, first: str, config: Config,
     z = _read_map(base, "range.npy", "f")
     check_frame_size(z.shape, frames, str(stage_file(base, "range.npy")))
     state: dict[str, Any] = {"z": z}
+    if job.noise is not None:  # as edges found it (else estimated where it is needed)
+        state["noise_sigma"] = job.noise
     if first in ("link", "grow"):
         state["edges"] = _read_map(base, "edges.npy", "u", z)
     if first == "grow":
@@ -316,7 +322,7 @@ def _run_holdsite(state: dict[str, Any], base: Location, config: Config) -> None
     frames = state["frames"]
     result = stage_holdsite(state["z"], state["labels"], state["surfaces"], config,
                             gaps=state.get("gaps"), background=frames.background,
-                            roi=frames.roi)
+                            roi=frames.roi, noise=state.get("noise_sigma"))
     io.write_json(stage_file(base, "holdsite.json"), result.to_dict(), config.output.float_digits)
     if config.output.png:
         io.write_png(stage_file(base, "overlay.png"),

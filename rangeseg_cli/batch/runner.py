@@ -386,7 +386,8 @@ def jobs_from_output(out: Location) -> list[Job]:
     rels = io.find_outputs(out, ".range.npy")
     if not rels:
         raise OutputError(f"{out}: holds no results of `rangeseg edges` (*.range.npy)")
-    return [Job(rel=r) for r in rels]
+    images = read_manifest(out).get("images", {})
+    return [Job(rel=r, noise=recorded_noise(images.get(r, {}))) for r in rels]
 
 
 def manifest_key(rel: str) -> str:
@@ -597,8 +598,16 @@ def plan_jobs(jobs: list[Job], out: Location, config: Config, stages: tuple[str,
             start = stages[current.index(False)]
             if start == "link" and "edges" in stages:  # link wrote over edges.npy: from edges
                 start = "edges"
-            todo.append(replace(job, start=start))
+            todo.append(replace(job, start=start, noise=recorded_noise(entry)))
     return todo, skipped
+
+
+def recorded_noise(entry: dict[str, Any]) -> float | None:
+    """The manifest entry's ``noise_sigma`` when it is a number >= 0, else None."""
+    value = entry.get("noise_sigma")
+    if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
+        return None
+    return float(value)
 
 
 def stage_digests(config: Config, frames: SharedFrames | None = None) -> dict[str, str]:
