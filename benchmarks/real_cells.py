@@ -235,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"--scenes: unknown {', '.join(unknown)}; allowed: "
                      + ", ".join(CAMERA_SCENES))
+    if not -60.0 <= args.camera_tilt <= 60.0:
+        parser.error(f"--camera-tilt {args.camera_tilt:g}: expected degrees from -60 to 60")
     rows, _, cols = args.size.partition("x")
     size = (int(rows), int(cols))
     seeds = parse_seeds(args.seeds)

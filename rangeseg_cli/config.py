@@ -307,8 +307,8 @@ class HoldsiteConfig:
                                  min=1, max=255, odd=True)
     max_ar_std: float = _opt(1.0, "largest standard deviation of the 2-D AR (5x5 Gaussian, "
                              "sigma 1) inside the window, depth units; beyond the paper's noise "
-                             "(with [input] auto_thresholds) at least 2 x what the noise alone "
-                             "gives", min=0.0, max=MAX_DEPTH)
+                             "(with [input] auto_thresholds) plus 2 x the AR spread of the "
+                             "noise above it", min=0.0, max=MAX_DEPTH)
     max_candidates: int = _opt(5, "runners-up reported beside the chosen site", min=0,
                                max=100)
     rotation_step: float = _opt(15.0, "rotation step in degrees for a non-square footprint "

@@ -217,15 +217,16 @@ def test_the_ar_bound_rises_with_the_noise_beyond_the_papers_range_only():
     assert ar_std_limit(hold, camera, PAPER_NOISE, 3.0) == hold.max_ar_std
     assert ar_std_limit(hold, camera, 2.26, 0.0) == hold.max_ar_std  # the 8-bit scenes at 2
     loud = ar_std_limit(hold, camera, 4.0, 3.0)
-    assert loud == pytest.approx(FLAT_AR_NOISE * ar_noise_std() * 4.0, abs=1e-3)
-    assert loud > 1.0
-    # 1 mm at 1.05 mm per pixel is 2.9 at the paper's scale: beyond it, but the bound
-    # stays the configured one until the noise's AR needs more
-    assert ar_std_limit(hold, camera, 0.9, 1.05) == hold.max_ar_std
+    assert loud == pytest.approx(1.0 + FLAT_AR_NOISE * ar_noise_std() * (4.0 - 2.4), abs=1e-3)
+    # no step where the paper's range ends; the same noise at a finer scale is more
+    assert ar_std_limit(hold, camera, PAPER_NOISE + 1e-3, 3.0) == pytest.approx(1.0, abs=2e-3)
+    assert ar_std_limit(hold, camera, 2.0, 1.4) > loud - 1.0 > 0
+    # 0.8 mm at 1.05 mm per pixel is 2.3 at the paper's scale: within it
+    assert ar_std_limit(hold, camera, 0.8, 1.05) == hold.max_ar_std
     off = load_config(overrides={"input": {"auto_thresholds": False}})
     assert ar_std_limit(off.holdsite, off.input, 4.0, 3.0) == hold.max_ar_std
     strict = load_config(overrides={"holdsite": {"max_ar_std": 5.0}}).holdsite
-    assert ar_std_limit(strict, camera, 4.0, 3.0) == 5.0  # never below the configured bound
+    assert ar_std_limit(strict, camera, 4.0, 3.0) == pytest.approx(5.0 + loud - 1.0)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -304,5 +304,8 @@ def test_a_tilted_mount_turns_the_optical_axis_by_its_angle():
     axes = [np.asarray(s.info["camera"]["rotation"])[:, 2] for s in (straight, tilted)]
     angle = np.degrees(np.arccos(np.clip(axes[0] @ axes[1], -1.0, 1.0)))
     assert angle == pytest.approx(30.0, abs=1e-6)
-    with pytest.raises(ValueError, match="`tilt`"):
-        render_camera_scene("cam-tote", size=(48, 64), seed=3, tilt=75.0)
+    for bad in (75.0, True, float("nan")):
+        with pytest.raises(ValueError, match="`tilt`"):
+            render_camera_scene("cam-tote", size=(48, 64), seed=3, tilt=bad)
+    same = render_camera_scene("cam-tote", size=(48, 64), seed=3, tilt=np.float32(30.0))
+    assert same.image.tobytes() == tilted.image.tobytes()

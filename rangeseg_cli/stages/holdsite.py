@@ -57,8 +57,8 @@ over the footprint is <= ``holdsite.max_ar_std`` (window means of AR and
 AR^2). The first surface in the order with a candidate holds the site.
 The paper's bound, 1, is about what noise of its noisiest images (sigma_o
 = 2) gives alone (0.525 sigma: :func:`ar_noise_std`); beyond the paper's
-noise range (with ``[input] auto_thresholds``, as the thresholds) it rises
-to :data:`FLAT_AR_NOISE` times the AR that the image's noise gives
+noise range (with ``[input] auto_thresholds``, as the thresholds) it grows
+by :data:`FLAT_AR_NOISE` times the AR spread of the noise above that range
 (:func:`ar_std_limit`), or no window of a noisier camera is flat.
 
 Step 4b, tilt (beyond the paper; ``holdsite.max_tilt`` < 90): a candidate
@@ -1400,8 +1400,8 @@ def sums_at(a: np.ndarray, kernel: np.ndarray, at: np.ndarray,
     return out
 
 
-#: Beyond the paper's noise range a window is flat when the standard deviation of its
-#: AR is at most this many times that of the image's noise alone (Step 4).
+#: Beyond the paper's noise range the bound on a window's AR standard deviation grows
+#: by this many times the AR spread of the noise above that range (Step 4).
 FLAT_AR_NOISE = 2.0
 
 
@@ -1423,15 +1423,19 @@ def ar_std_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float,
                  units_per_pixel: float) -> float:
     """The bound on a window's AR standard deviation (Step 4).
 
-    ``max_ar_std``; beyond the paper's noise range (``noise`` over
-    :data:`~rangeseg_cli.stages.noise.PAPER_NOISE` at the paper's scale,
-    :func:`~rangeseg_cli.stages.noise.paper_scale_noise`) with ``[input]
-    auto_thresholds``, at least :data:`FLAT_AR_NOISE` times
-    :func:`ar_noise_std` times ``noise`` (to 3 decimals).
+    ``max_ar_std``; with ``[input] auto_thresholds``, plus
+    :data:`FLAT_AR_NOISE` times :func:`ar_noise_std` times the noise above the
+    paper's range (``noise`` less :data:`~rangeseg_cli.stages.noise.PAPER_NOISE`
+    at the image's scale, :func:`~rangeseg_cli.stages.noise.paper_scale_noise`):
+    no step where the range ends. To 3 decimals.
     """
-    if not camera.auto_thresholds or paper_scale_noise(units_per_pixel, noise) <= PAPER_NOISE:
+    if not camera.auto_thresholds:
         return cfg.max_ar_std
-    return max(cfg.max_ar_std, round(FLAT_AR_NOISE * ar_noise_std() * noise, 3))
+    beyond = paper_scale_noise(units_per_pixel, noise) - PAPER_NOISE
+    if beyond <= 0:
+        return cfg.max_ar_std
+    excess = noise * beyond / (beyond + PAPER_NOISE)  # the noise above the range, depth units
+    return round(cfg.max_ar_std + FLAT_AR_NOISE * ar_noise_std() * excess, 3)
 
 
 def flat_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float) -> float:

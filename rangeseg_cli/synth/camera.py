@@ -48,6 +48,7 @@ Notes
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from itertools import combinations
@@ -985,7 +986,7 @@ def render_camera_scene(name: str, *, size: Sequence[int] = MODEL_SIZE, seed: in
         For an unknown scene, camera or unit, or a size or seed out of range.
     """
     shape = check_camera_options(name, size, camera, depth_unit, seed)
-    if not (isinstance(tilt, int | float) and -60.0 <= tilt <= 60.0):
+    if isinstance(tilt, bool) or not (isinstance(tilt, numbers.Real) and -60.0 <= tilt <= 60.0):
         raise ValueError(f"`tilt` {tilt!r} must be a number of degrees from -60 to 60")
     model = replace(CAMERAS[camera], tilt=float(tilt))
     model = replace(model, sensor=sensor) if sensor is not None else model
