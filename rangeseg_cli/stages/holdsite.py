@@ -148,7 +148,7 @@ from ..kernels.backend import Backend, select_kernels
 from ..models import Surface
 from .edges import ar_2d, gaussian_taps
 from .grow import RCOND, evaluate_quadric, valid_labels
-from .noise import PAPER_NOISE, estimate_noise, lateral_scale, paper_scale_noise
+from .noise import PAPER_NOISE, estimate_noise, lateral_scale, paper_scale
 from .rangeimage import check_stage_arrays, require_shape_of_z
 from .surfaces import (
     NEIGHBOUR_REACH,
@@ -1426,15 +1426,12 @@ def ar_std_limit(cfg: HoldsiteConfig, camera: InputConfig, noise: float,
     ``max_ar_std``; with ``[input] auto_thresholds``, plus
     :data:`FLAT_AR_NOISE` times :func:`ar_noise_std` times the noise above the
     paper's range (``noise`` less :data:`~rangeseg_cli.stages.noise.PAPER_NOISE`
-    at the image's scale, :func:`~rangeseg_cli.stages.noise.paper_scale_noise`):
-    no step where the range ends. To 3 decimals.
+    times the image's :func:`~rangeseg_cli.stages.noise.paper_scale`, depth
+    units): no step where the range ends. To 3 decimals.
     """
-    if not camera.auto_thresholds:
+    excess = noise - PAPER_NOISE * paper_scale(units_per_pixel)
+    if not camera.auto_thresholds or excess <= 0:
         return cfg.max_ar_std
-    beyond = paper_scale_noise(units_per_pixel, noise) - PAPER_NOISE
-    if beyond <= 0:
-        return cfg.max_ar_std
-    excess = noise * beyond / (beyond + PAPER_NOISE)  # the noise above the range, depth units
     return round(cfg.max_ar_std + FLAT_AR_NOISE * ar_noise_std() * excess, 3)
 
 
@@ -2466,8 +2463,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         object_of[s.id] in floating, *_preference(obj_by_id[object_of[s.id]], s, lift)))
     # Step 4: acceptable windows, surface by surface
     hold = effective_holdsite(config)
-    hold = dataclasses.replace(hold, max_ar_std=ar_std_limit(
-        hold, config.input, noise, lateral_scale(z, config.input)))
+    if config.input.auto_thresholds:  # else the bound as given: no lateral scale needed
+        hold = dataclasses.replace(hold, max_ar_std=ar_std_limit(
+            hold, config.input, noise, lateral_scale(z, config.input)))
     scene = _Scene(labels, valid & space.pickable, z, hold, _angles(hold), backend,
                    config.input, flat_limit(hold, config.input, noise))
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)

@@ -225,8 +225,13 @@ def lateral_scale(z: np.ndarray, camera: InputConfig) -> float:
     return float(np.median(depth)) / math.sqrt(camera.fx * camera.fy)
 
 
+def paper_scale(units_per_pixel: float) -> float:
+    """``s`` of the module notes, 4: ``units_per_pixel / 3``, 1 when unknown (0)."""
+    return units_per_pixel / PAPER_UNITS_PER_PIXEL if units_per_pixel > 0 else 1.0
+
+
 def paper_scale_noise(units_per_pixel: float, noise: float) -> float:
-    """``noise`` at the paper's scale (module notes, 4): over ``units_per_pixel / 3``.
+    """``noise`` at the paper's scale (module notes, 4): over :func:`paper_scale`.
 
     Parameters
     ----------
@@ -236,8 +241,7 @@ def paper_scale_noise(units_per_pixel: float, noise: float) -> float:
     noise
         Estimated noise sigma (:func:`estimate_noise`), depth units.
     """
-    s = units_per_pixel / PAPER_UNITS_PER_PIXEL if units_per_pixel > 0 else 1.0
-    return max(noise, 0.0) / s
+    return max(noise, 0.0) / paper_scale(units_per_pixel)
 
 
 def threshold_factor(units_per_pixel: float, noise: float) -> float:
@@ -259,9 +263,8 @@ def threshold_factor(units_per_pixel: float, noise: float) -> float:
         paper's thresholds (Sec. V-1, V-2) at the image's scale, raised for
         a noise above the paper's at that scale.
     """
-    s = units_per_pixel / PAPER_UNITS_PER_PIXEL if units_per_pixel > 0 else 1.0
     excess = paper_scale_noise(units_per_pixel, noise) - PAPER_NOISE
-    return s * max(1.0, 1.0 + NOISE_SLOPE * excess)
+    return paper_scale(units_per_pixel) * max(1.0, 1.0 + NOISE_SLOPE * excess)
 
 
 def noise_scaled_config(config: Config, noise: float, units_per_pixel: float = 0.0) -> Config:
