@@ -9,7 +9,8 @@ plus any ``--set`` given here; with ``--background`` the frame of the empty
 tote or table is passed too. Each holdsite is scored by the object-level
 check of ``rangeseg eval`` (:func:`rangeseg_cli.synth.evaluate.check_object_holdsite`):
 usable = the gripper window wholly on valid pixels of one pickable object
-and the approach within the tilt limit of the optical axis; on an empty
+and the approach within the tilt limit of straight down (the world's
+vertical, from the camera's recorded rotation); on an empty
 tote, no holdsite is the right answer.
 
 Prints a table per scene kind (usable / frames and %) and writes
@@ -191,9 +192,10 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"camera tilt {meta.get('camera_tilt', 0.0):g} degrees; "
              f"{meta['seconds']:.0f} s on "
              f"{meta['jobs']} processes.", "",
-             "Tilt: median angle (degrees) of the usable sites' true normal to the optical "
-             "axis. Below top: median depth (mm) of the site's centre behind the nearest "
-             "pixel of any pickable object (0 = the top of the pile), over all sites.", "",
+             "Tilt: median angle (degrees) of the usable sites' approach to straight down "
+             "(the world's vertical). Below top: median depth (mm) of the site's centre "
+             "behind the nearest pixel of any pickable object (0 = the top of the pile), "
+             "over all sites.", "",
              "| scene | usable | frames | % | tilt | below top |", "|---|---|---|---|---|---|"]
     for name, k in summary["kinds"].items():
         lines.append(f"| {name} | {k['usable']} | {k['total']} | {k['percent']} | "

@@ -319,10 +319,10 @@ class HoldsiteConfig:
                            "(touching the border at the lowest height), largest-border, or "
                            "none", choices=get_args(BackgroundRule))
     max_tilt: float = _opt(45.0, "largest angle in degrees between a site's surface normal and "
-                           "the sensor's axis (the optical axis with camera intrinsics, else "
-                           "the height axis with [input] units_per_pixel); tested only when "
-                           "that lateral scale is known; 90 = any, as the paper", min=0.0,
-                           max=90.0)
+                           "the support's normal ([workspace] support), else the sensor's "
+                           "axis (the optical axis with camera intrinsics, else the height "
+                           "axis with [input] units_per_pixel); tested only when that lateral "
+                           "scale is known; 90 = any, as the paper", min=0.0, max=90.0)
     footprint_mm: tuple[float, float] = _opt(
         (0.0, 0.0), "gripper footprint [rows, cols] in millimetres, converted to odd pixel "
         "counts at each surface's depth where intrinsics and [input] metres_per_unit are "

@@ -448,6 +448,20 @@ def test_object_check_rejects_straddling_wall_invalid_and_tilted_sites():
     assert check_object_holdsite(site(10, 26, tilted), gt, info, max_tilt=55)["ok"]
 
 
+def test_object_check_judges_the_tilt_from_the_vertical_of_a_tilted_camera():
+    from rangeseg_cli.synth.camera import CAMERAS, camera_for
+
+    gt, info = cell_scene()
+    cam = camera_for(CAMERAS["ideal"], (40, 40), height=700.0, tilt=(40.0, 0.0))
+    info["camera"] = {**info["camera"], "rotation": cam.R.tolist()}
+    down = cam.R.T @ np.array([0.0, 0.0, -1.0])  # straight down, in the camera frame
+    level = check_object_holdsite(site(10, 26, down), gt, info)
+    assert level["ok"] and level["tilt"] == pytest.approx(0.0, abs=1e-9)
+    axis = check_object_holdsite(site(10, 26), gt, info)  # along the optical axis: 40 degrees
+    assert axis["tilt"] == pytest.approx(40.0) and axis["ok"]
+    assert not check_object_holdsite(site(10, 26), gt, info, max_tilt=30)["ok"]
+
+
 def test_object_check_needs_the_approach_in_a_camera_scene():
     gt, info = cell_scene()
     bare = {"row": 10, "col": 26}

@@ -626,8 +626,8 @@ def roof():
 def test_max_tilt_with_no_level_window_says_so(scene):
     found = run(noisy(scene(), 0.5), max_tilt=45.0, units_per_pixel=2.0).holdsite
     assert found.holdsite is None and not found.candidates
-    assert re.search(r"tilt <= 45 degrees; \d+ window\(s\) passed the AR test, least tilt 56",
-                     found.reason)
+    assert re.search(r"tilt <= 45 degrees from the support's normal; \d+ window\(s\) passed "
+                     r"the AR test, least tilt 56", found.reason)  # the table is the support
 
 
 def test_max_tilt_with_a_camera_takes_the_optical_axis():
@@ -749,3 +749,74 @@ def test_a_bad_noise_given_to_the_holdsite_is_one_line(noise):
     with pytest.raises(ValueError, match=r"^`noise` must be a finite number >= 0 .*, got ") as err:
         find_holdsite(result.heights, result.labels, result.surfaces, load_config(), noise=noise)
     assert "\n" not in str(err.value)
+
+
+def _plane_view(camera, normal, offset, row, col):
+    """Height (-depth) and its image gradient at (row, col) of the camera-frame plane
+    ``normal . P + offset = 0`` (central differences of the exact depth)."""
+    def height(r, c):
+        ray = np.array([(c - camera.cx) / camera.fx, (r - camera.cy) / camera.fy, 1.0])
+        return offset / float(np.dot(normal, ray))  # -depth, depth = -offset / (n . ray)
+    h = 1e-3
+    gx = (height(row, col + h) - height(row, col - h)) / (2 * h)
+    gy = (height(row + h, col) - height(row - h, col)) / (2 * h)
+    return height(row, col), gx, gy
+
+
+@pytest.mark.parametrize("mount", [0.0, 30.0, 55.0])
+def test_tilts_against_the_support_whatever_the_camera_mount(mount):
+    from rangeseg_cli.stages.holdsite import tilts
+
+    camera = load_config("sample_data/arc/suction.toml").input
+    t = math.radians(mount)
+    up = (0.0, -math.sin(t), -math.cos(t))  # the floor's normal towards a camera tilted `mount`
+    wall = (0.0, math.cos(t), -math.sin(t))  # a wall standing on it, facing the camera
+    for row, col in ((100.0, 200.0), (400.0, 500.0)):
+        floor = _plane_view(camera, np.array(up), 700.0, row, col)
+        assert float(tilts(camera, 0.0, row, col, *floor, up=up)) == pytest.approx(0, abs=1e-4)
+        assert float(tilts(camera, 0.0, row, col, *floor)) == pytest.approx(mount, abs=1e-4)
+    face = _plane_view(camera, np.array(wall), 500.0, 100.0, 200.0)  # above the centre
+    assert float(tilts(camera, 0.0, 100.0, 200.0, *face, up=up)) == pytest.approx(90, abs=1e-4)
+
+
+def test_tilts_of_a_height_map_against_a_tilted_support():
+    from rangeseg_cli.stages.holdsite import tilts
+
+    camera = load_config().input
+    s, slope = 2.0, 0.5  # a plane rising 0.5 depth units per pixel at 2 units per pixel
+    normal = np.array([-slope, 0.0, s]) / math.hypot(slope, s)
+    assert float(tilts(camera, s, 5, 5, 30.0, slope, 0.0)) == pytest.approx(
+        math.degrees(math.atan(slope / s)))
+    assert float(tilts(camera, s, 5, 5, 30.0, slope, 0.0, up=tuple(normal))) == pytest.approx(
+        0, abs=1e-9)
+
+
+def tilted_camera_view(mount, shape=(240, 320)):
+    """A box on a table seen by a camera tilted ``mount`` degrees from straight down:
+    the depth image, its config, the camera and the render (GT faces)."""
+    from rangeseg_cli.synth.camera import CAMERAS, Item, camera_for, render_items, support_plane
+    from rangeseg_cli.synth.scenes import box, pose
+
+    cam = camera_for(CAMERAS["ideal"], shape, height=700.0, tilt=(mount, 0.0))
+    axis = cam.R[:, 2]
+    yaw = math.degrees(math.atan2(axis[1], axis[0]))
+    item = box(120.0, 90.0, 60.0, "item").moved(pose(-40.0, 0.0, 0.0, yaw=yaw + 20))
+    view = render_items(cam, [support_plane("table"), Item("item", (item,), True, "item")])
+    depth = np.where(np.isfinite(view.depth), view.depth, 0.0)
+    config = load_config(overrides={"input": {
+        "larger_is_closer": False, "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
+        "metres_per_unit": 0.001}})
+    return depth, config, cam, view
+
+
+@pytest.mark.parametrize("mount", [45.0, 50.0])
+def test_a_steep_camera_mount_picks_the_level_top_not_a_side(mount):
+    depth, config, cam, view = tilted_camera_view(mount)
+    found = run_pipeline(depth, config).holdsite
+    assert found.holdsite is not None, found.reason
+    for site in _sites(found):
+        face = view.surfaces[view.gt[site.row, site.col] - 1]["name"]
+        assert face == "item top"
+        down = -cam.R[2]  # the world's -z in the camera frame
+        level = math.degrees(math.acos(float(np.dot(site.approach_camera, down))))
+        assert level < 5.0

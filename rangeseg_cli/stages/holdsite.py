@@ -63,10 +63,13 @@ by :data:`FLAT_AR_NOISE` times the AR spread of the noise above that range
 
 Step 4b, tilt (beyond the paper; ``holdsite.max_tilt`` < 90): a candidate
 also needs the normal that a site there would report (Step 6) within
-``max_tilt`` degrees of the sensor's axis: with camera intrinsics the
-camera-frame normal against the optical axis, else the height map's normal
-with ``[input] units_per_pixel`` depth units per pixel of lateral size
-against the height axis (:func:`tilts`), within :data:`TILT_TOLERANCE`.
+``max_tilt`` degrees of the support's normal when the workspace finds a
+support (a camera mounted at a slant sees a box's side as squarely as its
+top; the support says which is level), else of the sensor's axis: with
+camera intrinsics the camera-frame normal against the optical axis, else
+the height map's normal with ``[input] units_per_pixel`` depth units per
+pixel of lateral size against the height axis (:func:`tilts`), within
+:data:`TILT_TOLERANCE`.
 A curved surface's local poses come from moment images
 (:func:`local_poses`), computed for its windows in the order they are
 wanted, a chunk at a time (:func:`_first_level`).
@@ -1490,6 +1493,7 @@ class _Scene:
     backend: Backend = "auto"
     camera: InputConfig = field(default_factory=InputConfig)
     flat_limit: float = math.inf
+    up: Vector | None = None
     _footprints: dict[float, np.ndarray] = field(default_factory=dict)
     _sized: dict[tuple[int, int], _Scene] = field(default_factory=dict)
     _ar_area: int = 0
@@ -1503,7 +1507,7 @@ class _Scene:
         if size not in self._sized:
             cfg = dataclasses.replace(self.cfg, size=size)
             self._sized[size] = _Scene(self.labels, self.valid, self.z, cfg, _angles(cfg),
-                                       self.backend, self.camera, self.flat_limit)
+                                       self.backend, self.camera, self.flat_limit, self.up)
         return self._sized[size]
 
     def footprint(self, angle: float) -> np.ndarray:
@@ -1716,20 +1720,24 @@ def window_angle(scene: _Scene, hits: _Hits, k: int) -> tuple[float, float]:
 
 
 def tilts(camera: InputConfig, units_per_pixel: float, rows: Any, cols: Any, heights: Any,
-          gx: Any, gy: Any) -> np.ndarray:
-    """Angles in degrees between surface normals and the sensor's axis (Step 4b).
+          gx: Any, gy: Any, up: Vector | None = None) -> np.ndarray:
+    """Angles in degrees between surface normals and the support's or sensor's axis (Step 4b).
 
     Parameters
     ----------
     camera
         ``[input]``: with intrinsics (depth input), the normal of
-        :func:`camera_pose` is taken against the optical axis.
+        :func:`camera_pose` in the camera frame.
     units_per_pixel
         Without intrinsics, depth units per pixel of lateral size: the normal
-        ``(-dz/dx, -dz/dy, 1)`` of the height map scaled to equal units is taken
-        against the height axis, ``atan(|grad| / units_per_pixel)``.
+        ``(-dz/dx, -dz/dy, units_per_pixel)`` of the height map in the frame
+        ``(col s, row s, z)`` of :func:`~rangeseg_cli.cell.workspace.points`.
     rows, cols, heights, gx, gy
         Positions, heights and gradients (dz/dx, dz/dy; x = col) of the fits.
+    up
+        Unit normal of the support, towards the sensor, in the same frame
+        (:class:`~rangeseg_cli.cell.workspace.Plane`); ``None``: the sensor's
+        axis (the optical axis, or the height axis).
 
     Returns
     -------
@@ -1737,11 +1745,16 @@ def tilts(camera: InputConfig, units_per_pixel: float, rows: Any, cols: Any, hei
         float64 angles in [0, 180]; NaN where the depth is not positive.
     """
     r, c, h, dx, dy = (np.asarray(a, dtype=np.float64) for a in (rows, cols, heights, gx, gy))
-    if camera.has_intrinsics:
-        ax, ay, az = _camera_approach(camera, r, c, h, dx, dy)
-        cosine = az / np.sqrt(ax * ax + ay * ay + az * az)
-        return np.where(-h > 0, np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))), np.nan)
-    return np.degrees(np.arctan(np.hypot(dx, dy) / units_per_pixel))
+    if camera.has_intrinsics:  # the surface's normal towards the camera: -approach
+        nx, ny, nz = (-v for v in _camera_approach(camera, r, c, h, dx, dy))
+        ux, uy, uz = (0.0, 0.0, -1.0) if up is None else up
+    else:
+        nx, ny, nz = -dx, -dy, np.full_like(dx, units_per_pixel)
+        ux, uy, uz = (0.0, 0.0, 1.0) if up is None else up
+    cross = np.sqrt((ny * uz - nz * uy) ** 2 + (nz * ux - nx * uz) ** 2
+                    + (nx * uy - ny * ux) ** 2)
+    angle = np.degrees(np.arctan2(cross, nx * ux + ny * uy + nz * uz))
+    return np.where(-h > 0, angle, np.nan) if camera.has_intrinsics else angle
 
 
 def _camera_approach(cfg: InputConfig, row: Any, col: Any, height: Any, gx: Any, gy: Any
@@ -1789,7 +1802,7 @@ def _judge_tilts(scene: _Scene, hits: _Hits, idx: np.ndarray) -> np.ndarray:
     """Whether windows ``idx`` are level enough (bool); counts the steep ones in ``hits``."""
     r, c = hits.rows[idx], hits.cols[idx]
     poses = site_poses(scene, hits.surface, r, c)
-    t = tilts(scene.camera, scene.camera.units_per_pixel, r, c, *poses)
+    t = tilts(scene.camera, scene.camera.units_per_pixel, r, c, *poses, up=scene.up)
     if hits.tilt_state is not None:  # the windows stay where they are: keep their poses
         hits.poses.update(zip(idx.tolist(), zip(*(p.tolist() for p in poses), strict=True),
                               strict=True))
@@ -1937,7 +1950,7 @@ def _most_level(scene: _Scene, hits: _Hits, order: np.ndarray) -> int:
     height, gx, gy = (np.array(v) for v in zip(*(hits.poses[k] for k in level.tolist()),
                                                 strict=True))
     tilt = tilts(scene.camera, scene.camera.units_per_pixel, hits.rows[level],
-                 hits.cols[level], height, gx, gy)
+                 hits.cols[level], height, gx, gy, up=scene.up)
     return int(level[np.argmin(np.round(tilt))])
 
 
@@ -2278,8 +2291,8 @@ def _choose(scene: _Scene, found: list[_Hits], objects: dict[int, ObjectInfo],
     return [_site_of(h.scene, h, k, o, config) for h, o, k in picks[:wanted]]
 
 
-def _failure(cfg: HoldsiteConfig, missed: list[_Hits], limit: float) -> str:
-    """Why no window was accepted (``limit``: the plane-fit RMS limit)."""
+def _failure(cfg: HoldsiteConfig, missed: list[_Hits], limit: float, axis: str = "") -> str:
+    """Why no window was accepted (``limit``: the plane-fit RMS limit; ``axis``: :func:`_axis`)."""
     win = f"{cfg.size[0]}x{cfg.size[1]}"
     sizes = {h.scene.cfg.size for h in missed if h.scene is not None}
     if len(sizes) > 1 or (sizes and cfg.size not in sizes):
@@ -2304,7 +2317,7 @@ def _failure(cfg: HoldsiteConfig, missed: list[_Hits], limit: float) -> str:
                  if math.isfinite(level.min_tilt) else
                  "none with a tilt (no depth in front of the camera there)")
         return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g} and a tilt "
-                f"<= {cfg.max_tilt:g} degrees; {sum(h.steep for h in steep)} window(s) "
+                f"<= {cfg.max_tilt:g} degrees{axis}; {sum(h.steep for h in steep)} window(s) "
                 f"passed the AR test, {least}; {clear}")
     calm = min(fitting, key=lambda h: h.min_ar_std)
     return (f"no surface has a {win} window with AR std <= {cfg.max_ar_std:g}; "
@@ -2312,8 +2325,13 @@ def _failure(cfg: HoldsiteConfig, missed: list[_Hits], limit: float) -> str:
             f"{calm.min_ar_std:.3g} (surface {calm.surface.id}); {clear}")
 
 
-def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: HoldsiteConfig
-             ) -> str:
+def _axis(scene: _Scene) -> str:
+    """What a tilt is measured from, for a reason: the support's normal, or nothing said."""
+    return "" if scene.up is None else " from the support's normal"
+
+
+def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: HoldsiteConfig,
+             axis: str = "") -> str:
     """How the chosen site was found."""
     state = ("touching the image border" if obj.touches_border else "in view") + (
         ", covered" if obj.covered else ", uncovered")
@@ -2321,7 +2339,7 @@ def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: Holdsite
             f"first in the search order (objects in view, uncovered, highest surface first) "
             f"with a {site.size[0]}x{site.size[1]} window with AR std <= {cfg.max_ar_std:g}")
     if cfg.max_tilt < 90:
-        text += f" and a tilt <= {cfg.max_tilt:g} degrees"
+        text += f" and a tilt <= {cfg.max_tilt:g} degrees{axis}"
     if missed:
         ids = ", ".join(str(h.surface.id) for h in missed[:10])
         more = ", ..." if len(missed) > 10 else ""
@@ -2467,14 +2485,15 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         hold = dataclasses.replace(hold, max_ar_std=ar_std_limit(
             hold, config.input, noise, lateral_scale(z, config.input)))
     scene = _Scene(labels, valid & space.pickable, z, hold, _angles(hold), backend,
-                   config.input, flat_limit(hold, config.input, noise))
+                   config.input, flat_limit(hold, config.input, noise),
+                   None if space.support is None else space.support.normal)
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
     if space.hidden is not None:  # no support: the border is the one cue to a wall or a rim
         found = _in_view_if_any(found, object_of, obj_by_id)
     bg, camera = tuple(sorted(background_ids)), config.input.has_intrinsics
     objs, out = tuple(_named_as_labelled(objects, origin)), tuple(sorted(excluded))
     if not found:
-        reason = (_failure(hold, missed, scene.flat_limit) if order
+        reason = (_failure(hold, missed, scene.flat_limit, _axis(scene)) if order
                   else _nothing_to_pick(by_id, objects, space)) + _unit_note(config) \
             + _background_note(space) + _hidden_support_note(space)
         return HoldsiteResult(None, reason, (), bg, objs, camera, out)
@@ -2484,7 +2503,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     rank = {s.id: k for k, s in enumerate(order)}
     first = rank[found[0].surface.id]  # (carved pieces are named by their region below)
     before = [h for h in missed if rank[h.surface.id] < first]
-    reason = (_success(sites[0], obj_by_id[sites[0].object], before, hold)
+    reason = (_success(sites[0], obj_by_id[sites[0].object], before, hold, _axis(scene))
               + _unit_note(config) + _background_note(space)
               + _hidden_support_note(space))
     return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera, out)

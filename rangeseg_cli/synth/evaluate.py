@@ -50,8 +50,9 @@ not the background (the table). The object-level check
 (:func:`check_object_holdsite`, for the depth-camera scenes of
 :mod:`rangeseg_cli.synth.camera`) asks what a robot cell needs: the window
 wholly on valid pixels of one pickable object, any of its surfaces, and the
-approach within a tilt limit of the optical axis; no holdsite is right when
-nothing can be picked.
+approach within a tilt limit of straight down (the world's vertical when the
+scene records the camera's rotation, else the optical axis); no holdsite is
+right when nothing can be picked.
 """
 
 from __future__ import annotations
@@ -471,7 +472,7 @@ def check_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
             f"object {obj}"}
 
 
-#: Default largest tilt of a usable holdsite's approach from the optical axis, degrees.
+#: Default largest tilt of a usable holdsite's approach from straight down, degrees.
 DEFAULT_MAX_TILT = 45.0
 
 
@@ -481,9 +482,14 @@ def pickable_objects(info: Mapping[str, Any]) -> set[int]:
             if o.get("pickable", not o.get("background", False))}
 
 
-def approach_tilt(approach: Sequence[float] | None) -> float | None:
-    """Degrees between a camera-frame approach vector and the optical axis (0, 0, 1).
+def approach_tilt(approach: Sequence[float] | None,
+                  rotation: Sequence[Sequence[float]] | None = None) -> float | None:
+    """Degrees between a camera-frame approach vector and straight down.
 
+    Straight down is the optical axis (0, 0, 1), or with ``rotation`` (the
+    camera's axes in world coordinates, as columns: ``gt.json``'s
+    ``camera.rotation``) the world's -z, the support's inward normal: a
+    robot approaches against gravity's "up", whatever the camera's mount.
     None when ``approach`` is missing, not three finite numbers, or zero.
     """
     if approach is None or len(approach) != 3:
@@ -495,7 +501,9 @@ def approach_tilt(approach: Sequence[float] | None) -> float | None:
     norm = float(np.linalg.norm(a))
     if not np.all(np.isfinite(a)) or norm == 0:
         return None
-    return math.degrees(math.acos(max(-1.0, min(1.0, a[2] / norm))))
+    down = np.array([0.0, 0.0, 1.0]) if rotation is None else -np.asarray(rotation, float)[2]
+    cosine = float(a @ down) / norm / float(np.linalg.norm(down))
+    return math.degrees(math.acos(max(-1.0, min(1.0, cosine))))
 
 
 def _fits_somewhere(gt: np.ndarray, surfaces: Sequence[Mapping[str, Any]], objects: set[int],
@@ -548,8 +556,10 @@ def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
     Usable: the gripper window (``row``, ``col``, ``size``, ``angle``) lies
     wholly on GT pixels of one pickable object (any of its surfaces; GT is 0
     where the sensor gives no reading, so every pixel under the window is
-    valid), and the approach is within ``max_tilt`` degrees of the optical
-    axis: the angle between ``approach_camera`` and (0, 0, 1). When the
+    valid), and the approach is within ``max_tilt`` degrees of straight
+    down: the angle between ``approach_camera`` and the world's -z in the
+    camera frame when ``camera.rotation`` is recorded (a tilted mount), else
+    the optical axis (0, 0, 1) (:func:`approach_tilt`). When the
     scene has a ``camera`` and the holdsite no ``approach_camera``, the site
     is not usable (its tilt cannot be judged); in a scene without a camera
     the tilt is not checked. No holdsite is correct when no surface of a
@@ -566,7 +576,7 @@ def check_object_holdsite(holdsite: Mapping[str, Any] | None, gt: np.ndarray,
         The scene's ``gt.json``: ``surfaces`` (``id``, ``object``),
         ``objects`` (``id``, ``pickable`` or ``background``), optional ``camera``.
     max_tilt
-        Largest tilt of the approach from the optical axis, degrees.
+        Largest tilt of the approach from straight down, degrees.
     size
         Window when the holdsite gives none, and the window a null holdsite
         is judged with.
@@ -619,7 +629,8 @@ def _judge_window(holdsite: Mapping[str, Any], labels: np.ndarray, info: Mapping
     result["object"] = obj
     if obj not in pickable:
         return {**result, "reason": f"object {obj} cannot be picked"}
-    tilt = approach_tilt(holdsite.get("approach_camera"))
+    tilt = approach_tilt(holdsite.get("approach_camera"),
+                         (info.get("camera") or {}).get("rotation"))
     result["tilt"] = tilt
     if tilt is None and info.get("camera"):
         return {**result, "reason": "no approach_camera to judge the tilt by (run with "
