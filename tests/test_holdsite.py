@@ -820,3 +820,80 @@ def test_a_steep_camera_mount_picks_the_level_top_not_a_side(mount):
         down = -cam.R[2]  # the world's -z in the camera frame
         level = math.degrees(math.acos(float(np.dot(site.approach_camera, down))))
         assert level < 5.0
+
+
+def test_an_object_crossing_the_view_is_told_by_opposite_sides():
+    from rangeseg_cli.stages.holdsite import crossing_the_view
+
+    owner = np.zeros((40, 60), np.int64)
+    owner[30:34, :] = 1  # a rim from the left side to the right
+    owner[:, 20:23] = 2  # a rail from the top to the bottom
+    owner[5:15, 0:10] = 3  # an item cut by the left side only
+    owner[5:15, 40:50] = 4  # an item within the view
+    assert crossing_the_view(owner) == {1, 2}
+
+
+def test_an_object_around_the_support_encloses_it_a_ring_shaped_item_does_not():
+    from scipy import ndimage
+
+    from rangeseg_cli.stages.holdsite import enclosing_support
+
+    owner = np.zeros((60, 80), np.int64)
+    owner[5:55, 5:75] = 1
+    owner[8:52, 8:72] = 0  # a tote's walls around its floor
+    owner[20:30, 20:30] = 2
+    owner[23:27, 23:27] = 0  # a roll of tape: its hole is smaller than it
+    owner[35:45, 40:60] = 3
+    owner[37:43, 42:58] = 5  # a ring of 3 around item 5: not the support inside
+    support = owner == 0
+    support[37:43, 42:58] = False
+    assert enclosing_support(owner, ndimage.find_objects(owner), support) == {1}
+
+
+def tote_view(mount, width=700.0, height=800.0, item=False, shape=(240, 320)):
+    """An empty tote (200 mm walls with a 25 mm rim, on a table) seen by a camera
+    ``height`` mm above the floor, tilted ``mount`` degrees; ``width`` mm across; with
+    ``item`` a box in it. Depth image, config (a 20 mm cup) and the render (GT faces)."""
+    from rangeseg_cli.synth.camera import CAMERAS, Item, camera_for, render_items, support_plane
+    from rangeseg_cli.synth.scenes import box, pose
+
+    cam = camera_for(CAMERAS["ideal"], shape, height=height, tilt=(mount, 0.0))
+    axis = cam.R[:, 2]
+    turn = pose(yaw=math.degrees(math.atan2(axis[1], axis[0])))
+    lx, ly, t, rim, wall = width, 500.0, 6.0, 25.0, 200.0
+    parts = [box(t, ly + 2 * t, wall, "wall").moved(pose(x)) for x in (-lx / 2 - t / 2,
+                                                                        lx / 2 + t / 2)]
+    parts += [box(lx, t, wall, "wall").moved(pose(0, y)) for y in (-ly / 2 - t / 2,
+                                                                   ly / 2 + t / 2)]
+    parts += [box(rim, ly + 2 * rim, 8.0, "rim").moved(pose(x, 0, wall))
+              for x in (-lx / 2 - rim / 2, lx / 2 + rim / 2)]
+    parts += [box(lx + 2 * rim, rim, 8.0, "rim").moved(pose(0, y, wall))
+              for y in (-ly / 2 - rim / 2, ly / 2 + rim / 2)]
+    floor = box(lx, ly, 10.0, "floor").moved(pose(0, 0, -10.0)).moved(turn)
+    items = [support_plane("table", -10.0), Item("floor", (floor,), False, "support"),
+             Item("tote", tuple(p.moved(turn) for p in parts), False, "tote")]
+    if item:
+        things = box(120.0, 90.0, 60.0, "item").moved(pose(-40.0, 30.0, yaw=20)).moved(turn)
+        items.append(Item("item", (things,), True, "item"))
+    view = render_items(cam, items)
+    config = load_config(overrides={
+        "input": {"larger_is_closer": False, "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
+                  "metres_per_unit": 0.001},
+        "holdsite": {"footprint_mm": [20.0, 20.0]}})
+    return np.where(np.isfinite(view.depth), view.depth, 0.0), config, view
+
+
+@pytest.mark.parametrize("mount", [30.0, 45.0])
+def test_an_empty_tote_seen_at_a_slant_has_nothing_to_pick_not_its_rim(mount):
+    depth, config, view = tote_view(mount, width=1600.0)  # the near wall crosses the view
+    found = run_pipeline(depth, config).holdsite
+    assert found.holdsite is None, (found.holdsite, found.reason)
+
+
+def test_a_tote_seen_whole_from_above_is_never_picked_its_item_is():
+    depth, config, view = tote_view(0.0, height=1300.0)  # the rim all round, in view
+    assert run_pipeline(depth, config).holdsite.holdsite is None
+    depth, config, view = tote_view(0.0, height=1300.0, item=True)
+    found = run_pipeline(depth, config).holdsite
+    faces = {view.surfaces[view.gt[s.row, s.col] - 1]["name"] for s in _sites(found)}
+    assert faces == {"item top"}

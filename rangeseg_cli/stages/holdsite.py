@@ -728,7 +728,15 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     border higher than its median: a tote's wall), and so is a hovering
     object touching it. In a height map (no perspective) a flat item cut by
     the frame looks like a finger: with nothing else in view it is taken
-    for one (``[workspace] border_structures = false`` picks it).
+    for one (``[workspace] border_structures = false`` picks it). With
+    nothing else in view, an object as high as the highest (:data:`WALL_SHARE`)
+    that crosses the view, touching two opposite sides of the image frame
+    (:func:`crossing_the_view`), is a structure too: an empty tote's near
+    wall and rim seen from a camera mounted at a slant, whose top is level
+    (no rise to the border) and which stands on the table beside the tote
+    (no hover). Whatever else is in view, an object that encloses the
+    support (:func:`enclosing_support`) is a structure: a tote's walls and
+    rim seen whole, around its floor.
     """
     height = space.height
     if height is None or not objects:
@@ -760,10 +768,64 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
         structures = {o.id for o in objects if o.id in bordering and (o.id in hover or (
             not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
                 owner == o.id, height, zone, space.tolerance)))}
+        highest = max((top for _, top in spans.values() if np.isfinite(top)), default=math.inf)
+        structures |= {i for i in crossing_the_view(owner) & spans.keys()
+                       if spans[i][1] >= WALL_SHARE * highest}
+    with np.errstate(invalid="ignore"):
+        structures |= enclosing_support(owner, boxes, np.abs(height) <= space.tolerance)
     structures |= _attached(objects, owner, structures, above)
     return [dataclasses.replace(o, structure=o.id in structures,
                                 stands=o.id in standing and wide.get(o.id, 0.0) >= half_width)
             for o in objects]
+
+
+#: An object encloses the support when at least this share of its holes is the support.
+ENCLOSED_SUPPORT = 0.1
+
+
+def enclosing_support(owner: np.ndarray, boxes: list[Any], on_support: np.ndarray
+                      ) -> set[int]:
+    """Objects of ``owner`` (0 = none) around a hole larger than themselves, on the support.
+
+    A hole is a 4-connected part of what is not the object, in the object's
+    box (``boxes``: :func:`scipy.ndimage.find_objects` of ``owner``), that
+    does not reach the box's edge. The object encloses the support when its
+    holes hold at least as many pixels as it does and :data:`ENCLOSED_SUPPORT`
+    of them lie on the support (``on_support``): a tote's walls around its
+    floor, not a ring-shaped item (a roll of tape: its hole is smaller than
+    it) nor items around a gap of no reading.
+    """
+    out = set()
+    for k, box in enumerate(boxes, start=1):
+        if box is None:
+            continue
+        mine = owner[box] == k
+        size = int(np.count_nonzero(mine))
+        if mine.size < 2 * size:  # no room for a hole as large as the object
+            continue
+        rest, _ = ndimage.label(~mine)
+        rim = np.concatenate([rest[0], rest[-1], rest[:, 0], rest[:, -1]])
+        hole = (rest > 0) & ~np.isin(rest, rim)
+        inside = int(np.count_nonzero(hole))
+        if inside >= size and np.count_nonzero(on_support[box] & hole) >= (
+                ENCLOSED_SUPPORT * inside):
+            out.add(k)
+    return out
+
+
+def crossing_the_view(owner: np.ndarray) -> set[int]:
+    """Labels of ``owner`` (0 = none) within :data:`ADJACENCY_RADIUS` of two opposite frame sides.
+
+    The left and the right side, or the top and the bottom: a structure
+    crosses the view, an item lies within it (:func:`mark_structures`).
+    """
+    k = ADJACENCY_RADIUS + 1
+
+    def near(side: np.ndarray) -> set[int]:
+        return set(np.unique(side).tolist()) - {0}
+
+    return ((near(owner[:, :k]) & near(owner[:, -k:]))
+            | (near(owner[:k]) & near(owner[-k:])))
 
 
 #: An object hovers when its lowest pixels lie above what is under it by this share of
@@ -1086,8 +1148,8 @@ def _nothing_to_pick(by_id: dict[int, Surface], objects: list[ObjectInfo],
     else:
         text = "nothing to pick: every surface lies in the background or outside the workspace"
     if structures:
-        text += (f", besides {structures} structure(s) at the image border (a tote wall, the "
-                 "robot's fingers) that are never picked")
+        text += (f", besides {structures} structure(s) (a tote's wall or rim, the robot's "
+                 "fingers) that are never picked")
     return text
 
 
