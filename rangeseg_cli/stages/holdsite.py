@@ -729,14 +729,17 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     object touching it. In a height map (no perspective) a flat item cut by
     the frame looks like a finger: with nothing else in view it is taken
     for one (``[workspace] border_structures = false`` picks it). With
-    nothing else in view, an object as high as the highest (:data:`WALL_SHARE`)
-    that crosses the view, touching two opposite sides of the image frame
-    (:func:`crossing_the_view`), is a structure too: an empty tote's near
-    wall and rim seen from a camera mounted at a slant, whose top is level
-    (no rise to the border) and which stands on the table beside the tote
-    (no hover). Whatever else is in view, an object that encloses the
-    support (:func:`enclosing_support`) is a structure: a tote's walls and
-    rim seen whole, around its floor.
+    nothing else in view, an object as high as the highest that does not
+    hover (:data:`WALL_SHARE`) that crosses the view, touching two opposite
+    sides of the image frame (:func:`crossing_the_view`), is a structure
+    too: an empty tote's near wall and rim seen from a camera mounted at a
+    slant, whose top is level (no rise to the border) and which stands on
+    the table beside the tote (no hover). Whatever else is in view, an
+    object that encloses the support (:func:`enclosing_support`: a tote's
+    walls and rim seen whole, around its floor) is a structure. Taken for
+    structures too: a ring-shaped item whose hole, larger than it, shows the
+    support (a picture frame, a hoop lying flat) and, with nothing else in
+    view, a lone item longer than the view.
     """
     height = space.height
     if height is None or not objects:
@@ -747,7 +750,9 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     owner = member[labels]
     boxes = ndimage.find_objects(owner)
     with np.errstate(invalid="ignore"):
-        standing = _touching(owner, np.abs(height) <= space.tolerance)
+        on_support = np.abs(height) <= space.tolerance
+    standing = _touching(owner, on_support)
+    ring = enclosing_support(owner, boxes, on_support)
     spans = {o.id: _height_span(*_in_box(height, owner, boxes, o.id)) for o in objects}
     hover = _hovering(spans, _near_pairs(owner, boxes), space.tolerance)
     zone = border_zone(valid, space.extent)
@@ -768,11 +773,11 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
         structures = {o.id for o in objects if o.id in bordering and (o.id in hover or (
             not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
                 owner == o.id, height, zone, space.tolerance)))}
-        highest = max((top for _, top in spans.values() if np.isfinite(top)), default=math.inf)
+        highest = max((top for i, (_, top) in spans.items() if i not in hover
+                       and np.isfinite(top)), default=math.inf)
         structures |= {i for i in crossing_the_view(owner) & spans.keys()
                        if spans[i][1] >= WALL_SHARE * highest}
-    with np.errstate(invalid="ignore"):
-        structures |= enclosing_support(owner, boxes, np.abs(height) <= space.tolerance)
+    structures |= ring
     structures |= _attached(objects, owner, structures, above)
     return [dataclasses.replace(o, structure=o.id in structures,
                                 stands=o.id in standing and wide.get(o.id, 0.0) >= half_width)
@@ -792,8 +797,8 @@ def enclosing_support(owner: np.ndarray, boxes: list[Any], on_support: np.ndarra
     does not reach the box's edge. The object encloses the support when its
     holes hold at least as many pixels as it does and :data:`ENCLOSED_SUPPORT`
     of them lie on the support (``on_support``): a tote's walls around its
-    floor, not a ring-shaped item (a roll of tape: its hole is smaller than
-    it) nor items around a gap of no reading.
+    floor, not a thick roll of tape (its hole is smaller than it) nor items
+    around a gap of no reading; a picture frame lying flat is taken for one.
     """
     out = set()
     for k, box in enumerate(boxes, start=1):
@@ -803,9 +808,11 @@ def enclosing_support(owner: np.ndarray, boxes: list[Any], on_support: np.ndarra
         size = int(np.count_nonzero(mine))
         if mine.size < 2 * size:  # no room for a hole as large as the object
             continue
-        rest, _ = ndimage.label(~mine)
-        rim = np.concatenate([rest[0], rest[-1], rest[:, 0], rest[:, -1]])
-        hole = (rest > 0) & ~np.isin(rest, rim)
+        rest, count = ndimage.label(~mine)
+        edge = np.zeros(count + 1, dtype=bool)
+        edge[np.concatenate([rest[0], rest[-1], rest[:, 0], rest[:, -1]])] = True
+        edge[0] = True  # the object itself
+        hole = ~edge[rest]
         inside = int(np.count_nonzero(hole))
         if inside >= size and np.count_nonzero(on_support[box] & hole) >= (
                 ENCLOSED_SUPPORT * inside):
