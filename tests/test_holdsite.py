@@ -853,8 +853,8 @@ def test_an_object_around_the_support_encloses_it_a_ring_shaped_item_does_not():
 def tote_view(mount, width=700.0, height=800.0, item=False, shape=(240, 320), tool=False):
     """An empty tote (200 mm walls with a 25 mm rim, on a table) seen by a camera
     ``height`` mm above the floor, tilted ``mount`` degrees; ``width`` mm across; with
-    ``item`` a box in it, with ``tool`` a block hovering 350 mm above the floor (a
-    gripper). Depth image, config (a 20 mm cup) and the render (GT faces)."""
+    ``item`` a box in it, with ``tool`` an arm reaching in from the far side of the view
+    350 mm above the floor. Depth image, config (a 20 mm cup) and the render (GT faces)."""
     from rangeseg_cli.synth.camera import CAMERAS, Item, camera_for, render_items, support_plane
     from rangeseg_cli.synth.scenes import box, pose
 
@@ -877,8 +877,8 @@ def tote_view(mount, width=700.0, height=800.0, item=False, shape=(240, 320), to
         things = box(120.0, 90.0, 60.0, "item").moved(pose(-40.0, 30.0, yaw=20)).moved(turn)
         items.append(Item("item", (things,), True, "item"))
     if tool:
-        items.append(Item("tool", (box(60.0, 60.0, 100.0, "tool").moved(pose(0, 0, 350.0)),),
-                          False, "gripper"))
+        arm = box(900.0, 60.0, 60.0, "arm").moved(pose(450.0, 0, 350.0)).moved(turn)
+        items.append(Item("arm", (arm,), False, "gripper"))
     view = render_items(cam, items)
     config = load_config(overrides={
         "input": {"larger_is_closer": False, "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
@@ -890,7 +890,7 @@ def tote_view(mount, width=700.0, height=800.0, item=False, shape=(240, 320), to
 @pytest.mark.parametrize("mount", [30.0, 45.0])
 @pytest.mark.parametrize("tool", [False, True])
 def test_an_empty_tote_seen_at_a_slant_has_nothing_to_pick_not_its_rim(mount, tool):
-    # the near wall crosses the view; a gripper hovering over the tote changes nothing
+    # the near wall crosses the view; the robot's arm over the tote changes nothing
     depth, config, view = tote_view(mount, width=1600.0, tool=tool)
     found = run_pipeline(depth, config).holdsite
     assert found.holdsite is None, (found.holdsite, found.reason)

@@ -729,9 +729,9 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     object touching it. In a height map (no perspective) a flat item cut by
     the frame looks like a finger: with nothing else in view it is taken
     for one (``[workspace] border_structures = false`` picks it). With
-    nothing else in view, an object as high as the highest that does not
-    hover (:data:`WALL_SHARE`) that crosses the view, touching two opposite
-    sides of the image frame (:func:`crossing_the_view`), is a structure
+    nothing else in view, an object as high as the highest (:data:`WALL_SHARE`;
+    but for those structures: the arm) that crosses the view, touching two
+    opposite sides of the image frame (:func:`crossing_the_view`), is a structure
     too: an empty tote's near wall and rim seen from a camera mounted at a
     slant, whose top is level (no rise to the border) and which stands on
     the table beside the tote (no hover). Whatever else is in view, an
@@ -773,8 +773,8 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
         structures = {o.id for o in objects if o.id in bordering and (o.id in hover or (
             not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
                 owner == o.id, height, zone, space.tolerance)))}
-        highest = max((top for i, (_, top) in spans.items() if i not in hover
-                       and np.isfinite(top)), default=math.inf)
+        highest = max((top for i, (_, top) in spans.items() if i not in structures
+                       and np.isfinite(top)), default=math.inf)  # but for the arm
         structures |= {i for i in crossing_the_view(owner) & spans.keys()
                        if spans[i][1] >= WALL_SHARE * highest}
     structures |= ring
