@@ -29,7 +29,8 @@ Usage::
 (speckle) before the run; ``--noise MM`` adds seeded Gaussian depth noise of
 sigma MM millimetres to every reading (a noisier camera, or one farther
 away); ``--camera-tilt DEG`` mounts the camera tilted from straight down;
-the site is scored against the true scene.
+``--left-band PX`` blanks the first PX columns (a RealSense D4xx's band of
+no reading); the site is scored against the true scene.
 """
 
 from __future__ import annotations
@@ -103,20 +104,22 @@ def depth_noise(raw: np.ndarray, sigma_mm: float, metres_per_raw: float, seed: i
 
 
 def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str, float,
-                         float, float]) -> dict[str, Any]:
+                         float, float, int]) -> dict[str, Any]:
     """Render, run and score one frame (in a worker process)."""
-    name, seed, size, extra, background, max_tilt, tmp, dropouts, noise, mount = job
+    name, seed, size, extra, background, max_tilt, tmp, dropouts, noise, mount, band = job
     folder = Path(tmp) / camera_stem(name, seed)
     write_camera_scenes(folder, [name], [seed], size=size, tilt=mount)
     stem = folder / camera_stem(name, seed)
     info = read_json(stem.with_name(stem.name + ".gt.json"))
     gt = np.load(stem.with_name(stem.name + ".gt.npy"))
+    gt[:, :band] = 0  # no reading there: nothing to judge a window on
     config = load_config(preset=PRESET, overrides=parse_settings(frame_settings(info, extra)))
     kwargs: dict[str, Any] = {}
     if background and "background" in inspect.signature(run_pipeline).parameters:
         kwargs["background"] = read_image(stem.with_name(stem.name + ".gt.background.png"))
     start = time.perf_counter()
     raw = read_image(stem.with_name(stem.name + ".png"))
+    raw[:, :band] = 0  # a D4xx's band of no reading along its left edge
     metres = float(info["camera"]["metres_per_raw"])
     result = run_pipeline(speckle(depth_noise(raw, noise, metres, seed), dropouts, seed),
                           config, **kwargs)
@@ -190,6 +193,7 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"tilt limit {meta['max_tilt']:g} degrees; dropouts "
              f"{meta.get('dropouts', 0.0):g}; depth noise {meta.get('noise_mm', 0.0):g} mm; "
              f"camera tilt {meta.get('camera_tilt', 0.0):g} degrees; "
+             f"left band of no reading {meta.get('left_band', 0)} px; "
              f"{meta['seconds']:.0f} s on "
              f"{meta['jobs']} processes.", "",
              "Tilt: median angle (degrees) of the usable sites' approach to straight down "
@@ -228,6 +232,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--camera-tilt", type=float, default=0.0, metavar="DEG",
                         help="the camera's mount tilted from straight down, degrees "
                              "(default 0; each scene adds a few random ones)")
+    parser.add_argument("--left-band", type=int, default=0, metavar="PX",
+                        help="columns of no reading along the left edge, as a RealSense "
+                             "D4xx's (default 0)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS / "real_cells",
                         help="results stem (default benchmarks/results/real_cells)")
@@ -241,18 +248,21 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--camera-tilt {args.camera_tilt:g}: expected degrees from -60 to 60")
     rows, _, cols = args.size.partition("x")
     size = (int(rows), int(cols))
+    if not 0 <= args.left_band < size[1]:
+        parser.error(f"--left-band {args.left_band}: expected 0 to {size[1] - 1} columns")
     seeds = parse_seeds(args.seeds)
     load_config(preset=PRESET, overrides=parse_settings(args.settings))  # fail early
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="real_cells-") as tmp:
         jobs = [(n, s, size, args.settings, args.background, args.max_tilt, tmp,
-                 args.dropouts, args.noise, args.camera_tilt) for n in names for s in seeds]
+                 args.dropouts, args.noise, args.camera_tilt, args.left_band)
+                for n in names for s in seeds]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             frames = list(pool.map(one_frame, jobs))
     meta = {"version": __version__, "seeds": args.seeds, "size": list(size),
             "settings": args.settings, "background": args.background,
             "max_tilt": args.max_tilt, "dropouts": args.dropouts, "noise_mm": args.noise,
-            "camera_tilt": args.camera_tilt,
+            "camera_tilt": args.camera_tilt, "left_band": args.left_band,
             "jobs": args.jobs,
             "seconds": time.perf_counter() - start}
     summary = summarise(frames, names)

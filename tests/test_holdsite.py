@@ -831,6 +831,14 @@ def test_an_object_crossing_the_view_is_told_by_opposite_sides():
     owner[5:15, 0:10] = 3  # an item cut by the left side only
     owner[5:15, 40:50] = 4  # an item within the view
     assert crossing_the_view(owner) == {1, 2}
+    # a depth camera's band of no reading along the left edge: the rim starts past it
+    owner[:, :12] = 0
+    valid = np.ones(owner.shape, bool)
+    valid[:, :12] = False
+    assert crossing_the_view(owner) == {2}
+    assert crossing_the_view(owner, valid) == {1, 2}
+    valid[20:24, :] = False  # a crack across the view adds no crossing object
+    assert crossing_the_view(owner, valid) == {1, 2}
 
 
 def test_an_object_around_the_support_encloses_it_a_ring_shaped_item_does_not():

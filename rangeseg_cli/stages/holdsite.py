@@ -775,7 +775,7 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
                 owner == o.id, height, zone, space.tolerance)))}
         highest = max((top for i, (_, top) in spans.items() if i not in structures
                        and np.isfinite(top)), default=math.inf)  # but for the arm
-        structures |= {i for i in crossing_the_view(owner) & spans.keys()
+        structures |= {i for i in crossing_the_view(owner, valid) & spans.keys()
                        if spans[i][1] >= WALL_SHARE * highest}
     structures |= ring
     structures |= _attached(objects, owner, structures, above)
@@ -820,19 +820,28 @@ def enclosing_support(owner: np.ndarray, boxes: list[Any], on_support: np.ndarra
     return out
 
 
-def crossing_the_view(owner: np.ndarray) -> set[int]:
+def crossing_the_view(owner: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
     """Labels of ``owner`` (0 = none) within :data:`ADJACENCY_RADIUS` of two opposite frame sides.
 
     The left and the right side, or the top and the bottom: a structure
     crosses the view, an item lies within it (:func:`mark_structures`).
+    With ``valid`` (bool, H x W), a side reaches over the pixels of no
+    reading that run from it along their row (left, right) or column (top,
+    bottom): a depth camera's band of no reading along its left edge.
     """
     k = ADJACENCY_RADIUS + 1
-
-    def near(side: np.ndarray) -> set[int]:
-        return set(np.unique(side).tolist()) - {0}
-
-    return ((near(owner[:, :k]) & near(owner[:, -k:]))
-            | (near(owner[:k]) & near(owner[-k:])))
+    sides = np.zeros((4, *owner.shape), dtype=bool)  # left, right, top, bottom
+    sides[0][:, :k], sides[1][:, -k:], sides[2][:k], sides[3][-k:] = True, True, True, True
+    if valid is not None and not valid.all():
+        lost = ~valid
+        runs = (np.logical_and.accumulate(lost, axis=1),
+                np.logical_and.accumulate(lost[:, ::-1], axis=1)[:, ::-1],
+                np.logical_and.accumulate(lost, axis=0),
+                np.logical_and.accumulate(lost[::-1], axis=0)[::-1])
+        for side, run in zip(sides, runs, strict=True):
+            side |= square_dilation(run, 2 * k - 1)
+    near = [set(np.unique(owner[side]).tolist()) - {0} for side in sides]
+    return (near[0] & near[1]) | (near[2] & near[3])
 
 
 #: An object hovers when its lowest pixels lie above what is under it by this share of
