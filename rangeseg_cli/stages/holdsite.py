@@ -792,9 +792,9 @@ def enclosing_support(owner: np.ndarray, boxes: list[Any], on_support: np.ndarra
                       ) -> set[int]:
     """Objects of ``owner`` (0 = none) around a hole larger than themselves, on the support.
 
-    A hole is a 4-connected part of what is not the object, in the object's
-    box (``boxes``: :func:`scipy.ndimage.find_objects` of ``owner``), that
-    does not reach the box's edge. The object encloses the support when its
+    A hole is what :func:`scipy.ndimage.binary_fill_holes` fills in the
+    object's box (``boxes``: :func:`scipy.ndimage.find_objects` of
+    ``owner``). The object encloses the support when its
     holes hold at least as many pixels as it does and :data:`ENCLOSED_SUPPORT`
     of them lie on the support (``on_support``): a tote's walls around its
     floor, not a thick roll of tape (its hole is smaller than it) nor items
@@ -808,11 +808,7 @@ def enclosing_support(owner: np.ndarray, boxes: list[Any], on_support: np.ndarra
         size = int(np.count_nonzero(mine))
         if mine.size < 2 * size:  # no room for a hole as large as the object
             continue
-        rest, count = ndimage.label(~mine)
-        edge = np.zeros(count + 1, dtype=bool)
-        edge[np.concatenate([rest[0], rest[-1], rest[:, 0], rest[:, -1]])] = True
-        edge[0] = True  # the object itself
-        hole = ~edge[rest]
+        hole = ndimage.binary_fill_holes(mine) & ~mine
         inside = int(np.count_nonzero(hole))
         if inside >= size and np.count_nonzero(on_support[box] & hole) >= (
                 ENCLOSED_SUPPORT * inside):
