@@ -1,5 +1,6 @@
 """Holdsites (Sec. VII) on synthetic scenes with known answers, end to end."""
 
+import dataclasses
 import json
 import math
 import re
@@ -275,7 +276,8 @@ def test_result_dict_follows_the_file_contract_and_is_json_ready():
     config = load_config(preset="mm-depth",
                          overrides={"input": {"intrinsics": [500.0, 500.0, 0.0, 0.0]}})
     camera_doc = run_pipeline(raw, config).holdsite.to_dict()
-    assert set(camera_doc["holdsite"]) == CONTRACT_KEYS | {"point_camera", "approach_camera"}
+    assert set(camera_doc["holdsite"]) == CONTRACT_KEYS | {
+        "point_camera", "approach_camera", "tilt", "tilt_from"}
 
 
 def test_labels_of_another_shape_are_an_input_error():
@@ -820,6 +822,32 @@ def test_a_steep_camera_mount_picks_the_level_top_not_a_side(mount):
         down = -cam.R[2]  # the world's -z in the camera frame
         level = math.degrees(math.acos(float(np.dot(site.approach_camera, down))))
         assert level < 5.0
+
+
+def test_a_site_reports_its_tilt_from_the_axis_the_limit_used():
+    # a level box top seen from a camera mounted 45 degrees off the vertical
+    depth, config, cam, view = tilted_camera_view(45.0)
+    found = run_pipeline(depth, config).holdsite
+    for site in _sites(found):
+        down = -cam.R[2]  # the world's -z in the camera frame
+        level = math.degrees(math.acos(float(np.dot(site.approach_camera, down))))
+        off_axis = math.degrees(math.acos(site.approach_camera[2]))
+        assert site.tilt_from == "support" and site.tilt == pytest.approx(level, abs=1.0)
+        assert site.tilt < 5.0 and off_axis > 35.0  # level, though far off the optical axis
+        assert site.to_dict(camera=True)["tilt"] == site.tilt
+    # without a support (the workspace off) it is measured from the optical axis
+    bare = load_config(overrides={"input": dataclasses.asdict(config.input),
+                                  "workspace": {"support": False}, "holdsite": {"max_tilt": 90.0}})
+    site = run_pipeline(depth, bare).holdsite.holdsite
+    assert site.tilt_from == "optical axis"
+    assert site.tilt == pytest.approx(math.degrees(math.acos(site.approach_camera[2])), abs=1e-6)
+    # a height map without a lateral scale has no tilt to report
+    z = table()
+    z[20:44, 20:44] = 120.0
+    site = run(noisy(z)).holdsite.holdsite
+    assert site.tilt is None and "tilt" not in site.to_dict()
+    site = run(noisy(z), units_per_pixel=1.0).holdsite.holdsite
+    assert site.tilt_from in {"support", "height axis"} and site.tilt < 1.0
 
 
 def test_an_object_crossing_the_view_is_told_by_opposite_sides():

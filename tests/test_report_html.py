@@ -85,6 +85,12 @@ def test_a_site_shows_pixel_clearance_surface_and_with_intrinsics_point_and_tilt
     assert "<dd>3 (planar)</dd>" in a and "unknown (no lateral scale)" in a
     assert "point" not in a
     assert "<dd>(-0.1149, 0.1737, 0.6089) m</dd>" in b and "<dd>30.0°</dd>" in b
+    # holdsite.json's own tilt, with the axis it is measured from, comes first
+    level = camera | {"tilt": 2.25, "tilt_from": "support"}
+    out = make_out(tmp_path / "out2", {"c": done()}, {"c": level})
+    write_report(out)
+    page = (out / "index.html").read_text()
+    assert "<dd>2.2° from the support&#x27;s normal</dd>" in page and "30.0°" not in page
 
 
 def test_tilt_is_taken_as_the_holdsite_search_takes_it():
@@ -93,6 +99,9 @@ def test_tilt_is_taken_as_the_holdsite_search_takes_it():
     assert tilt(SITE, units_per_pixel=1.0) == pytest.approx(36.8699, abs=1e-4)
     assert tilt(SITE, units_per_pixel=0.75) == pytest.approx(45.0)
     assert tilt({"normal": "bad"}, units_per_pixel=1.0) is None
+    assert tilt(SITE | {"tilt": 3.5, "tilt_from": "support"}) == 3.5
+    assert tilt({"approach_camera": [0.0, 0.6, 0.8], "tilt": "bad"}) == pytest.approx(36.8699,
+                                                                                    abs=1e-4)
 
 
 def test_units_per_pixel_comes_from_the_manifest_config(tmp_path):

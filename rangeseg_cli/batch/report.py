@@ -206,19 +206,31 @@ def _site_html(site: dict[str, Any], units_per_pixel: float) -> str:
     if isinstance(point, list):
         rows.append(("point", "(" + ", ".join(_num(v, ".4f") for v in point) + ") m"))
     angle = tilt(site, units_per_pixel)
-    rows.append(("tilt", "unknown (no lateral scale)" if angle is None else f"{angle:.1f}°"))
+    axis = site.get("tilt_from") if _is_num(site.get("tilt")) else None
+    rows.append(("tilt", "unknown (no lateral scale)" if angle is None else f"{angle:.1f}°"
+                 + (f" from the {TILT_AXES.get(str(axis), str(axis))}" if axis else "")))
     rows.append(("clearance", f"{_num(site.get('clearance'))} px"))
     rows.append(("surface", f"{site.get('surface')} ({site.get('surface_type', '?')})"))
     return "<dl>" + "".join(f"<dt>{k}</dt><dd>{_text(v)}</dd>" for k, v in rows) + "</dl>"
 
 
-def tilt(site: dict[str, Any], units_per_pixel: float = 0.0) -> float | None:
-    """Degrees between a site's normal and the sensor's axis, as Step 4b takes it.
+#: How the report names the axes of holdsite.json's ``tilt_from``.
+TILT_AXES = {"support": "support's normal", "optical axis": "optical axis",
+             "height axis": "height axis"}
 
-    From ``approach_camera`` (with intrinsics) against the optical axis, else
-    from the height map's ``normal`` with ``units_per_pixel`` > 0; ``None``
-    when neither is known (or the site's values are not numbers).
+
+def tilt(site: dict[str, Any], units_per_pixel: float = 0.0) -> float | None:
+    """Degrees between a site's normal and the axis Step 4b measured it from.
+
+    The site's ``tilt`` when holdsite.json has it (from the support's normal
+    where the workspace found one: ``tilt_from``); else, for files written
+    before it, from ``approach_camera`` (with intrinsics) against the
+    optical axis, or from the height map's ``normal`` with
+    ``units_per_pixel`` > 0; ``None`` when neither is known (or the site's
+    values are not numbers).
     """
+    if _is_num(site.get("tilt")):
+        return float(site["tilt"])
     try:
         if site.get("approach_camera"):
             return math.degrees(math.acos(max(-1.0, min(1.0, site["approach_camera"][2]))))

@@ -211,6 +211,12 @@ class Holdsite:
     flat_rms
         RMS residual of the least-squares plane of the heights under the
         footprint (depth units); ``None`` when not computed.
+    tilt, tilt_from
+        Degrees between the site's normal and the axis Step 4b measures
+        ``max_tilt`` from, and that axis: ``"support"`` (the workspace's
+        support normal), ``"optical axis"`` (camera intrinsics) or
+        ``"height axis"`` (``[input] units_per_pixel``); ``None`` without a
+        lateral scale (:func:`site_tilt`).
     """
 
     row: int
@@ -229,6 +235,8 @@ class Holdsite:
     point_camera: Vector | None = None
     approach_camera: Vector | None = None
     flat_rms: float | None = None
+    tilt: float | None = None
+    tilt_from: str | None = None
 
     def to_dict(self, *, camera: bool = False) -> dict[str, Any]:
         """Plain dict of ``holdsite.json``; camera-frame keys only when ``camera``."""
@@ -241,6 +249,8 @@ class Holdsite:
         }
         if self.flat_rms is not None:
             out["flat_rms"] = self.flat_rms
+        if self.tilt is not None:
+            out["tilt"], out["tilt_from"] = self.tilt, self.tilt_from
         if camera:
             out["point_camera"] = _listed(self.point_camera)
             out["approach_camera"] = _listed(self.approach_camera)
@@ -2291,12 +2301,33 @@ def _site_of(scene: _Scene, hits: _Hits, k: int, obj: ObjectInfo, config: Config
     r, c = int(hits.rows[k]), int(hits.cols[k])
     dist = math.hypot(r - obj.centroid[0], c - obj.centroid[1])
     angle, ar_std = window_angle(scene, hits, k)
+    pose = _known_pose(scene, hits, k)
     site = make_site(hits.surface, r, c, object_id=obj.id, clearance=hits.clearance[k],
                      ar_std=ar_std, angle=angle,
                      site_score=score(hits.clearance[k], dist, scene.cfg.size, obj.pixels),
-                     config=config, pose=_known_pose(scene, hits, k))
+                     config=config, pose=pose)
     return dataclasses.replace(site, size=scene.cfg.size,
-                               flat_rms=site_flat_rms(scene.z, r, c, scene.footprint(angle)))
+                               flat_rms=site_flat_rms(scene.z, r, c, scene.footprint(angle)),
+                               **site_tilt(scene.camera, scene.up, r, c, pose))
+
+
+def site_tilt(camera: InputConfig, up: Vector | None, row: int, col: int,
+              pose: tuple[float, tuple[float, float]]) -> dict[str, Any]:
+    """``tilt`` and ``tilt_from`` of the site at (row, col) with ``pose`` (Step 4b, :func:`tilts`).
+
+    From the support's normal ``up`` when there is one, else from the
+    optical axis (intrinsics) or the height axis (``units_per_pixel`` > 0);
+    both ``None`` without a lateral scale or depth at the site.
+    """
+    if not (camera.has_intrinsics or camera.units_per_pixel > 0):
+        return {"tilt": None, "tilt_from": None}
+    elevation, (gx, gy) = pose
+    angle = float(tilts(camera, camera.units_per_pixel, [row], [col], [elevation], [gx], [gy],
+                        up=up)[0])
+    if not math.isfinite(angle):
+        return {"tilt": None, "tilt_from": None}
+    axis = "optical axis" if camera.has_intrinsics else "height axis"
+    return {"tilt": angle, "tilt_from": axis if up is None else "support"}
 
 
 def _known_pose(scene: _Scene, hits: _Hits, k: int) -> tuple[float, tuple[float, float]]:
