@@ -869,10 +869,10 @@ def test_an_object_crossing_the_view_is_told_by_opposite_sides():
     assert crossing_the_view(owner, valid) == {1, 2}
 
 
-def test_an_object_around_the_support_encloses_it_a_ring_shaped_item_does_not():
+def test_an_object_around_the_floor_encloses_it_a_ring_shaped_item_does_not():
     from scipy import ndimage
 
-    from rangeseg_cli.stages.holdsite import enclosing_support
+    from rangeseg_cli.stages.holdsite import enclosing_rings
 
     owner = np.zeros((60, 80), np.int64)
     owner[5:55, 5:75] = 1
@@ -880,17 +880,49 @@ def test_an_object_around_the_support_encloses_it_a_ring_shaped_item_does_not():
     owner[20:30, 20:30] = 2
     owner[23:27, 23:27] = 0  # a roll of tape: its hole is smaller than it
     owner[35:45, 40:60] = 3
-    owner[37:43, 42:58] = 5  # a ring of 3 around item 5: not the support inside
-    support = owner == 0
-    support[37:43, 42:58] = False
-    assert enclosing_support(owner, ndimage.find_objects(owner), support) == {1}
+    owner[37:43, 42:58] = 0  # a ring of 3 around a gap of no reading
+    valid = np.ones(owner.shape, bool)
+    valid[37:43, 42:58] = False
+    assert enclosing_rings(owner, ndimage.find_objects(owner), valid) == {1}
 
 
-def tote_view(mount, width=700.0, height=800.0, item=False, shape=(240, 320), tool=False):
+def test_objects_that_close_a_ring_together_are_its_structures_what_lies_within_is_not():
+    from scipy import ndimage
+
+    from rangeseg_cli.stages.holdsite import enclosing_rings
+
+    owner = np.zeros((70, 90), np.int64)
+    owner[5:12, 5:85] = 1  # the far wall with the far rim
+    owner[12:58, 5:9] = owner[12:58, 81:85] = 2  # the side rims, one object
+    owner[58:65, 5:85] = 3  # the near wall, its outer face
+    owner[12:22, 9:81] = 4  # the far wall's inner face
+    owner[22:34, 9:24] = 5  # an item leaning on the side wall
+    owner[40:50, 50:60] = 6  # an item on the floor
+    owner[12:58, 9] = 0  # the edge lines between the pieces
+    valid = np.ones(owner.shape, bool)
+    boxes = ndimage.find_objects(owner)
+    pairs = {(1, 2), (2, 3), (1, 4), (2, 4), (4, 5), (2, 5)}
+    pairs |= {(j, i) for i, j in pairs}
+    assert enclosing_rings(owner, boxes, valid) == set()  # no piece closes it alone
+    assert enclosing_rings(owner, boxes, valid, pairs) == {1, 2, 3}
+    # the tall objects only: what lies inside stays out of the ring either way
+    assert enclosing_rings(owner, boxes, valid, pairs, {1, 2, 3}) == {1, 2, 3}
+    # a cluttered bin: items around a gap less than half as large as each of them
+    bin_ = np.zeros((40, 40), np.int64)
+    bin_[5:35, 5:20], bin_[5:35, 22:35] = 1, 2
+    bin_[5:12, 20:22], bin_[28:35, 20:22] = 1, 2
+    bin_[14:26, 12:28] = 0  # the patch between them
+    assert enclosing_rings(bin_, ndimage.find_objects(bin_), np.ones(bin_.shape, bool),
+                           {(1, 2), (2, 1)}) == set()
+
+
+def tote_view(mount, width=700.0, height=800.0, item=False, shape=(240, 320), tool=False,
+              lift=0.0):
     """An empty tote (200 mm walls with a 25 mm rim, on a table) seen by a camera
     ``height`` mm above the floor, tilted ``mount`` degrees; ``width`` mm across; with
     ``item`` a box in it, with ``tool`` an arm reaching in from the far side of the view
-    350 mm above the floor. Depth image, config (a 20 mm cup) and the render (GT faces)."""
+    350 mm above the floor; its floor ``lift`` mm above the table (at 0 within the
+    support's tolerance of it). Depth image, config (a 20 mm cup) and the render."""
     from rangeseg_cli.synth.camera import CAMERAS, Item, camera_for, render_items, support_plane
     from rangeseg_cli.synth.scenes import box, pose
 
@@ -906,11 +938,12 @@ def tote_view(mount, width=700.0, height=800.0, item=False, shape=(240, 320), to
               for x in (-lx / 2 - rim / 2, lx / 2 + rim / 2)]
     parts += [box(lx + 2 * rim, rim, 8.0, "rim").moved(pose(0, y, wall))
               for y in (-ly / 2 - rim / 2, ly / 2 + rim / 2)]
-    floor = box(lx, ly, 10.0, "floor").moved(pose(0, 0, -10.0)).moved(turn)
+    floor = box(lx, ly, 10.0, "floor").moved(pose(0, 0, lift - 10.0)).moved(turn)
     items = [support_plane("table", -10.0), Item("floor", (floor,), False, "support"),
              Item("tote", tuple(p.moved(turn) for p in parts), False, "tote")]
     if item:
-        things = box(120.0, 90.0, 60.0, "item").moved(pose(-40.0, 30.0, yaw=20)).moved(turn)
+        things = box(120.0, 90.0, 60.0, "item").moved(pose(-40.0, 30.0, lift, yaw=20))
+        things = things.moved(turn)
         items.append(Item("item", (things,), True, "item"))
     if tool:
         arm = box(900.0, 60.0, 60.0, "arm").moved(pose(450.0, 0, 350.0)).moved(turn)
@@ -930,6 +963,22 @@ def test_an_empty_tote_seen_at_a_slant_has_nothing_to_pick_not_its_rim(mount, to
     depth, config, view = tote_view(mount, width=1600.0, tool=tool)
     found = run_pipeline(depth, config).holdsite
     assert found.holdsite is None, (found.holdsite, found.reason)
+
+
+@pytest.mark.parametrize(("mount", "height", "lift"), [(45.0, 1000.0, 0.0), (0.0, 1300.0, 15.0),
+                                                      (20.0, 1300.0, 15.0)])
+def test_a_tote_seen_whole_gives_its_item_not_its_rim(mount, height, lift):
+    # at a slant the tote parts into rim, near wall and far wall, none a ring alone; with
+    # its floor above the table the support is the table and the floor an object in the ring
+    depth, config, view = tote_view(mount, height=height, item=True, lift=lift)
+    found = run_pipeline(depth, config).holdsite
+    faces = [view.surfaces[view.gt[s.row, s.col] - 1]["name"] for s in _sites(found)]
+    assert faces[0] == "item top", found.reason
+    assert not any(face.startswith(("rim", "wall", "floor")) for face in faces)
+    # empty, the tote has nothing to pick: not its rim, not its floor
+    depth, config, view = tote_view(mount, height=height, lift=lift)
+    found = run_pipeline(depth, config).holdsite
+    assert found.holdsite is None, found.holdsite
 
 
 def test_a_tote_seen_whole_from_above_is_never_picked_its_item_is():

@@ -744,12 +744,13 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     opposite sides of the image frame (:func:`crossing_the_view`), is a structure
     too: an empty tote's near wall and rim seen from a camera mounted at a
     slant, whose top is level (no rise to the border) and which stands on
-    the table beside the tote (no hover). Whatever else is in view, an
-    object that encloses the support (:func:`enclosing_support`: a tote's
-    walls and rim seen whole, around its floor) is a structure. Taken for
-    structures too: a ring-shaped item whose hole, larger than it, shows the
-    support (a picture frame, a hoop lying flat) and, with nothing else in
-    view, a lone item longer than the view.
+    the table beside the tote (no hover). Whatever else is in view, the
+    objects as high as the highest that, alone or together, make a ring
+    around the floor or the items on it (:func:`enclosing_rings`: a tote's
+    walls and rim seen whole) are structures. Taken for structures too: a
+    ring-shaped item whose hole, larger than it, holds a reading (a picture
+    frame, a hoop lying flat) and, with nothing else in view, a lone item
+    longer than the view.
     """
     height = space.height
     if height is None or not objects:
@@ -762,9 +763,9 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     with np.errstate(invalid="ignore"):
         on_support = np.abs(height) <= space.tolerance
     standing = _touching(owner, on_support)
-    ring = enclosing_support(owner, boxes, on_support)
+    near = _near_pairs(owner, boxes)
     spans = {o.id: _height_span(*_in_box(height, owner, boxes, o.id)) for o in objects}
-    hover = _hovering(spans, _near_pairs(owner, boxes), space.tolerance)
+    hover = _hovering(spans, near, space.tolerance)
     zone = border_zone(valid, space.extent)
     bordering = _present(owner[zone])
     # the widest disc counts for the pile (away from the border, not hovering) and standing
@@ -783,47 +784,120 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
         structures = {o.id for o in objects if o.id in bordering and (o.id in hover or (
             not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
                 owner == o.id, height, zone, space.tolerance)))}
-        highest = max((top for i, (_, top) in spans.items() if i not in structures
-                       and np.isfinite(top)), default=math.inf)  # but for the arm
-        structures |= {i for i in crossing_the_view(owner, valid) & spans.keys()
-                       if spans[i][1] >= WALL_SHARE * highest}
-    structures |= ring
+        structures |= crossing_the_view(owner, valid) & _tall(spans, structures)
+    structures |= enclosing_rings(owner, boxes, valid, near, _tall(spans, structures))
     structures |= _attached(objects, owner, structures, above)
     return [dataclasses.replace(o, structure=o.id in structures,
                                 stands=o.id in standing and wide.get(o.id, 0.0) >= half_width)
             for o in objects]
 
 
-#: An object encloses the support when at least this share of its holes is the support.
-ENCLOSED_SUPPORT = 0.1
+def _tall(spans: dict[int, tuple[float, float]], structures: set[int]) -> set[int]:
+    """Objects but ``structures`` whose top reaches :data:`WALL_SHARE` of the highest of them.
 
-
-def enclosing_support(owner: np.ndarray, boxes: list[Any], on_support: np.ndarray
-                      ) -> set[int]:
-    """Objects of ``owner`` (0 = none) around a hole larger than themselves, on the support.
-
-    A hole is what :func:`scipy.ndimage.binary_fill_holes` fills in the
-    object's box (``boxes``: :func:`scipy.ndimage.find_objects` of
-    ``owner``). The object encloses the support when its
-    holes hold at least as many pixels as it does and :data:`ENCLOSED_SUPPORT`
-    of them lie on the support (``on_support``): a tote's walls around its
-    floor, not a thick roll of tape (its hole is smaller than it) nor items
-    around a gap of no reading; a picture frame lying flat is taken for one.
+    ``spans``: each object's (low, top) heights (:func:`_height_span`); the
+    structures found so far (the arm) are left out of the highest.
     """
-    out = set()
-    for k, box in enumerate(boxes, start=1):
-        if box is None:
-            continue
-        mine = owner[box] == k
-        size = int(np.count_nonzero(mine))
-        if mine.size < 2 * size:  # no room for a hole as large as the object
-            continue
-        hole = ndimage.binary_fill_holes(mine) & ~mine
+    tops = {i: top for i, (_, top) in spans.items() if i not in structures and np.isfinite(top)}
+    highest = max(tops.values(), default=math.inf)
+    return {i for i, top in tops.items() if top >= WALL_SHARE * highest}
+
+
+#: A ring encloses something when at least this share of its holes holds a reading, and
+#: its holes hold at least this share of its largest object's pixels (a tote's floor seen
+#: from 55 degrees off the vertical: 0.7 of its near wall; gaps between items: far less).
+ENCLOSED_VALID, RING_SHARE = 0.5, 0.5
+
+
+def enclosing_rings(owner: np.ndarray, boxes: list[Any], valid: np.ndarray,
+                    pairs: set[tuple[int, int]] | None = None,
+                    among: set[int] | None = None) -> set[int]:
+    """Objects of ``owner`` (0 = none) on a ring around other things: a tote's walls and rim.
+
+    The objects (those of ``among``; ``None``: all) fall into groups, joined
+    by ``pairs`` (:func:`_near_pairs`; ``None``: each object alone). A
+    group's pixels, grown by :data:`ADJACENCY_RADIUS` over the edges between
+    its objects, make a ring when :data:`ENCLOSED_VALID` of their holes (what
+    :func:`scipy.ndimage.binary_fill_holes` fills in the group's box) hold a
+    reading (``valid``: the tote's floor, or the items on it) and the holes
+    hold at least :data:`RING_SHARE` of the pixels of the largest of its
+    objects that reach the ring's outside. Those objects are the
+    structures: a tote seen whole at a slant parts into its rim, near wall
+    and far wall at their creases, none of which closes the ring alone; an
+    item inside the tote, leaning on a wall, lies within the ring. Not a
+    thick roll of tape (its hole is smaller than half of it), tall items of
+    a cluttered bin around a gap between them, nor items around a gap of no
+    reading; taken for structures: a picture frame lying flat, and items in
+    a ring around a patch at least half as large as each. So is an object inside
+    the ring that lines most of it (:func:`_floors`): the tote's floor, when
+    it lies above the table's tolerance and the table is the support; an
+    item filling the tote is taken for it. ``boxes``:
+    :func:`scipy.ndimage.find_objects` of ``owner``.
+    """
+    out: set[int] = set()
+    members = [k for k, b in enumerate(boxes, start=1)
+               if b is not None and (among is None or k in among)]
+    for group in _groups(members, pairs or set()):
+        box = _grown(_union_box([boxes[k - 1] for k in group]), ADJACENCY_RADIUS + 1,
+                     owner.shape)
+        crop = owner[box]
+        mine = np.isin(crop, group)
+        ring = square_dilation(mine, 2 * ADJACENCY_RADIUS + 1)
+        inner = ndimage.binary_fill_holes(ring)
+        hole = inner & ~ring
         inside = int(np.count_nonzero(hole))
-        if inside >= size and np.count_nonzero(on_support[box] & hole) >= (
-                ENCLOSED_SUPPORT * inside):
-            out.add(k)
+        if not inside or np.count_nonzero(valid[box] & hole) < ENCLOSED_VALID * inside:
+            continue
+        outer = np.unique(crop[square_dilation(~inner, 4 * ADJACENCY_RADIUS + 3) & mine])
+        sizes = np.bincount(crop[mine], minlength=int(crop.max()) + 1)
+        if inside >= RING_SHARE * sizes[outer].max(initial=0):
+            out.update(outer.tolist())
+            out.update(_floors(crop, hole, ring))
     return out
+
+
+#: An object inside a ring is its floor when it lines at least this share of the ring.
+FLOOR_SHARE = 0.5
+
+
+def _floors(owner: np.ndarray, hole: np.ndarray, ring: np.ndarray) -> list[int]:
+    """Objects of ``owner`` in ``hole`` that line :data:`FLOOR_SHARE` of the ``ring`` round it.
+
+    The hole's pixels next to the ring are its lining; an object within
+    :data:`ADJACENCY_RADIUS` of that share of them is the floor the ring
+    stands on (a tote's floor above the table's tolerance), an item inside
+    lines one wall or two.
+    """
+    lining = hole & square_dilation(ring, 3)
+    total = int(np.count_nonzero(lining))
+    ids = np.unique(owner[hole])
+    return [k for k in ids[ids > 0].tolist() if total and np.count_nonzero(
+        lining & square_dilation(owner == k, 2 * ADJACENCY_RADIUS + 3)) >= FLOOR_SHARE * total]
+
+
+def _groups(members: list[int], pairs: set[tuple[int, int]]) -> list[list[int]]:
+    """The connected groups of ``members`` joined by ``pairs`` (each alone without one)."""
+    parent = {k: k for k in members}
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for i, j in pairs:
+        if i in parent and j in parent:
+            parent[root(i)] = root(j)
+    groups: dict[int, list[int]] = {}
+    for k in members:
+        groups.setdefault(root(k), []).append(k)
+    return list(groups.values())
+
+
+def _union_box(boxes: list[tuple[slice, slice]]) -> tuple[slice, slice]:
+    """The smallest 2-D box holding ``boxes``."""
+    return (slice(min(b[0].start for b in boxes), max(b[0].stop for b in boxes)),
+            slice(min(b[1].start for b in boxes), max(b[1].stop for b in boxes)))
 
 
 def crossing_the_view(owner: np.ndarray, valid: np.ndarray | None = None) -> set[int]:
