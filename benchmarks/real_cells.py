@@ -127,19 +127,36 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str,
     doc = result.holdsite.to_dict()
     depth_mm = np.where(raw > 0, raw * 1000.0 * float(info["camera"]["metres_per_raw"]),
                         np.nan)
+    height_mm = world_heights(depth_mm, info["camera"])
     window = (footprint_at_depth(config.holdsite.footprint_mm, info["camera"], depth_mm)
               if any(config.holdsite.footprint_mm) else None)
     check = check_object_holdsite(doc["holdsite"], gt, info, max_tilt=max_tilt,
                                   size=tuple(config.holdsite.size), footprint=window)
     site = doc["holdsite"]
     return {"scene": name, "seed": seed, "ok": check["ok"], "reason": check["reason"],
+            "uncovered": None if site is None else check["object"] in info["uncovered"],
             "object": check["object"], "tilt": check["tilt"], "seconds": seconds,
-            "depth_mm": None if site is None else _round(depth_mm[site["row"], site["col"]]),
-            "top_mm": _round(np.nanmin(np.where(_pickable(gt, info), depth_mm, np.nan),
-                                       initial=np.inf)),
+            "height_mm": None if site is None else _round(height_mm[site["row"], site["col"]]),
+            "top_height_mm": _round(np.nanmax(np.where(_pickable(gt, info), height_mm, np.nan),
+                                              initial=-np.inf)),
             "holdsite": None if doc["holdsite"] is None else
             {k: doc["holdsite"][k] for k in ("row", "col", "size", "angle")},
             "pipeline_reason": doc.get("reason", "")}
+
+
+def world_heights(depth_mm: np.ndarray, camera: dict[str, Any]) -> np.ndarray:
+    """Height in mm of each pixel's point above the world's floor (z = 0), NaN without depth.
+
+    The point ``d ((u - cx) / fx, (v - cy) / fy, 1)`` in the camera frame,
+    taken to the world by gt.json's ``rotation`` (its rows are the world's
+    axes in the camera frame) and ``position_mm``: along the world's
+    vertical however the camera is mounted.
+    """
+    rows, cols = np.indices(depth_mm.shape, dtype=np.float64)
+    up = np.asarray(camera["rotation"], dtype=np.float64)[2]
+    x = (cols - float(camera["cx"])) / float(camera["fx"]) * depth_mm
+    y = (rows - float(camera["cy"])) / float(camera["fy"]) * depth_mm
+    return float(camera["position_mm"][2]) + up[0] * x + up[1] * y + up[2] * depth_mm
 
 
 def _pickable(gt: np.ndarray, info: dict[str, Any]) -> np.ndarray:
@@ -166,11 +183,13 @@ def summarise(frames: list[dict[str, Any]], names: list[str]) -> dict[str, Any]:
         these = [f for f in frames if name in (f["scene"], "all")]
         usable = sum(f["ok"] for f in these)
         kinds[name] = {"usable": usable, "total": len(these),
+                       "uncovered": sum(bool(f.get("uncovered")) for f in these if f["ok"]),
                        "percent": round(100.0 * usable / len(these), 1) if these else None,
                        "tilt_median": _median([f["tilt"] for f in these if f["ok"]]),
                        "below_top_median": _median([
-                           f["depth_mm"] - f["top_mm"] for f in these
-                           if f.get("depth_mm") is not None and f.get("top_mm") is not None])}
+                           f["top_height_mm"] - f["height_mm"] for f in these
+                           if f.get("height_mm") is not None
+                           and f.get("top_height_mm") is not None])}
     failures = Counter(_reason_kind(f["reason"]) for f in frames if not f["ok"])
     return {"kinds": kinds, "failures": dict(failures.most_common())}
 
@@ -197,13 +216,16 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"{meta['seconds']:.0f} s on "
              f"{meta['jobs']} processes.", "",
              "Tilt: median angle (degrees) of the usable sites' approach to straight down "
-             "(the world's vertical). Below top: median depth (mm) of the site's centre "
-             "behind the nearest pixel of any pickable object (0 = the top of the pile), "
-             "over all sites.", "",
-             "| scene | usable | frames | % | tilt | below top |", "|---|---|---|---|---|---|"]
+             "(the world's vertical). Below top: median height (mm, along the world's "
+             "vertical) of the site's centre below the highest pixel of any pickable "
+             "object (0 = the top of the pile), over all sites. Uncovered: usable sites "
+             "on an item nothing else lies on (the render's `uncovered`).", "",
+             "| scene | usable | frames | % | uncovered | tilt | below top |",
+             "|---|---|---|---|---|---|---|"]
     for name, k in summary["kinds"].items():
         lines.append(f"| {name} | {k['usable']} | {k['total']} | {k['percent']} | "
-                     f"{_cell(k.get('tilt_median'))} | {_cell(k.get('below_top_median'))} |")
+                     f"{k.get('uncovered', '-')} | {_cell(k.get('tilt_median'))} | "
+                     f"{_cell(k.get('below_top_median'))} |")
     if summary["failures"]:
         lines += ["", "| failure | frames |", "|---|---|"]
         lines += [f"| {r} | {n} |" for r, n in summary["failures"].items()]
