@@ -460,9 +460,10 @@ STAGE_TABLES: dict[str, tuple[str, ...]] = {
 }
 
 #: Bumped when a stage gives other results for the same settings, so that ``--resume``
-#: redoes what an earlier version made (and every later stage): 1 = the edges stage
-#: median-filters heights beyond the paper's noise range.
-STAGE_REVISIONS: dict[str, int] = {"edges": 1}
+#: redoes what an earlier version made (and every later stage): edges 1 = the edges stage
+#: median-filters heights beyond the paper's noise range; holdsite 1 = a tote's ring
+#: and floor are structures, and sites report their tilt.
+STAGE_REVISIONS: dict[str, int] = {"edges": 1, "holdsite": 1}
 
 _TABLE_CLASSES: dict[str, type] = {
     "input": InputConfig, "step": StepConfig, "roof": RoofConfig, "link": LinkConfig,

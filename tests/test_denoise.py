@@ -254,6 +254,6 @@ def test_a_stage_revision_makes_resume_redo_that_stage_and_those_after(monkeypat
     monkeypatch.setattr(config_module, "STAGE_REVISIONS", {"edges": 2})
     after = config.stage_digests()
     assert all(after[s] != before[s] for s in before)
-    monkeypatch.setattr(config_module, "STAGE_REVISIONS", {"edges": 1, "holdsite": 1})
+    monkeypatch.setattr(config_module, "STAGE_REVISIONS", {"edges": 1, "holdsite": 2})
     last = config.stage_digests()
     assert [s for s in before if last[s] != before[s]] == ["holdsite"]

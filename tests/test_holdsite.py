@@ -883,7 +883,13 @@ def test_an_object_around_the_floor_encloses_it_a_ring_shaped_item_does_not():
     owner[37:43, 42:58] = 0  # a ring of 3 around a gap of no reading
     valid = np.ones(owner.shape, bool)
     valid[37:43, 42:58] = False
-    assert enclosing_rings(owner, ndimage.find_objects(owner), valid) == {1}
+    assert enclosing_rings(owner, ndimage.find_objects(owner), valid) == ({1}, set())
+    # a roll of duct tape, its hole 0.63 of it: one object rings a hole as large as itself
+    yy, xx = np.mgrid[:60, :60]
+    radius = np.hypot(yy - 30, xx - 30)
+    tape = ((radius <= 20) & (radius >= 12)).astype(np.int64)
+    assert enclosing_rings(tape, ndimage.find_objects(tape), np.ones(tape.shape, bool)) == (
+        set(), set())
 
 
 def test_objects_that_close_a_ring_together_are_its_structures_what_lies_within_is_not():
@@ -891,29 +897,66 @@ def test_objects_that_close_a_ring_together_are_its_structures_what_lies_within_
 
     from rangeseg_cli.stages.holdsite import enclosing_rings
 
-    owner = np.zeros((70, 90), np.int64)
-    owner[5:12, 5:85] = 1  # the far wall with the far rim
+    owner = np.full((70, 100), 7, np.int64)  # the table beyond the tote
+    owner[5:65, 5:85] = 0
+    owner[5:12, 5:85] = 1  # the far rim
     owner[12:58, 5:9] = owner[12:58, 81:85] = 2  # the side rims, one object
     owner[58:65, 5:85] = 3  # the near wall, its outer face
     owner[12:22, 9:81] = 4  # the far wall's inner face
     owner[22:34, 9:24] = 5  # an item leaning on the side wall
     owner[40:50, 50:60] = 6  # an item on the floor
-    owner[12:58, 9] = 0  # the edge lines between the pieces
+    owner[22:58, 9] = 0  # the edge line between the side rim and the floor
+    owner[30:45, 88:96] = 9  # an item outside, touching the side rim
     valid = np.ones(owner.shape, bool)
     boxes = ndimage.find_objects(owner)
-    pairs = {(1, 2), (2, 3), (1, 4), (2, 4), (4, 5), (2, 5)}
+    pairs = {(1, 2), (2, 3), (1, 4), (2, 4), (4, 5), (2, 5), (2, 9)}
     pairs |= {(j, i) for i, j in pairs}
-    assert enclosing_rings(owner, boxes, valid) == set()  # no piece closes it alone
-    assert enclosing_rings(owner, boxes, valid, pairs) == {1, 2, 3}
-    # the tall objects only: what lies inside stays out of the ring either way
-    assert enclosing_rings(owner, boxes, valid, pairs, {1, 2, 3}) == {1, 2, 3}
-    # a cluttered bin: items around a gap less than half as large as each of them
+    tall = {1, 2, 3, 4, 5, 9}
+    assert enclosing_rings(owner, boxes, valid, among=tall) == (set(), set())  # none alone
+    # the far rim lines the floor through the far wall's face: it touches two that do
+    assert enclosing_rings(owner, boxes, valid, pairs, tall) == ({1, 2, 3}, set())
+    owner[(owner == 0) & (np.arange(100) < 81)] = 8  # a floor above the table's tolerance
+    owner[22:58, 9] = 0
+    walls, floors = enclosing_rings(owner, ndimage.find_objects(owner), valid, pairs, tall)
+    assert walls == {1, 2, 3} and floors == {8}
+    # a cluttered bin: tall items around a gap less than half as large as each of them
     bin_ = np.zeros((40, 40), np.int64)
     bin_[5:35, 5:20], bin_[5:35, 22:35] = 1, 2
     bin_[5:12, 20:22], bin_[28:35, 20:22] = 1, 2
-    bin_[14:26, 12:28] = 0  # the patch between them
+    bin_[14:26, 12:28] = 0  # the gap between them
     assert enclosing_rings(bin_, ndimage.find_objects(bin_), np.ones(bin_.shape, bool),
-                           {(1, 2), (2, 1)}) == set()
+                           {(1, 2), (2, 1)}) == (set(), set())
+
+
+def height_map_tote(floor, boxes=()):
+    """A tote (200 mm walls, 6 px thick) on a table at 20 mm, seen whole from above
+    as a height map, its floor at ``floor`` mm, ``boxes`` (rows, cols, top) in it."""
+    z = table((160, 160))
+    z[20:140, 20:140] = 200.0
+    z[26:134, 26:134] = floor
+    for rows, cols, top in boxes:
+        z[rows, cols] = top
+    return noisy(z)
+
+
+def test_a_raised_tote_floor_is_a_structure_the_items_on_it_are_not():
+    found = run(height_map_tote(35.0, [(np.s_[50:80], np.s_[40:75], 95.0),
+                                       (np.s_[90:120], np.s_[80:120], 75.0)])).holdsite
+    assert found.holdsite is not None and found.holdsite.elevation > 90.0, found.reason
+    structures = {o.id for o in found.objects if o.structure}
+    assert len(structures) == 2  # the walls and the floor, not the boxes standing on it
+    assert run(height_map_tote(35.0)).holdsite.holdsite is None  # empty: nothing to pick
+
+
+def test_items_that_ring_a_lower_item_in_a_tote_are_not_its_walls():
+    z = table((160, 160))
+    z[:8, :] = z[-8:, :] = z[:, :8] = z[:, -8:] = 220.0  # the tote's walls along the frame
+    z[40:60, 40:120] = z[100:120, 40:120] = 120.0  # four boxes in a square
+    z[60:100, 40:60] = z[60:100, 100:120] = 120.0
+    z[62:98, 62:98] = 60.0  # a lower box inside it
+    found = run(noisy(z)).holdsite
+    assert found.holdsite is not None and found.holdsite.elevation > 115.0, found.reason
+    assert not any(o.structure for o in found.objects if o.pixels < 3000)
 
 
 def tote_view(mount, width=700.0, height=800.0, item=False, shape=(240, 320), tool=False,

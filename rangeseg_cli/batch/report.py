@@ -226,8 +226,8 @@ def tilt(site: dict[str, Any], units_per_pixel: float = 0.0) -> float | None:
     where the workspace found one: ``tilt_from``); else, for files written
     before it, from ``approach_camera`` (with intrinsics) against the
     optical axis, or from the height map's ``normal`` with
-    ``units_per_pixel`` > 0; ``None`` when neither is known (or the site's
-    values are not numbers).
+    ``units_per_pixel`` > 0, whatever axis the search used then; ``None``
+    when neither is known (or the site's values are not numbers).
     """
     if _is_num(site.get("tilt")):
         return float(site["tilt"])

@@ -279,8 +279,8 @@ class ObjectInfo:
         off by the frame); beyond the paper, of an invalid area at least
         :data:`HIDING_WIDTH` px wide (:func:`outer_invalid`).
     structure
-        Whether it is a structure at the border, never picked (the robot's
-        fingers, a tote wall: :func:`mark_structures`).
+        Whether it is a structure, never picked (the robot's fingers, a
+        tote's wall, rim or floor: :func:`mark_structures`).
     stands
         Whether it stands on the support, with at least a footprint's area
         (:func:`mark_structures`).
@@ -745,12 +745,15 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     too: an empty tote's near wall and rim seen from a camera mounted at a
     slant, whose top is level (no rise to the border) and which stands on
     the table beside the tote (no hover). Whatever else is in view, the
-    objects as high as the highest that, alone or together, make a ring
-    around the floor or the items on it (:func:`enclosing_rings`: a tote's
-    walls and rim seen whole) are structures. Taken for structures too: a
-    ring-shaped item whose hole, larger than it, holds a reading (a picture
-    frame, a hoop lying flat) and, with nothing else in view, a lone item
-    longer than the view.
+    objects as high as the highest (but for the arm) that, alone or
+    together, ring the floor or the items on it are structures, and so is
+    the floor they ring (:func:`enclosing_rings`: a tote's walls and rim
+    seen whole; its floor above the table's tolerance), after the objects
+    attached to structures are found (what stands on the floor is no part
+    of the tote). Taken for structures too: a ring-shaped item whose hole,
+    as large as it, holds a reading (a picture frame, a hoop lying flat),
+    tall items that together ring a patch half as large as each, and, with
+    nothing else in view, a lone item longer than the view.
     """
     height = space.height
     if height is None or not objects:
@@ -785,56 +788,65 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
             not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
                 owner == o.id, height, zone, space.tolerance)))}
         structures |= crossing_the_view(owner, valid) & _tall(spans, structures)
-    structures |= enclosing_rings(owner, boxes, valid, near, _tall(spans, structures))
+    walls, floors = enclosing_rings(owner, boxes, valid, near, _tall(spans, hover & structures))
+    structures |= walls
     structures |= _attached(objects, owner, structures, above)
+    structures |= floors  # after: what lies on the floor is not attached to the tote
     return [dataclasses.replace(o, structure=o.id in structures,
                                 stands=o.id in standing and wide.get(o.id, 0.0) >= half_width)
             for o in objects]
 
 
-def _tall(spans: dict[int, tuple[float, float]], structures: set[int]) -> set[int]:
-    """Objects but ``structures`` whose top reaches :data:`WALL_SHARE` of the highest of them.
+def _tall(spans: dict[int, tuple[float, float]], left_out: set[int]) -> set[int]:
+    """Objects but ``left_out`` whose top reaches :data:`WALL_SHARE` of the highest of them.
 
-    ``spans``: each object's (low, top) heights (:func:`_height_span`); the
-    structures found so far (the arm) are left out of the highest.
+    ``spans``: each object's (low, top) heights (:func:`_height_span`);
+    ``left_out``: what is not to set the highest (the arm).
     """
-    tops = {i: top for i, (_, top) in spans.items() if i not in structures and np.isfinite(top)}
+    tops = {i: top for i, (_, top) in spans.items() if i not in left_out and np.isfinite(top)}
     highest = max(tops.values(), default=math.inf)
     return {i for i, top in tops.items() if top >= WALL_SHARE * highest}
 
 
 #: A ring encloses something when at least this share of its holes holds a reading, and
-#: its holes hold at least this share of its largest object's pixels (a tote's floor seen
-#: from 55 degrees off the vertical: 0.7 of its near wall; gaps between items: far less).
+#: its holes hold at least :data:`RING_SHARE` of its largest piece's pixels when several
+#: objects make it (a tote's floor seen from 55 degrees off the vertical: 0.7 of its
+#: near wall; gaps between items: far less), as many as its one object's when one does.
 ENCLOSED_VALID, RING_SHARE = 0.5, 0.5
 
 
 def enclosing_rings(owner: np.ndarray, boxes: list[Any], valid: np.ndarray,
                     pairs: set[tuple[int, int]] | None = None,
-                    among: set[int] | None = None) -> set[int]:
-    """Objects of ``owner`` (0 = none) on a ring around other things: a tote's walls and rim.
+                    among: set[int] | None = None) -> tuple[set[int], set[int]]:
+    """Objects of ``owner`` (0 = none) that ring other things, and their floors: a tote.
 
     The objects (those of ``among``; ``None``: all) fall into groups, joined
     by ``pairs`` (:func:`_near_pairs`; ``None``: each object alone). A
     group's pixels, grown by :data:`ADJACENCY_RADIUS` over the edges between
     its objects, make a ring when :data:`ENCLOSED_VALID` of their holes (what
-    :func:`scipy.ndimage.binary_fill_holes` fills in the group's box) hold a
-    reading (``valid``: the tote's floor, or the items on it) and the holes
-    hold at least :data:`RING_SHARE` of the pixels of the largest of its
-    objects that reach the ring's outside. Those objects are the
-    structures: a tote seen whole at a slant parts into its rim, near wall
-    and far wall at their creases, none of which closes the ring alone; an
-    item inside the tote, leaning on a wall, lies within the ring. Not a
-    thick roll of tape (its hole is smaller than half of it), tall items of
-    a cluttered bin around a gap between them, nor items around a gap of no
-    reading; taken for structures: a picture frame lying flat, and items in
-    a ring around a patch at least half as large as each. So is an object inside
-    the ring that lines most of it (:func:`_floors`): the tote's floor, when
-    it lies above the table's tolerance and the table is the support; an
-    item filling the tote is taken for it. ``boxes``:
-    :func:`scipy.ndimage.find_objects` of ``owner``.
+    :func:`scipy.ndimage.binary_fill_holes` fills in the group's box, the
+    image frame counting as outside) hold a reading (``valid``: a tote's
+    floor, or the items on it). Its pieces are the objects that line the
+    holes and reach the ring's outside; they are structures when the holes
+    hold at least :data:`RING_SHARE` of the largest piece's pixels (as many
+    as the piece's own when it is the only one). A tote seen whole at a
+    slant parts into its rim, near wall and far wall at their creases, none
+    of which closes the ring alone; an item inside, leaning on a wall, lies
+    within the ring; an item outside, touching the ring, lines no hole. Not
+    a thick roll of tape (its hole is smaller than it), nor items around a
+    gap of no reading. Taken for structures: a picture frame lying flat,
+    and items that together ring a patch at least half as large as each.
+    The floors are the objects in the holes that line :data:`FLOOR_SHARE`
+    of them (:func:`_floors`). ``boxes``: :func:`scipy.ndimage.find_objects`
+    of ``owner``.
+
+    Returns
+    -------
+    walls, floors
+        The pieces of the rings, and the objects each ring stands on.
     """
-    out: set[int] = set()
+    walls: set[int] = set()
+    floors: set[int] = set()
     members = [k for k, b in enumerate(boxes, start=1)
                if b is not None and (among is None or k in among)]
     for group in _groups(members, pairs or set()):
@@ -848,31 +860,57 @@ def enclosing_rings(owner: np.ndarray, boxes: list[Any], valid: np.ndarray,
         inside = int(np.count_nonzero(hole))
         if not inside or np.count_nonzero(valid[box] & hole) < ENCLOSED_VALID * inside:
             continue
-        outer = np.unique(crop[square_dilation(~inner, 4 * ADJACENCY_RADIUS + 3) & mine])
+        lining = hole & square_dilation(ring, 3)
+        pieces = _ring_pieces(crop, mine, inner, lining, pairs or set())
+        if not pieces.size:  # the ring lines the image frame: nothing outside it in view
+            continue
         sizes = np.bincount(crop[mine], minlength=int(crop.max()) + 1)
-        if inside >= RING_SHARE * sizes[outer].max(initial=0):
-            out.update(outer.tolist())
-            out.update(_floors(crop, hole, ring))
-    return out
+        if inside >= (RING_SHARE if pieces.size > 1 else 1.0) * sizes[pieces].max():
+            walls.update(pieces.tolist())
+            floors.update(_floors(crop, hole, lining))
+    return walls, floors
+
+
+def _ring_pieces(owner: np.ndarray, mine: np.ndarray, inner: np.ndarray, lining: np.ndarray,
+                 pairs: set[tuple[int, int]]) -> np.ndarray:
+    """The objects of a ring (``mine``, filled: ``inner``) that reach its outside and line it.
+
+    An object lines the ring within ``ADJACENCY_RADIUS + 1`` px of the
+    hole's ``lining``, or touching (``pairs``) two objects that do: a
+    tote's far rim beyond its far wall's inner face; an item outside that
+    touches the ring lines nothing.
+    """
+    reach = 2 * ADJACENCY_RADIUS + 3
+    outer = np.unique(owner[square_dilation(~inner, 2 * reach - 1) & mine])
+    lines = set(np.unique(owner[square_dilation(lining, reach) & mine]).tolist())
+    return np.array([k for k in outer.tolist() if k in lines or sum(
+        (k, j) in pairs for j in lines) >= 2], dtype=np.int64)
 
 
 #: An object inside a ring is its floor when it lines at least this share of the ring.
 FLOOR_SHARE = 0.5
 
 
-def _floors(owner: np.ndarray, hole: np.ndarray, ring: np.ndarray) -> list[int]:
-    """Objects of ``owner`` in ``hole`` that line :data:`FLOOR_SHARE` of the ``ring`` round it.
+def _floors(owner: np.ndarray, hole: np.ndarray, lining: np.ndarray) -> list[int]:
+    """Objects of ``owner`` in ``hole`` within reach of :data:`FLOOR_SHARE` of its ``lining``.
 
-    The hole's pixels next to the ring are its lining; an object within
-    :data:`ADJACENCY_RADIUS` of that share of them is the floor the ring
-    stands on (a tote's floor above the table's tolerance), an item inside
-    lines one wall or two.
+    The lining is the hole's pixels next to the ring; an object within
+    ``ADJACENCY_RADIUS + 1`` px of that share of it is the floor the ring
+    stands on (a tote's floor above the table's tolerance); an item inside
+    lines a wall or two. A floor in pieces (an item lying from wall to wall
+    across it) is none. Each object's test works in its own box.
     """
-    lining = hole & square_dilation(ring, 3)
     total = int(np.count_nonzero(lining))
-    ids = np.unique(owner[hole])
-    return [k for k in ids[ids > 0].tolist() if total and np.count_nonzero(
-        lining & square_dilation(owner == k, 2 * ADJACENCY_RADIUS + 3)) >= FLOOR_SHARE * total]
+    reach = 2 * ADJACENCY_RADIUS + 3
+    ids = np.unique(owner[square_dilation(lining, reach) & hole])
+    boxes = ndimage.find_objects(owner)
+    out = []
+    for k in ids[ids > 0].tolist():
+        box = _grown(boxes[k - 1], ADJACENCY_RADIUS + 1, owner.shape)
+        near = square_dilation(owner[box] == k, reach) & lining[box]
+        if total and np.count_nonzero(near) >= FLOOR_SHARE * total:
+            out.append(k)
+    return out
 
 
 def _groups(members: list[int], pairs: set[tuple[int, int]]) -> list[list[int]]:
