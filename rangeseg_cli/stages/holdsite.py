@@ -764,8 +764,7 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     owner = member[labels]
     boxes = ndimage.find_objects(owner)
     with np.errstate(invalid="ignore"):
-        on_support = np.abs(height) <= space.tolerance
-    standing = _touching(owner, on_support)
+        standing = _touching(owner, np.abs(height) <= space.tolerance)
     near = _near_pairs(owner, boxes)
     spans = {o.id: _height_span(*_in_box(height, owner, boxes, o.id)) for o in objects}
     hover = _hovering(spans, near, space.tolerance)
@@ -849,7 +848,12 @@ def enclosing_rings(owner: np.ndarray, boxes: list[Any], valid: np.ndarray,
     floors: set[int] = set()
     members = [k for k, b in enumerate(boxes, start=1)
                if b is not None and (among is None or k in among)]
-    for group in _groups(members, pairs or set()):
+    chosen = set(members)
+    root = _union_find_groups(members, [(i, j) for i, j in pairs or () if {i, j} <= chosen])
+    groups: dict[int, list[int]] = {}
+    for k in members:
+        groups.setdefault(root[k], []).append(k)
+    for group in groups.values():
         box = _grown(_union_box([boxes[k - 1] for k in group]), ADJACENCY_RADIUS + 1,
                      owner.shape)
         crop = owner[box]
@@ -911,25 +915,6 @@ def _floors(owner: np.ndarray, hole: np.ndarray, lining: np.ndarray) -> list[int
         if total and np.count_nonzero(near) >= FLOOR_SHARE * total:
             out.append(k)
     return out
-
-
-def _groups(members: list[int], pairs: set[tuple[int, int]]) -> list[list[int]]:
-    """The connected groups of ``members`` joined by ``pairs`` (each alone without one)."""
-    parent = {k: k for k in members}
-
-    def root(k: int) -> int:
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    for i, j in pairs:
-        if i in parent and j in parent:
-            parent[root(i)] = root(j)
-    groups: dict[int, list[int]] = {}
-    for k in members:
-        groups.setdefault(root(k), []).append(k)
-    return list(groups.values())
 
 
 def _union_box(boxes: list[tuple[slice, slice]]) -> tuple[slice, slice]:
