@@ -364,8 +364,9 @@ class WorkspaceConfig:
                              "picked, depth units; 0 = no upper bound", min=0.0, max=MAX_DEPTH)
     border_structures: bool = _opt(True, "a structure that touches the image border (or its "
                                    "invalid margin) and rises far above the pile (the robot's "
-                                   "fingers, a tote wall), or that encloses the support or, in "
-                                   "an empty view, crosses it (a tote's rim), is not picked "
+                                   "fingers, a tote wall), or that rings the floor (a tote's "
+                                   "rim and walls seen whole, and its floor) or, in an empty "
+                                   "view, crosses it (a tote's rim), is not picked "
                                    "while anything else may be; objects part at concave "
                                    "creases (a box leaning on a wall is not the wall), and a "
                                    "crack of no reading under 3 px wide puts no object at the "
