@@ -1031,3 +1031,35 @@ def test_a_tote_seen_whole_from_above_is_never_picked_its_item_is():
     found = run_pipeline(depth, config).holdsite
     faces = {view.surfaces[view.gt[s.row, s.col] - 1]["name"] for s in _sites(found)}
     assert faces == {"item top"}
+
+
+def test_an_item_lying_on_another_across_a_band_of_edge_pixels_covers_it():
+    from rangeseg_cli.stages.holdsite import ObjectInfo, covered_across_gaps
+
+    labels = np.zeros((60, 100), np.int32)
+    z = np.full(labels.shape, np.nan)
+    labels[10:50, 5:40], z[10:50, 5:40] = 1, 60.0  # an item
+    labels[15:45, 45:70], z[15:45, 45:70] = 2, 140.0  # one lying on it, 5 px of ramp between
+    labels[15:45, 78:95], z[15:45, 78:95] = 3, 50.0  # one 8 px beyond: too far to tell
+    labels[52:58, 5:40], z[52:58, 5:40] = 4, 200.0  # a structure (the arm) beside the item
+    objects = [ObjectInfo(id=k, surfaces=(k,), pixels=int((labels == k).sum()),
+                          centroid=(0.0, 0.0), structure=k == 4) for k in (1, 2, 3, 4)]
+    covered = {o.id: o.covered_by for o in covered_across_gaps(objects, labels, z, 6.0)}
+    assert covered == {1: (2,), 2: (), 3: (), 4: ()}
+    # within the step threshold the two are side by side, not one on the other
+    z[15:45, 45:70] = 64.0
+    assert all(not o.covered_by for o in covered_across_gaps(objects, labels, z, 6.0))
+
+
+def test_items_are_compared_across_edge_bands_only_on_a_view_from_above():
+    from rangeseg_cli.cell.workspace import Plane
+    from rangeseg_cli.stages.holdsite import VIEW_SLANT, seen_from_above
+
+    def support(degrees: float) -> Plane:
+        t = np.radians(degrees)
+        return Plane((0.0, -float(np.sin(t)), float(np.cos(t))), -1000.0, 0.9)
+
+    assert seen_from_above(None)
+    assert seen_from_above(support(0.0)) and seen_from_above(support(VIEW_SLANT - 1))
+    assert not seen_from_above(support(VIEW_SLANT + 1))
+    assert not seen_from_above(support(45.0)) and not seen_from_above(support(-30.0))

@@ -38,7 +38,12 @@ L-bracket, an open box) is then two objects.
 An object is *covered* when, across a step edge to another object, the other
 side is higher (median gap of the fits at the boundary midpoints): the
 top-most object of a pile is uncovered (Sec. VII, "the top-most object in
-the pile is usually selected").
+the pile is usually selected"). Beyond the paper (``border_structures``),
+also when another object, neither a structure, lies within
+:data:`STAND_REACH` px across any gap and its pixels there are higher by
+more than ``step.threshold`` (:func:`covered_across_gaps`: a camera's
+smoothed depth jump leaves a band of edge pixels between an item and the
+one lying on it), on a view from above (:func:`seen_from_above`).
 
 Step 3, order: surfaces of objects wholly in view first (an object within
 :data:`ADJACENCY_RADIUS` of the image frame, or of invalid pixels joined to
@@ -144,7 +149,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..batch.stopping import checkpoint
-from ..cell.workspace import Workspace, assess, odd_pixels
+from ..cell.workspace import Plane, Workspace, assess, odd_pixels
 from ..config import MAX_DEPTH, Config, HoldsiteConfig, InputConfig, check_config
 from ..errors import InputError
 from ..kernels.backend import Backend, select_kernels
@@ -794,6 +799,69 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     return [dataclasses.replace(o, structure=o.id in structures,
                                 stands=o.id in standing and wide.get(o.id, 0.0) >= half_width)
             for o in objects]
+
+
+def covered_across_gaps(objects: list[ObjectInfo], labels: np.ndarray, z: np.ndarray,
+                        tol: float) -> list[ObjectInfo]:
+    """``objects`` also covered by what is higher within :data:`STAND_REACH` px of them.
+
+    Beyond the paper (step 2, ``border_structures``). A depth camera smooths a
+    depth jump into a ramp of edge pixels wider than the boundary pairs'
+    reach, so an item lying on another often shares no boundary with it. Two
+    objects within :data:`STAND_REACH` px of each other across any gap
+    (:func:`_near_pairs`), neither a structure, are compared by the median
+    heights ``z`` (above the support, when there is one) of their pixels
+    within that reach of the other: the lower is covered by the higher when
+    they differ by more than ``tol`` (``step.threshold``), as across a step
+    edge. Used only on a view from above (:func:`seen_from_above`).
+    """
+    member = np.zeros(int(labels.max(initial=0)) + 1, dtype=np.int64)
+    for o in objects:
+        member[list(o.surfaces)] = o.id
+    owner = member[labels]
+    boxes = ndimage.find_objects(owner)
+    structure = {o.id for o in objects if o.structure}
+    size = 2 * STAND_REACH + 1
+    extra: dict[int, set[int]] = {}
+    for i, j in _near_pairs(owner, boxes):
+        if i > j or i in structure or j in structure:
+            continue
+        box = _grown(_union_box([boxes[i - 1], boxes[j - 1]]), STAND_REACH, owner.shape)
+        a, b = owner[box] == i, owner[box] == j
+        ha, hb = z[box][a & square_dilation(b, size)], z[box][b & square_dilation(a, size)]
+        ha, hb = ha[np.isfinite(ha)], hb[np.isfinite(hb)]
+        if not (ha.size and hb.size):
+            continue
+        gap = float(np.median(hb) - np.median(ha))
+        if abs(gap) > tol:
+            lower, upper = (i, j) if gap > 0 else (j, i)
+            extra.setdefault(lower, set()).add(upper)
+    return [dataclasses.replace(o, covered_by=tuple(sorted(set(o.covered_by) | extra[o.id])))
+            if o.id in extra else o for o in objects]
+
+
+#: Degrees between the sensor's axis and the support's normal up to which a view is from above.
+VIEW_SLANT = 20.0
+
+
+def seen_from_above(support: Plane | None) -> bool:
+    """Whether the sensor looks at ``support`` within :data:`VIEW_SLANT` degrees of its normal.
+
+    True without a support (nothing says otherwise). Beyond the paper: at a
+    slant the pixels facing each other across a band of edge pixels are
+    often an item's near top edge and the face it hides part of, not an
+    item and the one lying on it (:func:`covered_across_gaps`).
+    """
+    return support is None or abs(support.normal[2]) >= math.cos(math.radians(VIEW_SLANT))
+
+
+def _covered_from_above(objects: list[ObjectInfo], labels: np.ndarray, z: np.ndarray,
+                        space: Workspace, tol: float) -> list[ObjectInfo]:
+    """:func:`covered_across_gaps` by the heights above the support, on a view from above."""
+    if not seen_from_above(space.support):
+        return objects
+    return covered_across_gaps(objects, labels, z if space.height is None else space.height,
+                               tol)
 
 
 def _tall(spans: dict[int, tuple[float, float]], left_out: set[int]) -> set[int]:
@@ -2674,6 +2742,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
         objects = mark_structures(objects, labels, valid, lift, space, half,
                                   walls_known=background is not None)
+        objects = _covered_from_above(objects, labels, z, space, tol)
     obj_by_id = {o.id: o for o in objects}
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
     floating = floating_objects(objects) if space.support is not None else set()
