@@ -1063,3 +1063,22 @@ def test_items_are_compared_across_edge_bands_only_on_a_view_from_above():
     assert seen_from_above(support(0.0)) and seen_from_above(support(VIEW_SLANT - 1))
     assert not seen_from_above(support(VIEW_SLANT + 1))
     assert not seen_from_above(support(45.0)) and not seen_from_above(support(-30.0))
+
+
+def test_a_shadow_joined_to_the_frame_hides_nothing_of_its_caster():
+    from rangeseg_cli.stages.holdsite import shadow_casters
+
+    z = np.full((60, 90), 10.0)  # the table, label 1
+    labels = np.ones(z.shape, np.int32)
+    labels[20:40, 20:40], z[20:40, 20:40] = 2, 80.0  # a box
+    valid = np.ones(z.shape, bool)
+    valid[15:40, 40:48] = False  # its shadow on the table, right of it ...
+    valid[:16, 44:48] = False  # ... joined to the frame by a channel of no reading
+    assert shadow_casters(labels, valid, z, 6.0) == {2}
+    # what lies beyond at the box's height may go on under the invalid area
+    z[15:40, 48:60], labels[15:40, 48:60] = 80.0, 3
+    assert shadow_casters(labels, valid, z, 6.0) == set()
+    # as does a box whose invalid area runs on to the frame
+    z[15:40, 48:60], labels[15:40, 48:60] = 10.0, 1
+    valid[20:40, 40:] = False
+    assert 2 not in shadow_casters(labels, valid, z, 6.0)

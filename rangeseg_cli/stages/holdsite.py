@@ -49,7 +49,8 @@ Step 3, order: surfaces of objects wholly in view first (an object within
 :data:`ADJACENCY_RADIUS` of the image frame, or of invalid pixels joined to
 it, is a bin wall or a part cut off by the frame, whose centre of area is
 unknown; beyond the paper only invalid areas :data:`HIDING_WIDTH` px wide
-count, not the cracks of no reading along edges that join them); then those
+count, not the cracks of no reading along edges that join them, nor a
+shadow for its caster (:func:`shadow_casters`)); then those
 of uncovered objects before covered ones; within each group highest mean
 height first
 (Sec. VII: "comparing the range value of the segmented surfaces").
@@ -282,7 +283,8 @@ class ObjectInfo:
         Whether a surface lies within :data:`ADJACENCY_RADIUS` of the image
         frame or of an invalid area reaching it (a bin wall, or a part cut
         off by the frame); beyond the paper, of an invalid area at least
-        :data:`HIDING_WIDTH` px wide (:func:`outer_invalid`).
+        :data:`HIDING_WIDTH` px wide (:func:`outer_invalid`) that is not
+        its own shadow (:func:`shadow_casters`).
     structure
         Whether it is a structure, never picked (the robot's fingers, a
         tote's wall, rim or floor: :func:`mark_structures`).
@@ -436,6 +438,49 @@ def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray, width: int = 1) -
     if zone is None:
         return set()
     return _present(labels[square_dilation(zone, 2 * ADJACENCY_RADIUS + 1)])
+
+
+#: Share of a label's crossings of the hiding invalid areas that must find a lower surface
+#: beyond them for the label to be their caster (:func:`shadow_casters`).
+CASTER_SHARE = 0.9
+
+
+def shadow_casters(labels: np.ndarray, valid: np.ndarray, z: np.ndarray, tol: float
+                   ) -> set[int]:
+    """Labels beside the frame's invalid areas only as the casters of their shadows.
+
+    Beyond the paper. A depth camera's projector (or its second imager)
+    leaves a shadow of no reading beside a near item, on the surfaces behind
+    it, along the baseline (the image rows). Such a shadow hides nothing of
+    its caster. Along each row, every run of the invalid areas of
+    :func:`outer_invalid` (``HIDING_WIDTH``) is crossed from the labelled
+    pixel before it to the pixel after it, and back: a crossing that ends at
+    a valid pixel lower than its start by more than ``tol`` is a caster's.
+    A label whose crossings are at least :data:`CASTER_SHARE` a caster's
+    (none when it has none) is returned.
+    """
+    zone = outer_invalid(valid, HIDING_WIDTH)
+    if zone is None:
+        return set()
+    step = np.diff(np.pad(zone, ((0, 0), (1, 1))).view(np.int8), axis=1)
+    rows, first = np.nonzero(step == 1)
+    last = np.nonzero(step == -1)[1]  # one past each run, in the same order
+    width = zone.shape[1]
+    starts = np.concatenate([first - 1, last])  # both ends of every run ...
+    ends = np.concatenate([last, first - 1])  # ... and the far end of the crossing
+    rows = np.concatenate([rows, rows])
+    inside = (starts >= 0) & (starts < width)
+    rows, starts, ends = rows[inside], starts[inside], ends[inside]
+    owner = labels[rows, starts]
+    mine = (owner > 0) & valid[rows, starts]
+    rows, starts, ends, owner = rows[mine], starts[mine], ends[mine], owner[mine]
+    seen = (ends >= 0) & (ends < width)
+    far = np.full(rows.size, np.inf)
+    far[seen] = np.where(valid[rows[seen], ends[seen]], z[rows[seen], ends[seen]], np.inf)
+    cast = far < z[rows, starts] - tol
+    total = np.bincount(owner, minlength=int(labels.max(initial=0)) + 1)
+    casts = np.bincount(owner[cast], minlength=total.size)
+    return set(np.flatnonzero((total > 0) & (casts >= CASTER_SHARE * total)).tolist())
 
 
 #: The narrowest invalid area (px) that may hide part of an object: a depth camera's
@@ -2731,10 +2776,11 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     # Step 2: objects, and which are covered by another
     if gaps is None:
         gaps = _known_gaps(labels, coeffs, backend)  # known labels
-    # beyond the paper: objects part at concave creases, and a crack of no reading that
-    # joins the frame puts no object at the border
+    # beyond the paper: objects part at concave creases, and neither a crack of no reading
+    # that joins the frame nor a shadow puts an object at the border
     beyond = config.workspace.border_structures
-    in_frame = framed | _near_outer_invalid(labels, valid, HIDING_WIDTH) if beyond else border
+    in_frame = framed | (_near_outer_invalid(labels, valid, HIDING_WIDTH)
+                         - shadow_casters(labels, valid, z, tol)) if beyond else border
     object_of, objects = find_objects(by_id, left_out, gaps, tol, in_frame,
                                       concave_parts=beyond)
     lift = region_lift(labels, space, z, n, ids=object_of)  # step 3 orders only these
