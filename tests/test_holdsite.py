@@ -1063,22 +1063,68 @@ def test_items_are_compared_across_edge_bands_only_on_a_view_from_above():
     assert seen_from_above(support(0.0)) and seen_from_above(support(VIEW_SLANT - 1))
     assert not seen_from_above(support(VIEW_SLANT + 1))
     assert not seen_from_above(support(45.0)) and not seen_from_above(support(-30.0))
+    flipped = support(10.0)  # a camera's support normal may point either way along z
+    flipped = Plane(tuple(-v for v in flipped.normal), 1000.0, 0.9)
+    assert flipped.normal[2] < 0 and seen_from_above(flipped)
+
+
+def test_items_side_by_side_on_the_support_do_not_cover_each_other():
+    from rangeseg_cli.stages.holdsite import ObjectInfo, covered_across_gaps
+
+    labels = np.zeros((60, 100), np.int32)
+    height = np.zeros(labels.shape)  # the table between them
+    labels[10:50, 5:40], height[10:50, 5:40] = 1, 60.0
+    labels[15:45, 45:70], height[15:45, 45:70] = 2, 140.0
+    objects = [ObjectInfo(id=k, surfaces=(k,), pixels=int((labels == k).sum()),
+                          centroid=(0.0, 0.0)) for k in (1, 2)]
+    on_table = np.abs(height) <= 5.0
+    assert all(not o.covered_by for o in covered_across_gaps(objects, labels, height, 6.0,
+                                                             on_table))
+    on_table[:] = False  # a band of edge pixels between them: the higher lies on the lower
+    found = {o.id: o.covered_by for o in covered_across_gaps(objects, labels, height, 6.0,
+                                                             on_table)}
+    assert found == {1: (2,), 2: ()}
+    # a pair the step edges already relate is left as it is (never covered both ways)
+    objects[1] = dataclasses.replace(objects[1], covered_by=(1,))
+    found = {o.id: o.covered_by for o in covered_across_gaps(objects, labels, height, 6.0)}
+    assert found == {1: (), 2: (1,)}
 
 
 def test_a_shadow_joined_to_the_frame_hides_nothing_of_its_caster():
-    from rangeseg_cli.stages.holdsite import shadow_casters
+    from rangeseg_cli.stages.holdsite import HIDING_WIDTH, in_view_border, outer_invalid
+    from rangeseg_cli.stages.holdsite import shadow_casters as casters
+
+    def shadow_casters(labels, valid, z, tol):
+        return casters(labels, valid, z, tol, outer_invalid(valid, HIDING_WIDTH))
 
     z = np.full((60, 90), 10.0)  # the table, label 1
     labels = np.ones(z.shape, np.int32)
     labels[20:40, 20:40], z[20:40, 20:40] = 2, 80.0  # a box
+    labels[20:40, 39] = 0  # with a band of edge pixels along its right side
     valid = np.ones(z.shape, bool)
     valid[15:40, 40:48] = False  # its shadow on the table, right of it ...
     valid[:16, 44:48] = False  # ... joined to the frame by a channel of no reading
     assert shadow_casters(labels, valid, z, 6.0) == {2}
+    assert 2 not in in_view_border(labels, valid, z, 6.0)
+    # without a support, at a slant the order's heights are along the sensor's axis
+    from rangeseg_cli.cell.workspace import Plane, Workspace
+
+    def hidden(degrees):
+        t = np.radians(degrees)
+        return Workspace(valid, None, None, 5.0, hidden=Plane(
+            (0.0, float(np.sin(t)), float(np.cos(t))), 0.0, 0.1))
+
+    assert 2 not in in_view_border(labels, valid, z, 6.0, hidden(5.0))
+    assert 2 in in_view_border(labels, valid, z, 6.0, hidden(35.0))
     # what lies beyond at the box's height may go on under the invalid area
     z[15:40, 48:60], labels[15:40, 48:60] = 80.0, 3
     assert shadow_casters(labels, valid, z, 6.0) == set()
+    assert 2 in in_view_border(labels, valid, z, 6.0)
     # as does a box whose invalid area runs on to the frame
     z[15:40, 48:60], labels[15:40, 48:60] = 10.0, 1
     valid[20:40, 40:] = False
+    assert 2 not in shadow_casters(labels, valid, z, 6.0)
+    # or that meets it mostly down the columns: a few crossings along the rows tell nothing
+    valid = np.ones(z.shape, bool)
+    valid[:20, 15:45] = False  # an area over the box's top, reaching the frame
     assert 2 not in shadow_casters(labels, valid, z, 6.0)

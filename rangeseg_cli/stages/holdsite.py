@@ -278,7 +278,8 @@ class ObjectInfo:
     centroid
         (row, col) centre of area.
     covered_by
-        Objects higher than this one across a shared step edge.
+        Objects higher than this one across a shared step edge; beyond the
+        paper also across a band of edge pixels (:func:`covered_across_gaps`).
     touches_border
         Whether a surface lies within :data:`ADJACENCY_RADIUS` of the image
         frame or of an invalid area reaching it (a bin wall, or a part cut
@@ -434,41 +435,64 @@ def _framed(labels: np.ndarray) -> set[int]:
 
 def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray, width: int = 1) -> set[int]:
     """Labels within :data:`ADJACENCY_RADIUS` of the invalid areas of :func:`outer_invalid`."""
-    zone = outer_invalid(valid, width)
-    if zone is None:
-        return set()
-    return _present(labels[square_dilation(zone, 2 * ADJACENCY_RADIUS + 1)])
+    return _near_zone(labels, outer_invalid(valid, width))
 
 
 #: Share of a label's crossings of the hiding invalid areas that must find a lower surface
-#: beyond them for the label to be their caster (:func:`shadow_casters`).
-CASTER_SHARE = 0.9
+#: beyond them for the label to be their caster (:func:`shadow_casters`), and the fewest
+#: crossings that tell.
+CASTER_SHARE = 0.75
+MIN_CROSSINGS = 3
 
 
-def shadow_casters(labels: np.ndarray, valid: np.ndarray, z: np.ndarray, tol: float
-                   ) -> set[int]:
-    """Labels beside the frame's invalid areas only as the casters of their shadows.
+def shadow_casters(labels: np.ndarray, valid: np.ndarray, z: np.ndarray, tol: float,
+                   zone: np.ndarray | None) -> set[int]:
+    """Labels beside the invalid areas ``zone`` only as the casters of their shadows.
 
     Beyond the paper. A depth camera's projector (or its second imager)
     leaves a shadow of no reading beside a near item, on the surfaces behind
-    it, along the baseline (the image rows). Such a shadow hides nothing of
-    its caster. Along each row, every run of the invalid areas of
-    :func:`outer_invalid` (``HIDING_WIDTH``) is crossed from the labelled
-    pixel before it to the pixel after it, and back: a crossing that ends at
-    a valid pixel lower than its start by more than ``tol`` is a caster's.
-    A label whose crossings are at least :data:`CASTER_SHARE` a caster's
-    (none when it has none) is returned.
+    it. Such a shadow hides nothing of its caster. Along each row and each
+    column, every run of ``zone`` (:func:`outer_invalid`, ``HIDING_WIDTH``)
+    is crossed from the labelled pixel before it to the pixel after it, and
+    back: a crossing that ends at a valid pixel lower than its start by more
+    than ``tol`` is a caster's; one that ends at the frame, at no reading or
+    higher is not. A label with :data:`MIN_CROSSINGS` or more, at least
+    :data:`CASTER_SHARE` of them a caster's, is returned.
     """
-    zone = outer_invalid(valid, HIDING_WIDTH)
     if zone is None:
         return set()
+    n = int(labels.max(initial=0)) + 1
+    total, casts = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    for t in (lambda a: a, np.transpose):  # along the rows, then down the columns
+        owner, cast = _crossings(t(zone), t(labels), t(valid), t(z), tol)
+        total += np.bincount(owner, minlength=n)
+        casts += np.bincount(owner[cast], minlength=n)
+    return set(np.flatnonzero((total >= MIN_CROSSINGS) & (casts >= CASTER_SHARE * total))
+               .tolist())
+
+
+def _crossings(zone: np.ndarray, labels: np.ndarray, valid: np.ndarray, z: np.ndarray,
+               tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """The labels starting each crossing of a run of ``zone`` along a row, and whether it casts.
+
+    Both ends of every run start one, from the first labelled pixel within
+    :data:`ADJACENCY_RADIUS` beyond it (a valid unlabelled edge pixel may lie
+    between); a start must be a valid labelled pixel.
+    """
     step = np.diff(np.pad(zone, ((0, 0), (1, 1))).view(np.int8), axis=1)
     rows, first = np.nonzero(step == 1)
     last = np.nonzero(step == -1)[1]  # one past each run, in the same order
     width = zone.shape[1]
     starts = np.concatenate([first - 1, last])  # both ends of every run ...
     ends = np.concatenate([last, first - 1])  # ... and the far end of the crossing
+    away = np.sign(starts - ends)  # from the run, outwards
     rows = np.concatenate([rows, rows])
+    for _ in range(ADJACENCY_RADIUS):  # over the edge pixels next to the run
+        inside = (starts >= 0) & (starts < width)
+        edge = np.zeros(starts.size, bool)
+        edge[inside] = (labels[rows[inside], starts[inside]] == 0) & valid[rows[inside],
+                                                                          starts[inside]]
+        starts = np.where(edge, starts + away, starts)
     inside = (starts >= 0) & (starts < width)
     rows, starts, ends = rows[inside], starts[inside], ends[inside]
     owner = labels[rows, starts]
@@ -477,10 +501,34 @@ def shadow_casters(labels: np.ndarray, valid: np.ndarray, z: np.ndarray, tol: fl
     seen = (ends >= 0) & (ends < width)
     far = np.full(rows.size, np.inf)
     far[seen] = np.where(valid[rows[seen], ends[seen]], z[rows[seen], ends[seen]], np.inf)
-    cast = far < z[rows, starts] - tol
-    total = np.bincount(owner, minlength=int(labels.max(initial=0)) + 1)
-    casts = np.bincount(owner[cast], minlength=total.size)
-    return set(np.flatnonzero((total > 0) & (casts >= CASTER_SHARE * total)).tolist())
+    return owner, far < z[rows, starts] - tol
+
+
+def _near_zone(labels: np.ndarray, zone: np.ndarray | None) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of ``zone`` (none without one)."""
+    if zone is None:
+        return set()
+    return _present(labels[square_dilation(zone, 2 * ADJACENCY_RADIUS + 1)])
+
+
+def in_view_border(labels: np.ndarray, valid: np.ndarray, z: np.ndarray, tol: float,
+                   space: Workspace | None = None) -> set[int]:
+    """Labels near the invalid areas that may hide part of them (beyond the paper, step 3).
+
+    Those within :data:`ADJACENCY_RADIUS` of the invalid areas at least
+    :data:`HIDING_WIDTH` px wide that reach the frame (:func:`outer_invalid`),
+    but their shadows' casters (:func:`shadow_casters`). Casters count
+    only where step 3's heights are heights: above a support, or on a view
+    from above (:func:`seen_from_above` of ``space.hidden``). At a slant
+    without a support the nearest item along the sensor's axis would go
+    first, often not the highest (the SR300 frame of ``sample_data/arc``
+    alone).
+    """
+    zone = outer_invalid(valid, HIDING_WIDTH)
+    near = _near_zone(labels, zone)
+    if space is not None and space.support is None and not seen_from_above(space.hidden):
+        return near
+    return near - shadow_casters(labels, valid, z, tol, zone)
 
 
 #: The narrowest invalid area (px) that may hide part of an object: a depth camera's
@@ -847,7 +895,8 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
 
 
 def covered_across_gaps(objects: list[ObjectInfo], labels: np.ndarray, z: np.ndarray,
-                        tol: float) -> list[ObjectInfo]:
+                        tol: float, on_support: np.ndarray | None = None
+                        ) -> list[ObjectInfo]:
     """``objects`` also covered by what is higher within :data:`STAND_REACH` px of them.
 
     Beyond the paper (step 2, ``border_structures``). A depth camera smooths a
@@ -858,7 +907,9 @@ def covered_across_gaps(objects: list[ObjectInfo], labels: np.ndarray, z: np.nda
     heights ``z`` (above the support, when there is one) of their pixels
     within that reach of the other: the lower is covered by the higher when
     they differ by more than ``tol`` (``step.threshold``), as across a step
-    edge. Used only on a view from above (:func:`seen_from_above`).
+    edge. Not two already covered one by the other, nor two with mostly
+    ``on_support`` pixels (bool, the support's) between them: side by side
+    on the table. Used only on a view from above (:func:`seen_from_above`).
     """
     member = np.zeros(int(labels.max(initial=0)) + 1, dtype=np.int64)
     for o in objects:
@@ -868,12 +919,18 @@ def covered_across_gaps(objects: list[ObjectInfo], labels: np.ndarray, z: np.nda
     structure = {o.id for o in objects if o.structure}
     size = 2 * STAND_REACH + 1
     extra: dict[int, set[int]] = {}
+    known = {(o.id, k) for o in objects for k in o.covered_by}
     for i, j in _near_pairs(owner, boxes):
-        if i > j or i in structure or j in structure:
+        if i > j or i in structure or j in structure or (i, j) in known or (j, i) in known:
             continue
         box = _grown(_union_box([boxes[i - 1], boxes[j - 1]]), STAND_REACH, owner.shape)
         a, b = owner[box] == i, owner[box] == j
-        ha, hb = z[box][a & square_dilation(b, size)], z[box][b & square_dilation(a, size)]
+        near_a, near_b = square_dilation(a, size), square_dilation(b, size)
+        if on_support is not None:
+            between = on_support[box][near_a & near_b & ~a & ~b]
+            if between.size and np.count_nonzero(between) > between.size / 2:
+                continue
+        ha, hb = z[box][a & near_b], z[box][b & near_a]
         ha, hb = ha[np.isfinite(ha)], hb[np.isfinite(hb)]
         if not (ha.size and hb.size):
             continue
@@ -892,7 +949,10 @@ VIEW_SLANT = 20.0
 def seen_from_above(support: Plane | None) -> bool:
     """Whether the sensor looks at ``support`` within :data:`VIEW_SLANT` degrees of its normal.
 
-    True without a support (nothing says otherwise). Beyond the paper: at a
+    True without a plane (nothing says otherwise); either side of the plane
+    (its normal points to the sensor). Without intrinsics the angle is in
+    the height map's units (``units_per_pixel``, else pixels against
+    height units). Beyond the paper: at a
     slant the pixels facing each other across a band of edge pixels are
     often an item's near top edge and the face it hides part of, not an
     item and the one lying on it (:func:`covered_across_gaps`).
@@ -902,11 +962,17 @@ def seen_from_above(support: Plane | None) -> bool:
 
 def _covered_from_above(objects: list[ObjectInfo], labels: np.ndarray, z: np.ndarray,
                         space: Workspace, tol: float) -> list[ObjectInfo]:
-    """:func:`covered_across_gaps` by the heights above the support, on a view from above."""
-    if not seen_from_above(space.support):
+    """:func:`covered_across_gaps` by the heights above the support, on a view from above.
+
+    The plane judged is the support, else the image's dominant plane that
+    holds too little to be one (``space.hidden``: heaped items).
+    """
+    if not seen_from_above(space.support or space.hidden):
         return objects
-    return covered_across_gaps(objects, labels, z if space.height is None else space.height,
-                               tol)
+    if space.height is None:
+        return covered_across_gaps(objects, labels, z, tol)
+    return covered_across_gaps(objects, labels, space.height, tol,
+                               np.abs(space.height) <= space.tolerance)
 
 
 def _tall(spans: dict[int, tuple[float, float]], left_out: set[int]) -> set[int]:
@@ -1330,7 +1396,8 @@ def floating_objects(objects: list[ObjectInfo]) -> set[int]:
     """Objects that neither stand on the support nor lie on one that does (transitively).
 
     An object lies on another when it is higher across a step edge between
-    them (``covered_by``). A floating object hangs in the air: the robot's
+    them (``covered_by``, before :func:`covered_across_gaps`: an item near
+    a higher one need not rest on it). A floating object hangs in the air: the robot's
     finger seen without the arm that holds it. The search tries it last.
     """
     supported = {o.id for o in objects if o.stands}
@@ -2779,8 +2846,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     # beyond the paper: objects part at concave creases, and neither a crack of no reading
     # that joins the frame nor a shadow puts an object at the border
     beyond = config.workspace.border_structures
-    in_frame = framed | (_near_outer_invalid(labels, valid, HIDING_WIDTH)
-                         - shadow_casters(labels, valid, z, tol)) if beyond else border
+    in_frame = framed | in_view_border(labels, valid, z, tol, space) if beyond else border
     object_of, objects = find_objects(by_id, left_out, gaps, tol, in_frame,
                                       concave_parts=beyond)
     lift = region_lift(labels, space, z, n, ids=object_of)  # step 3 orders only these
@@ -2788,10 +2854,11 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
         objects = mark_structures(objects, labels, valid, lift, space, half,
                                   walls_known=background is not None)
-        objects = _covered_from_above(objects, labels, z, space, tol)
+    # what hangs in the air, by the step edges alone (the links below are no support)
+    floating = floating_objects(objects) if space.support is not None else set()
+    objects = _covered_from_above(objects, labels, z, space, tol) if beyond else objects
     obj_by_id = {o.id: o for o in objects}
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
-    floating = floating_objects(objects) if space.support is not None else set()
     # Step 3: objects on the support (or on what is) first, then wholly in view, then
     # uncovered; each group highest first
     order = sorted((by_id[i] for i in candidates), key=lambda s: (
