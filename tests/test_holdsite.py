@@ -1088,3 +1088,24 @@ def test_items_side_by_side_on_the_support_do_not_cover_each_other():
     objects[1] = dataclasses.replace(objects[1], covered_by=(1,))
     found = {o.id: o.covered_by for o in covered_across_gaps(objects, labels, height, 6.0)}
     assert found == {1: (), 2: (1,)}
+
+
+def test_items_are_compared_by_their_height_above_the_support_not_along_the_axis():
+    from rangeseg_cli.cell.workspace import Plane, Workspace
+    from rangeseg_cli.stages.holdsite import ObjectInfo, _covered_from_above
+
+    labels = np.zeros((60, 100), np.int32)
+    labels[10:50, 5:40], labels[15:45, 45:70] = 1, 2
+    z = np.where(labels == 1, 90.0, np.where(labels == 2, 40.0, np.nan))  # 1 nearer the camera
+    height = np.where(labels == 1, 30.0, np.where(labels == 2, 80.0, np.nan))  # 2 higher
+    objects = [ObjectInfo(id=k, surfaces=(k,), pixels=int((labels == k).sum()),
+                          centroid=(0.0, 0.0)) for k in (1, 2)]
+
+    def space(degrees: float) -> Workspace:
+        t = np.radians(degrees)
+        return Workspace(labels > 0, height, Plane((0.0, float(np.sin(t)), float(np.cos(t))),
+                                                   0.0, 0.9), 5.0)
+
+    found = {o.id: o.covered_by for o in _covered_from_above(objects, labels, z, space(10), 6.0)}
+    assert found == {1: (2,), 2: ()}
+    assert _covered_from_above(objects, labels, z, space(40), 6.0) == objects  # at a slant
