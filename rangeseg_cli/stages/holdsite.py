@@ -1304,8 +1304,9 @@ def floating_objects(objects: list[ObjectInfo]) -> set[int]:
     """Objects that neither stand on the support nor lie on one that does (transitively).
 
     An object lies on another when it is higher across a step edge between
-    them (``covered_by``, before :func:`covered_across_gaps`: an item near
-    a higher one need not rest on it). A floating object hangs in the air: the robot's
+    them, or across a band of edge pixels (``covered_by``; the latter,
+    :func:`covered_across_gaps`, can also take a hovering object near a
+    higher item for lying on it). A floating object hangs in the air: the robot's
     finger seen without the arm that holds it. The search tries it last.
     """
     supported = {o.id for o in objects if o.stands}
@@ -2762,9 +2763,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
         objects = mark_structures(objects, labels, valid, lift, space, half,
                                   walls_known=background is not None)
-    # what hangs in the air, by the step edges alone (the links below are no support)
-    floating = floating_objects(objects) if space.support is not None else set()
     objects = _covered_from_above(objects, labels, z, space, tol) if beyond else objects
+    floating = floating_objects(objects) if space.support is not None else set()
     obj_by_id = {o.id: o for o in objects}
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
     # Step 3: objects on the support (or on what is) first, then wholly in view, then
