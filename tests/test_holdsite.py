@@ -1090,6 +1090,46 @@ def test_items_side_by_side_on_the_support_do_not_cover_each_other():
     assert found == {1: (), 2: (1,)}
 
 
+def test_a_shadow_joined_to_the_frame_hides_nothing_of_its_caster():
+    from rangeseg_cli.stages.holdsite import HIDING_WIDTH, in_view_border, outer_invalid
+    from rangeseg_cli.stages.holdsite import shadow_casters as casters
+
+    def shadow_casters(labels, valid, z, tol):
+        return casters(labels, valid, z, tol, outer_invalid(valid, HIDING_WIDTH))
+
+    z = np.full((60, 90), 10.0)  # the table, label 1
+    labels = np.ones(z.shape, np.int32)
+    labels[20:40, 20:40], z[20:40, 20:40] = 2, 80.0  # a box
+    labels[20:40, 39] = 0  # with a band of edge pixels along its right side
+    valid = np.ones(z.shape, bool)
+    valid[15:40, 40:48] = False  # its shadow on the table, right of it ...
+    valid[:16, 44:48] = False  # ... joined to the frame by a channel of no reading
+    assert shadow_casters(labels, valid, z, 6.0) == {2}
+    assert 2 not in in_view_border(labels, valid, z, 6.0)
+    # without a support, at a slant the order's heights are along the sensor's axis
+    from rangeseg_cli.cell.workspace import Plane, Workspace
+
+    def hidden(degrees):
+        t = np.radians(degrees)
+        return Workspace(valid, None, None, 5.0, hidden=Plane(
+            (0.0, float(np.sin(t)), float(np.cos(t))), 0.0, 0.1))
+
+    assert 2 not in in_view_border(labels, valid, z, 6.0, hidden(5.0))
+    assert 2 in in_view_border(labels, valid, z, 6.0, hidden(35.0))
+    # what lies beyond at the box's height may go on under the invalid area
+    z[15:40, 48:60], labels[15:40, 48:60] = 80.0, 3
+    assert shadow_casters(labels, valid, z, 6.0) == set()
+    assert 2 in in_view_border(labels, valid, z, 6.0)
+    # as does a box whose invalid area runs on to the frame
+    z[15:40, 48:60], labels[15:40, 48:60] = 10.0, 1
+    valid[20:40, 40:] = False
+    assert 2 not in shadow_casters(labels, valid, z, 6.0)
+    # or that meets it mostly down the columns: a few crossings along the rows tell nothing
+    valid = np.ones(z.shape, bool)
+    valid[:20, 15:45] = False  # an area over the box's top, reaching the frame
+    assert 2 not in shadow_casters(labels, valid, z, 6.0)
+
+
 def test_items_are_compared_by_their_height_above_the_support_not_along_the_axis():
     from rangeseg_cli.cell.workspace import Plane, Workspace
     from rangeseg_cli.stages.holdsite import ObjectInfo, _covered_from_above

@@ -49,7 +49,8 @@ Step 3, order: surfaces of objects wholly in view first (an object within
 :data:`ADJACENCY_RADIUS` of the image frame, or of invalid pixels joined to
 it, is a bin wall or a part cut off by the frame, whose centre of area is
 unknown; beyond the paper only invalid areas :data:`HIDING_WIDTH` px wide
-count, not the cracks of no reading along edges that join them); then those
+count, not the cracks of no reading along edges that join them, nor a
+shadow for its caster (:func:`shadow_casters`)); then those
 of uncovered objects before covered ones; within each group highest mean
 height first
 (Sec. VII: "comparing the range value of the segmented surfaces").
@@ -283,7 +284,8 @@ class ObjectInfo:
         Whether a surface lies within :data:`ADJACENCY_RADIUS` of the image
         frame or of an invalid area reaching it (a bin wall, or a part cut
         off by the frame); beyond the paper, of an invalid area at least
-        :data:`HIDING_WIDTH` px wide (:func:`outer_invalid`).
+        :data:`HIDING_WIDTH` px wide (:func:`outer_invalid`) that is not
+        its own shadow (:func:`shadow_casters`).
     structure
         Whether it is a structure, never picked (the robot's fingers, a
         tote's wall, rim or floor: :func:`mark_structures`).
@@ -433,10 +435,100 @@ def _framed(labels: np.ndarray) -> set[int]:
 
 def _near_outer_invalid(labels: np.ndarray, valid: np.ndarray, width: int = 1) -> set[int]:
     """Labels within :data:`ADJACENCY_RADIUS` of the invalid areas of :func:`outer_invalid`."""
-    zone = outer_invalid(valid, width)
+    return _near_zone(labels, outer_invalid(valid, width))
+
+
+#: Share of a label's crossings of the hiding invalid areas that must find a lower surface
+#: beyond them for the label to be their caster (:func:`shadow_casters`), and the fewest
+#: crossings that tell.
+CASTER_SHARE = 0.75
+MIN_CROSSINGS = 3
+
+
+def shadow_casters(labels: np.ndarray, valid: np.ndarray, z: np.ndarray, tol: float,
+                   zone: np.ndarray | None) -> set[int]:
+    """Labels beside the invalid areas ``zone`` only as the casters of their shadows.
+
+    Beyond the paper. A depth camera's projector (or its second imager)
+    leaves a shadow of no reading beside a near item, on the surfaces behind
+    it. Such a shadow hides nothing of its caster. Along each row and each
+    column, every run of ``zone`` (:func:`outer_invalid`, ``HIDING_WIDTH``)
+    is crossed from the labelled pixel before it to the pixel after it, and
+    back: a crossing that ends at a valid pixel lower than its start by more
+    than ``tol`` is a caster's; one that ends at the frame, at no reading or
+    higher is not. A label with :data:`MIN_CROSSINGS` or more, at least
+    :data:`CASTER_SHARE` of them a caster's, is returned.
+    """
+    if zone is None:
+        return set()
+    n = int(labels.max(initial=0)) + 1
+    total, casts = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    for t in (lambda a: a, np.transpose):  # along the rows, then down the columns
+        owner, cast = _crossings(t(zone), t(labels), t(valid), t(z), tol)
+        total += np.bincount(owner, minlength=n)
+        casts += np.bincount(owner[cast], minlength=n)
+    return set(np.flatnonzero((total >= MIN_CROSSINGS) & (casts >= CASTER_SHARE * total))
+               .tolist())
+
+
+def _crossings(zone: np.ndarray, labels: np.ndarray, valid: np.ndarray, z: np.ndarray,
+               tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """The labels starting each crossing of a run of ``zone`` along a row, and whether it casts.
+
+    Both ends of every run start one, from the first labelled pixel within
+    :data:`ADJACENCY_RADIUS` beyond it (a valid unlabelled edge pixel may lie
+    between); a start must be a valid labelled pixel.
+    """
+    step = np.diff(np.pad(zone, ((0, 0), (1, 1))).view(np.int8), axis=1)
+    rows, first = np.nonzero(step == 1)
+    last = np.nonzero(step == -1)[1]  # one past each run, in the same order
+    width = zone.shape[1]
+    starts = np.concatenate([first - 1, last])  # both ends of every run ...
+    ends = np.concatenate([last, first - 1])  # ... and the far end of the crossing
+    away = np.sign(starts - ends)  # from the run, outwards
+    rows = np.concatenate([rows, rows])
+    for _ in range(ADJACENCY_RADIUS):  # over the edge pixels next to the run
+        inside = (starts >= 0) & (starts < width)
+        edge = np.zeros(starts.size, bool)
+        edge[inside] = (labels[rows[inside], starts[inside]] == 0) & valid[rows[inside],
+                                                                          starts[inside]]
+        starts = np.where(edge, starts + away, starts)
+    inside = (starts >= 0) & (starts < width)
+    rows, starts, ends = rows[inside], starts[inside], ends[inside]
+    owner = labels[rows, starts]
+    mine = (owner > 0) & valid[rows, starts]
+    rows, starts, ends, owner = rows[mine], starts[mine], ends[mine], owner[mine]
+    seen = (ends >= 0) & (ends < width)
+    far = np.full(rows.size, np.inf)
+    far[seen] = np.where(valid[rows[seen], ends[seen]], z[rows[seen], ends[seen]], np.inf)
+    return owner, far < z[rows, starts] - tol
+
+
+def _near_zone(labels: np.ndarray, zone: np.ndarray | None) -> set[int]:
+    """Labels within :data:`ADJACENCY_RADIUS` of ``zone`` (none without one)."""
     if zone is None:
         return set()
     return _present(labels[square_dilation(zone, 2 * ADJACENCY_RADIUS + 1)])
+
+
+def in_view_border(labels: np.ndarray, valid: np.ndarray, z: np.ndarray, tol: float,
+                   space: Workspace | None = None) -> set[int]:
+    """Labels near the invalid areas that may hide part of them (beyond the paper, step 3).
+
+    Those within :data:`ADJACENCY_RADIUS` of the invalid areas at least
+    :data:`HIDING_WIDTH` px wide that reach the frame (:func:`outer_invalid`),
+    but their shadows' casters (:func:`shadow_casters`). Casters count
+    only where step 3's heights are heights: above a support, or on a view
+    from above (:func:`seen_from_above` of ``space.hidden``). At a slant
+    without a support the nearest item along the sensor's axis would go
+    first, often not the highest (the SR300 frame of ``sample_data/arc``
+    alone).
+    """
+    zone = outer_invalid(valid, HIDING_WIDTH)
+    near = _near_zone(labels, zone)
+    if space is not None and space.support is None and not seen_from_above(space.hidden):
+        return near
+    return near - shadow_casters(labels, valid, z, tol, zone)
 
 
 #: The narrowest invalid area (px) that may hide part of an object: a depth camera's
@@ -2752,10 +2844,10 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     # Step 2: objects, and which are covered by another
     if gaps is None:
         gaps = _known_gaps(labels, coeffs, backend)  # known labels
-    # beyond the paper: objects part at concave creases, and a crack of no reading that
-    # joins the frame puts no object at the border
+    # beyond the paper: objects part at concave creases, and neither a crack of no reading
+    # that joins the frame nor a shadow puts an object at the border
     beyond = config.workspace.border_structures
-    in_frame = framed | _near_outer_invalid(labels, valid, HIDING_WIDTH) if beyond else border
+    in_frame = framed | in_view_border(labels, valid, z, tol, space) if beyond else border
     object_of, objects = find_objects(by_id, left_out, gaps, tol, in_frame,
                                       concave_parts=beyond)
     lift = region_lift(labels, space, z, n, ids=object_of)  # step 3 orders only these
