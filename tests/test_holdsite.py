@@ -1034,7 +1034,7 @@ def test_a_tote_seen_whole_from_above_is_never_picked_its_item_is():
 
 
 def test_an_item_lying_on_another_across_a_band_of_edge_pixels_covers_it():
-    from rangeseg_cli.stages.holdsite import ObjectInfo, covered_across_gaps
+    from rangeseg_cli.stages.holdsite import ObjectInfo, ObjectMap, covered_across_gaps
 
     labels = np.zeros((60, 100), np.int32)
     z = np.full(labels.shape, np.nan)
@@ -1044,11 +1044,12 @@ def test_an_item_lying_on_another_across_a_band_of_edge_pixels_covers_it():
     labels[52:58, 5:40], z[52:58, 5:40] = 4, 200.0  # a structure (the arm) beside the item
     objects = [ObjectInfo(id=k, surfaces=(k,), pixels=int((labels == k).sum()),
                           centroid=(0.0, 0.0), structure=k == 4) for k in (1, 2, 3, 4)]
-    covered = {o.id: o.covered_by for o in covered_across_gaps(objects, labels, z, 6.0)}
+    where = ObjectMap(objects, labels)
+    covered = {o.id: o.covered_by for o in covered_across_gaps(objects, where, z, 6.0)}
     assert covered == {1: (2,), 2: (), 3: (), 4: ()}
     # within the step threshold the two are side by side, not one on the other
     z[15:45, 45:70] = 64.0
-    assert all(not o.covered_by for o in covered_across_gaps(objects, labels, z, 6.0))
+    assert all(not o.covered_by for o in covered_across_gaps(objects, where, z, 6.0))
 
 
 def test_items_are_compared_across_edge_bands_only_on_a_view_from_above():
@@ -1069,7 +1070,7 @@ def test_items_are_compared_across_edge_bands_only_on_a_view_from_above():
 
 
 def test_items_side_by_side_on_the_support_do_not_cover_each_other():
-    from rangeseg_cli.stages.holdsite import ObjectInfo, covered_across_gaps
+    from rangeseg_cli.stages.holdsite import ObjectInfo, ObjectMap, covered_across_gaps
 
     labels = np.zeros((60, 100), np.int32)
     height = np.zeros(labels.shape)  # the table between them
@@ -1078,15 +1079,16 @@ def test_items_side_by_side_on_the_support_do_not_cover_each_other():
     objects = [ObjectInfo(id=k, surfaces=(k,), pixels=int((labels == k).sum()),
                           centroid=(0.0, 0.0)) for k in (1, 2)]
     on_table = np.abs(height) <= 5.0
-    assert all(not o.covered_by for o in covered_across_gaps(objects, labels, height, 6.0,
+    where = ObjectMap(objects, labels)
+    assert all(not o.covered_by for o in covered_across_gaps(objects, where, height, 6.0,
                                                              on_table))
     on_table[:] = False  # a band of edge pixels between them: the higher lies on the lower
-    found = {o.id: o.covered_by for o in covered_across_gaps(objects, labels, height, 6.0,
+    found = {o.id: o.covered_by for o in covered_across_gaps(objects, where, height, 6.0,
                                                              on_table)}
     assert found == {1: (2,), 2: ()}
     # a pair the step edges already relate is left as it is (never covered both ways)
     objects[1] = dataclasses.replace(objects[1], covered_by=(1,))
-    found = {o.id: o.covered_by for o in covered_across_gaps(objects, labels, height, 6.0)}
+    found = {o.id: o.covered_by for o in covered_across_gaps(objects, where, height, 6.0)}
     assert found == {1: (), 2: (1,)}
 
 
@@ -1132,7 +1134,7 @@ def test_a_shadow_joined_to_the_frame_hides_nothing_of_its_caster():
 
 def test_items_are_compared_by_their_height_above_the_support_not_along_the_axis():
     from rangeseg_cli.cell.workspace import Plane, Workspace
-    from rangeseg_cli.stages.holdsite import ObjectInfo, _covered_from_above
+    from rangeseg_cli.stages.holdsite import ObjectInfo, ObjectMap, _covered_from_above
 
     labels = np.zeros((60, 100), np.int32)
     labels[10:50, 5:40], labels[15:45, 45:70] = 1, 2
@@ -1140,12 +1142,15 @@ def test_items_are_compared_by_their_height_above_the_support_not_along_the_axis
     height = np.where(labels == 1, 30.0, np.where(labels == 2, 80.0, np.nan))  # 2 higher
     objects = [ObjectInfo(id=k, surfaces=(k,), pixels=int((labels == k).sum()),
                           centroid=(0.0, 0.0)) for k in (1, 2)]
+    where = ObjectMap(objects, labels)
 
     def space(degrees: float) -> Workspace:
         t = np.radians(degrees)
         return Workspace(labels > 0, height, Plane((0.0, float(np.sin(t)), float(np.cos(t))),
                                                    0.0, 0.9), 5.0)
 
-    found = {o.id: o.covered_by for o in _covered_from_above(objects, labels, z, space(10), 6.0)}
+    on_support = np.abs(height) <= 5.0
+    found = {o.id: o.covered_by
+             for o in _covered_from_above(objects, where, z, space(10), 6.0, on_support)}
     assert found == {1: (2,), 2: ()}
-    assert _covered_from_above(objects, labels, z, space(40), 6.0) == objects  # at a slant
+    assert _covered_from_above(objects, where, z, space(40), 6.0, on_support) == objects

@@ -810,8 +810,36 @@ def border_zone(valid: np.ndarray, extent: np.ndarray | None = None) -> np.ndarr
     return zone
 
 
-def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.ndarray,
-                    lift: np.ndarray, space: Workspace, half_width: float,
+class ObjectMap:
+    """Where step 2's objects lie in the image (beyond the paper).
+
+    Built once for :func:`mark_structures` and :func:`covered_across_gaps`
+    (the flags those set do not move an object).
+
+    Attributes
+    ----------
+    owner
+        int64 (H, W): each pixel's object id, 0 for none.
+    boxes
+        :func:`scipy.ndimage.find_objects` of ``owner``.
+    """
+
+    def __init__(self, objects: list[ObjectInfo], labels: np.ndarray) -> None:
+        size = max([int(labels.max(initial=0)), *(max(o.surfaces) for o in objects)]) + 1
+        member = np.zeros(size, dtype=np.int64)
+        for o in objects:
+            member[list(o.surfaces)] = o.id
+        self.owner = member[labels]
+        self.boxes: list[Any] = ndimage.find_objects(self.owner)
+
+    @functools.cached_property
+    def near(self) -> set[tuple[int, int]]:
+        """Pairs of objects within :data:`STAND_REACH` px across any gap, both ways."""
+        return _near_pairs(self.owner, self.boxes)
+
+
+def mark_structures(objects: list[ObjectInfo], where: ObjectMap, valid: np.ndarray,
+                    space: Workspace, half_width: float, on_support: np.ndarray | None,
                     walls_known: bool = False) -> list[ObjectInfo]:
     """Structures at the border, never picked (module Notes, step 0).
 
@@ -854,16 +882,10 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
     nothing else in view, a lone item longer than the view.
     """
     height = space.height
-    if height is None or not objects:
+    if height is None or on_support is None or not objects:
         return objects
-    member = np.zeros(int(lift.size), dtype=np.int64)
-    for o in objects:
-        member[list(o.surfaces)] = o.id
-    owner = member[labels]
-    boxes = ndimage.find_objects(owner)
-    with np.errstate(invalid="ignore"):
-        standing = _touching(owner, np.abs(height) <= space.tolerance)
-    near = _near_pairs(owner, boxes)
+    owner, boxes, near = where.owner, where.boxes, where.near
+    standing = _touching(owner, on_support)
     spans = {o.id: _height_span(*_in_box(height, owner, boxes, o.id)) for o in objects}
     hover = _hovering(spans, near, space.tolerance)
     zone = border_zone(valid, space.extent)
@@ -894,7 +916,7 @@ def mark_structures(objects: list[ObjectInfo], labels: np.ndarray, valid: np.nda
             for o in objects]
 
 
-def covered_across_gaps(objects: list[ObjectInfo], labels: np.ndarray, z: np.ndarray,
+def covered_across_gaps(objects: list[ObjectInfo], where: ObjectMap, z: np.ndarray,
                         tol: float, on_support: np.ndarray | None = None
                         ) -> list[ObjectInfo]:
     """``objects`` also covered by what is higher within :data:`STAND_REACH` px of them.
@@ -911,16 +933,12 @@ def covered_across_gaps(objects: list[ObjectInfo], labels: np.ndarray, z: np.nda
     ``on_support`` pixels (bool, the support's) between them: side by side
     on the table. Used only on a view from above (:func:`seen_from_above`).
     """
-    member = np.zeros(int(labels.max(initial=0)) + 1, dtype=np.int64)
-    for o in objects:
-        member[list(o.surfaces)] = o.id
-    owner = member[labels]
-    boxes = ndimage.find_objects(owner)
+    owner, boxes = where.owner, where.boxes
     structure = {o.id for o in objects if o.structure}
     size = 2 * STAND_REACH + 1
     extra: dict[int, set[int]] = {}
     known = {(o.id, k) for o in objects for k in o.covered_by}
-    for i, j in _near_pairs(owner, boxes):
+    for i, j in where.near:
         if i > j or i in structure or j in structure or (i, j) in known or (j, i) in known:
             continue
         box = _grown(_union_box([boxes[i - 1], boxes[j - 1]]), STAND_REACH, owner.shape)
@@ -960,8 +978,9 @@ def seen_from_above(support: Plane | None) -> bool:
     return support is None or abs(support.normal[2]) >= math.cos(math.radians(VIEW_SLANT))
 
 
-def _covered_from_above(objects: list[ObjectInfo], labels: np.ndarray, z: np.ndarray,
-                        space: Workspace, tol: float) -> list[ObjectInfo]:
+def _covered_from_above(objects: list[ObjectInfo], where: ObjectMap, z: np.ndarray,
+                        space: Workspace, tol: float, on_support: np.ndarray | None
+                        ) -> list[ObjectInfo]:
     """:func:`covered_across_gaps` by the heights above the support, on a view from above.
 
     The plane judged is the support, else the image's dominant plane that
@@ -970,9 +989,8 @@ def _covered_from_above(objects: list[ObjectInfo], labels: np.ndarray, z: np.nda
     if not seen_from_above(space.support or space.hidden):
         return objects
     if space.height is None:
-        return covered_across_gaps(objects, labels, z, tol)
-    return covered_across_gaps(objects, labels, space.height, tol,
-                               np.abs(space.height) <= space.tolerance)
+        return covered_across_gaps(objects, where, z, tol)
+    return covered_across_gaps(objects, where, space.height, tol, on_support)
 
 
 def _tall(spans: dict[int, tuple[float, float]], left_out: set[int]) -> set[int]:
@@ -2853,9 +2871,10 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     lift = region_lift(labels, space, z, n, ids=object_of)  # step 3 orders only these
     if beyond:
         half = (min(footprint_pixels(config.holdsite, config.input, depth)) - 1) / 2
-        objects = mark_structures(objects, labels, valid, lift, space, half,
+        where = ObjectMap(objects, labels)
+        objects = mark_structures(objects, where, valid, space, half, on_support,
                                   walls_known=background is not None)
-    objects = _covered_from_above(objects, labels, z, space, tol) if beyond else objects
+        objects = _covered_from_above(objects, where, z, space, tol, on_support)
     floating = floating_objects(objects) if space.support is not None else set()
     obj_by_id = {o.id: o for o in objects}
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
