@@ -1154,3 +1154,41 @@ def test_items_are_compared_by_their_height_above_the_support_not_along_the_axis
              for o in _covered_from_above(objects, where, z, space(10), 6.0, on_support)}
     assert found == {1: (2,), 2: ()}
     assert _covered_from_above(objects, where, z, space(40), 6.0, on_support) == objects
+
+
+def test_windows_keep_clear_of_pixels_beside_no_reading_when_the_surface_allows():
+    from scipy import ndimage
+
+    z = table()
+    z[12:52, 12:52] = 120.0
+    result = run(noisy(z))
+    heights, labels = holdsite_module._check(result.heights, result.labels)
+    box = surface_at(result, 32, 32)
+    valid = np.isfinite(heights)
+    valid[28:31, 20:23] = False  # a dropout in the box's top (its pixels left unlabelled)
+    labels = np.where(valid, labels, 0)
+    beside = ndimage.binary_dilation(~valid, np.ones((3, 3), bool)) & valid
+    cfg = holdsite_module.effective_holdsite(load_config())
+
+    def scene(mask):
+        return holdsite_module._Scene(labels, mask, heights, cfg, holdsite_module._angles(cfg))
+
+    def touching(hits):
+        return [bool(beside[window(Site(int(r), int(c), cfg.size))].any())
+                for r, c in zip(hits.rows, hits.cols, strict=True)]
+
+    plain = scene(valid)
+    found, _ = holdsite_module._collect(plain, [box], 1)
+    assert any(touching(found[0]))  # the windows beside the dropout are accepted ...
+    clear = scene(valid & ~beside)
+    found, _ = holdsite_module._collect(plain, [box], 1, clear)
+    assert found[0].scene is clear and not any(touching(found[0]))  # ... but left out
+    found, _ = holdsite_module._collect(plain, [box], 1, scene(valid & False))
+    assert found[0].scene is plain  # with none clear, the surface keeps its windows
+
+
+@dataclasses.dataclass
+class Site:
+    row: int
+    col: int
+    size: tuple[int, int]

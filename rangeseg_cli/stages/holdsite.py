@@ -61,6 +61,10 @@ Step 4, candidates in a surface: window centres where the footprint
 the standard deviation of the 2-D AR (:func:`~rangeseg_cli.stages.edges.ar_2d`)
 over the footprint is <= ``holdsite.max_ar_std`` (window means of AR and
 AR^2). The first surface in the order with a candidate holds the site.
+Beyond the paper (``border_structures``), a surface's windows keep clear
+of the valid pixels beside no reading (a camera's readings at the edge of
+a shadow or dropout are the least sure) when any of them is accepted, else
+they may touch them (:func:`_collect`).
 The paper's bound, 1, is about what noise of its noisiest images (sigma_o
 = 2) gives alone (0.525 sigma: :func:`ar_noise_std`); beyond the paper's
 noise range (with ``[input] auto_thresholds``, as the thresholds) it grows
@@ -2661,14 +2665,22 @@ def _in_view_if_any(found: list[_Hits], object_of: dict[int, int],
     return inside or found
 
 
-def _collect(scene: _Scene, order: list[Surface], wanted: int) -> tuple[list[_Hits], list[_Hits]]:
-    """Search surfaces in order until ``wanted`` have accepted windows; (found, missed)."""
+def _collect(scene: _Scene, order: list[Surface], wanted: int, clear: _Scene | None = None
+             ) -> tuple[list[_Hits], list[_Hits]]:
+    """Search surfaces in order until ``wanted`` have accepted windows; (found, missed).
+
+    With ``clear`` (the scene without the pixels beside no reading), a
+    surface's windows come from it when one is accepted there.
+    """
     found: list[_Hits] = []
     missed: list[_Hits] = []
     for s in order:
-        sized = scene.for_surface(s)
-        hits = surface_windows(sized, s)
-        hits.scene = sized
+        for one in (clear, scene) if clear is not None else (scene,):
+            sized = one.for_surface(s)
+            hits = surface_windows(sized, s)
+            hits.scene = sized
+            if _has_level(sized, hits):
+                break
         (found if _has_level(sized, hits) else missed).append(hits)
         if len(found) >= wanted:
             break
@@ -2887,10 +2899,12 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     if config.input.auto_thresholds:  # else the bound as given: no lateral scale needed
         hold = dataclasses.replace(hold, max_ar_std=ar_std_limit(
             hold, config.input, noise, lateral_scale(z, config.input)))
-    scene = _Scene(labels, valid & space.pickable, z, hold, _angles(hold), backend,
-                   config.input, flat_limit(hold, config.input, noise),
-                   None if space.support is None else space.support.normal)
-    found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates)
+    args = (z, hold, _angles(hold), backend, config.input, flat_limit(hold, config.input, noise),
+            None if space.support is None else space.support.normal)
+    scene = _Scene(labels, valid & space.pickable, *args)
+    clear = _Scene(labels, valid & space.pickable & ~square_dilation(~valid, 3), *args) \
+        if beyond else None
+    found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates, clear)
     if space.hidden is not None:  # no support: the border is the one cue to a wall or a rim
         found = _in_view_if_any(found, object_of, obj_by_id)
     bg, camera = tuple(sorted(background_ids)), config.input.has_intrinsics
