@@ -1181,10 +1181,12 @@ def test_windows_keep_clear_of_pixels_beside_no_reading_when_the_surface_allows(
     found, _ = holdsite_module._collect(plain, [box], 1)
     assert any(touching(found[0]))  # the windows beside the dropout are accepted ...
     clear = scene(valid & ~beside)
-    found, _ = holdsite_module._collect(plain, [box], 1, clear)
+    found, _ = holdsite_module._collect(plain, [box], 1, (clear, {box.id}))
     assert found[0].scene is clear and not any(touching(found[0]))  # ... but left out
-    found, _ = holdsite_module._collect(plain, [box], 1, scene(valid & False))
+    found, _ = holdsite_module._collect(plain, [box], 1, (scene(valid & False), {box.id}))
     assert found[0].scene is plain  # with none clear, the surface keeps its windows
+    found, _ = holdsite_module._collect(plain, [box], 1, (clear, set()))
+    assert found[0].scene is plain  # a surface with no pixel beside no reading: one search
 
 
 @dataclasses.dataclass

@@ -2665,23 +2665,36 @@ def _in_view_if_any(found: list[_Hits], object_of: dict[int, int],
     return inside or found
 
 
-def _collect(scene: _Scene, order: list[Surface], wanted: int, clear: _Scene | None = None
-             ) -> tuple[list[_Hits], list[_Hits]]:
+def _clear_of_no_reading(scene: _Scene, valid: np.ndarray, args: tuple[Any, ...]
+                         ) -> tuple[_Scene, set[int]]:
+    """``scene`` without the valid pixels beside no reading, and the surfaces that have them.
+
+    ``args``: the scene's arguments after its labels and mask (:func:`_collect`).
+    """
+    beside = valid & square_dilation(~valid, 3)
+    return (_Scene(scene.labels, scene.valid & ~beside, *args),
+            _present(scene.labels[beside]))
+
+
+def _collect(scene: _Scene, order: list[Surface], wanted: int,
+             clear: tuple[_Scene, set[int]] | None = None) -> tuple[list[_Hits], list[_Hits]]:
     """Search surfaces in order until ``wanted`` have accepted windows; (found, missed).
 
-    With ``clear`` (the scene without the pixels beside no reading), a
-    surface's windows come from it when one is accepted there.
+    With ``clear`` (the scene without the pixels beside no reading, and the
+    surfaces that have such pixels), such a surface's windows come from
+    that scene when one is accepted there; the others' are the same in both.
     """
     found: list[_Hits] = []
     missed: list[_Hits] = []
     for s in order:
-        for one in (clear, scene) if clear is not None else (scene,):
+        for one in (clear[0], scene) if clear and s.id in clear[1] else (scene,):
             sized = one.for_surface(s)
             hits = surface_windows(sized, s)
             hits.scene = sized
-            if _has_level(sized, hits):
+            accepted = _has_level(sized, hits)
+            if accepted:
                 break
-        (found if _has_level(sized, hits) else missed).append(hits)
+        (found if accepted else missed).append(hits)
         if len(found) >= wanted:
             break
     return found, missed
@@ -2902,8 +2915,7 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     args = (z, hold, _angles(hold), backend, config.input, flat_limit(hold, config.input, noise),
             None if space.support is None else space.support.normal)
     scene = _Scene(labels, valid & space.pickable, *args)
-    clear = _Scene(labels, valid & space.pickable & ~square_dilation(~valid, 3), *args) \
-        if beyond else None
+    clear = _clear_of_no_reading(scene, valid, args) if beyond else None
     found, missed = _collect(scene, order, 1 + config.holdsite.max_candidates, clear)
     if space.hidden is not None:  # no support: the border is the one cue to a wall or a rim
         found = _in_view_if_any(found, object_of, obj_by_id)
