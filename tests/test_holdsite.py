@@ -142,6 +142,46 @@ def test_plank_leaning_on_box_is_preferred_to_the_higher_box_it_covers():
     assert result.holdsite.holdsite.surface == plank_id
 
 
+def plank_from_the_frame_onto_a_box():
+    """A box wholly in view and a plank rising onto it from the image frame's left side."""
+    z = table((64, 72))
+    z[16:48, 30:60] = 100.0
+    cols = np.arange(36, dtype=float)
+    z[26:38, 0:36] = 30.0 + 2.34 * cols  # 30 at the frame, 112 at its end on the box
+    return z
+
+
+def test_an_item_at_the_border_lying_on_one_in_view_comes_before_the_covered_one():
+    result = run(noisy(plank_from_the_frame_onto_a_box()))
+    box, plank = result.labels[20, 45], result.labels[32, 15]
+    objects = {o.id: o for o in result.holdsite.objects}
+    plank_obj = next(o for o in objects.values() if plank in o.surfaces)
+    box_obj = next(o for o in objects.values() if box in o.surfaces)
+    assert plank_obj.touches_border and not box_obj.touches_border
+    assert box_obj.covered_by == (plank_obj.id,)
+    assert result.holdsite.holdsite.surface == plank
+    assert "lying on an item in view" in result.holdsite.reason
+    # the paper's order: the object wholly in view first, covered or not
+    paper = run_pipeline(noisy(plank_from_the_frame_onto_a_box()), load_config(preset="paper"))
+    assert paper.holdsite.holdsite.surface == paper.labels[20, 45]
+
+
+def _object(oid, covered_by=(), border=False, structure=False):
+    return holdsite_module.ObjectInfo(oid, (oid,), 100, (0.0, 0.0), covered_by, border,
+                                      structure)
+
+
+@pytest.mark.parametrize(("lower", "floating", "expected"), [
+    (_object(1, (2,)), set(), {2}),  # an item in view holds it up
+    (_object(1, (2,)), {1}, set()),  # a finger under the arm holds nothing up
+    (_object(1, (2,), border=True), set(), set()),  # not wholly in view
+    (_object(1, (2,), structure=True), set(), set()),  # a tote's floor
+])
+def test_lying_on_seen_items_needs_an_item_in_view_that_is_held_up(lower, floating, expected):
+    upper = _object(2, border=True)
+    assert holdsite_module.lying_on_seen_items([lower, upper], floating) == expected
+
+
 def test_bin_wall_on_image_border_is_tried_after_a_box_in_view():
     z = table()
     rows = np.arange(64, dtype=float)[:, None]

@@ -54,6 +54,13 @@ shadow for its caster (:func:`shadow_casters`)); then those
 of uncovered objects before covered ones; within each group highest mean
 height first
 (Sec. VII: "comparing the range value of the segmented surfaces").
+Beyond the paper (``border_structures``), an uncovered object at the
+border that lies on an item wholly in view comes after the uncovered
+objects in view and before the covered ones (:func:`lying_on_seen_items`:
+the item stands or lies on what does, and is no structure; in a heaped
+tote the top item often reaches the tote's wall or the frame, and it is
+what covers the items under it). The robot's arm over its finger is not
+so promoted: a finger held up by nothing holds nothing up.
 
 Step 4, candidates in a surface: window centres where the footprint
 (``holdsite.size``; a non-square one at every ``rotation_step`` degrees in
@@ -2572,9 +2579,27 @@ def effective_holdsite(config: Config) -> HoldsiteConfig:
     return hold
 
 
-def _preference(obj: ObjectInfo, s: Surface, lift: np.ndarray) -> tuple[bool, bool, float, int]:
-    """Sort key of step 3: in view, uncovered, highest (above the support when known)."""
-    return obj.touches_border, obj.covered, -float(lift[s.id]), s.id
+def lying_on_seen_items(objects: list[ObjectInfo], floating: set[int]) -> set[int]:
+    """Objects that lie on an item wholly in view, which stands or lies on what does.
+
+    The item is no structure and not floating (:func:`floating_objects`): a
+    finger hanging under the robot's arm holds nothing up.
+    """
+    return set().union(*(o.covered_by for o in objects if not (
+        o.touches_border or o.structure or o.id in floating)))
+
+
+def _group(obj: ObjectInfo, on_seen: set[int]) -> int:
+    """Step 3's group: in view and uncovered; on top at the border; covered; the border."""
+    if not obj.touches_border:
+        return 2 if obj.covered else 0
+    return 1 if not obj.covered and obj.id in on_seen else 3
+
+
+def _preference(obj: ObjectInfo, s: Surface, lift: np.ndarray, on_seen: set[int]
+                ) -> tuple[int, bool, float, int]:
+    """Sort key of step 3: group (:func:`_group`), uncovered, highest (above the support)."""
+    return _group(obj, on_seen), obj.covered, -float(lift[s.id]), s.id
 
 
 def _check(z: np.ndarray, labels: np.ndarray, backend: Backend = "auto", **frames: Any
@@ -2757,10 +2782,12 @@ def _axis(scene: _Scene) -> str:
 
 
 def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: HoldsiteConfig,
-             axis: str = "") -> str:
-    """How the chosen site was found."""
+             axis: str = "", on_top: bool = False) -> str:
+    """How the chosen site was found (``on_top``: in :func:`lying_on_seen_items`)."""
     state = ("touching the image border" if obj.touches_border else "in view") + (
         ", covered" if obj.covered else ", uncovered")
+    if on_top and obj.touches_border and not obj.covered:
+        state += ", lying on an item in view: before the covered ones in view"
     text = (f"surface {site.surface} ({site.surface_type}) of object {obj.id} ({state}) is the "
             f"first in the search order (objects in view, uncovered, highest surface first) "
             f"with a {site.size[0]}x{site.size[1]} window with AR std <= {cfg.max_ar_std:g}")
@@ -2905,8 +2932,10 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
     # Step 3: objects on the support (or on what is) first, then wholly in view, then
     # uncovered; each group highest first
+    on_seen = lying_on_seen_items(objects, floating) if beyond else set()
     order = sorted((by_id[i] for i in candidates), key=lambda s: (
-        object_of[s.id] in floating, *_preference(obj_by_id[object_of[s.id]], s, lift)))
+        object_of[s.id] in floating, *_preference(obj_by_id[object_of[s.id]], s, lift,
+                                                  on_seen)))
     # Step 4: acceptable windows, surface by surface
     hold = effective_holdsite(config)
     if config.input.auto_thresholds:  # else the bound as given: no lateral scale needed
@@ -2932,7 +2961,8 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     rank = {s.id: k for k, s in enumerate(order)}
     first = rank[found[0].surface.id]  # (carved pieces are named by their region below)
     before = [h for h in missed if rank[h.surface.id] < first]
-    reason = (_success(sites[0], obj_by_id[sites[0].object], before, hold, _axis(scene))
+    reason = (_success(sites[0], obj_by_id[sites[0].object], before, hold, _axis(scene),
+                       sites[0].object in on_seen)
               + _unit_note(config) + _background_note(space)
               + _hidden_support_note(space))
     return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera, out)
