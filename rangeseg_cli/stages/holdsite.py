@@ -60,7 +60,8 @@ objects in view and before the covered ones (:func:`lying_on_seen_items`:
 the item stands or lies on what does, and is no structure; in a heaped
 tote the top item often reaches the tote's wall or the frame, and it is
 what covers the items under it). The robot's arm over its finger is not
-so promoted: a finger held up by nothing holds nothing up.
+so promoted: a finger held up by nothing holds nothing up. Without a
+support nothing tells what is held up, and nothing is promoted.
 
 Step 4, candidates in a surface: window centres where the footprint
 (``holdsite.size``; a non-square one at every ``rotation_step`` degrees in
@@ -2930,9 +2931,11 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     floating = floating_objects(objects) if space.support is not None else set()
     obj_by_id = {o.id: o for o in objects}
     candidates = {i: o for i, o in object_of.items() if not obj_by_id[o].structure}
-    # Step 3: objects on the support (or on what is) first, then wholly in view, then
-    # uncovered; each group highest first
-    on_seen = lying_on_seen_items(objects, floating) if beyond else set()
+    # Step 3: objects on the support (or on what is) first, then wholly in view (or, with a
+    # support, uncovered at the border and lying on an item in view), then uncovered;
+    # each group highest first. Without a support nothing tells a finger from an item.
+    on_seen = (lying_on_seen_items(objects, floating)
+               if beyond and space.support is not None else set())
     order = sorted((by_id[i] for i in candidates), key=lambda s: (
         object_of[s.id] in floating, *_preference(obj_by_id[object_of[s.id]], s, lift,
                                                   on_seen)))
