@@ -2784,10 +2784,10 @@ def _axis(scene: _Scene) -> str:
 
 def _success(site: Holdsite, obj: ObjectInfo, missed: list[_Hits], cfg: HoldsiteConfig,
              axis: str = "", on_top: bool = False) -> str:
-    """How the chosen site was found (``on_top``: in :func:`lying_on_seen_items`)."""
+    """How the chosen site was found (``on_top``: in step 3's group 1, :func:`_group`)."""
     state = ("touching the image border" if obj.touches_border else "in view") + (
         ", covered" if obj.covered else ", uncovered")
-    if on_top and obj.touches_border and not obj.covered:
+    if on_top:
         state += ", lying on an item in view: before the covered ones in view"
     text = (f"surface {site.surface} ({site.surface_type}) of object {obj.id} ({state}) is the "
             f"first in the search order (objects in view, uncovered, highest surface first) "
@@ -2964,8 +2964,9 @@ def find_holdsite(z: np.ndarray, labels: np.ndarray, surfaces: list[Surface],
     rank = {s.id: k for k, s in enumerate(order)}
     first = rank[found[0].surface.id]  # (carved pieces are named by their region below)
     before = [h for h in missed if rank[h.surface.id] < first]
-    reason = (_success(sites[0], obj_by_id[sites[0].object], before, hold, _axis(scene),
-                       sites[0].object in on_seen)
+    chosen = obj_by_id[sites[0].object]
+    reason = (_success(sites[0], chosen, before, hold, _axis(scene),
+                       _group(chosen, on_seen) == 1)
               + _unit_note(config) + _background_note(space)
               + _hidden_support_note(space))
     return HoldsiteResult(sites[0], reason, tuple(sites[1:]), bg, objs, camera, out)
