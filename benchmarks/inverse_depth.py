@@ -42,14 +42,19 @@ from typing import Any
 import numpy as np
 
 from rangeseg_cli import __version__
-from rangeseg_cli.batch.io import read_image, read_json
+from rangeseg_cli.batch.io import read_image
 from rangeseg_cli.config import load_config, parse_settings
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth.camera import camera_stem, write_camera_scenes
 from rangeseg_cli.synth.evaluate import hoover_compare
 
 sys.path.insert(0, str(Path(__file__).parent))
-from real_cells import PRESET, frame_settings, parse_seeds  # noqa: E402
+from real_cells import (  # noqa: E402
+    PRESET,
+    depth_in_mm,
+    frame_settings,
+    parse_seeds,
+    render_frame,
+)
 
 RESULTS = Path(__file__).parent / "results"
 SCENES = ("cam-pile", "cam-tote", "cam-gripper", "cam-full-tote")
@@ -67,14 +72,10 @@ def one_frame(job: tuple[str, int]) -> dict[str, Any]:
     """Hoover counts of one frame, segmented as depth and as inverse depth."""
     name, seed = job
     with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(tmp) / "frames"
-        write_camera_scenes(folder, [name], [seed], size=(480, 640))
-        stem = folder / camera_stem(name, seed)
-        info = read_json(stem.with_name(stem.name + ".gt.json"))
-        gt = np.load(stem.with_name(stem.name + ".gt.npy"))
+        stem, info, gt = render_frame(Path(tmp) / "frames", name, seed, (480, 640))
         raw = read_image(stem.with_name(stem.name + ".png"))
     camera = info["camera"]
-    depth = np.where(raw > 0, raw * float(camera["metres_per_raw"]) * 1000.0, np.nan)
+    depth = depth_in_mm(raw, camera)
     d0 = float(np.nanmedian(depth))
     as_depth = load_config(preset=PRESET, overrides=parse_settings(frame_settings(info, [])))
     as_inverse = load_config(overrides={"input": {"units_per_pixel": d0 / float(camera["fx"]),

@@ -107,11 +107,7 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str,
                          float, float, int]) -> dict[str, Any]:
     """Render, run and score one frame (in a worker process)."""
     name, seed, size, extra, background, max_tilt, tmp, dropouts, noise, mount, band = job
-    folder = Path(tmp) / camera_stem(name, seed)
-    write_camera_scenes(folder, [name], [seed], size=size, tilt=mount)
-    stem = folder / camera_stem(name, seed)
-    info = read_json(stem.with_name(stem.name + ".gt.json"))
-    gt = np.load(stem.with_name(stem.name + ".gt.npy"))
+    stem, info, gt = render_frame(Path(tmp) / camera_stem(name, seed), name, seed, size, mount)
     gt[:, :band] = 0  # no reading there: nothing to judge a window on
     config = load_config(preset=PRESET, overrides=parse_settings(frame_settings(info, extra)))
     kwargs: dict[str, Any] = {}
@@ -125,8 +121,7 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str,
                           config, **kwargs)
     seconds = time.perf_counter() - start
     doc = result.holdsite.to_dict()
-    depth_mm = np.where(raw > 0, raw * 1000.0 * float(info["camera"]["metres_per_raw"]),
-                        np.nan)
+    depth_mm = depth_in_mm(raw, info["camera"])
     height_mm = world_heights(depth_mm, info["camera"])
     window = (footprint_at_depth(config.holdsite.footprint_mm, info["camera"], depth_mm)
               if any(config.holdsite.footprint_mm) else None)
@@ -142,6 +137,20 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str,
             "holdsite": None if doc["holdsite"] is None else
             {k: doc["holdsite"][k] for k in ("row", "col", "size", "angle")},
             "pipeline_reason": doc.get("reason", "")}
+
+
+def render_frame(folder: Path, name: str, seed: int, size: tuple[int, int], tilt: float = 0.0
+                 ) -> tuple[Path, dict[str, Any], np.ndarray]:
+    """Render one camera frame into ``folder``: its file stem, gt.json and GT labels."""
+    write_camera_scenes(folder, [name], [seed], size=size, tilt=tilt)
+    stem = folder / camera_stem(name, seed)
+    return (stem, read_json(stem.with_name(stem.name + ".gt.json")),
+            np.load(stem.with_name(stem.name + ".gt.npy")))
+
+
+def depth_in_mm(raw: np.ndarray, camera: dict[str, Any]) -> np.ndarray:
+    """A frame's raw depth in mm along the optical axis, NaN where it has no reading."""
+    return np.where(raw > 0, raw * 1000.0 * float(camera["metres_per_raw"]), np.nan)
 
 
 def world_heights(depth_mm: np.ndarray, camera: dict[str, Any]) -> np.ndarray:
