@@ -121,12 +121,26 @@ def markdown(table: dict[str, dict[str, dict[str, int]]], seeds: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", default="300-309", help="e.g. 300-309 or 325,330")
-    parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--scenes", default=",".join(SCENES),
+                        help="camera scenes with items (default: all four)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS / "inverse_depth",
                         help="results path without suffix")
     args = parser.parse_args(argv)
-    jobs = [(name, seed) for name in args.scenes.split(",") for seed in parse_seeds(args.seeds)]
+    names = [n.strip() for n in args.scenes.split(",") if n.strip()]
+    unknown = [n for n in names if n not in SCENES]
+    if unknown or not names:
+        parser.error(f"--scenes: unknown {', '.join(unknown) or '(none given)'}; allowed: "
+                     + ", ".join(SCENES))
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0:
+        parser.error(f"--seeds {args.seeds!r}: expected seeds >= 0 as 300-309 or 325,330")
+    if args.jobs < 1:
+        parser.error(f"--jobs {args.jobs}: expected 1 or more")
+    jobs = [(name, seed) for name in names for seed in seeds]
     with ProcessPoolExecutor(args.jobs) as pool:
         frames = list(pool.map(one_frame, jobs))
     table = summarise(frames)

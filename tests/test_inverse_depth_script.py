@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
@@ -43,3 +44,18 @@ def test_summary_sums_each_way_per_scene_and_over_all():
     assert table["cam-pile"]["inverse"]["over"] == 0
     text = inverse_depth.markdown(table, "1")
     assert "| all | 8 | 6 -> 7 |" in text.splitlines()[-1]
+
+
+@pytest.mark.parametrize(("argv", "named"), [
+    (["--scenes", "cam-pile,cam-nothing"], "--scenes: unknown cam-nothing"),
+    (["--scenes", "cam-empty-tote"], "--scenes: unknown cam-empty-tote"),
+    (["--seeds", "abc"], "--seeds 'abc'"),
+    (["--seeds", "5-2"], "--seeds '5-2'"),
+    (["--jobs", "0"], "--jobs 0"),
+])
+def test_bad_options_are_one_line_errors_naming_the_option(argv, named, capsys):
+    with pytest.raises(SystemExit) as stop:
+        inverse_depth.main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert named in err and "Traceback" not in err
