@@ -52,9 +52,10 @@ def render() -> str:
             lines += ["", f"## `[{table}]`", "", ref.table_help, ""]
         lines.append(f"- `{ref.key} = {ref.default}` ({ref.allowed}): {ref.help}.")
     quiet = sorted({f"`{p.name}`" for p in PASSES if not p.uses_noise})
+    quiet_list = ", ".join(quiet[:-1]) + " and " + quiet[-1]
     lines += ["", "## The refinement's passes", "",
               "`[refine] passes` names the passes that run; they run in this order, each a cut, "
-              "a merge or an assign; all but " + " and ".join(quiet) + " scale their tests by "
+              f"a merge or an assign; all but {quiet_list} scale their tests by "
               "the image's noise:", ""]
     lines += [f"{i}. `{p.name}` ({p.op}): {p.about}." for i, p in
               enumerate((p for p in PASSES if p.about), start=1)]

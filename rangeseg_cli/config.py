@@ -188,7 +188,7 @@ class GrowConfig:
 #: The passes of the refinement after growing, in the order they run
 #: (:data:`rangeseg_cli.refine.passes.PASSES`): each one cuts, merges or assigns.
 REFINE_PASSES = ("split", "recover", "fill", "merge", "recut", "bridge", "chamfers", "carve",
-                 "facets", "boundaries", "merge_planes", "join_occluded")
+                 "facets", "boundaries", "merge_planes", "join_occluded", "leftovers")
 #: Passes that extend another and run only with it (the bridge takes the fill's test farther).
 PASS_NEEDS = {"bridge": ("fill",)}
 
@@ -201,7 +201,8 @@ class RefineConfig:
                                    "of the default list): split, recover and the others cut "
                                    "regions; merge, merge_planes and join_occluded join them; "
                                    "fill, bridge and boundaries give edge and boundary pixels "
-                                   "to a neighbour (docs/configuration.md); [] = the paper's "
+                                   "to a neighbour; leftovers gives what no surface took a "
+                                   "region (docs/configuration.md); [] = the paper's "
                                    "step 4 alone", names=REFINE_PASSES)
     fit_factor: float = _opt(1.25, "the fit test: one surface of order <= 2 explains a region "
                              "when its RMS error is at most this times the image noise "

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from conftest import chamfered, passes_without, random_labels
 from rangeseg_cli.config import load_config
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.refine.fill import bridge_gaps, fill_edges
+from rangeseg_cli.refine.fill import bridge_gaps, fill_edges, keep_leftovers
 from rangeseg_cli.synth.evaluate import hoover_compare
 from rangeseg_cli.synth.scenes import render_scene
 
@@ -354,3 +354,62 @@ def test_bridge_only_labels_unlabelled_valid_pixels_from_planes_within_reach(see
         window = padded[r:r + 5, c:c + 5].copy()
         window[2, 2] = 0
         assert out[r, c] in window  # within two pixels of a pixel of its region
+
+
+# --------------------------------------------------------------------------- leftovers
+
+
+def test_leftovers_a_group_of_min_pixels_gets_a_region_a_smaller_one_none():
+    components = np.zeros((12, 20), np.int32)
+    components[1:11, 1:19] = 1
+    components[:, 9] = 0  # an edge line: the component's pixels right of it are one group
+    labels = np.where(components > 0, 1, 0).astype(np.int32)
+    labels[2:8, 12:17] = 0  # 30 pixels no surface took
+    labels[2:4, 3:5] = 0  # 4 pixels
+    before = labels.copy()
+    out = keep_leftovers(labels, components, 20)
+    np.testing.assert_array_equal(labels, before)  # the input is not modified
+    assert (out[2:8, 12:17] == 2).all()
+    assert (out[2:4, 3:5] == 0).all()
+    assert (out[components == 0] == 0).all()  # edges and the frame stay unlabelled
+    np.testing.assert_array_equal(out[before > 0], before[before > 0])
+    assert (keep_leftovers(labels, components, 31)[2:8, 12:17] == 0).all()
+
+
+def test_leftovers_groups_touching_at_a_corner_are_two_regions():
+    components = np.ones((10, 10), np.int32)
+    labels = np.ones((10, 10), np.int32)
+    labels[0:5, 0:5] = 0
+    labels[5:10, 5:10] = 0  # two 25-pixel groups meeting at a corner only
+    out = keep_leftovers(labels, components, 20)
+    assert set(np.unique(out[labels == 0]).tolist()) == {2, 3}
+    assert out[0, 0] == 2 and out[9, 9] == 3  # numbered in raster order
+
+
+def test_leftovers_refuse_labels_and_components_of_other_shapes():
+    with pytest.raises(ValueError, match="same shape"):
+        keep_leftovers(np.zeros((4, 4), np.int32), np.zeros((4, 5), np.int32), 20)
+
+
+def egg_crate(amplitude: float = 8.0, period: float = 8.0, size: int = 96) -> np.ndarray:
+    """A tilted sheet with bumps and dents (no surface of order <= 2 explains it)."""
+    r, c = np.mgrid[:size, :size].astype(np.float64)
+    return 100.0 + 0.2 * c + amplitude * np.sin(c / period) * np.sin(r / period)
+
+
+def _largest_leftover(result) -> int:
+    from scipy import ndimage
+
+    left = (result.components > 0) & (result.labels == 0)
+    groups, n = ndimage.label(left, structure=ndimage.generate_binary_structure(2, 1))
+    return int(np.bincount(groups.ravel())[1:].max(initial=0))
+
+
+def test_every_component_pixel_of_a_sheet_no_quadric_explains_ends_in_a_region():
+    config = load_config()
+    result = run_pipeline(egg_crate(), config)
+    assert _largest_leftover(result) < config.link.min_component
+    # without the pass the cuts of the refinement leave patches of it in no region
+    assert _largest_leftover(run_pipeline(egg_crate(), passes_without("leftovers"))) >= 100
+    # the paper's growing labels every pixel of a component
+    assert _largest_leftover(run_pipeline(egg_crate(), load_config(preset="paper"))) == 0

@@ -298,15 +298,17 @@ def test_each_pass_is_the_cut_merge_or_assign_of_issue_33():
         "split", "recover", "recut", "chamfers", "carve", "facets"}
     assert {name for name, op in ops.items() if op == "merge"} == {
         "merge", "merge_planes", "join_occluded"}
-    assert {name for name, op in ops.items() if op == "assign"} == {"fill", "bridge", "boundaries"}
+    assert {name for name, op in ops.items() if op == "assign"} == {
+        "fill", "bridge", "boundaries", "leftovers"}
 
 
 @pytest.mark.parametrize("name", [n for n in REFINE_PASSES if n != "bridge"])
 def test_noise_and_threads_are_derived_from_the_passes_on(name: str):
-    """All but the fill read the noise; the split, recovery, recut and facets share work."""
+    """All but the fill and the leftovers read the noise; the split, recovery, recut and facets
+    share work."""
     config = _passes(name)
     assert [p.name for p in refinement.active_passes(config)] == [name]
-    assert refinement.uses_noise(config) == (name != "fill")
+    assert refinement.uses_noise(config) == (name not in ("fill", "leftovers"))
     assert refinement.shares_work(config) == (name in {"split", "recover", "recut", "facets"})
 
 

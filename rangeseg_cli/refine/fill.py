@@ -41,6 +41,7 @@ from scipy import ndimage
 from ..config import GrowConfig
 from ..kernels.backend import Backend, select_kernels
 from ..stages.grow import evaluate_quadric, fit_models, planar_regions
+from ..stages.link import FOUR_CONNECTED
 from ..stages.rangeimage import chessboard_offsets, labels_on_valid
 
 #: The eight neighbour offsets (drow, dcol) in raster order of the 3x3 window.
@@ -253,3 +254,56 @@ def _frontier(open_: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     flat = np.unique(r[inside] * w + c[inside])
     flat = flat[open_.ravel()[flat]]
     return flat // w, flat % w
+
+
+def keep_leftovers(labels: np.ndarray, components: np.ndarray, min_pixels: int) -> np.ndarray:
+    """Give each group of component pixels that no region holds a region of its own.
+
+    Beyond Al-Hujazi & Sood (1990). The paper's growing (Sec. V-4) labels
+    every pixel of a component of step 3 (Sec. V-3). The cuts of the
+    refinement do not: a piece regrows only over the pixels its surface
+    explains, and a trim leaves pixels out to be regrown. Where no surface
+    of order <= 2 explains a patch -- a crumpled bag, a cloth, a real
+    camera's surfaces whose error grows with their extent -- the patch is
+    left with no region, and neither the surface descriptions nor the
+    holdsite see it. This last pass gives each 4-connected group of such
+    pixels (connected as the components of step 3 are) of at least
+    ``min_pixels`` a region of its own; its surface description reports how
+    well a quadric fits it (``rms_error``).
+
+    Parameters
+    ----------
+    labels
+        int (H, W) regions 1..n, 0 = none.
+    components
+        int (H, W) components of step 3, 0 = none (edges and invalid pixels).
+    min_pixels
+        ``[link] min_component``: smaller groups stay unlabelled, as step 3
+        drops smaller components.
+
+    Returns
+    -------
+    numpy.ndarray
+        int32 (H, W): ``labels`` with the groups numbered n+1, n+2, ... in
+        raster order of their first pixel; every other pixel unchanged.
+
+    Raises
+    ------
+    ValueError
+        When the shapes of ``labels`` and ``components`` differ.
+    """
+    out = np.asarray(labels, dtype=np.int32).copy()
+    if np.shape(components) != out.shape:
+        raise ValueError(f"`labels` {out.shape} and `components` {np.shape(components)} "
+                         "must have the same shape")
+    left = (np.asarray(components) > 0) & (out == 0)
+    groups, n = ndimage.label(left, structure=FOUR_CONNECTED)
+    if n == 0:
+        return out
+    keep = np.bincount(groups.ravel(), minlength=n + 1) >= min_pixels
+    keep[0] = False
+    ids = np.zeros(n + 1, dtype=np.int32)
+    first = int(out.max(initial=0)) + 1
+    ids[keep] = np.arange(first, first + int(np.count_nonzero(keep)), dtype=np.int32)
+    out[left] = ids[groups[left]]
+    return out

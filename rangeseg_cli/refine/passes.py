@@ -63,6 +63,11 @@ def _split(s: Scene, labels: np.ndarray) -> np.ndarray:
                                                noise=s.sigma, fits=s.fits)
 
 
+def _leftovers(s: Scene, labels: np.ndarray) -> np.ndarray:
+    return _function("fill", "keep_leftovers")(labels, s.components,
+                                                s.config.link.min_component)
+
+
 def _recover(s: Scene, labels: np.ndarray) -> np.ndarray:
     return _function("recover", "recover_faces")(s.z, s.components, labels, s.config,
                                                  noise=s.sigma)
@@ -148,6 +153,9 @@ PASSES: tuple[Pass, ...] = (
          uses_noise=False),
     Pass("join_occluded", "merge", "patches of one surface that something in front divides "
          "get one label", _with_noise("occlusion", "join_occluded")),
+    Pass("leftovers", "assign", "pixels of a component that no surface took, in 4-connected "
+         "groups of at least [link] min_component, get a region each (the paper's growing "
+         "leaves none)", _leftovers, uses_noise=False),
 )
 
 
