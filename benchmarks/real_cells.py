@@ -52,6 +52,7 @@ import numpy as np
 from rangeseg_cli import __version__
 from rangeseg_cli.batch.io import read_image, read_json
 from rangeseg_cli.config import load_config, parse_settings
+from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.pipeline import run_pipeline
 from rangeseg_cli.synth.camera import CAMERA_SCENES, camera_stem, write_camera_scenes
 from rangeseg_cli.synth.evaluate import (
@@ -73,6 +74,16 @@ def parse_seeds(text: str) -> list[int]:
         lo, _, hi = part.strip().partition("-")
         seeds.extend(range(int(lo), int(hi or lo) + 1))
     return seeds
+
+
+def _size(text: str) -> tuple[int, int] | None:
+    """``"480x640"`` as (rows, cols), None unless both are integers of 16 or more."""
+    rows, _, cols = text.partition("x")
+    try:
+        size = (int(rows), int(cols))
+    except ValueError:
+        return None
+    return size if min(size) >= 16 else None
 
 
 def frame_settings(info: dict[str, Any], extra: list[str]) -> list[str]:
@@ -277,12 +288,23 @@ def main(argv: list[str] | None = None) -> int:
                      + ", ".join(CAMERA_SCENES))
     if not -60.0 <= args.camera_tilt <= 60.0:
         parser.error(f"--camera-tilt {args.camera_tilt:g}: expected degrees from -60 to 60")
-    rows, _, cols = args.size.partition("x")
-    size = (int(rows), int(cols))
+    size = _size(args.size)
+    if size is None:
+        parser.error(f"--size {args.size!r}: expected ROWSxCOLS of 16 or more, e.g. 480x640")
     if not 0 <= args.left_band < size[1]:
         parser.error(f"--left-band {args.left_band}: expected 0 to {size[1] - 1} columns")
-    seeds = parse_seeds(args.seeds)
-    load_config(preset=PRESET, overrides=parse_settings(args.settings))  # fail early
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0:
+        parser.error(f"--seeds {args.seeds!r}: expected seeds >= 0 as 300-324 or 1,2,5")
+    if args.jobs < 1:
+        parser.error(f"--jobs {args.jobs}: expected 1 or more")
+    try:
+        load_config(preset=PRESET, overrides=parse_settings(args.settings))  # fail early
+    except ConfigError as exc:
+        parser.error(f"--set: {exc}")
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="real_cells-") as tmp:
         jobs = [(n, s, size, args.settings, args.background, args.max_tilt, tmp,

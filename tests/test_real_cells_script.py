@@ -51,3 +51,20 @@ def test_the_summary_counts_uncovered_sites_and_heights_below_the_top():
     kinds = real_cells.summarise(frames, ["cam-pile"])["kinds"]
     assert kinds["cam-pile"]["usable"] == 2 and kinds["cam-pile"]["uncovered"] == 1
     assert kinds["all"]["below_top_median"] == 35.0  # the median of 10 and 60
+
+
+@pytest.mark.parametrize(("argv", "named"), [
+    (["--seeds", "abc"], "--seeds 'abc'"),
+    (["--seeds", "5-2"], "--seeds '5-2'"),
+    (["--size", "480"], "--size '480'"),
+    (["--size", "8x8"], "--size '8x8'"),
+    (["--jobs", "0"], "--jobs 0"),
+    (["--set", "holdsite.size=7"], "--set: [holdsite] size"),
+    (["--scenes", "cam-nothing"], "--scenes: unknown cam-nothing"),
+])
+def test_bad_options_are_one_line_errors_naming_the_option(argv, named, capsys):
+    with pytest.raises(SystemExit) as stop:
+        real_cells.main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert named in err and "Traceback" not in err
