@@ -24,11 +24,13 @@ configuration:
   ``MIN_REGION`` or more pixels that are at least ``PURE`` item;
 * ``unlabelled``: fraction of the valid pixels left without a region.
 
-Usage::
+Usage (``ARC``: a folder holding the four frames and the two intrinsics
+files, e.g. the team's shared ``data/arc-suction``; ``sample_data/arc`` holds
+the scenes, its ``empty/`` the empty totes)::
 
-    .venv/bin/python benchmarks/arc_thresholds.py /work/shared/data/arc-suction \\
+    .venv/bin/python benchmarks/arc_thresholds.py ARC \\
         --figures docs/figures --json benchmarks/results/arc_thresholds.json
-    .venv/bin/python benchmarks/arc_thresholds.py /work/shared/data/arc-suction --sweep
+    .venv/bin/python benchmarks/arc_thresholds.py ARC --sweep
 """
 
 from __future__ import annotations
@@ -172,7 +174,7 @@ def sweep(scene: np.ndarray, empty: np.ndarray, config: Config) -> list[dict[str
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("data", type=Path,
-                   help="folder of the ARC frames (/work/shared/data/arc-suction)")
+                   help="folder of the ARC frames, their empty totes and intrinsics")
     p.add_argument("--figures", type=Path, default=None, help="write the PNGs here")
     p.add_argument("--json", type=Path, default=None, help="write the numbers here")
     p.add_argument("--sweep", action="store_true",

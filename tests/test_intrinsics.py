@@ -1,6 +1,7 @@
 """Camera intrinsics files (issue 32): three formats, told by content; bad files are one line."""
 
 import json
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
@@ -9,6 +10,7 @@ from rangeseg_cli.cell.intrinsics import Intrinsics, read_intrinsics
 from rangeseg_cli.cli.main import main
 from rangeseg_cli.errors import ConfigError
 
+ROOT = Path(__file__).resolve().parents[1]
 FX, FY, CX, CY = 616.521545, 616.521606, 311.354492, 231.087402
 
 ROS_CALIBRATION = f"""\
@@ -71,7 +73,7 @@ def write(tmp_path, name, text):
 
 
 def test_the_sr300_matrix_file_gives_its_focal_lengths_and_principal_point():
-    got = read_intrinsics("/work/shared/data/arc-suction/suction-camera-intrinsics.txt")
+    got = read_intrinsics(str(ROOT / "sample_data" / "arc" / "suction-camera-intrinsics.txt"))
     assert (got.fx, got.fy, got.cx, got.cy) == (FX, FY, CX, CY)
     assert got.width is None and got.height is None
 

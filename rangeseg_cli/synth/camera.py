@@ -1,7 +1,7 @@
 """A synthetic depth camera for ``rangeseg synth``: bin-picking cells as a real sensor sees them.
 
 Renders scenes like the frames of an Intel RealSense SR300 looking down into
-a tote (``/work/shared/data/arc-suction``): a perspective camera 0.5-0.9 m
+a tote (the frames of ``sample_data/arc``): a perspective camera 0.5-0.9 m
 above a table or a tote floor, items of 3-15 cm (boxes, lying and standing
 cylinders, balls, bottles, frustums) dropped onto it and onto each other, the
 tote's walls and rim at the image border, a gripper reaching in from one
