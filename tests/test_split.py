@@ -362,9 +362,9 @@ def test_min_excess_is_off_by_default_and_reaches_merge_back(monkeypatch) -> Non
 def test_max_pieces_bounds_the_split(tuning) -> None:
     z, _ = frustum_scene()
     many = len(large_regions(run_pipeline(z, SPLIT, stages=3).labels))
-    # the carving would give the two pieces' absorbed sides regions again: off, to count
-    # the split's own pieces
-    config = passes_without("carve")
+    # the carving would give the two pieces' absorbed sides regions again, and the
+    # leftovers the pixels dropped beyond max_pieces: off, to count the split's own pieces
+    config = passes_without("carve", "leftovers")
     tuning(max_pieces=2)
     few = len(large_regions(run_pipeline(z, config, stages=3).labels))
     assert few == 2 < many == 6
