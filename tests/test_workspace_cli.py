@@ -292,6 +292,46 @@ def test_a_depth_map_read_as_heights_is_named(image, overrides, hinted):
         assert "--preset metre-depth (depth in metres)" in hint
 
 
+@pytest.mark.parametrize("image, overrides, hinted", [
+    (metres(tote_depth()), {"input": {"larger_is_closer": False}}, "median 0.7"),
+    (metres(tote_depth()), {"input": {"larger_is_closer": False, "metres_per_unit": 1.0}},
+     "depth units of 1 m"),
+    (tote_depth(), {"input": {"metres_per_unit": 0.05}}, "depth units of 0.05 m"),
+    (metres(tote_depth()), {"input": {"larger_is_closer": False, "scale": 1000.0}}, ""),
+    (metres(tote_depth()), {"input": {"larger_is_closer": False,
+                                      "metres_per_unit": 0.001}}, ""),  # mm, said so
+    (metres(tote_depth()) * 1000, {"input": {"larger_is_closer": False}}, ""),  # float mm
+    (metres(tote_depth()), {}, ""),  # read as heights: depth_map_hint's case
+    (tote_depth(), {"input": {"larger_is_closer": False}}, ""),  # integers: 0.1 mm or mm
+    (tote_depth(), {"input": {"metres_per_unit": 0.001}}, "")])
+def test_depth_in_units_coarser_than_the_settings_is_named(image, overrides, hinted):
+    from rangeseg_cli.stages.rangeimage import coarse_units_hint
+
+    hint = coarse_units_hint(image, load_config(overrides=overrides).input)
+    assert (hinted in hint) if hinted else hint == ""
+    if hinted:
+        assert "--preset metre-depth" in hint and "nothing to pick" in hint
+
+
+def test_a_run_on_depth_in_metres_read_as_mm_warns_and_the_preset_picks_the_box(tmp_path):
+    path = tmp_path / "a.npy"
+    np.save(path, metres(tote_depth(holes=0.01)))
+    def run(*args: str) -> tuple[list[str], dict]:
+        out = tmp_path / "out"
+        res = CliRunner().invoke(main, ["run", str(path), "-o", str(out), "--overwrite", *args])
+        assert res.exit_code == 0, res.output
+        said = [line for line in res.stderr.splitlines() if line.startswith("warning:")]
+        return said, json.loads((out / "a.holdsite.json").read_text())
+
+    said, found = run("--set", "input.larger_is_closer=false")
+    assert len(said) == 1 and "metres read as mm" in said[0]
+    assert found["holdsite"] is None
+    said, found = run("--preset", "metre-depth")
+    assert not any("metres read as mm" in line for line in said)
+    site = found["holdsite"]
+    assert site is not None and 20 <= site["row"] < 40 and 20 <= site["col"] < 50  # the box
+
+
 def test_a_run_on_a_depth_map_without_a_preset_warns_once(tmp_path, write_png):
     for name in ("a.png", "b.png"):
         write_png(tmp_path / name, tote_depth())

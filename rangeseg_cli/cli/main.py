@@ -339,13 +339,15 @@ def _warn_units(jobs: Any, config: Any, stages: tuple[str, ...], opts: dict[str,
     """On stderr, unless -q: the first readable local input's units may be misread.
 
     A depth map read as heights, or heights in units too fine for the
-    thresholds (:func:`~rangeseg_cli.stages.rangeimage.fine_units_hint`).
+    thresholds (:func:`~rangeseg_cli.stages.rangeimage.fine_units_hint`) or
+    too coarse for the settings in depth units (metres:
+    :func:`~rangeseg_cli.stages.rangeimage.coarse_units_hint`).
     Only when the batch reads inputs and picks holdsites (``run``); the
     first of :data:`HINT_TRIES` local inputs that reads is looked at.
     """
     from ..batch.io import read_image
     from ..errors import RangesegError
-    from ..stages.rangeimage import depth_map_hint, fine_units_hint
+    from ..stages.rangeimage import coarse_units_hint, depth_map_hint, fine_units_hint
 
     if opts["quiet"] or "edges" not in stages or "holdsite" not in stages:
         return
@@ -353,7 +355,8 @@ def _warn_units(jobs: Any, config: Any, stages: tuple[str, ...], opts: dict[str,
     for source in local[:HINT_TRIES]:
         try:
             raw = read_image(source)
-            why = depth_map_hint(raw, config.input) or fine_units_hint(raw, config.input)
+            why = (depth_map_hint(raw, config.input) or fine_units_hint(raw, config.input)
+                   or coarse_units_hint(raw, config.input))
         except (RangesegError, MemoryError, OSError):  # the batch reports the image itself
             continue
         if why:

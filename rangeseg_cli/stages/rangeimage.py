@@ -360,6 +360,59 @@ def fine_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
             "if the units are right, set an [input] key (e.g. units_per_pixel) to say so")
 
 
+#: :func:`coarse_units_hint`: depth units of this many metres or more are too coarse for
+#: the settings in depth units (set for about 1 mm).
+COARSE_UNIT_METRES = 0.01
+
+
+def coarse_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
+    """Why the heights of ``raw`` may be in units too coarse for the settings, or ``""``.
+
+    The settings in depth units (the floor ``[grow] min_error`` of the
+    growing of Sec. V-4, the workspace's and the holdsite's tolerances) are
+    set for about 1 mm, as the sensor presets make every frame. Depth in
+    metres (a float32 TIFF or ``.npy``, ROS's ``32FC1``) read with ``[input]
+    scale = 1`` is 1,000 times coarser: every surface fits within them, the
+    whole frame lies on the support, and there is nothing to pick. Says so
+    when ``[input] metres_per_unit`` is :data:`COARSE_UNIT_METRES` or more,
+    or, with it unknown (0), when a floating-point image read as depth
+    (``larger_is_closer = false``) at ``scale = 1`` has a median reading of
+    :data:`DEPTH_METRES` (no camera reads depth of 10 mm or less).
+
+    Parameters
+    ----------
+    raw
+        The image as read (before :func:`to_heights`); one of more than
+        :data:`DEPTH_HINT_PIXELS` pixels is read at a stride.
+    cfg
+        ``[input]``.
+
+    Returns
+    -------
+    str
+        ``""``, or the units and what to set.
+    """
+    fix = ("the settings in depth units ([grow] min_error, the workspace's and the "
+           "holdsite's tolerances) are set for about 1 mm, so every surface fits and there "
+           "is nothing to pick. Read it in mm: --preset metre-depth (depth in metres), or "
+           "input.scale to mm with input.metres_per_unit=0.001")
+    if cfg.metres_per_unit >= COARSE_UNIT_METRES:
+        return f"is read in depth units of {cfg.metres_per_unit:g} m (input.metres_per_unit): {fix}"
+    raw = np.asarray(raw)
+    if (cfg.metres_per_unit > 0 or cfg.larger_is_closer or cfg.scale != 1.0
+            or raw.ndim != 2 or raw.dtype.kind != "f" or raw.size == 0):
+        return ""
+    step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
+    seen = raw[::step, ::step]
+    readings = seen[np.isfinite(seen) & (seen > 0)]
+    if readings.size < 100:
+        return ""
+    median = float(np.median(readings))
+    if not DEPTH_METRES[0] <= median <= DEPTH_METRES[1]:
+        return ""
+    return f"has depth readings of median {median:.4g}, metres read as mm (input.scale = 1): {fix}"
+
+
 def _hint_sample(raw: np.ndarray, cfg: InputConfig, kinds: str) -> np.ndarray | None:
     """The pixels a units hint reads, or None when it has nothing to say.
 
