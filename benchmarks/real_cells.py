@@ -54,7 +54,7 @@ from rangeseg_cli.batch.io import read_image, read_json
 from rangeseg_cli.config import load_config, parse_settings
 from rangeseg_cli.errors import ConfigError
 from rangeseg_cli.pipeline import run_pipeline
-from rangeseg_cli.synth.camera import CAMERA_SCENES, camera_stem, write_camera_scenes
+from rangeseg_cli.synth.camera import CAMERA_SCENES, CAMERAS, camera_stem, write_camera_scenes
 from rangeseg_cli.synth.evaluate import (
     DEFAULT_MAX_TILT,
     check_object_holdsite,
@@ -115,10 +115,11 @@ def depth_noise(raw: np.ndarray, sigma_mm: float, metres_per_raw: float, seed: i
 
 
 def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str, float,
-                         float, float, int]) -> dict[str, Any]:
+                         float, float, int, str]) -> dict[str, Any]:
     """Render, run and score one frame (in a worker process)."""
-    name, seed, size, extra, background, max_tilt, tmp, dropouts, noise, mount, band = job
-    stem, info, gt = render_frame(Path(tmp) / camera_stem(name, seed), name, seed, size, mount)
+    name, seed, size, extra, background, max_tilt, tmp, dropouts, noise, mount, band, camera = job
+    stem, info, gt = render_frame(Path(tmp) / camera_stem(name, seed), name, seed, size, mount,
+                                  camera)
     gt[:, :band] = 0  # no reading there: nothing to judge a window on
     config = load_config(preset=PRESET, overrides=parse_settings(frame_settings(info, extra)))
     kwargs: dict[str, Any] = {}
@@ -150,10 +151,10 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str,
             "pipeline_reason": doc.get("reason", "")}
 
 
-def render_frame(folder: Path, name: str, seed: int, size: tuple[int, int], tilt: float = 0.0
-                 ) -> tuple[Path, dict[str, Any], np.ndarray]:
+def render_frame(folder: Path, name: str, seed: int, size: tuple[int, int], tilt: float = 0.0,
+                 camera: str = "sr300") -> tuple[Path, dict[str, Any], np.ndarray]:
     """Render one camera frame into ``folder``: its file stem, gt.json and GT labels."""
-    write_camera_scenes(folder, [name], [seed], size=size, tilt=tilt)
+    write_camera_scenes(folder, [name], [seed], size=size, tilt=tilt, camera=camera)
     stem = folder / camera_stem(name, seed)
     return (stem, read_json(stem.with_name(stem.name + ".gt.json")),
             np.load(stem.with_name(stem.name + ".gt.npy")))
@@ -233,6 +234,7 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"{meta.get('dropouts', 0.0):g}; depth noise {meta.get('noise_mm', 0.0):g} mm; "
              f"camera tilt {meta.get('camera_tilt', 0.0):g} degrees; "
              f"left band of no reading {meta.get('left_band', 0)} px; "
+             f"camera {meta.get('camera', 'sr300')}; "
              f"{meta['seconds']:.0f} s on "
              f"{meta['jobs']} processes.", "",
              "Tilt: median angle (degrees) of the usable sites' approach to straight down "
@@ -277,6 +279,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--left-band", type=int, default=0, metavar="PX",
                         help="columns of no reading along the left edge, as a RealSense "
                              "D4xx's (default 0)")
+    parser.add_argument("--camera", choices=tuple(CAMERAS), default="sr300",
+                        help="the synthetic camera (sr300-smooth: the SR300's error as "
+                             "measured on the ARC frames; default sr300)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS / "real_cells",
                         help="results stem (default benchmarks/results/real_cells)")
@@ -308,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="real_cells-") as tmp:
         jobs = [(n, s, size, args.settings, args.background, args.max_tilt, tmp,
-                 args.dropouts, args.noise, args.camera_tilt, args.left_band)
+                 args.dropouts, args.noise, args.camera_tilt, args.left_band, args.camera)
                 for n in names for s in seeds]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             frames = list(pool.map(one_frame, jobs))
@@ -316,6 +321,7 @@ def main(argv: list[str] | None = None) -> int:
             "settings": args.settings, "background": args.background,
             "max_tilt": args.max_tilt, "dropouts": args.dropouts, "noise_mm": args.noise,
             "camera_tilt": args.camera_tilt, "left_band": args.left_band,
+            "camera": args.camera,
             "jobs": args.jobs,
             "seconds": time.perf_counter() - start}
     summary = summarise(frames, names)

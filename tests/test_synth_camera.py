@@ -152,6 +152,39 @@ def test_depth_noise_grows_with_the_square_of_depth():
     assert far == pytest.approx(2.0, rel=0.05) and far / near == pytest.approx(4.0, rel=0.08)
 
 
+def test_smooth_depth_noise_has_its_sigma_and_is_correlated_over_its_pixels():
+    from rangeseg_cli.synth.camera import smooth_depth_noise
+
+    depth = np.full((300, 300), 1000.0)
+    depth[:, 150:] = 500.0
+    noisy = smooth_depth_noise(depth, np.random.default_rng(2), noise_at_1m_mm=0.8,
+                               sigma_px=2.0) - depth
+    far, near = noisy[:, :150], noisy[:, 150:]
+    assert np.std(far) == pytest.approx(0.8, rel=0.15)
+    assert np.std(far) / np.std(near) == pytest.approx(4.0, rel=0.15)  # grows with depth²
+    assert np.corrcoef(far[:, :-1].ravel(), far[:, 1:].ravel())[0, 1] > 0.8  # neighbours
+    assert abs(np.corrcoef(far[:, :-20].ravel(), far[:, 20:].ravel())[0, 1]) < 0.1  # far apart
+    off = smooth_depth_noise(depth, np.random.default_rng(2), noise_at_1m_mm=0.0, sigma_px=2.0)
+    np.testing.assert_array_equal(off, depth)
+
+
+def test_the_smooth_camera_fits_its_error_to_window_size_as_the_arc_empty_tote_does():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    from noise_scale import quadric_rms
+
+    def growth(camera: str) -> float:
+        raw = render_camera_scene("cam-empty-tote", seed=300, camera=camera).background
+        z = np.where(raw > 0, -0.1 * raw.astype(np.float64), np.nan)  # mm
+        small, large = (np.percentile(quadric_rms(z, k), 25) for k in (5, 31))
+        return large / small
+
+    assert growth("sr300-smooth") > 1.6  # the SR300's empty tote: 0.36 / 0.18 mm
+    assert growth("sr300") < 1.2  # white noise: flat
+
+
 def test_disparity_quantisation_steps_grow_with_depth_squared():
     depth = np.linspace(590.0, 610.0, 2001)
     q = quantise_disparity(depth, fx=600.0, baseline_mm=25.0, step_px=1 / 16)
@@ -233,7 +266,7 @@ def test_ideal_camera_has_no_invalid_pixels_and_sr300_has_some():
 
 
 def test_unknown_options_are_one_line_errors_naming_the_option():
-    with pytest.raises(ValueError, match="`camera` 'kinect' is unknown; allowed: sr300, ideal"):
+    with pytest.raises(ValueError, match="`camera` 'kinect' is unknown; allowed: sr300, sr300-smooth, ideal"):
         render_camera_scene("cam-tote", camera="kinect")
     with pytest.raises(ValueError, match="`depth_unit` 'cm' is unknown"):
         render_camera_scene("cam-tote", depth_unit="cm")

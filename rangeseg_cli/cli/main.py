@@ -661,7 +661,7 @@ def _parse_size(ctx: click.Context, param: click.Parameter, value: str | None
 
 #: Cameras and depth units of ``synth`` (rangeseg_cli.synth.camera.CAMERAS and DEPTH_UNITS,
 #: not imported: fast --help).
-CAMERA_NAMES = ("sr300", "ideal")
+CAMERA_NAMES = ("sr300", "sr300-smooth", "ideal")
 DEPTH_UNIT_NAMES = ("0.1mm", "1mm", "m")
 
 
@@ -682,8 +682,9 @@ DEPTH_UNIT_NAMES = ("0.1mm", "1mm", "m")
               help="8-bit (depth units) or 16-bit (1/256 depth units) PNG (range-image "
                    "scenes).")
 @click.option("--camera", type=click.Choice(CAMERA_NAMES), default="sr300", show_default=True,
-              help="cam-* scenes: the depth camera, with its intrinsics and defects (ideal: "
-                   "none).")
+              help="cam-* scenes: the depth camera, with its intrinsics and defects "
+                   "(sr300-smooth: the SR300's error as measured, fine per pixel and "
+                   "correlated over a few; ideal: none).")
 @click.option("--depth-unit", type=click.Choice(DEPTH_UNIT_NAMES), default="0.1mm",
               show_default=True, help="cam-* scenes: uint16 PNG in 0.1 mm or 1 mm, or "
                                       "float32 metres as .npy (read with --preset "
