@@ -45,6 +45,7 @@ from rangeseg_cli import __version__
 from rangeseg_cli.batch.io import read_image
 from rangeseg_cli.config import load_config, parse_settings
 from rangeseg_cli.pipeline import run_pipeline
+from rangeseg_cli.synth.camera import CAMERAS
 from rangeseg_cli.synth.evaluate import hoover_compare
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -68,11 +69,12 @@ def inverse_heights(depth: np.ndarray, d0: float) -> np.ndarray:
         return np.where(depth > 0, d0 * d0 / depth, np.nan)
 
 
-def one_frame(job: tuple[str, int]) -> dict[str, Any]:
+def one_frame(job: tuple[str, int, str]) -> dict[str, Any]:
     """Hoover counts of one frame, segmented as depth and as inverse depth."""
-    name, seed = job
+    name, seed, model = job
     with tempfile.TemporaryDirectory() as tmp:
-        stem, info, gt = render_frame(Path(tmp) / "frames", name, seed, (480, 640))
+        stem, info, gt = render_frame(Path(tmp) / "frames", name, seed, (480, 640),
+                                      camera=model)
         raw = read_image(stem.with_name(stem.name + ".png"))
     camera = info["camera"]
     depth = depth_in_mm(raw, camera)
@@ -101,10 +103,12 @@ def summarise(frames: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, int
     return table
 
 
-def markdown(table: dict[str, dict[str, dict[str, int]]], seeds: str) -> str:
+def markdown(table: dict[str, dict[str, dict[str, int]]], seeds: str, camera: str = "sr300"
+             ) -> str:
     """The summary as a Markdown table."""
     lines = ["# Segmenting depth or inverse depth (benchmarks/inverse_depth.py)", "",
-             f"rangeseg {__version__}; seeds {seeds}; 640x480 synthetic camera frames; "
+             f"rangeseg {__version__}; seeds {seeds}; 640x480 synthetic camera frames "
+             f"(camera {camera}); "
              f"Hoover's metric at T = 0.8 on surfaces of {MIN_REGION} valid px or more. "
              "depth: `--preset tenth-mm-depth` + intrinsics; inverse: the defaults on "
              "d0^2 / depth (mm), no intrinsics.", "",
@@ -123,6 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="300-309", help="e.g. 300-309 or 325,330")
     parser.add_argument("--scenes", default=",".join(SCENES),
                         help="camera scenes with items (default: all four)")
+    parser.add_argument("--camera", choices=tuple(CAMERAS), default="sr300",
+                        help="the synthetic camera (default sr300)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS / "inverse_depth",
                         help="results path without suffix")
@@ -140,14 +146,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--seeds {args.seeds!r}: expected seeds >= 0 as 300-309 or 325,330")
     if args.jobs < 1:
         parser.error(f"--jobs {args.jobs}: expected 1 or more")
-    jobs = [(name, seed) for name in names for seed in seeds]
+    jobs = [(name, seed, args.camera) for name in names for seed in seeds]
     with ProcessPoolExecutor(args.jobs) as pool:
         frames = list(pool.map(one_frame, jobs))
     table = summarise(frames)
-    text = markdown(table, args.seeds)
+    text = markdown(table, args.seeds, args.camera)
     print(text)
     args.out.with_suffix(".json").write_text(json.dumps(
-        {"version": __version__, "seeds": args.seeds, "summary": table, "frames": frames},
+        {"version": __version__, "seeds": args.seeds, "camera": args.camera, "summary": table,
+         "frames": frames},
         indent=1) + "\n")
     args.out.with_suffix(".md").write_text(text)
     return 0
