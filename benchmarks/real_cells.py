@@ -115,11 +115,12 @@ def depth_noise(raw: np.ndarray, sigma_mm: float, metres_per_raw: float, seed: i
 
 
 def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str, float,
-                         float, float, int, str]) -> dict[str, Any]:
+                         float, float, int, str, float]) -> dict[str, Any]:
     """Render, run and score one frame (in a worker process)."""
-    name, seed, size, extra, background, max_tilt, tmp, dropouts, noise, mount, band, camera = job
+    (name, seed, size, extra, background, max_tilt, tmp, dropouts, noise, mount, band, camera,
+     soft) = job
     stem, info, gt = render_frame(Path(tmp) / camera_stem(name, seed), name, seed, size, mount,
-                                  camera)
+                                  camera, soft)
     gt[:, :band] = 0  # no reading there: nothing to judge a window on
     config = load_config(preset=PRESET, overrides=parse_settings(frame_settings(info, extra)))
     kwargs: dict[str, Any] = {}
@@ -152,9 +153,10 @@ def one_frame(job: tuple[str, int, tuple[int, int], list[str], bool, float, str,
 
 
 def render_frame(folder: Path, name: str, seed: int, size: tuple[int, int], tilt: float = 0.0,
-                 camera: str = "sr300") -> tuple[Path, dict[str, Any], np.ndarray]:
+                 camera: str = "sr300", soft: float = 0.0
+                 ) -> tuple[Path, dict[str, Any], np.ndarray]:
     """Render one camera frame into ``folder``: its file stem, gt.json and GT labels."""
-    write_camera_scenes(folder, [name], [seed], size=size, tilt=tilt, camera=camera)
+    write_camera_scenes(folder, [name], [seed], size=size, tilt=tilt, camera=camera, soft=soft)
     stem = folder / camera_stem(name, seed)
     return (stem, read_json(stem.with_name(stem.name + ".gt.json")),
             np.load(stem.with_name(stem.name + ".gt.npy")))
@@ -234,7 +236,7 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              f"{meta.get('dropouts', 0.0):g}; depth noise {meta.get('noise_mm', 0.0):g} mm; "
              f"camera tilt {meta.get('camera_tilt', 0.0):g} degrees; "
              f"left band of no reading {meta.get('left_band', 0)} px; "
-             f"camera {meta.get('camera', 'sr300')}; "
+             f"camera {meta.get('camera', 'sr300')}; soft items {meta.get('soft', 0.0):g}; "
              f"{meta['seconds']:.0f} s on "
              f"{meta['jobs']} processes.", "",
              "Tilt: median angle (degrees) of the usable sites' approach to straight down "
@@ -282,6 +284,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--camera", choices=tuple(CAMERAS), default="sr300",
                         help="the synthetic camera (sr300-smooth: the SR300's error as "
                              "measured on the ARC frames; default sr300)")
+    parser.add_argument("--soft", type=float, default=0.0, metavar="SHARE",
+                        help="share of the items that are soft, a bag or a cloth: their faces "
+                             "creased by folds of about 4 mm (default 0)")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS / "real_cells",
                         help="results stem (default benchmarks/results/real_cells)")
@@ -306,6 +311,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--seeds {args.seeds!r}: expected seeds >= 0 as 300-324 or 1,2,5")
     if args.jobs < 1:
         parser.error(f"--jobs {args.jobs}: expected 1 or more")
+    if not 0.0 <= args.soft <= 1.0:
+        parser.error(f"--soft {args.soft:g}: expected a share from 0 to 1")
     try:
         load_config(preset=PRESET, overrides=parse_settings(args.settings))  # fail early
     except ConfigError as exc:
@@ -313,7 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="real_cells-") as tmp:
         jobs = [(n, s, size, args.settings, args.background, args.max_tilt, tmp,
-                 args.dropouts, args.noise, args.camera_tilt, args.left_band, args.camera)
+                 args.dropouts, args.noise, args.camera_tilt, args.left_band, args.camera,
+                 args.soft)
                 for n in names for s in seeds]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             frames = list(pool.map(one_frame, jobs))
@@ -321,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
             "settings": args.settings, "background": args.background,
             "max_tilt": args.max_tilt, "dropouts": args.dropouts, "noise_mm": args.noise,
             "camera_tilt": args.camera_tilt, "left_band": args.left_band,
-            "camera": args.camera,
+            "camera": args.camera, "soft": args.soft,
             "jobs": args.jobs,
             "seconds": time.perf_counter() - start}
     summary = summarise(frames, names)

@@ -185,6 +185,35 @@ def test_the_smooth_camera_fits_its_error_to_window_size_as_the_arc_empty_tote_d
     assert growth("sr300") < 1.2  # white noise: flat
 
 
+def test_soft_items_are_creased_inside_their_border_and_keep_their_ground_truth():
+    plain = render_camera_scene("cam-pile", seed=300, camera="ideal")
+    soft = render_camera_scene("cam-pile", seed=300, camera="ideal", soft=1.0)
+    np.testing.assert_array_equal(soft.gt, plain.gt)
+    creased = soft.info["soft"]
+    assert creased and "soft" not in plain.info
+    moved = np.abs(soft.depth - plain.depth)
+    moved[~np.isfinite(moved)] = 0.0
+    ids = {o["id"] for o in plain.info["objects"] if not o["pickable"]}
+    assert not ids & set(creased)  # the table is never soft
+    assert moved.max() > 2.0  # folds of about 4 mm
+    zero = render_camera_scene("cam-pile", seed=300, camera="ideal", soft=0.0)
+    np.testing.assert_array_equal(zero.image, plain.image)
+    with pytest.raises(ValueError, match="`soft` 1.5 must be a share from 0 to 1"):
+        render_camera_scene("cam-pile", seed=300, soft=1.5)
+
+
+def test_a_crease_fades_to_nothing_at_the_items_border():
+    from rangeseg_cli.synth.camera import crease
+
+    depth = np.full((80, 80), 600.0)
+    obj = np.zeros((80, 80), np.int32)
+    obj[10:70, 10:70] = 1
+    out = crease(depth, obj, [1], np.random.default_rng(0))
+    assert (out[obj == 0] == 600.0).all()
+    ring = (obj == 1) & ~np.pad(np.ones((58, 58), bool), 11)  # the item's outermost pixels
+    assert np.abs(out[ring] - 600.0).max() < 0.15 * np.abs(out - 600.0).max()  # a tenth
+
+
 def test_disparity_quantisation_steps_grow_with_depth_squared():
     depth = np.linspace(590.0, 610.0, 2001)
     q = quantise_disparity(depth, fx=600.0, baseline_mm=25.0, step_px=1 / 16)

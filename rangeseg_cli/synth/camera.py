@@ -594,6 +594,33 @@ def dark_item_holes(obj: np.ndarray, dark: Sequence[int], rng: np.random.Generat
     return ndimage.binary_dilation(seeds, np.ones((2, 2), bool)) & on
 
 
+#: :func:`crease`: height (mm) and width (pixels, the Gaussian's sigma) of a soft item's folds.
+CREASE_MM, CREASE_PX = 4.0, 5.0
+
+
+def crease(depth: np.ndarray, obj: np.ndarray, soft: Sequence[int],
+           rng: np.random.Generator) -> np.ndarray:
+    """The depth of the ``soft`` items (a bag, a cloth) creased into bumps and folds.
+
+    White noise smoothed by a Gaussian of :data:`CREASE_PX` pixels, scaled to
+    :data:`CREASE_MM`, moves each soft item's visible pixels along the ray,
+    tapered to nothing at the item's border over twice that width so that
+    no step appears there: a face no surface of order <= 2 explains, as a
+    real bin's bags and cloths are (the ARC frame's, ``docs/quality.md``).
+    Its ground truth stays one surface.
+    """
+    if not soft:
+        return depth
+    field = ndimage.gaussian_filter(rng.standard_normal(depth.shape), CREASE_PX)
+    field *= CREASE_MM / max(float(field.std()), 1e-12)
+    out = depth.copy()
+    for i in soft:
+        on = obj == i
+        taper = np.minimum(ndimage.distance_transform_edt(on) / (2.0 * CREASE_PX), 1.0)
+        out[on] += (field * taper)[on]
+    return out
+
+
 def dropouts(shape: tuple[int, int], rng: np.random.Generator, *, fraction: float
              ) -> np.ndarray:
     """Small random holes: a share ``fraction`` of the pixels start a 3x3 blob."""
@@ -996,7 +1023,8 @@ def check_camera_options(name: str, shape: Sequence[int], camera: str, depth_uni
 
 def render_camera_scene(name: str, *, size: Sequence[int] = MODEL_SIZE, seed: int = 0,
                         camera: str = "sr300", depth_unit: str = "0.1mm",
-                        sensor: SensorModel | None = None, tilt: float = 0.0) -> CameraScene:
+                        sensor: SensorModel | None = None, tilt: float = 0.0,
+                        soft: float = 0.0) -> CameraScene:
     """Render a named scene of :data:`CAMERA_SCENES` as a depth camera's frame.
 
     Parameters
@@ -1017,6 +1045,10 @@ def render_camera_scene(name: str, *, size: Sequence[int] = MODEL_SIZE, seed: in
     tilt
         Degrees the camera's mount is tilted from straight down (about the
         camera's x axis), -60 to 60; the layout follows the view.
+    soft
+        Share (0 to 1) of the pickable items that are soft, a bag or a cloth:
+        their faces creased (:func:`crease`), chosen by a stream of their own
+        (0: none, the frames of before).
 
     Returns
     -------
@@ -1031,6 +1063,8 @@ def render_camera_scene(name: str, *, size: Sequence[int] = MODEL_SIZE, seed: in
     shape = check_camera_options(name, size, camera, depth_unit, seed)
     if isinstance(tilt, bool) or not (isinstance(tilt, numbers.Real) and -60.0 <= tilt <= 60.0):
         raise ValueError(f"`tilt` {tilt!r} must be a number of degrees from -60 to 60")
+    if isinstance(soft, bool) or not (isinstance(soft, numbers.Real) and 0.0 <= soft <= 1.0):
+        raise ValueError(f"`soft` {soft!r} must be a share from 0 to 1")
     model = replace(CAMERAS[camera], tilt=float(tilt))
     model = replace(model, sensor=sensor) if sensor is not None else model
     kind = list(CAMERA_SCENES).index(name)
@@ -1041,12 +1075,18 @@ def render_camera_scene(name: str, *, size: Sequence[int] = MODEL_SIZE, seed: in
     dark_rng = np.random.default_rng([seed, kind, 9])
     dark = [i for i, it in enumerate(items)
             if it.pickable and dark_rng.random() < model.sensor.dark_fraction]
+    soft_rng = np.random.default_rng([seed, kind, 10])
+    creased = [i for i, it in enumerate(items) if it.pickable and soft_rng.random() < soft]
+    if creased:
+        render = replace(render, depth=crease(render.depth, render.obj, creased, soft_rng))
     raw, truthful = sense(render, cam, model.sensor, unit,
                           lambda k: np.random.default_rng([seed, kind, 1, k]), dark)
     background, _ = sense(render_items(cam, empty), cam, model.sensor, unit,
                           lambda k: np.random.default_rng([seed, kind, 2, k]))
     gt = np.where(truthful, render.gt, 0).astype(np.int32)
     info = _info(name, seed, model, unit, cam, items, render, gt, dark)
+    if creased:
+        info["soft"] = creased
     return CameraScene(name, render.depth, raw, background, gt, info, cam)
 
 
@@ -1089,14 +1129,15 @@ def camera_stem(name: str, seed: int) -> str:
 
 def write_camera_scenes(out_dir: str | Path, names: Iterable[str], seeds: Iterable[int], *,
                         size: Sequence[int] = MODEL_SIZE, camera: str = "sr300",
-                        depth_unit: str = "0.1mm", tilt: float = 0.0) -> list[Path]:
+                        depth_unit: str = "0.1mm", tilt: float = 0.0, soft: float = 0.0
+                        ) -> list[Path]:
     """Render camera scenes for each seed and write them with their ground truth.
 
     Per scene and seed, with ``<stem>`` = :func:`camera_stem`, writes
     ``OUT/<stem>.png`` (uint16; ``.npy`` float32 metres for ``depth_unit =
     "m"``), ``<stem>.gt.npy`` (int32 labels), ``<stem>.gt.json``,
     ``<stem>.intrinsics.txt`` and ``<stem>.gt.background.png`` (or ``.npy``):
-    the empty support for ``[workspace] background``. ``tilt``: as
+    the empty support for ``[workspace] background``. ``tilt``, ``soft``: as
     :func:`render_camera_scene`. ``rangeseg run OUT``
     reads only the frames: names holding ``.gt.`` are skipped as ground
     truth, and ``.txt`` is no image.
@@ -1124,7 +1165,7 @@ def write_camera_scenes(out_dir: str | Path, names: Iterable[str], seeds: Iterab
     for name in dict.fromkeys(names):
         for seed in dict.fromkeys(seeds):
             scene = render_camera_scene(name, size=size, seed=seed, camera=camera,
-                                        depth_unit=depth_unit, tilt=tilt)
+                                        depth_unit=depth_unit, tilt=tilt, soft=soft)
             stem = camera_stem(name, seed)
             paths = [out / f"{stem}{suffix}", out / f"{stem}.gt.background{suffix}",
                      out / f"{stem}.gt.npy", out / f"{stem}.gt.json",
