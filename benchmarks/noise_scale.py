@@ -14,7 +14,8 @@ and 50th percentiles of the RMS error of a least-squares quadric in every
 window sides of :data:`SIDES`.
 
 Frames: the ARC SR300 frames and their empty totes in ``ARC`` (a folder of
-the four ``*.depth.png``: the team's shared ``data/arc-suction``), read as
+the four ``*.depth.png``, the empty totes also in its ``empty/``:
+``sample_data/arc`` or the team's shared ``data/arc-suction``), read as
 ``sample_data/arc/suction.toml`` reads its frame (mm), and the synthetic
 camera's frames (``benchmarks/real_cells.py``'s rendering) of ``--seeds``.
 
@@ -94,10 +95,18 @@ def profile(z: np.ndarray) -> dict[str, Any]:
     return row
 
 
+def arc_frame(folder: Path, name: str) -> Path | None:
+    """``folder/<name>.depth.png``, else in ``folder/empty`` (as ``sample_data/arc`` keeps them)."""
+    for path in (folder / f"{name}.depth.png", folder / "empty" / f"{name}.depth.png"):
+        if path.is_file():
+            return path
+    return None
+
+
 def arc_heights(folder: Path) -> dict[str, np.ndarray]:
     """The ARC frames in mm as ``sample_data/arc/suction.toml`` reads the SR300's (no filter)."""
     cfg = load_config(ROOT / "sample_data" / "arc" / "suction.toml").input
-    return {name: to_heights(read_image(folder / f"{name}.depth.png"), cfg)
+    return {name: to_heights(read_image(arc_frame(folder, name)), cfg)  # type: ignore[arg-type]
             for name in ARC_FRAMES}
 
 
@@ -137,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS / "noise_scale",
                         help="results path without suffix")
     args = parser.parse_args(argv)
-    missing = [n for n in ARC_FRAMES if not (args.arc / f"{n}.depth.png").is_file()]
+    missing = [n for n in ARC_FRAMES if arc_frame(args.arc, n) is None]
     if missing:
         parser.error(f"{args.arc}: no {missing[0]}.depth.png (the ARC frames' folder)")
     try:

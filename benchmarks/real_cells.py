@@ -68,11 +68,17 @@ DEFAULT_SEEDS = "100-119"
 
 
 def parse_seeds(text: str) -> list[int]:
-    """``"100-119"`` or ``"1,2,5"`` (or both, comma-separated) as a list of seeds."""
+    """``"100-119"`` or ``"1,2,5"`` (or both, comma-separated) as a list of seeds.
+
+    Raises ValueError for a part that is no number or a range that runs down.
+    """
     seeds: list[int] = []
     for part in text.split(","):
         lo, _, hi = part.strip().partition("-")
-        seeds.extend(range(int(lo), int(hi or lo) + 1))
+        first, last = int(lo), int(hi or lo)
+        if last < first:
+            raise ValueError(f"{part!r} runs down")
+        seeds.extend(range(first, last + 1))
     return seeds
 
 
@@ -293,8 +299,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     names = [n.strip() for n in args.scenes.split(",") if n.strip()]
     unknown = [n for n in names if n not in CAMERA_SCENES]
-    if unknown:
-        parser.error(f"--scenes: unknown {', '.join(unknown)}; allowed: "
+    if unknown or not names:
+        parser.error(f"--scenes: unknown {', '.join(unknown) or '(none given)'}; allowed: "
                      + ", ".join(CAMERA_SCENES))
     if not -60.0 <= args.camera_tilt <= 60.0:
         parser.error(f"--camera-tilt {args.camera_tilt:g}: expected degrees from -60 to 60")

@@ -52,7 +52,8 @@ def render() -> str:
             lines += ["", f"## `[{table}]`", "", ref.table_help, ""]
         lines.append(f"- `{ref.key} = {ref.default}` ({ref.allowed}): {ref.help}.")
     quiet = sorted({f"`{p.name}`" for p in PASSES if not p.uses_noise})
-    quiet_list = ", ".join(quiet[:-1]) + " and " + quiet[-1]
+    quiet_list = (", ".join(quiet[:-1]) + " and " + quiet[-1]) if len(quiet) > 1 else (
+        "".join(quiet) or "none")
     lines += ["", "## The refinement's passes", "",
               "`[refine] passes` names the passes that run; they run in this order, each a cut, "
               f"a merge or an assign; all but {quiet_list} scale their tests by "

@@ -56,6 +56,8 @@ def test_the_summary_counts_uncovered_sites_and_heights_below_the_top():
 @pytest.mark.parametrize(("argv", "named"), [
     (["--seeds", "abc"], "--seeds 'abc'"),
     (["--seeds", "5-2"], "--seeds '5-2'"),
+    (["--seeds", "300-309,5-2"], "--seeds '300-309,5-2'"),
+    (["--scenes", ","], "--scenes: unknown (none given)"),
     (["--size", "480"], "--size '480'"),
     (["--size", "8x8"], "--size '8x8'"),
     (["--jobs", "0"], "--jobs 0"),

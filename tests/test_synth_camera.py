@@ -196,8 +196,6 @@ def test_soft_items_are_creased_inside_their_border_and_keep_their_ground_truth(
     ids = {o["id"] for o in plain.info["objects"] if not o["pickable"]}
     assert not ids & set(creased)  # the table is never soft
     assert moved.max() > 2.0  # folds of about 4 mm
-    zero = render_camera_scene("cam-pile", seed=300, camera="ideal", soft=0.0)
-    np.testing.assert_array_equal(zero.image, plain.image)
     with pytest.raises(ValueError, match="`soft` 1.5 must be a share from 0 to 1"):
         render_camera_scene("cam-pile", seed=300, soft=1.5)
 

@@ -298,19 +298,25 @@ def test_a_depth_map_read_as_heights_is_named(image, overrides, hinted):
      "depth units of 1 m"),
     (tote_depth(), {"input": {"metres_per_unit": 0.05}}, "depth units of 0.05 m"),
     (metres(tote_depth()), {"input": {"larger_is_closer": False, "scale": 1000.0}}, ""),
-    (metres(tote_depth()), {"input": {"larger_is_closer": False,
-                                      "metres_per_unit": 0.001}}, ""),  # mm, said so
+    (metres(tote_depth()) * 1000, {"input": {"larger_is_closer": False,
+                                             "metres_per_unit": 0.001}}, ""),  # mm, said so
     (metres(tote_depth()) * 1000, {"input": {"larger_is_closer": False}}, ""),  # float mm
     (metres(tote_depth()), {}, ""),  # read as heights: depth_map_hint's case
     (tote_depth(), {"input": {"larger_is_closer": False}}, ""),  # integers: 0.1 mm or mm
-    (tote_depth(), {"input": {"metres_per_unit": 0.001}}, "")])
+    (tote_depth(), {"input": {"metres_per_unit": 0.001}}, ""),
+    (metres(tote_depth()), {"input": {"larger_is_closer": False, "metres_per_unit": 0.001}},
+     "read as 0.7 mm"),  # metres read with --preset mm-depth's units
+    (metres(tote_depth()), {"input": {"larger_is_closer": False, "scale": 0.1,
+                                      "metres_per_unit": 0.001}}, "read as 0.07 mm")])
 def test_depth_in_units_coarser_than_the_settings_is_named(image, overrides, hinted):
     from rangeseg_cli.stages.rangeimage import coarse_units_hint
 
     hint = coarse_units_hint(image, load_config(overrides=overrides).input)
     assert (hinted in hint) if hinted else hint == ""
-    if hinted:
-        assert "--preset metre-depth" in hint and "nothing to pick" in hint
+    if hinted:  # depth: the preset; a height map: its scale
+        said = "--preset metre-depth" if "larger_is_closer" in overrides["input"] else (
+            "input.scale to mm with input.metres_per_unit=0.001")
+        assert said in hint
 
 
 def test_a_run_on_depth_in_metres_read_as_mm_warns_and_the_preset_picks_the_box(tmp_path):

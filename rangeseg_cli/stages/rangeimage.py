@@ -374,10 +374,12 @@ def coarse_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
     metres (a float32 TIFF or ``.npy``, ROS's ``32FC1``) read with ``[input]
     scale = 1`` is 1,000 times coarser: every surface fits within them, the
     whole frame lies on the support, and there is nothing to pick. Says so
-    when ``[input] metres_per_unit`` is :data:`COARSE_UNIT_METRES` or more,
-    or, with it unknown (0), when a floating-point image read as depth
-    (``larger_is_closer = false``) at ``scale = 1`` has a median reading of
-    :data:`DEPTH_METRES` (no camera reads depth of 10 mm or less).
+    when ``[input] metres_per_unit`` is :data:`COARSE_UNIT_METRES` or more;
+    when a floating-point image read as depth (``larger_is_closer = false``)
+    has a median reading of :data:`DEPTH_METRES` at ``scale = 1`` with
+    ``metres_per_unit`` unknown (0); and when the units are said but make
+    its median depth less than :data:`COARSE_UNIT_METRES` (metres read with
+    ``--preset mm-depth``: no camera reads depth of 1 cm).
 
     Parameters
     ----------
@@ -394,13 +396,14 @@ def coarse_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
     """
     fix = ("the settings in depth units ([grow] min_error, the workspace's and the "
            "holdsite's tolerances) are set for about 1 mm, so every surface fits and there "
-           "is nothing to pick. Read it in mm: --preset metre-depth (depth in metres), or "
-           "input.scale to mm with input.metres_per_unit=0.001")
+           "is nothing to pick. Read it in mm: "
+           + ("input.scale to mm with input.metres_per_unit=0.001" if cfg.larger_is_closer
+              else "--preset metre-depth (depth in metres), or input.scale to mm with "
+              "input.metres_per_unit=0.001"))
     if cfg.metres_per_unit >= COARSE_UNIT_METRES:
         return f"is read in depth units of {cfg.metres_per_unit:g} m (input.metres_per_unit): {fix}"
     raw = np.asarray(raw)
-    if (cfg.metres_per_unit > 0 or cfg.larger_is_closer or cfg.scale != 1.0
-            or raw.ndim != 2 or raw.dtype.kind != "f" or raw.size == 0):
+    if cfg.larger_is_closer or raw.ndim != 2 or raw.dtype.kind != "f" or raw.size == 0:
         return ""
     step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
     seen = raw[::step, ::step]
@@ -408,7 +411,14 @@ def coarse_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
     if readings.size < 100:
         return ""
     median = float(np.median(readings))
-    if not DEPTH_METRES[0] <= median <= DEPTH_METRES[1]:
+    if cfg.metres_per_unit > 0:  # the units are said: a camera reads no depth under 1 cm
+        metres = median * cfg.scale * cfg.metres_per_unit
+        if metres >= COARSE_UNIT_METRES:
+            return ""
+        return (f"has depth readings of median {median:.4g}, read as {metres * 1000:.3g} mm "
+                f"(input.scale {cfg.scale:g}, metres_per_unit {cfg.metres_per_unit:g}): "
+                "metres read as a finer unit. Read it with --preset metre-depth")
+    if cfg.scale != 1.0 or not DEPTH_METRES[0] <= median <= DEPTH_METRES[1]:
         return ""
     return f"has depth readings of median {median:.4g}, metres read as mm (input.scale = 1): {fix}"
 
