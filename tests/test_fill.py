@@ -386,6 +386,16 @@ def test_leftovers_groups_touching_at_a_corner_are_two_regions():
     assert out[0, 0] == 2 and out[9, 9] == 3  # numbered in raster order
 
 
+def test_leftovers_a_strip_two_pixels_wide_stays_unlabelled():
+    components = np.ones((12, 40), np.int32)
+    labels = np.ones((12, 40), np.int32)
+    labels[3:5, 2:38] = 0  # 72 pixels, 2 wide: an edge band
+    labels[7:10, 2:12] = 0  # 30 pixels, 3 wide
+    out = keep_leftovers(labels, components, 20)
+    assert (out[3:5, 2:38] == 0).all()
+    assert (out[7:10, 2:12] == 2).all()
+
+
 def test_leftovers_refuse_labels_and_components_of_other_shapes():
     with pytest.raises(ValueError, match="same shape"):
         keep_leftovers(np.zeros((4, 4), np.int32), np.zeros((4, 5), np.int32), 20)

@@ -268,8 +268,10 @@ def keep_leftovers(labels: np.ndarray, components: np.ndarray, min_pixels: int) 
     left with no region, and neither the surface descriptions nor the
     holdsite see it. This last pass gives each 4-connected group of such
     pixels (connected as the components of step 3 are) of at least
-    ``min_pixels`` a region of its own; its surface description reports how
-    well a quadric fits it (``rms_error``).
+    ``min_pixels`` that is 3 pixels wide somewhere (a pixel with its four
+    neighbours in it) a region of its own; its surface description reports
+    how well a quadric fits it (``rms_error``). Strips 1-2 pixels wide stay
+    unlabelled, as edges do.
 
     Parameters
     ----------
@@ -279,7 +281,7 @@ def keep_leftovers(labels: np.ndarray, components: np.ndarray, min_pixels: int) 
         int (H, W) components of step 3, 0 = none (edges and invalid pixels).
     min_pixels
         ``[link] min_component``: smaller groups stay unlabelled, as step 3
-        drops smaller components.
+        drops smaller components; so do groups no 3x3 cross fits in.
 
     Returns
     -------
@@ -301,6 +303,8 @@ def keep_leftovers(labels: np.ndarray, components: np.ndarray, min_pixels: int) 
     if n == 0:
         return out
     keep = np.bincount(groups.ravel(), minlength=n + 1) >= min_pixels
+    core = ndimage.binary_erosion(left, structure=FOUR_CONNECTED)  # 3 px wide or more
+    keep &= np.bincount(groups[core], minlength=n + 1) > 0
     keep[0] = False
     ids = np.zeros(n + 1, dtype=np.int32)
     first = int(out.max(initial=0)) + 1

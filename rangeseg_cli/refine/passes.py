@@ -154,8 +154,8 @@ PASSES: tuple[Pass, ...] = (
     Pass("join_occluded", "merge", "patches of one surface that something in front divides "
          "get one label", _with_noise("occlusion", "join_occluded")),
     Pass("leftovers", "assign", "pixels of a component that no surface took, in 4-connected "
-         "groups of at least [link] min_component, get a region each (the paper's growing "
-         "leaves none)", _leftovers, uses_noise=False),
+         "groups of at least [link] min_component and 3 pixels wide, get a region each (the "
+         "paper's growing leaves none)", _leftovers, uses_noise=False),
 )
 
 
