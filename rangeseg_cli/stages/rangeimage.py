@@ -405,8 +405,7 @@ def coarse_units_hint(raw: np.ndarray, cfg: InputConfig) -> str:
     raw = np.asarray(raw)
     if cfg.larger_is_closer or raw.ndim != 2 or raw.dtype.kind != "f" or raw.size == 0:
         return ""
-    step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
-    seen = raw[::step, ::step]
+    seen = _strided(raw)
     readings = seen[np.isfinite(seen) & (seen > 0)]
     if readings.size < 100:
         return ""
@@ -427,12 +426,17 @@ def _hint_sample(raw: np.ndarray, cfg: InputConfig, kinds: str) -> np.ndarray | 
     """The pixels a units hint reads, or None when it has nothing to say.
 
     None unless ``cfg``'s units keys are at their defaults and ``raw`` is a
-    2-D image of 16 bits or more of a numpy kind in ``kinds``; every k-th row
-    and column, k the least that leaves :data:`DEPTH_HINT_PIXELS` or fewer.
+    2-D image of 16 bits or more of a numpy kind in ``kinds``; else
+    :func:`_strided`.
     """
     if (not _at_defaults(cfg) or raw.ndim != 2 or raw.dtype.kind not in kinds
             or raw.dtype.itemsize < 2 or raw.size == 0):
         return None
+    return _strided(raw)
+
+
+def _strided(raw: np.ndarray) -> np.ndarray:
+    """Every k-th row and column of 2-D ``raw``: :data:`DEPTH_HINT_PIXELS` or fewer."""
     step = math.ceil(math.sqrt(raw.size / DEPTH_HINT_PIXELS))
     return raw[::step, ::step]
 

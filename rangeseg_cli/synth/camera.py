@@ -603,7 +603,7 @@ def crease(depth: np.ndarray, obj: np.ndarray, soft: Sequence[int],
            rng: np.random.Generator) -> np.ndarray:
     """The depth of the ``soft`` items (a bag, a cloth) creased into bumps and folds.
 
-    White noise smoothed by a Gaussian of :data:`CREASE_PX` pixels, scaled to
+    :func:`smooth_field` over :data:`CREASE_PX` pixels, scaled to
     :data:`CREASE_MM`, moves each soft item's visible pixels along the ray,
     tapered by the distance to the item's border over twice that width (a
     tenth at its outermost pixels) so that no step of more than a fold's
@@ -613,8 +613,7 @@ def crease(depth: np.ndarray, obj: np.ndarray, soft: Sequence[int],
     """
     if not soft:
         return depth
-    field = ndimage.gaussian_filter(rng.standard_normal(depth.shape), CREASE_PX)
-    field *= CREASE_MM / max(float(field.std()), 1e-12)
+    field = CREASE_MM * smooth_field(depth.shape, rng, CREASE_PX)
     out = depth.copy()
     for i in soft:
         on = obj == i
@@ -637,19 +636,24 @@ def depth_noise(depth: np.ndarray, rng: np.random.Generator, *, noise_at_1m_mm: 
     return depth + sigma * rng.standard_normal(depth.shape)
 
 
+def smooth_field(shape: tuple[int, ...], rng: np.random.Generator, sigma_px: float
+                 ) -> np.ndarray:
+    """White noise smoothed by a Gaussian of ``sigma_px`` pixels, scaled to unit variance."""
+    field = ndimage.gaussian_filter(rng.standard_normal(shape), sigma_px)
+    return field / max(float(field.std()), 1e-12)
+
+
 def smooth_depth_noise(depth: np.ndarray, rng: np.random.Generator, *,
                        noise_at_1m_mm: float, sigma_px: float) -> np.ndarray:
     """Correlated depth error of sigma ``noise_at_1m_mm * (z / 1 m)**2``.
 
-    White noise smoothed by a Gaussian of ``sigma_px`` pixels and scaled to
-    unit variance (its correlation length is about ``2 * sigma_px``); none
-    when either is 0.
+    :func:`smooth_field` (its correlation length is about ``2 * sigma_px``)
+    scaled by that sigma; none when either is 0.
     """
     if noise_at_1m_mm <= 0 or sigma_px <= 0:
         return depth.copy()
-    field = ndimage.gaussian_filter(rng.standard_normal(depth.shape), sigma_px)
-    field /= max(float(field.std()), 1e-12)
-    return depth + noise_at_1m_mm * (depth / 1000.0) ** 2 * field
+    return depth + noise_at_1m_mm * (depth / 1000.0) ** 2 * smooth_field(depth.shape, rng,
+                                                                         sigma_px)
 
 
 def quantise_disparity(depth: np.ndarray, *, fx: float, baseline_mm: float,
