@@ -51,9 +51,10 @@ from rangeseg_cli.synth.evaluate import hoover_compare
 sys.path.insert(0, str(Path(__file__).parent))
 from real_cells import (  # noqa: E402
     PRESET,
+    checked_scenes,
+    checked_seeds,
     depth_in_mm,
     frame_settings,
-    parse_seeds,
     render_frame,
 )
 
@@ -133,17 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS / "inverse_depth",
                         help="results path without suffix")
     args = parser.parse_args(argv)
-    names = [n.strip() for n in args.scenes.split(",") if n.strip()]
-    unknown = [n for n in names if n not in SCENES]
-    if unknown or not names:
-        parser.error(f"--scenes: unknown {', '.join(unknown) or '(none given)'}; allowed: "
-                     + ", ".join(SCENES))
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError:
-        seeds = []
-    if not seeds or min(seeds) < 0:
-        parser.error(f"--seeds {args.seeds!r}: expected seeds >= 0 as 300-309 or 325,330")
+    names = checked_scenes(parser, args.scenes, SCENES)
+    seeds = checked_seeds(parser, args.seeds)
     if args.jobs < 1:
         parser.error(f"--jobs {args.jobs}: expected 1 or more")
     jobs = [(name, seed, args.camera) for name in names for seed in seeds]

@@ -45,7 +45,7 @@ from rangeseg_cli.stages.noise import estimate_noise
 from rangeseg_cli.stages.rangeimage import to_heights
 
 sys.path.insert(0, str(Path(__file__).parent))
-from real_cells import PRESET, frame_settings, parse_seeds, render_frame  # noqa: E402
+from real_cells import PRESET, checked_seeds, frame_settings, render_frame  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
@@ -149,12 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     missing = [n for n in ARC_FRAMES if arc_frame(args.arc, n) is None]
     if missing:
         parser.error(f"{args.arc}: no {missing[0]}.depth.png (the ARC frames' folder)")
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError:
-        seeds = []
-    if not seeds or min(seeds) < 0:
-        parser.error(f"--seeds {args.seeds!r}: expected seeds >= 0 as 300-301 or 300,305")
+    seeds = checked_seeds(parser, args.seeds)
     frames = {**arc_heights(args.arc), **camera_heights(seeds)}
     rows = {name: profile(z) for name, z in frames.items()}
     text = markdown(rows)

@@ -43,6 +43,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -90,6 +91,29 @@ def _size(text: str) -> tuple[int, int] | None:
     except ValueError:
         return None
     return size if min(size) >= 16 else None
+
+
+def checked_seeds(parser: argparse.ArgumentParser, text: str) -> list[int]:
+    """:func:`parse_seeds` of ``--seeds``, or a one-line usage error naming it."""
+    try:
+        seeds = parse_seeds(text)
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0:
+        parser.error(f"--seeds {text!r}: expected seeds >= 0 as 300-324 or 1,2,5")
+    return seeds
+
+
+def checked_scenes(parser: argparse.ArgumentParser, text: str, allowed: Iterable[str]
+                   ) -> list[str]:
+    """The comma-separated ``--scenes``, or a one-line usage error naming the unknown ones."""
+    allowed = list(allowed)
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in allowed]
+    if unknown or not names:
+        parser.error(f"--scenes: unknown {', '.join(unknown) or '(none given)'}; allowed: "
+                     + ", ".join(allowed))
+    return names
 
 
 def frame_settings(info: dict[str, Any], extra: list[str]) -> list[str]:
@@ -297,11 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS / "real_cells",
                         help="results stem (default benchmarks/results/real_cells)")
     args = parser.parse_args(argv)
-    names = [n.strip() for n in args.scenes.split(",") if n.strip()]
-    unknown = [n for n in names if n not in CAMERA_SCENES]
-    if unknown or not names:
-        parser.error(f"--scenes: unknown {', '.join(unknown) or '(none given)'}; allowed: "
-                     + ", ".join(CAMERA_SCENES))
+    names = checked_scenes(parser, args.scenes, CAMERA_SCENES)
     if not -60.0 <= args.camera_tilt <= 60.0:
         parser.error(f"--camera-tilt {args.camera_tilt:g}: expected degrees from -60 to 60")
     size = _size(args.size)
@@ -309,12 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--size {args.size!r}: expected ROWSxCOLS of 16 or more, e.g. 480x640")
     if not 0 <= args.left_band < size[1]:
         parser.error(f"--left-band {args.left_band}: expected 0 to {size[1] - 1} columns")
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError:
-        seeds = []
-    if not seeds or min(seeds) < 0:
-        parser.error(f"--seeds {args.seeds!r}: expected seeds >= 0 as 300-324 or 1,2,5")
+    seeds = checked_seeds(parser, args.seeds)
     if args.jobs < 1:
         parser.error(f"--jobs {args.jobs}: expected 1 or more")
     if not 0.0 <= args.soft <= 1.0:
