@@ -265,7 +265,8 @@ class SplitConfig:
     min_piece: int = _opt(20, "smallest piece, and smallest core of a piece (pixels "
                           "normal_sigma or more from its border), in pixels; smaller ones "
                           "join their nearest piece", min=1, max=MAX_COUNT)
-    max_pieces: int = _opt(8, "most pieces one component is split into", min=2, max=64)
+    max_pieces: int = _opt(8, "most pieces the split cuts one component into (the pass "
+                           "leftovers may add regions for what they drop)", min=2, max=64)
     crease_pieces: bool = _opt(True, "split a piece again when its plane fails the fit test "
                                "(a quadric can absorb the crease of two small faces), along a "
                                "straight crease when its normals do not divide it, and keep "

@@ -195,6 +195,20 @@ def bad_setting_on_the_command_line(tmp_path: Path, setting: str) -> str:
     return result.output.strip().splitlines()[-1]
 
 
+def script_error(main: Callable[[list[str]], Any], argv: list[str],
+                 capsys: pytest.CaptureFixture[str]) -> str:
+    """A benchmark script's ``main(argv)`` refused: the last line it wrote on stderr.
+
+    Asserts it stopped with exit code 2 and no traceback.
+    """
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and not any("Traceback" in line for line in err)
+    return err[-1]
+
+
 @pytest.fixture(autouse=True)
 def _automatic_threads():
     """``--threads`` or a test may set the process's thread count: back to automatic after."""

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import script_error
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import inverse_depth  # noqa: E402
@@ -54,8 +56,4 @@ def test_summary_sums_each_way_per_scene_and_over_all():
     (["--jobs", "0"], "--jobs 0"),
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, named, capsys):
-    with pytest.raises(SystemExit) as stop:
-        inverse_depth.main(argv)
-    assert stop.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert named in err and "Traceback" not in err
+    assert named in script_error(inverse_depth.main, argv, capsys)

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import script_error
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import quality  # noqa: E402
@@ -57,13 +59,8 @@ def test_width_classes_cover_every_width_once() -> None:
 ])
 def test_a_bad_option_gets_one_line_naming_it_and_exit_code_2(
         args: list[str], named: str, capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(SystemExit) as stop:
-        quality.main(args)
-    assert stop.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert named in err[-1]
-    assert "allowed" in err[-1] or "expected" in err[-1]
-    assert not any("Traceback" in line for line in err)
+    err = script_error(quality.main, args, capsys)
+    assert named in err and ("allowed" in err or "expected" in err)
 
 
 @pytest.mark.parametrize(("item", "named"), [
@@ -72,12 +69,8 @@ def test_a_bad_option_gets_one_line_naming_it_and_exit_code_2(
 ])
 def test_an_old_split_key_gets_one_line_naming_the_new_one(
         item: str, named: str, capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(SystemExit) as stop:
-        quality.main(["--set", item])
-    assert stop.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert named in err[-1] and f"[split] {item.split('.')[1].split('=')[0]} " in err[-1]
-    assert not any("Traceback" in line for line in err)
+    err = script_error(quality.main, ["--set", item], capsys)
+    assert named in err and f"[split] {item.split('.')[1].split('=')[0]} " in err
 
 
 def test_the_options_are_parsed_into_seeds_scenes_and_size() -> None:

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import script_error
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import real_cells  # noqa: E402
@@ -65,8 +67,4 @@ def test_the_summary_counts_uncovered_sites_and_heights_below_the_top():
     (["--scenes", "cam-nothing"], "--scenes: unknown cam-nothing"),
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, named, capsys):
-    with pytest.raises(SystemExit) as stop:
-        real_cells.main(argv)
-    assert stop.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert named in err and "Traceback" not in err
+    assert named in script_error(real_cells.main, argv, capsys)
