@@ -18,6 +18,7 @@ from rangeseg_cli.stages.holdsite import (
     find_objects,
     footprint,
     middle_value,
+    on_narrow_only,
     outer_invalid,
     pixel_sums,
     region_lift,
@@ -267,3 +268,23 @@ def test_a_camera_run_with_a_large_footprint_does_not_import_scipy_signal():
         "assert site.holdsite is not None and site.holdsite.size[0] * site.holdsite.size[1] > 64\n"
         "assert 'scipy.signal' not in sys.modules\n")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("spans, touching, narrow, expected", [
+    # the arm (top 48) rests on its two fingers just below it, both narrow
+    ({1: (45.0, 48.0), 2: (40.0, 42.0), 3: (40.0, 42.0)}, {(1, 2), (1, 3)}, {2, 3}, {1}),
+    # a box lying on a wide box is an item
+    ({1: (45.0, 48.0), 2: (40.0, 42.0)}, {(1, 2)}, set(), set()),
+    # on a narrow and on a wide object: the wide one may hold it up
+    ({1: (45.0, 48.0), 2: (40.0, 42.0), 3: (41.0, 43.0)}, {(1, 2), (1, 3)}, {2}, set()),
+    # low enough to stand on the support (0) whatever it touches
+    ({1: (3.0, 48.0), 2: (40.0, 42.0)}, {(1, 2)}, {2}, set()),
+    # far above the narrow object: it does not rest on it, it hovers (another rule's case)
+    ({1: (45.0, 48.0), 2: (10.0, 12.0)}, {(1, 2)}, {2}, set()),
+    # touching nothing lower
+    ({1: (45.0, 48.0), 2: (50.0, 52.0)}, {(1, 2)}, {2}, set()),
+])
+def test_on_narrow_only_finds_what_rests_on_narrow_objects_alone(spans, touching, narrow,
+                                                                  expected):
+    both_ways = touching | {(b, a) for a, b in touching}
+    assert on_narrow_only(spans, both_ways, 1.0, narrow) == expected

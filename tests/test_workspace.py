@@ -602,6 +602,33 @@ def test_a_flat_finger_from_the_border_over_an_empty_table_is_not_picked():
         label_at(paper, 10, 16)
 
 
+def arm_with_fingers(z, top=68.0, drop=6.0):
+    """``z`` with a flat arm reaching in from the top border and two narrow fingers below it."""
+    z = z.copy()
+    z[0:40, 64:84] = top
+    z[40:50, 64:70] = z[40:50, 78:84] = top - drop
+    return z
+
+
+def test_an_arm_on_its_fingers_over_an_empty_table_is_not_picked():
+    # the fingers hang just below the arm: it rests on them, so it does not hover
+    result = run_pipeline(noisy(arm_with_fingers(np.full((96, 96), 20.0))), load_config())
+    assert site_of(result) is None and result.holdsite.reason.startswith("nothing to pick")
+    arm = next(o for o in result.holdsite.objects if label_at(result, 20, 74) in o.surfaces)
+    assert arm.structure and arm.touches_border
+
+
+def test_an_arm_on_its_fingers_a_little_above_the_pile_is_a_structure():
+    z = np.full((96, 96), 20.0)
+    z[50:84, 16:26] = 20.0 + 4.0 * np.arange(1, 11)[None, :]  # the item's side, up to its top
+    z[50:84, 26:60] = 60.0  # its top, 40 above the table; the arm's 48 is not far above it
+    result = run_pipeline(noisy(arm_with_fingers(z)), load_config())
+    arm = next(o for o in result.holdsite.objects if label_at(result, 20, 74) in o.surfaces)
+    item = next(o for o in result.holdsite.objects if label_at(result, 66, 42) in o.surfaces)
+    assert arm.structure and not item.structure
+    assert site_of(result).object == item.id
+
+
 def test_workspace_arrays_of_another_shape_are_one_input_error():
     from rangeseg_cli.errors import InputError
     from rangeseg_cli.stages.holdsite import find_holdsite

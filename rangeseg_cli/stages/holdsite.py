@@ -868,10 +868,12 @@ def mark_structures(objects: list[ObjectInfo], where: ObjectMap, valid: np.ndarr
     (their widest inscribed disc reaches ``half_width`` px). With a pile, an
     object touching the border is a structure when its top rises above
     :data:`STRUCTURE_RISE` times the pile's highest top plus the support's
-    tolerance (the arm, a mount, a tote's wall or rim above the pile), and
-    so is an object as high touching a structure (a finger seen apart from
-    its arm). With nothing else in view, one touching the border is a
-    structure when it hovers or (without a background frame:
+    tolerance (the arm, a mount, a tote's wall or rim above the pile) or
+    above its top resting on narrow objects only (:func:`on_narrow_only`:
+    the arm on its fingers), and so is an object as high touching a
+    structure (a finger seen apart from its arm). With nothing else in
+    view, one touching the border is a structure when it hovers, rests on
+    narrow objects only, or (without a background frame:
     ``walls_known`` false) rises towards the border (its pixels at the
     border higher than its median: a tote's wall), and so is a hovering
     object touching it. In a height map (no perspective) a flat item cut by
@@ -902,20 +904,22 @@ def mark_structures(objects: list[ObjectInfo], where: ObjectMap, valid: np.ndarr
     hover = _hovering(spans, near, space.tolerance)
     zone = border_zone(valid, space.extent)
     bordering = _present(owner[zone])
-    # the widest disc counts for the pile (away from the border, not hovering) and standing
-    wide = widest_discs(owner, [o.id for o in objects if o.id in standing
-                                or o.id not in bordering | hover], boxes)
+    # the widest disc counts for the pile (away from the border, not hovering), for
+    # standing and for what the arm may rest on
+    wide = widest_discs(owner, [o.id for o in objects], boxes)
+    held = on_narrow_only(spans, near, space.tolerance,
+                          {i for i in spans if wide.get(i, 0.0) < half_width})
     pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
             and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
-    if pile:  # far above the pile: the arm, a mount, a wall
+    if pile:  # far above the pile, or above it on fingers: the arm, a mount, a wall
         high = STRUCTURE_RISE * max(pile) + space.tolerance
         above = {o.id for o in objects if spans[o.id][1] > high}
-        structures = bordering & above
+        structures = bordering & (above | {i for i in held if spans[i][1] > max(pile)})
     else:  # nothing else in view: what hovers or (a wall: the tallest) rises to the border
         above = hover
         tallest = max((spans[i][1] for i in bordering if i in spans and np.isfinite(
             spans[i][1])), default=math.inf)
-        structures = {o.id for o in objects if o.id in bordering and (o.id in hover or (
+        structures = {o.id for o in objects if o.id in bordering and (o.id in hover | held or (
             not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
                 owner == o.id, height, zone, space.tolerance)))}
         structures |= crossing_the_view(owner, valid) & _tall(spans, structures)
@@ -1178,6 +1182,31 @@ def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, in
                 under[one] = max(under[one], spans[other][1])
     return {i for i, (low, top) in spans.items() if np.isfinite(top) and top > 2 * tol
             and low - under[i] > max(HOVER_SHARE * (top - under[i]), HOVER_TOLERANCES * tol)}
+
+
+def on_narrow_only(spans: dict[int, tuple[float, float]], touching: set[tuple[int, int]],
+                   tol: float, narrow: set[int]) -> set[int]:
+    """Objects that rest on lower objects, all of them ``narrow``, and not on the support.
+
+    ``spans``: (low, top) of each object; ``touching``: pairs of objects
+    near each other (:func:`_near_pairs`), both ways; ``narrow``: objects
+    too narrow to hold a footprint. An object rests on a height ``h`` (the
+    support's 0, or the top of a lower object it touches) when its lowest
+    pixels lie above ``h`` by no more than :data:`HOVER_SHARE` of its top's
+    height above ``h`` or :data:`HOVER_TOLERANCES` times ``tol``, as in
+    :func:`_hovering`. So judged, the robot's arm rests on the fingers it
+    holds (beyond the paper); an item rests on the support or on an item.
+    """
+    def on(i: int, h: float) -> bool:
+        low, top = spans[i]
+        return bool(low - h <= max(HOVER_SHARE * (top - h), HOVER_TOLERANCES * tol))
+
+    under: dict[int, set[int]] = {i: set() for i in spans}
+    for a, b in touching:
+        if a in spans and b in spans and spans[b][1] < spans[a][1] and on(a, spans[b][1]):
+            under[a].add(b)
+    return {i for i, below in under.items() if below and below <= narrow
+            and np.isfinite(spans[i][1]) and not on(i, 0.0)}
 
 
 def _near_pairs(owner: np.ndarray, boxes: list[Any]) -> set[tuple[int, int]]:
