@@ -18,7 +18,7 @@ from rangeseg_cli.stages.holdsite import (
     find_objects,
     footprint,
     middle_value,
-    on_narrow_only,
+    on_fingers_only,
     outer_invalid,
     pixel_sums,
     region_lift,
@@ -270,21 +270,29 @@ def test_a_camera_run_with_a_large_footprint_does_not_import_scipy_signal():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-@pytest.mark.parametrize("spans, touching, narrow, expected", [
-    # the arm (top 48) rests on its two fingers just below it, both narrow
-    ({1: (45.0, 48.0), 2: (40.0, 42.0), 3: (40.0, 42.0)}, {(1, 2), (1, 3)}, {2, 3}, {1}),
+ARM_AND_FINGERS = {1: (45.0, 48.0), 2: (40.0, 42.0), 3: (40.0, 42.0)}
+
+
+@pytest.mark.parametrize("spans, touching, narrow, hover, expected", [
+    # the arm (top 48) rests on its two fingers just below it, narrow and hanging in the air
+    (ARM_AND_FINGERS, {(1, 2), (1, 3)}, {2, 3}, {2, 3}, {1}),
+    # ... or on a finger that rests on a hanging one (and so does that finger)
+    ({1: (45.0, 48.0), 2: (40.0, 42.0), 3: (38.0, 39.5)}, {(1, 2), (2, 3)}, {2, 3}, {3},
+     {1, 2}),
+    # an item on narrow pieces that rest on something (its own face's fragments)
+    (ARM_AND_FINGERS, {(1, 2), (1, 3)}, {2, 3}, set(), set()),
     # a box lying on a wide box is an item
-    ({1: (45.0, 48.0), 2: (40.0, 42.0)}, {(1, 2)}, set(), set()),
-    # on a narrow and on a wide object: the wide one may hold it up
-    ({1: (45.0, 48.0), 2: (40.0, 42.0), 3: (41.0, 43.0)}, {(1, 2), (1, 3)}, {2}, set()),
+    (ARM_AND_FINGERS, {(1, 2)}, {3}, {2, 3}, set()),
+    # on a finger and on a wide object: the wide one may hold it up
+    (ARM_AND_FINGERS, {(1, 2), (1, 3)}, {2}, {2, 3}, set()),
     # low enough to stand on the support (0) whatever it touches
-    ({1: (3.0, 48.0), 2: (40.0, 42.0)}, {(1, 2)}, {2}, set()),
-    # far above the narrow object: it does not rest on it, it hovers (another rule's case)
-    ({1: (45.0, 48.0), 2: (10.0, 12.0)}, {(1, 2)}, {2}, set()),
+    ({1: (3.0, 48.0), 2: (40.0, 42.0)}, {(1, 2)}, {2}, {2}, set()),
+    # far above the finger: it does not rest on it, it hovers (another rule's case)
+    ({1: (45.0, 48.0), 2: (10.0, 12.0)}, {(1, 2)}, {2}, {2}, set()),
     # touching nothing lower
-    ({1: (45.0, 48.0), 2: (50.0, 52.0)}, {(1, 2)}, {2}, set()),
+    ({1: (45.0, 48.0), 2: (50.0, 52.0)}, {(1, 2)}, {2}, {2}, set()),
 ])
-def test_on_narrow_only_finds_what_rests_on_narrow_objects_alone(spans, touching, narrow,
-                                                                  expected):
+def test_on_fingers_only_finds_what_rests_on_hanging_narrow_objects_alone(
+        spans, touching, narrow, hover, expected):
     both_ways = touching | {(b, a) for a, b in touching}
-    assert on_narrow_only(spans, both_ways, 1.0, narrow) == expected
+    assert on_fingers_only(spans, both_ways, 1.0, narrow, hover) == expected

@@ -869,11 +869,11 @@ def mark_structures(objects: list[ObjectInfo], where: ObjectMap, valid: np.ndarr
     object touching the border is a structure when its top rises above
     :data:`STRUCTURE_RISE` times the pile's highest top plus the support's
     tolerance (the arm, a mount, a tote's wall or rim above the pile) or
-    above its top resting on narrow objects only (:func:`on_narrow_only`:
-    the arm on its fingers), and so is an object as high touching a
+    above its top resting on fingers alone (:func:`on_fingers_only`: the
+    arm), and so is an object as high touching a
     structure (a finger seen apart from its arm). With nothing else in
     view, one touching the border is a structure when it hovers, rests on
-    narrow objects only, or (without a background frame:
+    fingers alone, or (without a background frame:
     ``walls_known`` false) rises towards the border (its pixels at the
     border higher than its median: a tote's wall), and so is a hovering
     object touching it. In a height map (no perspective) a flat item cut by
@@ -907,8 +907,8 @@ def mark_structures(objects: list[ObjectInfo], where: ObjectMap, valid: np.ndarr
     # the widest disc counts for the pile (away from the border, not hovering), for
     # standing and for what the arm may rest on
     wide = widest_discs(owner, [o.id for o in objects], boxes)
-    held = on_narrow_only(spans, near, space.tolerance,
-                          {i for i in spans if wide.get(i, 0.0) < half_width})
+    held = on_fingers_only(spans, near, space.tolerance,
+                           {i for i in spans if wide.get(i, 0.0) < half_width}, hover)
     pile = [spans[o.id][1] for o in objects if o.id not in bordering | hover
             and wide.get(o.id, 0.0) >= half_width and np.isfinite(spans[o.id][1])]
     if pile:  # far above the pile, or above it on fingers: the arm, a mount, a wall
@@ -1184,18 +1184,21 @@ def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, in
             and low - under[i] > max(HOVER_SHARE * (top - under[i]), HOVER_TOLERANCES * tol)}
 
 
-def on_narrow_only(spans: dict[int, tuple[float, float]], touching: set[tuple[int, int]],
-                   tol: float, narrow: set[int]) -> set[int]:
-    """Objects that rest on lower objects, all of them ``narrow``, and not on the support.
+def on_fingers_only(spans: dict[int, tuple[float, float]], touching: set[tuple[int, int]],
+                    tol: float, narrow: set[int], hover: set[int]) -> set[int]:
+    """Objects that rest on fingers alone, not on the support nor on an item (the arm).
 
     ``spans``: (low, top) of each object; ``touching``: pairs of objects
     near each other (:func:`_near_pairs`), both ways; ``narrow``: objects
-    too narrow to hold a footprint. An object rests on a height ``h`` (the
-    support's 0, or the top of a lower object it touches) when its lowest
-    pixels lie above ``h`` by no more than :data:`HOVER_SHARE` of its top's
-    height above ``h`` or :data:`HOVER_TOLERANCES` times ``tol``, as in
-    :func:`_hovering`. So judged, the robot's arm rests on the fingers it
-    holds (beyond the paper); an item rests on the support or on an item.
+    too narrow to hold a footprint; ``hover``: :func:`_hovering`. An object
+    rests on a height ``h`` (the support's 0, or the top of a lower object
+    it touches) when its lowest pixels lie above ``h`` by no more than
+    :data:`HOVER_SHARE` of its top's height above ``h`` or
+    :data:`HOVER_TOLERANCES` times ``tol``, as in :func:`_hovering`. A
+    finger is narrow and hovers, or is narrow and rests on fingers alone
+    (transitively): what hangs from the robot's arm. So judged, the arm
+    rests on its fingers (beyond the paper); an item rests on the support,
+    on an item, or on a piece of one that rests on something.
     """
     def on(i: int, h: float) -> bool:
         low, top = spans[i]
@@ -1205,8 +1208,17 @@ def on_narrow_only(spans: dict[int, tuple[float, float]], touching: set[tuple[in
     for a, b in touching:
         if a in spans and b in spans and spans[b][1] < spans[a][1] and on(a, spans[b][1]):
             under[a].add(b)
-    return {i for i, below in under.items() if below and below <= narrow
-            and np.isfinite(spans[i][1]) and not on(i, 0.0)}
+
+    def on_these(i: int, these: set[int]) -> bool:
+        return bool(under[i]) and under[i] <= these and not on(i, 0.0)
+
+    fingers = narrow & hover
+    grew = True
+    while grew:
+        new = {i for i in narrow - fingers if on_these(i, fingers)}
+        fingers |= new
+        grew = bool(new)
+    return {i for i in spans if np.isfinite(spans[i][1]) and on_these(i, fingers)}
 
 
 def _near_pairs(owner: np.ndarray, boxes: list[Any]) -> set[tuple[int, int]]:
