@@ -365,9 +365,9 @@ class WorkspaceConfig:
     max_height: float = _opt(0.0, "only pixels at most this high above the support may be "
                              "picked, depth units; 0 = no upper bound", min=0.0, max=MAX_DEPTH)
     border_structures: bool = _opt(True, "a structure that touches the image border (or its "
-                                   "invalid margin) and rises far above the pile, or above it "
-                                   "resting on fingers alone (the robot's arm and fingers, a "
-                                   "tote wall), or that rings the floor (a tote's "
+                                   "invalid margin) and rises far above the pile (a tote wall, "
+                                   "the robot's arm) or above it resting on fingers alone (the "
+                                   "arm), or that rings the floor (a tote's "
                                    "rim and walls seen whole, and its floor) or, in an empty "
                                    "view, crosses it (a tote's rim), is not picked "
                                    "while anything else may be; objects part at concave "

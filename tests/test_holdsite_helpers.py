@@ -296,3 +296,5 @@ def test_on_fingers_only_finds_what_rests_on_hanging_narrow_objects_alone(
         spans, touching, narrow, hover, expected):
     both_ways = touching | {(b, a) for a, b in touching}
     assert on_fingers_only(spans, both_ways, 1.0, narrow, hover) == expected
+    assert on_fingers_only(spans, touching, 1.0, narrow, hover) == expected  # one way round
+    assert on_fingers_only(spans, both_ways, 1.0, narrow | {99}, hover) == expected

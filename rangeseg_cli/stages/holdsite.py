@@ -1189,8 +1189,8 @@ def on_fingers_only(spans: dict[int, tuple[float, float]], touching: set[tuple[i
     """Objects that rest on fingers alone, not on the support nor on an item (the arm).
 
     ``spans``: (low, top) of each object; ``touching``: pairs of objects
-    near each other (:func:`_near_pairs`), both ways; ``narrow``: objects
-    too narrow to hold a footprint; ``hover``: :func:`_hovering`. An object
+    near each other (:func:`_near_pairs`; either way round); ``narrow``:
+    objects too narrow to hold a footprint; ``hover``: :func:`_hovering`. An object
     rests on a height ``h`` (the support's 0, or the top of a lower object
     it touches) when its lowest pixels lie above ``h`` by no more than
     :data:`HOVER_SHARE` of its top's height above ``h`` or
@@ -1205,13 +1205,15 @@ def on_fingers_only(spans: dict[int, tuple[float, float]], touching: set[tuple[i
         return bool(low - h <= max(HOVER_SHARE * (top - h), HOVER_TOLERANCES * tol))
 
     under: dict[int, set[int]] = {i: set() for i in spans}
-    for a, b in touching:
-        if a in spans and b in spans and spans[b][1] < spans[a][1] and on(a, spans[b][1]):
-            under[a].add(b)
+    for pair in touching:
+        for a, b in (pair, pair[::-1]):
+            if a in spans and b in spans and spans[b][1] < spans[a][1] and on(a, spans[b][1]):
+                under[a].add(b)
 
     def on_these(i: int, these: set[int]) -> bool:
         return bool(under[i]) and under[i] <= these and not on(i, 0.0)
 
+    narrow = narrow & spans.keys()
     fingers = narrow & hover
     grew = True
     while grew:
