@@ -629,6 +629,19 @@ def test_an_arm_on_its_fingers_a_little_above_the_pile_is_a_structure():
     assert site_of(result).object == item.id
 
 
+def test_an_item_at_the_border_on_a_narrow_piece_that_rests_on_an_item_is_picked():
+    # the narrow piece stands on the item below, so it is no finger and the top item no arm
+    z = np.full((96, 96), 20.0)
+    z[0:30, 30:60] = 76.0  # an item cut by the top border, 56 above the table
+    z[30:44, 42:48] = 70.0  # a narrow piece under its edge
+    z[44:84, 16:26] = 20.0 + 4.0 * np.arange(1, 11)[None, :]  # the side of the item below
+    z[44:84, 26:70] = 64.0  # its top, 44 above the table: 56 is not far above it
+    result = run_pipeline(noisy(z), load_config())
+    top = next(o for o in result.holdsite.objects if label_at(result, 15, 45) in o.surfaces)
+    assert top.touches_border and not top.structure
+    assert site_of(result).object == top.id
+
+
 def test_workspace_arrays_of_another_shape_are_one_input_error():
     from rangeseg_cli.errors import InputError
     from rangeseg_cli.stages.holdsite import find_holdsite
