@@ -923,7 +923,8 @@ def mark_structures(objects: list[ObjectInfo], where: ObjectMap, valid: np.ndarr
             not walls_known and spans[o.id][1] >= WALL_SHARE * tallest and _rises_to_border(
                 owner == o.id, height, zone, space.tolerance)))}
         structures |= crossing_the_view(owner, valid) & _tall(spans, structures)
-    walls, floors = enclosing_rings(owner, boxes, valid, near, _tall(spans, hover & structures))
+    arm = (hover | held) & structures  # not to set the highest of the tote's rings
+    walls, floors = enclosing_rings(owner, boxes, valid, near, _tall(spans, arm))
     structures |= walls
     structures |= _attached(objects, owner, structures, above)
     structures |= floors  # after: what lies on the floor is not attached to the tote
