@@ -1167,6 +1167,18 @@ def crossing_the_view(owner: np.ndarray, valid: np.ndarray | None = None) -> set
 HOVER_SHARE, HOVER_TOLERANCES = 0.5, 8.0
 
 
+def rests_on(span: tuple[float, float], h: float, tol: float) -> bool:
+    """Whether an object of (low, top) ``span`` may rest on height ``h`` (not hover over it).
+
+    Its lowest pixels lie above ``h`` by no more than :data:`HOVER_SHARE`
+    of its top's height above ``h`` or :data:`HOVER_TOLERANCES` times
+    ``tol`` (the support's tolerance): the test of :func:`_hovering` and
+    :func:`on_fingers_only`.
+    """
+    low, top = span
+    return bool(low - h <= max(HOVER_SHARE * (top - h), HOVER_TOLERANCES * tol))
+
+
 def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, int]],
               tol: float) -> set[int]:
     """Objects whose lowest pixels lie well above the tops of the lower objects they touch.
@@ -1181,8 +1193,8 @@ def _hovering(spans: dict[int, tuple[float, float]], touching: set[tuple[int, in
         for one, other in ((a, b), (b, a)):
             if one in spans and other in spans and spans[other][1] < spans[one][1]:
                 under[one] = max(under[one], spans[other][1])
-    return {i for i, (low, top) in spans.items() if np.isfinite(top) and top > 2 * tol
-            and low - under[i] > max(HOVER_SHARE * (top - under[i]), HOVER_TOLERANCES * tol)}
+    return {i for i, span in spans.items() if np.isfinite(span).all() and span[1] > 2 * tol
+            and not rests_on(span, under[i], tol)}
 
 
 def on_fingers_only(spans: dict[int, tuple[float, float]], touching: set[tuple[int, int]],
@@ -1191,28 +1203,22 @@ def on_fingers_only(spans: dict[int, tuple[float, float]], touching: set[tuple[i
 
     ``spans``: (low, top) of each object; ``touching``: pairs of objects
     near each other (:func:`_near_pairs`; either way round); ``narrow``:
-    objects too narrow to hold a footprint; ``hover``: :func:`_hovering`. An object
-    rests on a height ``h`` (the support's 0, or the top of a lower object
-    it touches) when its lowest pixels lie above ``h`` by no more than
-    :data:`HOVER_SHARE` of its top's height above ``h`` or
-    :data:`HOVER_TOLERANCES` times ``tol``, as in :func:`_hovering`. A
-    finger is narrow and hovers, or is narrow and rests on fingers alone
+    objects too narrow to hold a footprint; ``hover``: :func:`_hovering`. An
+    object rests (:func:`rests_on`) on the support's 0 or on the top of a
+    lower object it touches. A finger is narrow and hovers, or is narrow and rests on fingers alone
     (transitively): what hangs from the robot's arm. So judged, the arm
     rests on its fingers (beyond the paper); an item rests on the support,
     on an item, or on a piece of one that rests on something.
     """
-    def on(i: int, h: float) -> bool:
-        low, top = spans[i]
-        return bool(low - h <= max(HOVER_SHARE * (top - h), HOVER_TOLERANCES * tol))
-
     under: dict[int, set[int]] = {i: set() for i in spans}
     for pair in touching:
         for a, b in (pair, pair[::-1]):
-            if a in spans and b in spans and spans[b][1] < spans[a][1] and on(a, spans[b][1]):
+            if (a in spans and b in spans and spans[b][1] < spans[a][1]
+                    and rests_on(spans[a], spans[b][1], tol)):
                 under[a].add(b)
 
     def on_these(i: int, these: set[int]) -> bool:
-        return bool(under[i]) and under[i] <= these and not on(i, 0.0)
+        return bool(under[i]) and under[i] <= these and not rests_on(spans[i], 0.0, tol)
 
     narrow = narrow & spans.keys()
     fingers = narrow & hover
